@@ -1,0 +1,409 @@
+//! Jobs: create (JSON or one multipart request), list, get, log, cancel, retry, delete,
+//! results.
+
+use std::collections::HashMap;
+
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{FromRequest, Multipart, Path, Query, Request, State};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::{Value, json};
+use sha2::{Digest, Sha256};
+
+use super::problem::ApiError;
+use super::uploads::{self, new_id, valid_id};
+use super::{AppState, count_upload_bytes, views};
+use crate::jobs::sqlite::Created;
+use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
+use crate::pipeline::{PipelineParams, Stage};
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JobCreate {
+    inputs: JobInputs,
+    #[serde(default)]
+    params: Option<Value>,
+    #[serde(default)]
+    webhook: Option<Value>,
+}
+
+pub async fn load(state: &AppState, id: &str) -> Result<JobRecord, ApiError> {
+    if !valid_id(id) {
+        return Err(ApiError::not_found(format!("no job {id}")));
+    }
+    state
+        .db
+        .get_job(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("no job {id}")))
+}
+
+fn json_error(e: serde_json::Error, what: &str) -> ApiError {
+    use serde_json::error::Category;
+    match e.classify() {
+        Category::Data => ApiError::unprocessable(format!("{what}: {e}")),
+        _ => ApiError::bad_request(format!("{what} is not valid JSON: {e}")),
+    }
+}
+
+/// Parses job parameters, filling defaults; unknown keys are refused.
+fn effective_params(params: Option<Value>) -> Result<Value, ApiError> {
+    let parsed: PipelineParams = match params {
+        None | Some(Value::Null) => PipelineParams::default(),
+        Some(v @ Value::Object(_)) => serde_json::from_value(v).map_err(|e| {
+            ApiError::unprocessable(format!("params: {e}")).with_error("params", e.to_string())
+        })?,
+        Some(_) => {
+            return Err(ApiError::unprocessable("params must be a JSON object")
+                .with_error("params", "not an object"));
+        }
+    };
+    serde_json::to_value(parsed).map_err(ApiError::internal)
+}
+
+fn idempotency_key(req: &Request) -> Result<Option<String>, ApiError> {
+    let Some(v) = req.headers().get("idempotency-key") else {
+        return Ok(None);
+    };
+    let s = v
+        .to_str()
+        .map_err(|_| ApiError::bad_request("Idempotency-Key must be visible ASCII"))?;
+    if s.is_empty() || s.len() > 255 {
+        return Err(ApiError::bad_request(
+            "Idempotency-Key must be 1 to 255 characters",
+        ));
+    }
+    Ok(Some(s.to_string()))
+}
+
+pub async fn create(State(state): State<AppState>, req: Request) -> Result<Response, ApiError> {
+    let key = idempotency_key(&req)?;
+    let content_type = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let (inputs, params, hash) = if content_type.starts_with("application/json") {
+        let limit = state.args.max_json_bytes as usize;
+        let body = axum::body::to_bytes(req.into_body(), limit)
+            .await
+            .map_err(|_| {
+                ApiError::too_large(format!("a JSON body may have at most {limit} bytes"))
+            })?;
+        let create: JobCreate =
+            serde_json::from_slice(&body).map_err(|e| json_error(e, "the body"))?;
+        if create.webhook.is_some() {
+            return Err(
+                ApiError::unprocessable("webhooks are not available in this build")
+                    .with_error("webhook", "not supported yet"),
+            );
+        }
+        let params = effective_params(create.params)?;
+        let hash = request_hash(&json!({ "inputs": create.inputs, "params": params }));
+        (create.inputs, params, hash)
+    } else if content_type.starts_with("multipart/form-data") {
+        let multipart = Multipart::from_request(req, &state)
+            .await
+            .map_err(|e| ApiError::bad_request(format!("multipart body: {e}")))?;
+        multipart_inputs(&state, multipart).await?
+    } else {
+        return Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            "send application/json (inputs by upload id) or multipart/form-data (files)",
+        ));
+    };
+    let parsed: PipelineParams =
+        serde_json::from_value(params.clone()).map_err(ApiError::internal)?;
+    let id = new_id();
+    let created = state
+        .db
+        .create_job(
+            &id,
+            &inputs,
+            &params,
+            &parsed.stages(),
+            key.as_deref(),
+            &hash,
+            state.args.max_queued_jobs as i64,
+        )
+        .await?;
+    let id = match created {
+        Created::New(id) => {
+            state.wake.notify_waiters();
+            tracing::info!(job = %id, "job queued");
+            id
+        }
+        Created::Existing(id) => id,
+    };
+    let job = load(&state, &id).await?;
+    let mut resp = (StatusCode::ACCEPTED, Json(views::job(&job))).into_response();
+    if let Ok(loc) = HeaderValue::from_str(&format!("/v1/jobs/{id}")) {
+        resp.headers_mut().insert(header::LOCATION, loc);
+    }
+    Ok(resp)
+}
+
+fn request_hash(v: &Value) -> String {
+    hex::encode(Sha256::digest(v.to_string().as_bytes()))
+}
+
+/// Stores each file part of a one-request submission as a completed upload.
+async fn multipart_inputs(
+    state: &AppState,
+    mut mp: Multipart,
+) -> Result<(JobInputs, Value, String), ApiError> {
+    let mut files: HashMap<UploadKind, (String, String)> = HashMap::new();
+    let mut params: Option<Value> = None;
+    while let Some(field) = mp
+        .next_field()
+        .await
+        .map_err(|e| ApiError::bad_request(format!("multipart body: {e}")))?
+    {
+        let name = field.name().unwrap_or("").to_string();
+        if name == "params" {
+            let text = field
+                .text()
+                .await
+                .map_err(|e| ApiError::bad_request(format!("multipart params: {e}")))?;
+            params = Some(serde_json::from_str(&text).map_err(|e| json_error(e, "params"))?);
+            continue;
+        }
+        let Some(kind) = UploadKind::parse(&name) else {
+            return Err(ApiError::unprocessable(format!(
+                "unknown part `{name}`; expected lidar, colmap, control_points, field_dbh or params"
+            )));
+        };
+        let filename = field
+            .file_name()
+            .filter(|f| !f.is_empty())
+            .unwrap_or(kind.as_str())
+            .chars()
+            .filter(|c| !c.is_control())
+            .take(255)
+            .collect::<String>();
+        let id = new_id();
+        let (size, sha) = state
+            .blobs
+            .write_part(&id, 0, field, state.args.max_multipart_bytes)
+            .await?;
+        if size == 0 {
+            return Err(ApiError::unprocessable(format!(
+                "part `{name}` ({filename}) is empty"
+            )));
+        }
+        let now = now_ms();
+        let rec = UploadRecord {
+            id: id.clone(),
+            kind,
+            filename,
+            size: size as i64,
+            sha256: Some(sha.clone()),
+            part_size: size as i64,
+            complete: false,
+            inspection: None,
+            created_at: now,
+            expires_at: now + state.args.upload_ttl_hours as i64 * 3_600_000,
+            completed_at: None,
+            parts: vec![(0, size as i64)],
+        };
+        state.db.create_upload(&rec).await?;
+        state.db.put_part(&id, 0, size as i64, &sha).await?;
+        count_upload_bytes(state, size);
+        uploads::finish_upload(state, &rec).await?;
+        files.insert(kind, (id, sha));
+    }
+    let take = |k: UploadKind| files.get(&k).map(|(id, _)| id.clone());
+    let (Some(lidar), Some(colmap)) = (take(UploadKind::Lidar), take(UploadKind::Colmap)) else {
+        return Err(ApiError::unprocessable(
+            "parts `lidar` and `colmap` are required",
+        ));
+    };
+    let inputs = JobInputs {
+        lidar,
+        colmap,
+        control_points: take(UploadKind::ControlPoints),
+        field_dbh: take(UploadKind::FieldDbh),
+    };
+    let params = effective_params(params)?;
+    let mut hashes: Vec<(&str, &str)> = files
+        .iter()
+        .map(|(k, (_, sha))| (k.as_str(), sha.as_str()))
+        .collect();
+    hashes.sort_unstable();
+    let hash = request_hash(&json!({ "files": hashes, "params": params }));
+    Ok((inputs, params, hash))
+}
+
+fn query_int(
+    q: &HashMap<String, String>,
+    name: &str,
+    default: i64,
+    lo: i64,
+    hi: i64,
+) -> Result<i64, ApiError> {
+    match q.get(name) {
+        None => Ok(default),
+        Some(v) => v
+            .parse::<i64>()
+            .ok()
+            .filter(|n| (lo..=hi).contains(n))
+            .ok_or_else(|| {
+                ApiError::bad_request(format!("{name} must be an integer in {lo}..={hi}"))
+            }),
+    }
+}
+
+pub async fn list(
+    State(state): State<AppState>,
+    Query(q): Query<HashMap<String, String>>,
+) -> Result<Response, ApiError> {
+    let filter = match q.get("state") {
+        None => None,
+        Some(s) => Some(JobState::parse(s).ok_or_else(|| {
+            ApiError::bad_request(format!(
+                "state must be one of queued, running, succeeded, failed, canceling, canceled; got {s:?}"
+            ))
+        })?),
+    };
+    let cursor = match q.get("cursor") {
+        None => None,
+        Some(c) => Some(
+            c.parse::<i64>()
+                .ok()
+                .filter(|n| *n > 0)
+                .ok_or_else(|| ApiError::bad_request("cursor is not one this server gave out"))?,
+        ),
+    };
+    let limit = query_int(&q, "limit", 50, 1, 200)?;
+    let jobs = state.db.list_jobs(filter, cursor, limit).await?;
+    let next = (jobs.len() as i64 == limit)
+        .then(|| jobs.last().map(|j| j.seq.to_string()))
+        .flatten();
+    let views: Vec<Value> = jobs.iter().map(views::job).collect();
+    Ok(Json(json!({ "jobs": views, "next_cursor": next })).into_response())
+}
+
+pub async fn get(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    Ok(Json(views::job(&load(&state, &id).await?)).into_response())
+}
+
+pub async fn delete(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    load(&state, &id).await?;
+    state.db.delete_job(&id).await?;
+    state.blobs.remove_job(&id)?;
+    tracing::info!(job = %id, "job deleted");
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+pub async fn log(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<HashMap<String, String>>,
+) -> Result<Response, ApiError> {
+    let since = query_int(&q, "since", 0, 0, i64::MAX)?;
+    let limit = query_int(&q, "limit", 1000, 1, 10_000)?;
+    load(&state, &id).await?;
+    let lines = state.db.log(&id, since, limit).await?;
+    let next = lines.last().map(|l| l.seq).unwrap_or(since);
+    let lines: Vec<Value> = lines.iter().map(log_line).collect();
+    Ok(Json(json!({ "lines": lines, "next": next })).into_response())
+}
+
+pub fn log_line(l: &crate::jobs::LogLine) -> Value {
+    json!({
+        "seq": l.seq,
+        "ts": crate::jobs::rfc3339(l.ts),
+        "level": l.level,
+        "stage": l.stage,
+        "message": l.message,
+    })
+}
+
+pub async fn cancel(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    load(&state, &id).await?;
+    let next = state.db.cancel(&id).await?;
+    let _ = state
+        .db
+        .append_log(
+            &id,
+            "info",
+            None,
+            &format!("cancel requested; job {}", next.as_str()),
+        )
+        .await;
+    let job = load(&state, &id).await?;
+    Ok((StatusCode::ACCEPTED, Json(views::job(&job))).into_response())
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RetryBody {
+    #[serde(default)]
+    from_stage: Option<String>,
+}
+
+pub async fn retry(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    load(&state, &id).await?;
+    let req: RetryBody = if body.iter().all(u8::is_ascii_whitespace) {
+        RetryBody::default()
+    } else {
+        serde_json::from_slice(&body).map_err(|e| json_error(e, "the body"))?
+    };
+    let from = match req.from_stage.as_deref() {
+        None => None,
+        Some(s) => Some(Stage::from_name(s).ok_or_else(|| {
+            ApiError::unprocessable(format!("from_stage: unknown stage {s:?}"))
+                .with_error("from_stage", "unknown stage")
+        })?),
+    };
+    let reset = state.db.retry(&id, from).await?;
+    state.blobs.remove_stages(&id, &reset)?;
+    let _ = state
+        .db
+        .append_log(
+            &id,
+            "info",
+            None,
+            &format!(
+                "retry requested from stage {}",
+                reset.first().map(String::as_str).unwrap_or("?")
+            ),
+        )
+        .await;
+    state.wake.notify_waiters();
+    let job = load(&state, &id).await?;
+    Ok((StatusCode::ACCEPTED, Json(views::job(&job))).into_response())
+}
+
+pub async fn results(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let job = load(&state, &id).await?;
+    let stages: serde_json::Map<String, Value> = job
+        .stages
+        .iter()
+        .filter_map(|s| s.metrics.clone().map(|m| (s.name.clone(), m)))
+        .collect();
+    Ok(
+        Json(json!({ "job_id": job.id, "state": job.state.as_str(), "stages": stages }))
+            .into_response(),
+    )
+}

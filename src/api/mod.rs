@@ -1,0 +1,190 @@
+//! The HTTP API (SERVICE.md, openapi.yaml): thin handlers over the job store and the blob
+//! store, with the cross-cutting concerns — auth, body limits, timeouts, request ids,
+//! tracing, problem+json — as layers.
+
+pub mod artifacts;
+pub mod auth;
+pub mod events;
+pub mod jobs;
+pub mod problem;
+pub mod service;
+pub mod uploads;
+pub mod views;
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::{Method, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::Response;
+use axum::routing::{get, post, put};
+use tokio::sync::Notify;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::timeout::TimeoutLayer;
+use tower_http::trace::TraceLayer;
+
+use crate::config::ApiArgs;
+use crate::gpu::GpuInfo;
+use crate::jobs::JobStore;
+use crate::store::BlobStore;
+use problem::ApiError;
+
+/// Counters kept by this API process (Prometheus counters restart at zero with the process).
+#[derive(Default)]
+pub struct Counters {
+    pub upload_bytes: AtomicU64,
+    pub http_requests: Mutex<BTreeMap<u16, u64>>,
+}
+
+/// Everything a handler may use.
+#[derive(Clone)]
+pub struct AppState {
+    pub db: JobStore,
+    pub blobs: BlobStore,
+    pub args: Arc<ApiArgs>,
+    /// Wakes in-process workers when a job is queued.
+    pub wake: Arc<Notify>,
+    pub counters: Arc<Counters>,
+    pub gpu: Option<GpuInfo>,
+    /// Lease length of the workers, used to count live workers.
+    pub lease: Duration,
+}
+
+/// Every (method, path) the router serves, in axum's path syntax. The router below is built
+/// from the same handlers; a test checks this list against openapi.yaml both ways and
+/// another that every entry is really routed.
+pub const ROUTES: &[(&str, &str)] = &[
+    ("GET", "/"),
+    ("GET", "/livez"),
+    ("GET", "/readyz"),
+    ("GET", "/metrics"),
+    ("GET", "/openapi.yaml"),
+    ("GET", "/v1/info"),
+    ("GET", "/v1/options"),
+    ("POST", "/v1/uploads"),
+    ("GET", "/v1/uploads/{id}"),
+    ("HEAD", "/v1/uploads/{id}"),
+    ("PUT", "/v1/uploads/{id}/parts/{n}"),
+    ("POST", "/v1/uploads/{id}/complete"),
+    ("POST", "/v1/jobs"),
+    ("GET", "/v1/jobs"),
+    ("GET", "/v1/jobs/{id}"),
+    ("DELETE", "/v1/jobs/{id}"),
+    ("GET", "/v1/jobs/{id}/events"),
+    ("GET", "/v1/jobs/{id}/log"),
+    ("POST", "/v1/jobs/{id}/cancel"),
+    ("POST", "/v1/jobs/{id}/retry"),
+    ("GET", "/v1/jobs/{id}/results"),
+    ("GET", "/v1/jobs/{id}/trees.csv"),
+    ("GET", "/v1/jobs/{id}/trees.geojson"),
+    ("GET", "/v1/jobs/{id}/artifacts/{*name}"),
+];
+
+async fn count_requests(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let resp = next.run(req).await;
+    if let Ok(mut m) = state.counters.http_requests.lock() {
+        *m.entry(resp.status().as_u16()).or_default() += 1;
+    }
+    resp
+}
+
+async fn no_such_route() -> ApiError {
+    ApiError::new(StatusCode::NOT_FOUND, "no-such-route", "no such route")
+}
+
+/// The whole application.
+pub fn router(state: AppState) -> Router {
+    let a = &state.args;
+    let timeout = Duration::from_secs(a.request_timeout_secs.max(1));
+    let upload_timeout = Duration::from_secs(a.upload_timeout_secs.max(1));
+    let json_limit = a.max_json_bytes as usize;
+
+    let public = Router::new()
+        .route("/", get(service::index))
+        .route("/livez", get(service::livez))
+        .route("/readyz", get(service::readyz))
+        .route("/metrics", get(service::metrics))
+        .route("/openapi.yaml", get(service::openapi))
+        .layer(TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            timeout,
+        ));
+
+    let ordinary = Router::new()
+        .route("/v1/info", get(service::info))
+        .route("/v1/options", get(service::options))
+        .route("/v1/uploads", post(uploads::create))
+        .route("/v1/uploads/{id}", get(uploads::status))
+        .route("/v1/uploads/{id}/complete", post(uploads::complete))
+        .route("/v1/jobs", get(jobs::list))
+        .route("/v1/jobs/{id}", get(jobs::get).delete(jobs::delete))
+        .route("/v1/jobs/{id}/log", get(jobs::log))
+        .route("/v1/jobs/{id}/cancel", post(jobs::cancel))
+        .route("/v1/jobs/{id}/retry", post(jobs::retry))
+        .route("/v1/jobs/{id}/results", get(jobs::results))
+        .route("/v1/jobs/{id}/trees.csv", get(artifacts::trees_csv))
+        .route("/v1/jobs/{id}/trees.geojson", get(artifacts::trees_geojson))
+        .route("/v1/jobs/{id}/artifacts/{*name}", get(artifacts::get))
+        .layer(DefaultBodyLimit::max(json_limit))
+        .layer(TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            timeout,
+        ));
+
+    // Parts and one-request submissions stream large bodies: their own limits and timeout.
+    let uploads = Router::new()
+        .route("/v1/uploads/{id}/parts/{n}", put(uploads::put_part))
+        .route(
+            "/v1/jobs",
+            post(jobs::create).layer(DefaultBodyLimit::max(a.max_multipart_bytes as usize)),
+        )
+        .layer(TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            upload_timeout,
+        ));
+
+    // Event streams stay open for the life of a job: no timeout.
+    let streams = Router::new().route("/v1/jobs/{id}/events", get(events::events));
+
+    let authed =
+        ordinary
+            .merge(uploads)
+            .merge(streams)
+            .route_layer(middleware::from_fn_with_state(
+                state.clone(),
+                auth::require_token,
+            ));
+
+    public
+        .merge(authed)
+        .fallback(no_such_route)
+        .layer(middleware::from_fn(problem::problem_fallback))
+        .layer(middleware::from_fn_with_state(state.clone(), count_requests))
+        .layer(
+            TraceLayer::new_for_http().make_span_with(|req: &Request| {
+                let id = req
+                    .headers()
+                    .get("x-request-id")
+                    .and_then(|v| v.to_str().ok())
+                    .unwrap_or("");
+                tracing::info_span!("request", method = %req.method(), path = %req.uri().path(), request_id = %id)
+            }),
+        )
+        .layer(PropagateRequestIdLayer::x_request_id())
+        .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
+        .with_state(state)
+}
+
+/// Methods of a route from [`ROUTES`] as axum `Method`s (for tests).
+pub fn route_method(m: &str) -> Method {
+    Method::from_bytes(m.as_bytes()).unwrap_or(Method::GET)
+}
+
+/// Bumps the upload byte counter.
+pub fn count_upload_bytes(state: &AppState, n: u64) {
+    state.counters.upload_bytes.fetch_add(n, Ordering::Relaxed);
+}

@@ -1,0 +1,297 @@
+//! Resumable uploads: create, put parts (idempotent), ask what arrived, complete (verify
+//! size and checksum, inspect the content).
+
+use std::collections::HashSet;
+use std::sync::{LazyLock, Mutex};
+
+use axum::Json;
+use axum::body::Body;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::json;
+
+use super::problem::ApiError;
+use super::{AppState, count_upload_bytes, views};
+use crate::jobs::{UploadKind, UploadRecord, now_ms};
+use crate::pipeline::inspect::{self, InspectError};
+use crate::progress::NoProgress;
+
+/// Body of `POST /v1/uploads`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UploadCreate {
+    pub kind: UploadKind,
+    pub filename: String,
+    pub size: u64,
+    #[serde(default)]
+    pub sha256: Option<String>,
+}
+
+/// Ids are UUIDv7 in simple form: 32 lowercase hex digits.
+pub fn valid_id(id: &str) -> bool {
+    id.len() == 32
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+}
+
+pub fn new_id() -> String {
+    uuid::Uuid::now_v7().simple().to_string()
+}
+
+pub async fn load(state: &AppState, id: &str) -> Result<UploadRecord, ApiError> {
+    if !valid_id(id) {
+        return Err(ApiError::not_found(format!("no upload {id}")));
+    }
+    state
+        .db
+        .get_upload(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("no upload {id}")))
+}
+
+/// Checks an upload request and records it; shared by `POST /v1/uploads` and one-request
+/// job submissions.
+pub async fn create_record(state: &AppState, req: UploadCreate) -> Result<UploadRecord, ApiError> {
+    let a = &state.args;
+    if req.filename.is_empty() || req.filename.chars().count() > 255 {
+        return Err(
+            ApiError::unprocessable("filename must be 1 to 255 characters")
+                .with_error("filename", "length must be 1..255"),
+        );
+    }
+    if req.filename.chars().any(char::is_control) {
+        return Err(
+            ApiError::unprocessable("filename must not contain control characters")
+                .with_error("filename", "control character"),
+        );
+    }
+    if req.size == 0 {
+        return Err(
+            ApiError::unprocessable("size must be at least 1 byte").with_error("size", "minimum 1")
+        );
+    }
+    if req.size > a.max_upload_bytes {
+        return Err(ApiError::too_large(format!(
+            "{} bytes declared; this server accepts uploads up to {} bytes",
+            req.size, a.max_upload_bytes
+        )));
+    }
+    if let Some(s) = &req.sha256
+        && (s.len() != 64
+            || !s
+                .bytes()
+                .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)))
+    {
+        return Err(
+            ApiError::unprocessable("sha256 must be 64 lowercase hex digits")
+                .with_error("sha256", "pattern ^[0-9a-f]{64}$"),
+        );
+    }
+    let free = state.blobs.free_bytes()?;
+    // The upload needs room for its parts and its assembled copy.
+    if free < a.min_free_bytes.saturating_add(req.size.saturating_mul(2)) {
+        return Err(ApiError::storage_full(format!(
+            "{} bytes declared but only {free} bytes are free on the server",
+            req.size
+        )));
+    }
+    let now = now_ms();
+    let rec = UploadRecord {
+        id: new_id(),
+        kind: req.kind,
+        filename: req.filename,
+        size: req.size as i64,
+        sha256: req.sha256,
+        part_size: a.part_size.max(1) as i64,
+        complete: false,
+        inspection: None,
+        created_at: now,
+        expires_at: now + a.upload_ttl_hours as i64 * 3_600_000,
+        completed_at: None,
+        parts: Vec::new(),
+    };
+    state.db.create_upload(&rec).await?;
+    Ok(rec)
+}
+
+pub async fn create(
+    State(state): State<AppState>,
+    Json(req): Json<UploadCreate>,
+) -> Result<Response, ApiError> {
+    let rec = create_record(&state, req).await?;
+    let mut resp = (StatusCode::CREATED, Json(views::upload(&rec))).into_response();
+    if let Ok(loc) = HeaderValue::from_str(&format!("/v1/uploads/{}", rec.id)) {
+        resp.headers_mut().insert(header::LOCATION, loc);
+    }
+    Ok(resp)
+}
+
+fn status_headers(u: &UploadRecord) -> HeaderMap {
+    let mut h = HeaderMap::new();
+    let state = if u.complete { "complete" } else { "open" };
+    h.insert("upload-state", HeaderValue::from_static(state));
+    if let Ok(v) = HeaderValue::from_str(&u.bytes_received().to_string()) {
+        h.insert("upload-bytes-received", v);
+    }
+    if let Ok(v) = HeaderValue::from_str(&u.size.to_string()) {
+        h.insert("upload-length", v);
+    }
+    h
+}
+
+pub async fn status(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let u = load(&state, &id).await?;
+    Ok((status_headers(&u), Json(views::upload(&u))).into_response())
+}
+
+pub async fn put_part(
+    State(state): State<AppState>,
+    Path((id, n)): Path<(String, i64)>,
+    body: Body,
+) -> Result<Response, ApiError> {
+    let u = load(&state, &id).await?;
+    if u.complete {
+        return Err(ApiError::conflict("the upload is already complete"));
+    }
+    if n < 0 || n >= u.parts_total() {
+        return Err(ApiError::unprocessable(format!(
+            "part {n} is out of range: this upload has parts 0..{}",
+            u.parts_total() - 1
+        ))
+        .with_error("n", "out of range"));
+    }
+    let expected = u.part_len(n);
+    let (size, sha) = state
+        .blobs
+        .write_part(&id, n, body.into_data_stream(), u.part_size as u64)
+        .await?;
+    if size as i64 != expected {
+        return Err(ApiError::unprocessable(format!(
+            "part {n} has {size} bytes; it must have exactly {expected}"
+        ))
+        .with_error("body", "wrong part length"));
+    }
+    state.db.put_part(&id, n, size as i64, &sha).await?;
+    count_upload_bytes(&state, size);
+    Ok(Json(json!({ "n": n, "size": size, "sha256": sha })).into_response())
+}
+
+/// Uploads being completed in this process (a second concurrent complete gets 409).
+static COMPLETING: LazyLock<Mutex<HashSet<String>>> = LazyLock::new(Default::default);
+
+struct CompletingGuard(String);
+impl Drop for CompletingGuard {
+    fn drop(&mut self) {
+        if let Ok(mut s) = COMPLETING.lock() {
+            s.remove(&self.0);
+        }
+    }
+}
+
+pub async fn complete(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let u = load(&state, &id).await?;
+    if u.complete {
+        return Ok((status_headers(&u), Json(views::upload(&u))).into_response());
+    }
+    let missing = u.missing_parts();
+    if !missing.is_empty() {
+        let shown: Vec<String> = missing.iter().take(20).map(|n| n.to_string()).collect();
+        return Err(ApiError::conflict(format!(
+            "{} part(s) missing: {}{}",
+            missing.len(),
+            shown.join(", "),
+            if missing.len() > 20 { ", …" } else { "" }
+        )));
+    }
+    let _guard = {
+        let mut set = COMPLETING
+            .lock()
+            .map_err(|_| ApiError::internal("completion lock poisoned"))?;
+        if !set.insert(id.clone()) {
+            return Err(ApiError::conflict(
+                "the upload is being completed by another request",
+            ));
+        }
+        CompletingGuard(id.clone())
+    };
+    finish_upload(&state, &u).await?;
+    let u = load(&state, &id).await?;
+    Ok((status_headers(&u), Json(views::upload(&u))).into_response())
+}
+
+/// Assembles, verifies and inspects a fully received upload, then marks it complete.
+pub async fn finish_upload(state: &AppState, u: &UploadRecord) -> Result<(), ApiError> {
+    let blobs = state.blobs.clone();
+    let limits = state.args.extract_limits();
+    let u2 = u.clone();
+    let result =
+        tokio::task::spawn_blocking(move || -> Result<(String, serde_json::Value), ApiError> {
+            let (size, sha) = blobs.assemble(&u2.id, &u2.filename, u2.parts_total())?;
+            let blob = blobs.upload_blob(&u2.id, &u2.filename);
+            let discard = || {
+                let _ = std::fs::remove_file(&blob);
+            };
+            if size as i64 != u2.size {
+                discard();
+                return Err(ApiError::unprocessable(format!(
+                    "{}: received {size} bytes but {} were declared",
+                    u2.filename, u2.size
+                ))
+                .with_error(&u2.filename, "size mismatch"));
+            }
+            if let Some(want) = &u2.sha256
+                && *want != sha
+            {
+                discard();
+                return Err(ApiError::unprocessable(format!(
+                    "{}: the SHA-256 of the received bytes is {sha}, not the declared {want}; \
+                     re-send the damaged parts and complete again",
+                    u2.filename
+                ))
+                .with_error(&u2.filename, "checksum mismatch"));
+            }
+            let unpack = blobs.upload_unpacked(&u2.id);
+            let inspection = inspect::inspect_upload(
+                u2.kind,
+                &u2.filename,
+                &blob,
+                &unpack,
+                &limits,
+                &NoProgress,
+            )
+            .map_err(|e| match e {
+                InspectError::Unusable(m) => {
+                    discard();
+                    let _ = std::fs::remove_dir_all(&unpack);
+                    ApiError::unprocessable(m.clone()).with_error(&u2.filename, m)
+                }
+                InspectError::Io(io) => match &io {
+                    crate::io::IoError::Io { source, .. }
+                        if source.kind() == std::io::ErrorKind::StorageFull =>
+                    {
+                        ApiError::storage_full("the server's disk is full")
+                    }
+                    _ => ApiError::internal(io),
+                },
+                InspectError::Cancelled => ApiError::internal("inspection cancelled"),
+            })?;
+            blobs.drop_parts(&u2.id);
+            Ok((sha, inspection))
+        })
+        .await
+        .map_err(ApiError::internal)??;
+    state
+        .db
+        .complete_upload(&u.id, &result.0, &result.1)
+        .await?;
+    Ok(())
+}

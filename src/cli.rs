@@ -1,0 +1,336 @@
+//! The command line: `serve`, `worker`, `run`. Thin: each command wires settings to the
+//! library and waits.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use clap::{Args, Parser, Subcommand};
+use tokio::sync::{Notify, watch};
+
+use crate::api::{self, AppState, Counters};
+use crate::config::{ApiArgs, StoreArgs, WorkerArgs, init_tracing};
+use crate::io::archive::{self, ExtractLimits};
+use crate::jobs::JobStore;
+use crate::pipeline::{self, PipelineParams, Stage, StageInputs};
+use crate::progress::{CancelFlag, Progress};
+use crate::store::BlobStore;
+use crate::worker::WorkerPool;
+
+/// Sylva turns a forest plot (handheld LiDAR + UAV photos with a COLMAP model) into a
+/// Gaussian-splat digital twin in metric coordinates and a DBH inventory of every stem.
+#[derive(Debug, Parser)]
+#[command(name = "sylva", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Serve the HTTP API with in-process workers (SQLite + local files under --data).
+    Serve(ServeArgs),
+    /// Run workers only, against the same database, so a second process can take jobs over.
+    Worker(WorkerOnlyArgs),
+    /// Run the pipeline in-process on local files, without a server.
+    Run(RunArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    #[command(flatten)]
+    pub store: StoreArgs,
+    #[command(flatten)]
+    pub api: ApiArgs,
+    #[command(flatten)]
+    pub worker: WorkerArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct WorkerOnlyArgs {
+    #[command(flatten)]
+    pub store: StoreArgs,
+    #[command(flatten)]
+    pub worker: WorkerArgs,
+}
+
+fn parse_stage(s: &str) -> Result<Stage, String> {
+    Stage::from_name(s).ok_or_else(|| {
+        format!(
+            "unknown stage {s:?}; stages: {}",
+            Stage::ALL.map(|s| s.name()).join(", ")
+        )
+    })
+}
+
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// The LiDAR point cloud (LAS, LAZ, PLY, XYZ), in metres.
+    #[arg(long, env = "SYLVA_LIDAR")]
+    pub lidar: PathBuf,
+    /// The COLMAP project: a folder (images/ and sparse/0 or sparse/) or a zip/tar(.gz) of one.
+    #[arg(long, env = "SYLVA_COLMAP")]
+    pub colmap: PathBuf,
+    /// Control point pairs (CSV: sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), at least 4.
+    #[arg(long, env = "SYLVA_CONTROL_POINTS")]
+    pub control_points: Option<PathBuf>,
+    /// Field-measured DBH (CSV: x,y,dbh_cm) for accuracy figures.
+    #[arg(long, env = "SYLVA_FIELD_DBH")]
+    pub field_dbh: Option<PathBuf>,
+    /// Output folder: each stage writes under <out>/<stage>/, and <out>/results.json gathers
+    /// every finished stage's report.
+    #[arg(long, env = "SYLVA_OUT")]
+    pub out: PathBuf,
+    /// Stop after this stage (ingest, register, anchors, segment, train, dbh, export).
+    #[arg(long, env = "SYLVA_UNTIL", value_parser = parse_stage)]
+    pub until: Option<Stage>,
+    /// Job parameters as a JSON file (the `params` object of the API; see `GET /v1/options`).
+    #[arg(long, env = "SYLVA_PARAMS")]
+    pub params: Option<PathBuf>,
+    /// Log filter in tracing's syntax.
+    #[arg(long, env = "SYLVA_LOG", default_value = "warn")]
+    pub log: String,
+}
+
+pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
+    match cli.command {
+        Command::Serve(a) => serve(a).await.map(|_| ExitCode::SUCCESS),
+        Command::Worker(a) => worker(a).await.map(|_| ExitCode::SUCCESS),
+        Command::Run(a) => run(a).await,
+    }
+}
+
+async fn open_store(args: &StoreArgs) -> anyhow::Result<(JobStore, BlobStore)> {
+    std::fs::create_dir_all(&args.data)
+        .with_context(|| format!("cannot create the data directory {}", args.data.display()))?;
+    let db = JobStore::open(&args.database_path(), 16)
+        .await
+        .with_context(|| format!("cannot open {}", args.database_path().display()))?;
+    let blobs = BlobStore::open(&args.data)?;
+    Ok((db, blobs))
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(_) => {
+                    let _ = ctrl_c.await;
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}
+
+async fn serve(a: ServeArgs) -> anyhow::Result<()> {
+    init_tracing(&a.store);
+    let (db, blobs) = open_store(&a.store).await?;
+    let gpu = tokio::time::timeout(Duration::from_secs(10), crate::gpu::probe())
+        .await
+        .ok()
+        .flatten();
+    match &gpu {
+        Some(g) => tracing::info!(adapter = %g.name, backend = %g.backend, "GPU adapter found"),
+        None => tracing::warn!("no GPU adapter found; the train stage will not run here"),
+    }
+    let wake = Arc::new(Notify::new());
+    let state = AppState {
+        db: db.clone(),
+        blobs: blobs.clone(),
+        args: Arc::new(a.api.clone()),
+        wake: wake.clone(),
+        counters: Arc::new(Counters::default()),
+        gpu,
+        lease: a.worker.lease(),
+    };
+    let listener = tokio::net::TcpListener::bind(a.api.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", a.api.listen))?;
+    let addr = listener.local_addr()?;
+    println!("sylva listening on http://{addr}");
+    let _ = std::io::stdout().flush();
+    tracing::info!(%addr, auth = !a.api.token.is_empty(), "API listening");
+
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let workers = (a.worker.workers > 0).then(|| {
+        let pool = WorkerPool::new(db, blobs, a.worker.clone(), wake);
+        tokio::spawn(pool.run(stop_rx))
+    });
+    axum::serve(listener, api::router(state))
+        .with_graceful_shutdown(shutdown_signal())
+        .await?;
+    let _ = stop_tx.send(true);
+    if let Some(w) = workers {
+        let _ = tokio::time::timeout(Duration::from_secs(5), w).await;
+    }
+    Ok(())
+}
+
+async fn worker(a: WorkerOnlyArgs) -> anyhow::Result<()> {
+    init_tracing(&a.store);
+    if a.worker.workers == 0 {
+        anyhow::bail!("--workers must be at least 1 for `sylva worker`");
+    }
+    let (db, blobs) = open_store(&a.store).await?;
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let pool = WorkerPool::new(db, blobs, a.worker.clone(), Arc::new(Notify::new()));
+    println!("sylva worker started ({} slot(s))", a.worker.workers);
+    let _ = std::io::stdout().flush();
+    let handle = tokio::spawn(pool.run(stop_rx));
+    shutdown_signal().await;
+    let _ = stop_tx.send(true);
+    let _ = tokio::time::timeout(Duration::from_secs(5), handle).await;
+    Ok(())
+}
+
+/// A one-line progress bar on stderr for `sylva run`.
+struct ConsoleProgress {
+    stage: Stage,
+    cancel: CancelFlag,
+    last: Mutex<(Instant, f64)>,
+}
+
+impl Progress for ConsoleProgress {
+    fn set(&self, fraction: f64) {
+        let f = fraction.clamp(0.0, 1.0);
+        if let Ok(mut last) = self.last.lock()
+            && f > last.1
+            && (last.0.elapsed() > Duration::from_millis(100) || f >= 1.0)
+        {
+            *last = (Instant::now(), f);
+            let filled = (f * 30.0).round() as usize;
+            eprint!(
+                "\r{:>9} [{}{}] {:>3.0}%",
+                self.stage.name(),
+                "#".repeat(filled),
+                ".".repeat(30 - filled),
+                f * 100.0
+            );
+        }
+    }
+    fn log(&self, message: &str) {
+        eprintln!("\r{:>9}: {message}", self.stage.name());
+    }
+    fn is_cancelled(&self) -> bool {
+        self.cancel.is_cancelled()
+    }
+}
+
+fn write_results(
+    out: &Path,
+    results: &serde_json::Map<String, serde_json::Value>,
+) -> anyhow::Result<()> {
+    let path = out.join("results.json");
+    let text = serde_json::to_vec_pretty(results)?;
+    pipeline::write_synced(&path, &text).with_context(|| format!("cannot write {}", path.display()))
+}
+
+async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
+    let store = StoreArgs {
+        data: PathBuf::new(),
+        log: a.log.clone(),
+        log_json: false,
+    };
+    init_tracing(&store);
+    let mut params: PipelineParams = match &a.params {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read {}", p.display()))?;
+            serde_json::from_str(&text)
+                .with_context(|| format!("{}: invalid parameters", p.display()))?
+        }
+        None => PipelineParams::default(),
+    };
+    if a.until.is_some() {
+        params.until = a.until;
+    }
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
+    let colmap = if a.colmap.is_file() {
+        let dest = a.out.join("inputs").join("colmap");
+        if dest.exists() {
+            std::fs::remove_dir_all(&dest)?;
+        }
+        let src = a.colmap.clone();
+        let d2 = dest.clone();
+        tokio::task::spawn_blocking(move || {
+            archive::extract_archive(
+                &src,
+                &d2,
+                &ExtractLimits::default(),
+                &crate::progress::NoProgress,
+            )
+        })
+        .await?
+        .with_context(|| format!("{}: cannot unpack", a.colmap.display()))?;
+        dest
+    } else {
+        a.colmap.clone()
+    };
+    let inputs = StageInputs {
+        lidar: a.lidar.clone(),
+        colmap,
+        control_points: a.control_points.clone(),
+        field_dbh: a.field_dbh.clone(),
+    };
+    let cancel = CancelFlag::new();
+    {
+        let cancel = cancel.clone();
+        tokio::spawn(async move {
+            if tokio::signal::ctrl_c().await.is_ok() {
+                eprintln!("\ninterrupted: stopping after the current step");
+                cancel.cancel();
+            }
+        });
+    }
+    let mut results = serde_json::Map::new();
+    for stage in params.stages() {
+        let progress = Arc::new(ConsoleProgress {
+            stage,
+            cancel: cancel.clone(),
+            last: Mutex::new((Instant::now(), -1.0)),
+        });
+        let started = Instant::now();
+        let (inp, out, prm, p) = (
+            inputs.clone(),
+            a.out.clone(),
+            params.clone(),
+            progress.clone(),
+        );
+        let result = tokio::task::spawn_blocking(move || {
+            pipeline::execute_stage(stage, &inp, &out, &prm, p.as_ref())
+        })
+        .await?;
+        match result {
+            Ok(outcome) => {
+                progress.set(1.0);
+                eprintln!("  done in {:.1} s", started.elapsed().as_secs_f64());
+                results.insert(stage.name().to_string(), outcome.report);
+                write_results(&a.out, &results)?;
+            }
+            Err(e) => {
+                eprintln!();
+                write_results(&a.out, &results)?;
+                eprintln!("error: stage {stage} failed: {e}");
+                return Ok(ExitCode::FAILURE);
+            }
+        }
+    }
+    eprintln!("results: {}", a.out.join("results.json").display());
+    Ok(ExitCode::SUCCESS)
+}

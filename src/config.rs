@@ -1,0 +1,165 @@
+//! Settings: command-line flags, each mirrored by a `SYLVA_*` environment variable
+//! (flags win over the environment, the environment over the defaults written here).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::Args;
+
+use crate::io::archive::ExtractLimits;
+
+const MIB: u64 = 1 << 20;
+const GIB: u64 = 1 << 30;
+
+/// Settings shared by every process that touches the job database.
+#[derive(Debug, Clone, Args)]
+pub struct StoreArgs {
+    /// Data directory: the SQLite database (`sylva.db`, WAL mode) and every blob (uploads,
+    /// job outputs) live under it.
+    #[arg(long, env = "SYLVA_DATA", default_value = "sylva-data")]
+    pub data: PathBuf,
+
+    /// Log filter in tracing's syntax, e.g. `info` or `sylva=debug,tower_http=info`.
+    #[arg(long, env = "SYLVA_LOG", default_value = "info")]
+    pub log: String,
+
+    /// Log lines as JSON objects instead of text.
+    #[arg(long, env = "SYLVA_LOG_JSON", default_value_t = false)]
+    pub log_json: bool,
+}
+
+impl StoreArgs {
+    pub fn database_path(&self) -> PathBuf {
+        self.data.join("sylva.db")
+    }
+}
+
+/// Settings of the worker pool (in `sylva serve` and `sylva worker`).
+#[derive(Debug, Clone, Args)]
+pub struct WorkerArgs {
+    /// Jobs this process runs at the same time (0: run no worker, API only).
+    #[arg(long, env = "SYLVA_WORKERS", default_value_t = 1)]
+    pub workers: u32,
+
+    /// Stages that need the GPU (training) run at most this many at a time per process.
+    #[arg(long, env = "SYLVA_GPU_SLOTS", default_value_t = 1)]
+    pub gpu_slots: u32,
+
+    /// Lease of a claimed job in seconds; the worker renews it by heartbeat, and another
+    /// worker may take the job over once it has run out.
+    #[arg(long, env = "SYLVA_LEASE_SECS", default_value_t = 30)]
+    pub lease_secs: u64,
+
+    /// A job whose worker died this many times fails instead of being claimed again.
+    #[arg(long, env = "SYLVA_MAX_ATTEMPTS", default_value_t = 3)]
+    pub max_attempts: u32,
+
+    /// How often an idle worker looks for work, in milliseconds.
+    #[arg(long, env = "SYLVA_POLL_MS", default_value_t = 500)]
+    pub poll_ms: u64,
+
+    /// Fault injection for tests: every stage waits this many milliseconds (cancellably)
+    /// before it starts. 0 in production.
+    #[arg(long, env = "SYLVA_DEBUG_STAGE_PAUSE_MS", default_value_t = 0)]
+    pub debug_stage_pause_ms: u64,
+}
+
+impl WorkerArgs {
+    pub fn lease(&self) -> Duration {
+        Duration::from_secs(self.lease_secs.max(1))
+    }
+}
+
+/// Settings of the HTTP API.
+#[derive(Debug, Clone, Args)]
+pub struct ApiArgs {
+    /// Address to listen on (port 0 picks a free port; the chosen address is printed).
+    #[arg(long, env = "SYLVA_LISTEN", default_value = "127.0.0.1:8080")]
+    pub listen: SocketAddr,
+
+    /// Bearer tokens accepted by the API, comma-separated. None: authentication is off
+    /// (a local single-user run).
+    #[arg(
+        long,
+        env = "SYLVA_TOKEN",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    pub token: Vec<String>,
+
+    /// Upload part size in bytes (default 8 MiB: large enough for throughput, small enough
+    /// that a dropped connection loses little).
+    #[arg(long, env = "SYLVA_PART_SIZE", default_value_t = 8 * MIB)]
+    pub part_size: u64,
+
+    /// Largest upload accepted, in bytes (default 100 GiB).
+    #[arg(long, env = "SYLVA_MAX_UPLOAD_BYTES", default_value_t = 100 * GIB)]
+    pub max_upload_bytes: u64,
+
+    /// Largest JSON request body, in bytes (default 1 MiB).
+    #[arg(long, env = "SYLVA_MAX_JSON_BYTES", default_value_t = MIB)]
+    pub max_json_bytes: u64,
+
+    /// Largest one-request multipart job submission, in bytes (default 2 GiB; use resumable
+    /// uploads for more).
+    #[arg(long, env = "SYLVA_MAX_MULTIPART_BYTES", default_value_t = 2 * GIB)]
+    pub max_multipart_bytes: u64,
+
+    /// Most entries an uploaded archive may hold.
+    #[arg(long, env = "SYLVA_MAX_ARCHIVE_ENTRIES", default_value_t = 100_000)]
+    pub max_archive_entries: u64,
+
+    /// Most bytes an uploaded archive may unpack to (default 200 GiB).
+    #[arg(long, env = "SYLVA_MAX_UNPACKED_BYTES", default_value_t = 200 * GIB)]
+    pub max_unpacked_bytes: u64,
+
+    /// Largest unpacked/packed ratio of an archive (default 200: photos barely compress, a
+    /// zip bomb compresses a thousandfold).
+    #[arg(long, env = "SYLVA_MAX_UNPACK_RATIO", default_value_t = 200.0)]
+    pub max_unpack_ratio: f64,
+
+    /// Queued jobs above which new submissions get 429 with Retry-After.
+    #[arg(long, env = "SYLVA_MAX_QUEUED_JOBS", default_value_t = 1000)]
+    pub max_queued_jobs: u64,
+
+    /// Timeout of ordinary requests in seconds (uploads of parts and event streams excepted).
+    #[arg(long, env = "SYLVA_REQUEST_TIMEOUT_SECS", default_value_t = 30)]
+    pub request_timeout_secs: u64,
+
+    /// Timeout of one upload part or multipart submission in seconds.
+    #[arg(long, env = "SYLVA_UPLOAD_TIMEOUT_SECS", default_value_t = 3600)]
+    pub upload_timeout_secs: u64,
+
+    /// /readyz fails and uploads get 507 when free disk drops below this many bytes.
+    #[arg(long, env = "SYLVA_MIN_FREE_BYTES", default_value_t = GIB)]
+    pub min_free_bytes: u64,
+
+    /// Hours an incomplete upload stays resumable.
+    #[arg(long, env = "SYLVA_UPLOAD_TTL_HOURS", default_value_t = 24)]
+    pub upload_ttl_hours: u64,
+}
+
+impl ApiArgs {
+    pub fn extract_limits(&self) -> ExtractLimits {
+        ExtractLimits {
+            max_entries: self.max_archive_entries,
+            max_unpacked_bytes: self.max_unpacked_bytes,
+            max_ratio: self.max_unpack_ratio,
+        }
+    }
+}
+
+/// Sets up logging to stderr. Tokens never reach the log: no layer records headers.
+pub fn init_tracing(args: &StoreArgs) {
+    let filter = tracing_subscriber::EnvFilter::try_new(&args.log)
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    if args.log_json {
+        let _ = builder.json().try_init();
+    } else {
+        let _ = builder.try_init();
+    }
+}

@@ -1,0 +1,287 @@
+//! LAS 1.0–1.4 (point formats 0–10, 64-bit point counts) and LAZ, through the `las` crate.
+//!
+//! Before any point is decoded the declared point count is checked against the file: for
+//! uncompressed LAS the point-record region must hold exactly the declared number of
+//! records; for LAZ with fixed-size chunks the chunk table must have the number of chunks the
+//! count implies. A mismatch is a `Format` error, never a silent short read.
+
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom};
+use std::path::Path;
+
+use ::las::point::Format;
+use ::las::{Builder, Color, Point, PointDataBuilder, Transform, Vector};
+use glam::DVec3;
+use serde::Serialize;
+
+use super::pointcloud::{CloudBuilder, CloudFormat, PointCloud, colors_to_u8};
+use super::{IoError, PROGRESS_STEP, check_cancel, file_len};
+use crate::progress::Progress;
+
+/// Header facts of a LAS/LAZ file.
+#[derive(Debug, Clone, Serialize)]
+pub struct LasInfo {
+    /// LAS version, e.g. "1.4".
+    pub version: String,
+    /// Point data record format (0–10).
+    pub point_format: u8,
+    /// True for LAZ (compressed point records).
+    pub compressed: bool,
+    /// Bytes per point record.
+    pub record_length: u16,
+    /// Point count declared by the header (the 64-bit field for LAS 1.4).
+    pub declared_points: u64,
+    /// Header bounding box minimum, file coordinates (metres).
+    pub bounds_min: [f64; 3],
+    /// Header bounding box maximum, file coordinates (metres).
+    pub bounds_max: [f64; 3],
+    /// Coordinate scale factors (metres per integer step).
+    pub scale: [f64; 3],
+    /// Coordinate offsets (metres).
+    pub offset: [f64; 3],
+    /// True when the point format carries RGB.
+    pub has_color: bool,
+}
+
+/// Maps a `las` crate error: I/O errors on content (end of file, invalid data, decoder
+/// faults) become `Format`, genuine I/O errors stay `Io`; everything else is `Format`.
+fn las_err(path: &Path, e: ::las::Error) -> IoError {
+    match e {
+        ::las::Error::Io(io) => match io.kind() {
+            std::io::ErrorKind::UnexpectedEof
+            | std::io::ErrorKind::InvalidData
+            | std::io::ErrorKind::InvalidInput
+            | std::io::ErrorKind::Other => IoError::format(path, format!("bad point data: {io}")),
+            _ => IoError::io(path, io),
+        },
+        other => IoError::format(path, other.to_string()),
+    }
+}
+
+/// Reads the header of a LAS/LAZ file and checks the declared point count against the file.
+pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
+    let len = file_len(path)?;
+    if len == 0 {
+        return Err(IoError::format(path, "file is empty"));
+    }
+    let mut read = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let raw = ::las::raw::Header::read_from(&mut read).map_err(|e| las_err(path, e))?;
+    read.seek(SeekFrom::Start(0))
+        .map_err(|e| IoError::io(path, e))?;
+    let header = ::las::Header::new(&mut read).map_err(|e| las_err(path, e))?;
+    let fmt = *header.point_format();
+    let declared = header.number_of_points();
+    let start = u64::from(raw.offset_to_point_data);
+    let record_length = raw.point_data_record_length;
+    if record_length == 0 {
+        return Err(IoError::format(path, "point record length is 0"));
+    }
+    if fmt.is_compressed {
+        check_laz_chunks(path, &header, &mut read, start, declared)?;
+    } else {
+        // Point records end where the extended VLRs start (LAS 1.4), else at the end of file.
+        let end = match raw.evlr {
+            Some(e) if e.start_of_first_evlr >= start && e.start_of_first_evlr <= len => {
+                e.start_of_first_evlr
+            }
+            _ => len,
+        };
+        let held = end.saturating_sub(start) / u64::from(record_length);
+        if held != declared {
+            return Err(IoError::format(
+                path,
+                format!("header declares {declared} points but the file holds {held}"),
+            ));
+        }
+    }
+    let t = header.transforms();
+    let b = header.bounds();
+    Ok(LasInfo {
+        version: format!("{}.{}", raw.version.major, raw.version.minor),
+        point_format: raw.point_data_record_format & 0x3f,
+        compressed: fmt.is_compressed,
+        record_length,
+        declared_points: declared,
+        bounds_min: [b.min.x, b.min.y, b.min.z],
+        bounds_max: [b.max.x, b.max.y, b.max.z],
+        scale: [t.x.scale, t.y.scale, t.z.scale],
+        offset: [t.x.offset, t.y.offset, t.z.offset],
+        has_color: fmt.has_color,
+    })
+}
+
+/// For LAZ with fixed-size chunks: `declared` points need exactly ceil(declared / chunk_size)
+/// chunks. Variable-size chunk tables (and files without a chunk table) are left to the
+/// decoder, which fails on missing data.
+fn check_laz_chunks<R: Read + Seek>(
+    path: &Path,
+    header: &::las::Header,
+    read: &mut R,
+    start: u64,
+    declared: u64,
+) -> Result<(), IoError> {
+    let Some(vlr) = header
+        .vlrs()
+        .iter()
+        .find(|v| v.user_id.trim_end_matches('\0') == "laszip encoded" && v.record_id == 22204)
+    else {
+        return Err(IoError::format(
+            path,
+            "compressed point format without a LAZ VLR",
+        ));
+    };
+    let Some(chunk_size) = vlr
+        .data
+        .get(12..16)
+        .and_then(|b| b.try_into().ok())
+        .map(u32::from_le_bytes)
+    else {
+        return Err(IoError::format(path, "LAZ VLR is too short"));
+    };
+    if chunk_size == u32::MAX || chunk_size == 0 {
+        return Ok(()); // variable-size chunks: counts are inside the compressed table
+    }
+    let mut word = [0u8; 8];
+    let mut read_at = |pos: SeekFrom, buf: &mut [u8]| -> Result<(), IoError> {
+        read.seek(pos)
+            .and_then(|_| read.read_exact(buf))
+            .map_err(|e| IoError::read(path, e, "LAZ chunk table"))
+    };
+    read_at(SeekFrom::Start(start), &mut word)?;
+    let mut table = i64::from_le_bytes(word);
+    if table <= start as i64 {
+        // Writers that could not seek back store the table offset in the last 8 bytes.
+        read_at(SeekFrom::End(-8), &mut word)?;
+        table = i64::from_le_bytes(word);
+        if table <= start as i64 {
+            return Ok(());
+        }
+    }
+    read_at(SeekFrom::Start(table as u64), &mut word)?;
+    let chunks = u64::from(u32::from_le_bytes([word[4], word[5], word[6], word[7]]));
+    let cs = u64::from(chunk_size);
+    if declared > chunks * cs || (chunks > 0 && declared <= (chunks - 1) * cs) {
+        let most = chunks * cs;
+        return Err(IoError::format(
+            path,
+            format!(
+                "header declares {declared} points but the file holds {} to {most} ({chunks} chunks of {cs})",
+                (chunks.saturating_sub(1) * cs + 1).min(most)
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Reads a LAS or LAZ file. Colour is kept when the point format has RGB, intensity when any
+/// point has a non-zero intensity. The local origin is the header's minimum corner rounded
+/// down to whole metres (or the first points' minimum when the header bounds are wrong).
+pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoError> {
+    let info = inspect_las(path)?;
+    let file = File::open(path).map_err(|e| IoError::io(path, e))?;
+    let mut reader = ::las::Reader::new(BufReader::new(file)).map_err(|e| las_err(path, e))?;
+    let total = reader.header().number_of_points();
+    let mut pd = PointDataBuilder::new().for_header(reader.header()).build();
+    let hint = Some((
+        DVec3::from_array(info.bounds_min),
+        DVec3::from_array(info.bounds_max),
+    ));
+    // Preallocate no more than the file could hold (a LAZ count is only partly checked).
+    let cap_points = total.min(file_len(path)?);
+    let mut cloud = CloudBuilder::new(path, hint, cap_points);
+    let cap = cap_points.min(1 << 24) as usize;
+    let mut colors: Option<Vec<[u16; 3]>> = info.has_color.then(|| Vec::with_capacity(cap));
+    let mut intensity: Vec<u16> = Vec::with_capacity(cap);
+    loop {
+        check_cancel(progress)?;
+        let got = reader
+            .fill_points(PROGRESS_STEP as u64, &mut pd)
+            .map_err(|e| las_err(path, e))?;
+        if got == 0 {
+            break;
+        }
+        for ((x, y), z) in pd.x().zip(pd.y()).zip(pd.z()) {
+            cloud.push(DVec3::new(x, y, z))?;
+        }
+        intensity.extend(pd.intensity());
+        if let (Some(c), Some(rgb)) = (colors.as_mut(), pd.rgb()) {
+            c.extend(rgb.map(|(r, g, b)| [r, g, b]));
+        }
+        progress.set(cloud.count() as f64 / total.max(1) as f64);
+    }
+    if cloud.count() != total {
+        return Err(IoError::format(
+            path,
+            format!(
+                "header declares {total} points but the file holds {}",
+                cloud.count()
+            ),
+        ));
+    }
+    let (offset, positions) = cloud.finish();
+    Ok(PointCloud {
+        offset,
+        positions,
+        colors: colors.map(|c| colors_to_u8(&c)),
+        intensity: intensity.iter().any(|&i| i != 0).then_some(intensity),
+        format: if info.compressed {
+            CloudFormat::Laz
+        } else {
+            CloudFormat::Las
+        },
+    })
+}
+
+/// Writes a LAS 1.2 file (LAZ when `compress`): point format 2 with colour, else 0; scale
+/// 0.001 m, offset = `cloud.offset`. 8-bit colour is stored as 16-bit (× 257).
+pub fn write_las(path: &Path, cloud: &PointCloud, compress: bool) -> Result<(), IoError> {
+    let mut builder = Builder::from((1, 2));
+    let mut fmt =
+        Format::new(if cloud.colors.is_some() { 2 } else { 0 }).map_err(|e| las_err(path, e))?;
+    fmt.is_compressed = compress;
+    builder.point_format = fmt;
+    builder.generating_software = "sylva".to_string();
+    let t = |offset: f64| Transform {
+        scale: 0.001,
+        offset,
+    };
+    builder.transforms = Vector {
+        x: t(cloud.offset.x),
+        y: t(cloud.offset.y),
+        z: t(cloud.offset.z),
+    };
+    let header = builder.into_header().map_err(|e| las_err(path, e))?;
+    let file = File::create(path).map_err(|e| IoError::io(path, e))?;
+    let write_err = |e: ::las::Error| match e {
+        ::las::Error::Io(io) => IoError::io(path, io),
+        other => IoError::format(path, format!("cannot write point: {other}")),
+    };
+    let mut writer = ::las::Writer::new(BufWriter::new(file), header).map_err(write_err)?;
+    for i in 0..cloud.len() {
+        let p = cloud.world(i);
+        let point = Point {
+            x: p.x,
+            y: p.y,
+            z: p.z,
+            intensity: cloud
+                .intensity
+                .as_ref()
+                .and_then(|v| v.get(i).copied())
+                .unwrap_or(0),
+            color: cloud.colors.as_ref().map(|c| {
+                let [r, g, b] = c
+                    .get(i)
+                    .copied()
+                    .unwrap_or_default()
+                    .map(|v| u16::from(v) * 257);
+                Color::new(r, g, b)
+            }),
+            ..Default::default()
+        };
+        writer.write_point(point).map_err(write_err)?;
+    }
+    writer.close().map_err(write_err)
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,258 @@
+//! Job and upload records, their states, and the queue that hands jobs to workers.
+//!
+//! A job moves queued → running → succeeded | failed, or (on cancel) canceling → canceled.
+//! A worker claims a job in one statement that sets a lease (`lease_until`) and a fresh
+//! fencing token; it renews the lease by heartbeat. When a worker dies its lease runs out and
+//! another worker claims the job with attempt + 1; the dead worker's token no longer matches,
+//! so nothing it might still write lands (fencing). Each finished stage leaves a checkpoint
+//! row (`job_stages.state = 'done'`), so a re-claimed or retried job resumes at the first
+//! unfinished stage.
+
+pub mod sqlite;
+
+use serde::{Deserialize, Serialize};
+
+pub use sqlite::JobStore;
+
+/// Milliseconds since the Unix epoch, UTC.
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or(0)
+}
+
+/// RFC 3339 text of a millisecond timestamp.
+pub fn rfc3339(ms: i64) -> String {
+    let t = time::OffsetDateTime::from_unix_timestamp_nanos(ms as i128 * 1_000_000)
+        .unwrap_or(time::OffsetDateTime::UNIX_EPOCH);
+    t.format(&time::format_description::well_known::Rfc3339)
+        .unwrap_or_default()
+}
+
+macro_rules! string_enum {
+    ($(#[$m:meta])* $name:ident { $($variant:ident => $text:literal),+ $(,)? }) => {
+        $(#[$m])*
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+        #[serde(rename_all = "lowercase")]
+        pub enum $name { $($variant),+ }
+
+        impl $name {
+            pub const ALL: &'static [$name] = &[$($name::$variant),+];
+            pub fn as_str(self) -> &'static str {
+                match self { $($name::$variant => $text),+ }
+            }
+            pub fn parse(s: &str) -> Option<Self> {
+                match s { $($text => Some($name::$variant),)+ _ => None }
+            }
+        }
+    };
+}
+
+string_enum!(
+    /// The state of a job (SERVICE.md).
+    JobState {
+        Queued => "queued",
+        Running => "running",
+        Succeeded => "succeeded",
+        Failed => "failed",
+        Canceling => "canceling",
+        Canceled => "canceled",
+    }
+);
+
+impl JobState {
+    pub fn is_terminal(self) -> bool {
+        matches!(
+            self,
+            JobState::Succeeded | JobState::Failed | JobState::Canceled
+        )
+    }
+}
+
+string_enum!(
+    /// The state of one stage of one job.
+    StageState {
+        Pending => "pending",
+        Running => "running",
+        Done => "done",
+        Failed => "failed",
+        Canceled => "canceled",
+    }
+);
+
+pub use crate::pipeline::inspect::UploadKind;
+
+/// The uploads a job reads, by upload id.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobInputs {
+    pub lidar: String,
+    pub colmap: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control_points: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field_dbh: Option<String>,
+}
+
+impl JobInputs {
+    /// (kind, upload id) of every input given.
+    pub fn all(&self) -> Vec<(UploadKind, &str)> {
+        let mut v = vec![
+            (UploadKind::Lidar, self.lidar.as_str()),
+            (UploadKind::Colmap, self.colmap.as_str()),
+        ];
+        if let Some(id) = &self.control_points {
+            v.push((UploadKind::ControlPoints, id));
+        }
+        if let Some(id) = &self.field_dbh {
+            v.push((UploadKind::FieldDbh, id));
+        }
+        v
+    }
+}
+
+/// One job row with its stages and artifacts.
+#[derive(Debug, Clone)]
+pub struct JobRecord {
+    pub seq: i64,
+    pub id: String,
+    pub state: JobState,
+    pub stage: Option<String>,
+    pub progress: f64,
+    pub attempt: i64,
+    pub inputs: JobInputs,
+    pub params: serde_json::Value,
+    pub error: Option<serde_json::Value>,
+    pub created_at: i64,
+    pub updated_at: i64,
+    pub started_at: Option<i64>,
+    pub finished_at: Option<i64>,
+    pub stages: Vec<StageRecord>,
+    pub artifacts: Vec<ArtifactRecord>,
+}
+
+#[derive(Debug, Clone)]
+pub struct StageRecord {
+    pub name: String,
+    pub state: StageState,
+    pub progress: f64,
+    pub attempt: i64,
+    pub started_at: Option<i64>,
+    pub finished_at: Option<i64>,
+    pub metrics: Option<serde_json::Value>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct ArtifactRecord {
+    pub name: String,
+    pub stage: String,
+    pub kind: String,
+    pub size: i64,
+    pub sha256: String,
+    pub content_type: String,
+}
+
+#[derive(Debug, Clone)]
+pub struct UploadRecord {
+    pub id: String,
+    pub kind: UploadKind,
+    pub filename: String,
+    pub size: i64,
+    pub sha256: Option<String>,
+    pub part_size: i64,
+    pub complete: bool,
+    pub inspection: Option<serde_json::Value>,
+    pub created_at: i64,
+    pub expires_at: i64,
+    pub completed_at: Option<i64>,
+    /// Received parts: (index, size in bytes).
+    pub parts: Vec<(i64, i64)>,
+}
+
+impl UploadRecord {
+    pub fn parts_total(&self) -> i64 {
+        (self.size + self.part_size - 1) / self.part_size
+    }
+
+    /// Exact length part `n` must have.
+    pub fn part_len(&self, n: i64) -> i64 {
+        (self.size - n * self.part_size).min(self.part_size)
+    }
+
+    pub fn bytes_received(&self) -> i64 {
+        self.parts.iter().map(|p| p.1).sum()
+    }
+
+    pub fn missing_parts(&self) -> Vec<i64> {
+        let have: std::collections::HashSet<i64> = self.parts.iter().map(|p| p.0).collect();
+        (0..self.parts_total())
+            .filter(|n| !have.contains(n))
+            .collect()
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LogLine {
+    pub seq: i64,
+    pub ts: i64,
+    pub level: String,
+    pub stage: Option<String>,
+    pub message: String,
+}
+
+/// A job handed to a worker.
+#[derive(Debug, Clone)]
+pub struct Claim {
+    pub job_id: String,
+    /// Fencing token: every write of this run must present it.
+    pub token: String,
+    pub attempt: i64,
+    pub inputs: JobInputs,
+    pub params: serde_json::Value,
+    /// Stages already finished (checkpoints), by name.
+    pub done: Vec<String>,
+    pub progress: f64,
+}
+
+/// What a heartbeat learned.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Heartbeat {
+    Ok,
+    /// The user asked to cancel; stop the stage.
+    CancelRequested,
+    /// Another worker owns the job now (or it was deleted); stop without writing.
+    Lost,
+}
+
+/// How a run ended, as the worker reports it.
+#[derive(Debug, Clone)]
+pub enum RunEnd {
+    Succeeded,
+    Failed {
+        stage: Option<String>,
+        problem: serde_json::Value,
+    },
+    Canceled {
+        stage: Option<String>,
+    },
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DbError {
+    #[error("database: {0}")]
+    Sqlx(#[from] sqlx::Error),
+    #[error("database migration: {0}")]
+    Migrate(#[from] sqlx::migrate::MigrateError),
+    #[error("{0}")]
+    Conflict(String),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("not found")]
+    NotFound,
+    /// This worker no longer holds the job's lease; its write was refused.
+    #[error("lease lost: another worker owns the job")]
+    Fenced,
+    #[error("queue full: {0} jobs waiting")]
+    QueueFull(i64),
+}

@@ -1,0 +1,953 @@
+//! The job queue and upload records on SQLite (WAL, busy timeout, `BEGIN IMMEDIATE` for
+//! every transaction that reads before it writes, so concurrent API writes and claims wait
+//! for each other instead of failing with "database is locked").
+
+use std::path::Path;
+use std::str::FromStr;
+use std::time::Duration;
+
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
+    SqliteSynchronous,
+};
+use sqlx::{Row, Sqlite, Transaction};
+
+use super::*;
+use crate::pipeline::{OutputFile, Stage};
+
+/// How long a connection waits for another writer before giving up (SQLite busy_timeout).
+const BUSY_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// The job queue, upload records and job log in one SQLite file.
+#[derive(Clone)]
+pub struct JobStore {
+    pool: SqlitePool,
+}
+
+fn parse_json(text: Option<String>) -> Option<serde_json::Value> {
+    text.and_then(|t| serde_json::from_str(&t).ok())
+}
+
+fn job_from_row(r: &SqliteRow) -> Result<JobRecord, DbError> {
+    let state: String = r.try_get("state")?;
+    let inputs: String = r.try_get("inputs")?;
+    let params: String = r.try_get("params")?;
+    Ok(JobRecord {
+        seq: r.try_get("seq")?,
+        id: r.try_get("id")?,
+        state: JobState::parse(&state)
+            .ok_or_else(|| DbError::Invalid(format!("bad job state {state:?}")))?,
+        stage: r.try_get("stage")?,
+        progress: r.try_get("progress")?,
+        attempt: r.try_get("attempt")?,
+        inputs: serde_json::from_str(&inputs)
+            .map_err(|e| DbError::Invalid(format!("bad inputs: {e}")))?,
+        params: serde_json::from_str(&params)
+            .map_err(|e| DbError::Invalid(format!("bad params: {e}")))?,
+        error: parse_json(r.try_get("error")?),
+        created_at: r.try_get("created_at")?,
+        updated_at: r.try_get("updated_at")?,
+        started_at: r.try_get("started_at")?,
+        finished_at: r.try_get("finished_at")?,
+        stages: Vec::new(),
+        artifacts: Vec::new(),
+    })
+}
+
+const JOB_COLUMNS: &str = "seq, id, state, stage, progress, attempt, inputs, params, error, \
+                           created_at, updated_at, started_at, finished_at";
+
+/// The outcome of creating a job.
+#[derive(Debug)]
+pub enum Created {
+    New(String),
+    /// The Idempotency-Key was seen before with the same request: the job it created.
+    Existing(String),
+}
+
+impl JobStore {
+    /// Opens (creating if needed) the database file and applies migrations.
+    pub async fn open(path: &Path, max_connections: u32) -> Result<Self, DbError> {
+        let options = SqliteConnectOptions::new()
+            .filename(path)
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .synchronous(SqliteSynchronous::Normal)
+            .busy_timeout(BUSY_TIMEOUT)
+            .foreign_keys(true);
+        let pool = SqlitePoolOptions::new()
+            .max_connections(max_connections.max(2))
+            .acquire_timeout(BUSY_TIMEOUT)
+            .connect_with(options)
+            .await?;
+        sqlx::migrate!("./migrations/sqlite").run(&pool).await?;
+        Ok(Self { pool })
+    }
+
+    /// Opens an in-memory-like store in a file path given as a URL (tests).
+    pub async fn open_url(url: &str) -> Result<Self, DbError> {
+        let options = SqliteConnectOptions::from_str(url)?
+            .busy_timeout(BUSY_TIMEOUT)
+            .foreign_keys(true);
+        let pool = SqlitePoolOptions::new().connect_with(options).await?;
+        sqlx::migrate!("./migrations/sqlite").run(&pool).await?;
+        Ok(Self { pool })
+    }
+
+    async fn begin(&self) -> Result<Transaction<'static, Sqlite>, DbError> {
+        Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?)
+    }
+
+    /// A trivial query: is the database answering?
+    pub async fn ping(&self) -> Result<(), DbError> {
+        sqlx::query("SELECT 1").execute(&self.pool).await?;
+        Ok(())
+    }
+
+    /// `PRAGMA integrity_check` result ("ok" when healthy).
+    pub async fn integrity_check(&self) -> Result<String, DbError> {
+        let row = sqlx::query("PRAGMA integrity_check")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get(0)?)
+    }
+
+    // ---------------------------------------------------------------- uploads
+
+    pub async fn create_upload(&self, u: &UploadRecord) -> Result<(), DbError> {
+        sqlx::query(
+            "INSERT INTO uploads (id, kind, filename, size, sha256, part_size, state, created_at, expires_at) \
+             VALUES (?, ?, ?, ?, ?, ?, 'open', ?, ?)",
+        )
+        .bind(&u.id)
+        .bind(u.kind.as_str())
+        .bind(&u.filename)
+        .bind(u.size)
+        .bind(&u.sha256)
+        .bind(u.part_size)
+        .bind(u.created_at)
+        .bind(u.expires_at)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    pub async fn get_upload(&self, id: &str) -> Result<Option<UploadRecord>, DbError> {
+        let Some(r) = sqlx::query("SELECT * FROM uploads WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+        else {
+            return Ok(None);
+        };
+        let kind: String = r.try_get("kind")?;
+        let state: String = r.try_get("state")?;
+        let parts = sqlx::query("SELECT n, size FROM upload_parts WHERE upload_id = ? ORDER BY n")
+            .bind(id)
+            .fetch_all(&self.pool)
+            .await?
+            .iter()
+            .map(|p| Ok((p.try_get("n")?, p.try_get("size")?)))
+            .collect::<Result<Vec<_>, sqlx::Error>>()?;
+        Ok(Some(UploadRecord {
+            id: r.try_get("id")?,
+            kind: UploadKind::parse(&kind)
+                .ok_or_else(|| DbError::Invalid(format!("bad upload kind {kind:?}")))?,
+            filename: r.try_get("filename")?,
+            size: r.try_get("size")?,
+            sha256: r.try_get("sha256")?,
+            part_size: r.try_get("part_size")?,
+            complete: state == "complete",
+            inspection: parse_json(r.try_get("inspection")?),
+            created_at: r.try_get("created_at")?,
+            expires_at: r.try_get("expires_at")?,
+            completed_at: r.try_get("completed_at")?,
+            parts,
+        }))
+    }
+
+    /// Records a received part (replacing an earlier copy); refused once the upload is complete.
+    pub async fn put_part(&self, id: &str, n: i64, size: i64, sha256: &str) -> Result<(), DbError> {
+        let mut tx = self.begin().await?;
+        let state: Option<String> = sqlx::query_scalar("SELECT state FROM uploads WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        match state.as_deref() {
+            None => return Err(DbError::NotFound),
+            Some("complete") => {
+                return Err(DbError::Conflict("the upload is already complete".into()));
+            }
+            _ => {}
+        }
+        sqlx::query(
+            "INSERT OR REPLACE INTO upload_parts (upload_id, n, size, sha256) VALUES (?, ?, ?, ?)",
+        )
+        .bind(id)
+        .bind(n)
+        .bind(size)
+        .bind(sha256)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Marks an upload complete with its verified checksum and what inspection found.
+    pub async fn complete_upload(
+        &self,
+        id: &str,
+        sha256: &str,
+        inspection: &serde_json::Value,
+    ) -> Result<(), DbError> {
+        sqlx::query(
+            "UPDATE uploads SET state = 'complete', sha256 = ?, inspection = ?, completed_at = ? \
+             WHERE id = ? AND state = 'open'",
+        )
+        .bind(sha256)
+        .bind(inspection.to_string())
+        .bind(now_ms())
+        .bind(id)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- jobs
+
+    /// Creates a job with its stage rows. With an idempotency key seen before, returns the
+    /// earlier job if the request was the same, and a conflict otherwise.
+    #[allow(clippy::too_many_arguments)]
+    pub async fn create_job(
+        &self,
+        id: &str,
+        inputs: &JobInputs,
+        params: &serde_json::Value,
+        stages: &[Stage],
+        idempotency_key: Option<&str>,
+        request_hash: &str,
+        max_queued: i64,
+    ) -> Result<Created, DbError> {
+        let mut tx = self.begin().await?;
+        if let Some(key) = idempotency_key {
+            let row = sqlx::query("SELECT id, request_hash FROM jobs WHERE idempotency_key = ?")
+                .bind(key)
+                .fetch_optional(&mut *tx)
+                .await?;
+            if let Some(row) = row {
+                let hash: Option<String> = row.try_get("request_hash")?;
+                return if hash.as_deref() == Some(request_hash) {
+                    Ok(Created::Existing(row.try_get("id")?))
+                } else {
+                    Err(DbError::Invalid(
+                        "this Idempotency-Key was already used with a different request".into(),
+                    ))
+                };
+            }
+        }
+        let queued: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE state = 'queued'")
+            .fetch_one(&mut *tx)
+            .await?;
+        if queued >= max_queued {
+            return Err(DbError::QueueFull(queued));
+        }
+        for (kind, upload) in inputs.all() {
+            let row = sqlx::query("SELECT kind, state FROM uploads WHERE id = ?")
+                .bind(upload)
+                .fetch_optional(&mut *tx)
+                .await?;
+            let Some(row) = row else {
+                return Err(DbError::Invalid(format!(
+                    "inputs.{}: upload {upload} does not exist",
+                    kind.as_str()
+                )));
+            };
+            let (k, s): (String, String) = (row.try_get("kind")?, row.try_get("state")?);
+            if k != kind.as_str() {
+                return Err(DbError::Invalid(format!(
+                    "inputs.{}: upload {upload} holds `{k}`, not `{}`",
+                    kind.as_str(),
+                    kind.as_str()
+                )));
+            }
+            if s != "complete" {
+                return Err(DbError::Invalid(format!(
+                    "inputs.{}: upload {upload} is not complete",
+                    kind.as_str()
+                )));
+            }
+        }
+        let now = now_ms();
+        sqlx::query(
+            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at) \
+             VALUES (?, 'queued', 0, 0, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(id)
+        .bind(serde_json::to_string(inputs).unwrap_or_default())
+        .bind(params.to_string())
+        .bind(idempotency_key)
+        .bind(request_hash)
+        .bind(now)
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        for s in stages {
+            sqlx::query("INSERT INTO job_stages (job_id, idx, name) VALUES (?, ?, ?)")
+                .bind(id)
+                .bind(s.index() as i64)
+                .bind(s.name())
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(Created::New(id.to_string()))
+    }
+
+    async fn fill(&self, mut job: JobRecord) -> Result<JobRecord, DbError> {
+        let stages = sqlx::query("SELECT * FROM job_stages WHERE job_id = ? ORDER BY idx")
+            .bind(&job.id)
+            .fetch_all(&self.pool)
+            .await?;
+        job.stages = stages
+            .iter()
+            .map(|r| {
+                let state: String = r.try_get("state")?;
+                Ok(StageRecord {
+                    name: r.try_get("name")?,
+                    state: StageState::parse(&state).unwrap_or(StageState::Pending),
+                    progress: r.try_get("progress")?,
+                    attempt: r.try_get("attempt")?,
+                    started_at: r.try_get("started_at")?,
+                    finished_at: r.try_get("finished_at")?,
+                    metrics: parse_json(r.try_get("metrics")?),
+                })
+            })
+            .collect::<Result<_, sqlx::Error>>()?;
+        job.artifacts = self.artifacts(&job.id).await?;
+        Ok(job)
+    }
+
+    pub async fn get_job(&self, id: &str) -> Result<Option<JobRecord>, DbError> {
+        let sql = format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?");
+        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        match row {
+            Some(r) => Ok(Some(self.fill(job_from_row(&r)?).await?)),
+            None => Ok(None),
+        }
+    }
+
+    /// Jobs newest first; `before_seq` is the cursor (the last seq of the previous page).
+    pub async fn list_jobs(
+        &self,
+        state: Option<JobState>,
+        before_seq: Option<i64>,
+        limit: i64,
+    ) -> Result<Vec<JobRecord>, DbError> {
+        let sql = format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE (?1 IS NULL OR state = ?1) AND (?2 IS NULL OR seq < ?2) \
+             ORDER BY seq DESC LIMIT ?3"
+        );
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(state.map(|s| s.as_str()))
+            .bind(before_seq)
+            .bind(limit)
+            .fetch_all(&self.pool)
+            .await?;
+        let mut out = Vec::with_capacity(rows.len());
+        for r in &rows {
+            out.push(self.fill(job_from_row(r)?).await?);
+        }
+        Ok(out)
+    }
+
+    pub async fn artifacts(&self, job_id: &str) -> Result<Vec<ArtifactRecord>, DbError> {
+        let rows = sqlx::query(
+            "SELECT a.* FROM artifacts a JOIN job_stages s ON s.job_id = a.job_id AND s.name = a.stage \
+             WHERE a.job_id = ? ORDER BY s.idx, a.name",
+        )
+        .bind(job_id)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(ArtifactRecord {
+                    name: r.try_get("name")?,
+                    stage: r.try_get("stage")?,
+                    kind: r.try_get("kind")?,
+                    size: r.try_get("size")?,
+                    sha256: r.try_get("sha256")?,
+                    content_type: r.try_get("content_type")?,
+                })
+            })
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(DbError::from)
+    }
+
+    pub async fn append_log(
+        &self,
+        job_id: &str,
+        level: &str,
+        stage: Option<&str>,
+        message: &str,
+    ) -> Result<(), DbError> {
+        sqlx::query(
+            "INSERT INTO job_log (job_id, seq, ts, level, stage, message) \
+             SELECT ?1, COALESCE(MAX(seq), 0) + 1, ?2, ?3, ?4, ?5 FROM job_log WHERE job_id = ?1",
+        )
+        .bind(job_id)
+        .bind(now_ms())
+        .bind(level)
+        .bind(stage)
+        .bind(message)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    pub async fn log(&self, job_id: &str, since: i64, limit: i64) -> Result<Vec<LogLine>, DbError> {
+        let rows = sqlx::query(
+            "SELECT seq, ts, level, stage, message FROM job_log WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+        )
+        .bind(job_id)
+        .bind(since)
+        .bind(limit)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(LogLine {
+                    seq: r.try_get("seq")?,
+                    ts: r.try_get("ts")?,
+                    level: r.try_get("level")?,
+                    stage: r.try_get("stage")?,
+                    message: r.try_get("message")?,
+                })
+            })
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(DbError::from)
+    }
+
+    /// Cancels a job: a queued one at once, a running one by asking its worker (canceling).
+    pub async fn cancel(&self, id: &str) -> Result<JobState, DbError> {
+        let mut tx = self.begin().await?;
+        let state: Option<String> = sqlx::query_scalar("SELECT state FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        let state = state
+            .and_then(|s| JobState::parse(&s))
+            .ok_or(DbError::NotFound)?;
+        let now = now_ms();
+        let next = match state {
+            JobState::Queued => {
+                sqlx::query(
+                    "UPDATE jobs SET state = 'canceled', finished_at = ?, updated_at = ? WHERE id = ?",
+                )
+                .bind(now)
+                .bind(now)
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+                JobState::Canceled
+            }
+            JobState::Running => {
+                sqlx::query("UPDATE jobs SET state = 'canceling', updated_at = ? WHERE id = ?")
+                    .bind(now)
+                    .bind(id)
+                    .execute(&mut *tx)
+                    .await?;
+                JobState::Canceling
+            }
+            JobState::Canceling => JobState::Canceling,
+            s => {
+                return Err(DbError::Conflict(format!(
+                    "the job is already {}; nothing to cancel",
+                    s.as_str()
+                )));
+            }
+        };
+        tx.commit().await?;
+        Ok(next)
+    }
+
+    /// Queues a finished job again from `from` (or its first unfinished stage). Returns the
+    /// stages that were reset, whose output folders the caller removes.
+    pub async fn retry(&self, id: &str, from: Option<Stage>) -> Result<Vec<String>, DbError> {
+        let mut tx = self.begin().await?;
+        let state: Option<String> = sqlx::query_scalar("SELECT state FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        let state = state
+            .and_then(|s| JobState::parse(&s))
+            .ok_or(DbError::NotFound)?;
+        if !state.is_terminal() {
+            return Err(DbError::Conflict(format!(
+                "the job is {}; only a failed, canceled or succeeded job can be retried",
+                state.as_str()
+            )));
+        }
+        let rows =
+            sqlx::query("SELECT name, idx, state FROM job_stages WHERE job_id = ? ORDER BY idx")
+                .bind(id)
+                .fetch_all(&mut *tx)
+                .await?;
+        let mut first_unfinished: Option<(String, i64)> = None;
+        let mut all = Vec::new();
+        for r in &rows {
+            let (name, idx, st): (String, i64, String) =
+                (r.try_get("name")?, r.try_get("idx")?, r.try_get("state")?);
+            if st != "done" && first_unfinished.is_none() {
+                first_unfinished = Some((name.clone(), idx));
+            }
+            all.push((name, idx));
+        }
+        let from_idx = match (from, &first_unfinished) {
+            (Some(s), _) if !all.iter().any(|(n, _)| n == s.name()) => {
+                return Err(DbError::Invalid(format!(
+                    "from_stage {s}: this job does not run that stage"
+                )));
+            }
+            (Some(s), Some((name, idx))) if (s.index() as i64) > *idx => {
+                return Err(DbError::Invalid(format!(
+                    "from_stage {s}: stage {name} has not finished, so the job must resume there"
+                )));
+            }
+            (Some(s), _) => s.index() as i64,
+            (None, Some((_, idx))) => *idx,
+            (None, None) => {
+                return Err(DbError::Conflict(
+                    "every stage has finished; name from_stage to run stages again".into(),
+                ));
+            }
+        };
+        let reset: Vec<String> = all
+            .iter()
+            .filter(|(_, i)| *i >= from_idx)
+            .map(|(n, _)| n.clone())
+            .collect();
+        sqlx::query(
+            "UPDATE job_stages SET state = 'pending', progress = 0, started_at = NULL, finished_at = NULL, metrics = NULL \
+             WHERE job_id = ? AND idx >= ?",
+        )
+        .bind(id)
+        .bind(from_idx)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "DELETE FROM artifacts WHERE job_id = ? AND stage IN (SELECT name FROM job_stages WHERE job_id = ? AND idx >= ?)",
+        )
+        .bind(id)
+        .bind(id)
+        .bind(from_idx)
+        .execute(&mut *tx)
+        .await?;
+        let done_weight: f64 = rows
+            .iter()
+            .filter_map(|r| {
+                let name: String = r.try_get("name").ok()?;
+                let idx: i64 = r.try_get("idx").ok()?;
+                (idx < from_idx).then(|| Stage::from_name(&name).map(|s| s.weight()))?
+            })
+            .sum();
+        let now = now_ms();
+        sqlx::query(
+            "UPDATE jobs SET state = 'queued', stage = NULL, progress = ?, attempt = 0, error = NULL, worker_id = NULL, \
+             lease_until = NULL, lease_token = NULL, finished_at = NULL, updated_at = ? WHERE id = ?",
+        )
+        .bind(done_weight)
+        .bind(now)
+        .bind(id)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(reset)
+    }
+
+    /// Deletes a finished job's rows (its files are the caller's to remove).
+    pub async fn delete_job(&self, id: &str) -> Result<(), DbError> {
+        let mut tx = self.begin().await?;
+        let state: Option<String> = sqlx::query_scalar("SELECT state FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        let state = state
+            .and_then(|s| JobState::parse(&s))
+            .ok_or(DbError::NotFound)?;
+        if !state.is_terminal() {
+            return Err(DbError::Conflict(format!(
+                "the job is {}; cancel it before deleting it",
+                state.as_str()
+            )));
+        }
+        sqlx::query("DELETE FROM jobs WHERE id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- queue (workers)
+
+    /// Claims the oldest claimable job: a queued one, or a running one whose lease expired
+    /// (its worker died). In the same transaction, canceling jobs with an expired lease become
+    /// canceled, and jobs that lost their worker `max_attempts` times fail.
+    pub async fn claim(
+        &self,
+        worker_id: &str,
+        lease: Duration,
+        max_attempts: i64,
+    ) -> Result<Option<Claim>, DbError> {
+        let now = now_ms();
+        let mut tx = self.begin().await?;
+        sqlx::query(
+            "UPDATE jobs SET state = 'canceled', finished_at = ?1, updated_at = ?1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
+             WHERE state = 'canceling' AND lease_until < ?1",
+        )
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        let problem = serde_json::json!({
+            "type": "urn:sylva:problem:worker-lost",
+            "title": "Worker lost",
+            "status": 500,
+            "detail": format!("the job's worker stopped responding {max_attempts} times; giving up"),
+        });
+        sqlx::query(
+            "UPDATE jobs SET state = 'failed', error = ?2, finished_at = ?1, updated_at = ?1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
+             WHERE state = 'running' AND lease_until < ?1 AND attempt >= ?3",
+        )
+        .bind(now)
+        .bind(problem.to_string())
+        .bind(max_attempts)
+        .execute(&mut *tx)
+        .await?;
+        let token = uuid::Uuid::new_v4().simple().to_string();
+        let row = sqlx::query(
+            "UPDATE jobs SET state = 'running', worker_id = ?1, lease_token = ?2, lease_until = ?3, attempt = attempt + 1, \
+             updated_at = ?4, started_at = COALESCE(started_at, ?4) \
+             WHERE seq = (SELECT seq FROM jobs WHERE state = 'queued' OR (state = 'running' AND lease_until < ?4) ORDER BY seq LIMIT 1) \
+             RETURNING id, attempt, inputs, params, progress",
+        )
+        .bind(worker_id)
+        .bind(&token)
+        .bind(now + lease.as_millis() as i64)
+        .bind(now)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(row) = row else {
+            tx.commit().await?;
+            return Ok(None);
+        };
+        let job_id: String = row.try_get("id")?;
+        let inputs: String = row.try_get("inputs")?;
+        let params: String = row.try_get("params")?;
+        let done: Vec<String> = sqlx::query_scalar(
+            "SELECT name FROM job_stages WHERE job_id = ? AND state = 'done' ORDER BY idx",
+        )
+        .bind(&job_id)
+        .fetch_all(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Some(Claim {
+            job_id,
+            token,
+            attempt: row.try_get("attempt")?,
+            inputs: serde_json::from_str(&inputs)
+                .map_err(|e| DbError::Invalid(format!("bad inputs: {e}")))?,
+            params: serde_json::from_str(&params)
+                .map_err(|e| DbError::Invalid(format!("bad params: {e}")))?,
+            done,
+            progress: row.try_get("progress")?,
+        }))
+    }
+
+    /// Renews the lease and records progress (never lower than before).
+    pub async fn heartbeat(
+        &self,
+        job_id: &str,
+        token: &str,
+        lease: Duration,
+        progress: f64,
+        stage: Option<(&str, f64)>,
+    ) -> Result<Heartbeat, DbError> {
+        let now = now_ms();
+        let mut tx = self.begin().await?;
+        let state: Option<String> = sqlx::query_scalar(
+            "UPDATE jobs SET lease_until = ?1, updated_at = CASE WHEN ?2 > progress THEN ?3 ELSE updated_at END, \
+             progress = MAX(progress, ?2) WHERE id = ?4 AND lease_token = ?5 RETURNING state",
+        )
+        .bind(now + lease.as_millis() as i64)
+        .bind(progress)
+        .bind(now)
+        .bind(job_id)
+        .bind(token)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(state) = state else {
+            return Ok(Heartbeat::Lost);
+        };
+        if let Some((name, p)) = stage {
+            sqlx::query(
+                "UPDATE job_stages SET progress = MAX(progress, ?) WHERE job_id = ? AND name = ? AND state = 'running'",
+            )
+            .bind(p)
+            .bind(job_id)
+            .bind(name)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(match state.as_str() {
+            "canceling" => Heartbeat::CancelRequested,
+            "running" => Heartbeat::Ok,
+            _ => Heartbeat::Lost,
+        })
+    }
+
+    /// Checks the fencing token inside a transaction; `Fenced` if this run lost the job.
+    async fn fence(
+        tx: &mut Transaction<'static, Sqlite>,
+        job_id: &str,
+        token: &str,
+    ) -> Result<(), DbError> {
+        let ok: Option<i64> =
+            sqlx::query_scalar("SELECT 1 FROM jobs WHERE id = ? AND lease_token = ?")
+                .bind(job_id)
+                .bind(token)
+                .fetch_optional(&mut **tx)
+                .await?;
+        ok.map(|_| ()).ok_or(DbError::Fenced)
+    }
+
+    pub async fn start_stage(
+        &self,
+        job_id: &str,
+        token: &str,
+        stage: Stage,
+        attempt: i64,
+    ) -> Result<(), DbError> {
+        let now = now_ms();
+        let mut tx = self.begin().await?;
+        Self::fence(&mut tx, job_id, token).await?;
+        sqlx::query(
+            "UPDATE job_stages SET state = 'running', progress = 0, attempt = ?, started_at = ?, finished_at = NULL \
+             WHERE job_id = ? AND name = ?",
+        )
+        .bind(attempt)
+        .bind(now)
+        .bind(job_id)
+        .bind(stage.name())
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("UPDATE jobs SET stage = ?, updated_at = ? WHERE id = ?")
+            .bind(stage.name())
+            .bind(now)
+            .bind(job_id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// The checkpoint: a finished stage with its report and files, written only while this
+    /// run still holds the lease.
+    pub async fn finish_stage(
+        &self,
+        job_id: &str,
+        token: &str,
+        stage: Stage,
+        metrics: &serde_json::Value,
+        files: &[OutputFile],
+        job_progress: f64,
+    ) -> Result<(), DbError> {
+        let now = now_ms();
+        let mut tx = self.begin().await?;
+        Self::fence(&mut tx, job_id, token).await?;
+        sqlx::query("DELETE FROM artifacts WHERE job_id = ? AND stage = ?")
+            .bind(job_id)
+            .bind(stage.name())
+            .execute(&mut *tx)
+            .await?;
+        for f in files {
+            sqlx::query(
+                "INSERT INTO artifacts (job_id, name, stage, kind, size, sha256, content_type) VALUES (?, ?, ?, ?, ?, ?, ?)",
+            )
+            .bind(job_id)
+            .bind(&f.name)
+            .bind(stage.name())
+            .bind(&f.kind)
+            .bind(f.size as i64)
+            .bind(&f.sha256)
+            .bind(&f.content_type)
+            .execute(&mut *tx)
+            .await?;
+        }
+        sqlx::query(
+            "UPDATE job_stages SET state = 'done', progress = 1, finished_at = ?, metrics = ? WHERE job_id = ? AND name = ?",
+        )
+        .bind(now)
+        .bind(metrics.to_string())
+        .bind(job_id)
+        .bind(stage.name())
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("UPDATE jobs SET progress = MAX(progress, ?), updated_at = ? WHERE id = ?")
+            .bind(job_progress)
+            .bind(now)
+            .bind(job_id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Ends a run: succeeded, failed (with a problem object) or canceled.
+    pub async fn finish_job(&self, job_id: &str, token: &str, end: &RunEnd) -> Result<(), DbError> {
+        let now = now_ms();
+        let mut tx = self.begin().await?;
+        Self::fence(&mut tx, job_id, token).await?;
+        let (state, error, stage, stage_state) = match end {
+            RunEnd::Succeeded => ("succeeded", None, None, None),
+            RunEnd::Failed { stage, problem } => (
+                "failed",
+                Some(problem.to_string()),
+                stage.clone(),
+                Some("failed"),
+            ),
+            RunEnd::Canceled { stage } => ("canceled", None, stage.clone(), Some("canceled")),
+        };
+        if let (Some(stage), Some(st)) = (&stage, stage_state) {
+            sqlx::query("UPDATE job_stages SET state = ?, finished_at = ? WHERE job_id = ? AND name = ? AND state != 'done'")
+                .bind(st)
+                .bind(now)
+                .bind(job_id)
+                .bind(stage)
+                .execute(&mut *tx)
+                .await?;
+        }
+        let progress_done = if state == "succeeded" { 1.0 } else { 0.0 };
+        sqlx::query(
+            "UPDATE jobs SET state = ?, error = ?, progress = MAX(progress, ?), finished_at = ?, updated_at = ?, \
+             worker_id = NULL, lease_until = NULL, lease_token = NULL WHERE id = ?",
+        )
+        .bind(state)
+        .bind(error)
+        .bind(progress_done)
+        .bind(now)
+        .bind(now)
+        .bind(job_id)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- workers and metrics
+
+    pub async fn register_worker(&self, id: &str, host: &str, pid: u32) -> Result<(), DbError> {
+        let now = now_ms();
+        sqlx::query(
+            "INSERT INTO workers (id, host, pid, started_at, last_seen) VALUES (?, ?, ?, ?, ?) \
+             ON CONFLICT(id) DO UPDATE SET last_seen = excluded.last_seen",
+        )
+        .bind(id)
+        .bind(host)
+        .bind(pid as i64)
+        .bind(now)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    pub async fn unregister_worker(&self, id: &str) -> Result<(), DbError> {
+        sqlx::query("DELETE FROM workers WHERE id = ?")
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Start-up recovery: forgets workers silent for longer than `stale`, and expires at once
+    /// the leases of jobs held by worker processes of this host that no longer exist (a
+    /// crashed `sylva serve`), so they are re-claimed without waiting for the lease.
+    pub async fn recover(&self, host: &str, stale: Duration) -> Result<u64, DbError> {
+        let now = now_ms();
+        let rows = sqlx::query("SELECT id, pid FROM workers WHERE host = ?")
+            .bind(host)
+            .fetch_all(&self.pool)
+            .await?;
+        let mut expired = 0;
+        for r in &rows {
+            let (id, pid): (String, i64) = (r.try_get("id")?, r.try_get("pid")?);
+            if !process_alive(pid) {
+                let res = sqlx::query(
+                    "UPDATE jobs SET lease_until = 0 WHERE worker_id = ? AND state IN ('running', 'canceling')",
+                )
+                .bind(&id)
+                .execute(&self.pool)
+                .await?;
+                expired += res.rows_affected();
+                self.unregister_worker(&id).await?;
+            }
+        }
+        sqlx::query("DELETE FROM workers WHERE last_seen < ?")
+            .bind(now - stale.as_millis() as i64)
+            .execute(&self.pool)
+            .await?;
+        Ok(expired)
+    }
+
+    /// Workers seen within `window`.
+    pub async fn live_workers(&self, window: Duration) -> Result<i64, DbError> {
+        Ok(
+            sqlx::query_scalar("SELECT COUNT(*) FROM workers WHERE last_seen >= ?")
+                .bind(now_ms() - window.as_millis() as i64)
+                .fetch_one(&self.pool)
+                .await?,
+        )
+    }
+
+    /// Number of jobs in each state.
+    pub async fn count_by_state(&self) -> Result<Vec<(JobState, i64)>, DbError> {
+        let rows = sqlx::query("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state")
+            .fetch_all(&self.pool)
+            .await?;
+        let mut out: Vec<(JobState, i64)> = JobState::ALL.iter().map(|s| (*s, 0)).collect();
+        for r in &rows {
+            let s: String = r.try_get("state")?;
+            if let Some(entry) = out.iter_mut().find(|(st, _)| st.as_str() == s) {
+                entry.1 = r.try_get("n")?;
+            }
+        }
+        Ok(out)
+    }
+
+    /// Durations in seconds of finished stages, per stage name.
+    pub async fn stage_durations(&self) -> Result<Vec<(String, f64)>, DbError> {
+        let rows = sqlx::query(
+            "SELECT name, (finished_at - started_at) / 1000.0 AS d FROM job_stages \
+             WHERE state = 'done' AND started_at IS NOT NULL AND finished_at IS NOT NULL",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get("name")?, r.try_get("d")?)))
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(DbError::from)
+    }
+}
+
+/// Whether a process id exists on this host (Linux: /proc; elsewhere assume alive).
+fn process_alive(pid: i64) -> bool {
+    if cfg!(target_os = "linux") {
+        Path::new(&format!("/proc/{pid}")).exists()
+    } else {
+        true
+    }
+}

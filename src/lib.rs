@@ -1,0 +1,17 @@
+//! Sylva: forest plot digital twins from handheld LiDAR and UAV photos.
+//!
+//! The data flows one way: HTTP in (`api`) → job row (`jobs`) → worker (`worker`) → pipeline
+//! stages (`pipeline`, built on `io`) → artifacts (`store`) → HTTP out. Lower rooms never
+//! import higher ones: `io` and `gpu` know nothing of the pipeline, the pipeline nothing of
+//! HTTP or SQL.
+
+pub mod api;
+pub mod cli;
+pub mod config;
+pub mod gpu;
+pub mod io;
+pub mod jobs;
+pub mod pipeline;
+pub mod progress;
+pub mod store;
+pub mod worker;

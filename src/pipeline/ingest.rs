@@ -1,0 +1,217 @@
+//! Stage `ingest`: read every input once, check it is usable, and keep a normalised copy.
+//!
+//! The LiDAR file (LAS/LAZ/PLY/XYZ) becomes `ingest/cloud.ply` in local coordinates with its
+//! offset in the header, the COLMAP model is checked (supported camera models, every
+//! registered image present and decodable at its camera's size) and copied as text to
+//! `ingest/sparse/`, and optional control points and field DBH tables are parsed. Anything
+//! unusable fails the stage with a message naming the file and the fault.
+
+use serde_json::json;
+
+use super::{StageContext, StageError};
+use crate::io::colmap::{self, CameraModel};
+use crate::io::{ply, pointcloud, tables};
+use crate::progress::SubProgress;
+
+/// How many names of missing or broken images an error message lists before "and N more".
+const LISTED_NAMES: usize = 5;
+
+fn list(names: &[String]) -> String {
+    let mut s = names
+        .iter()
+        .take(LISTED_NAMES)
+        .cloned()
+        .collect::<Vec<_>>()
+        .join(", ");
+    if names.len() > LISTED_NAMES {
+        s.push_str(&format!(" and {} more", names.len() - LISTED_NAMES));
+    }
+    s
+}
+
+pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
+    let p = &ctx.params.ingest;
+    let mut warnings: Vec<String> = Vec::new();
+    let lidar_name = ctx
+        .inputs
+        .lidar
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "lidar".into());
+
+    // 1. The point cloud (0 .. 0.5 of the stage).
+    ctx.progress
+        .log(&format!("reading point cloud {lidar_name}"));
+    let cloud =
+        pointcloud::read_point_cloud(&ctx.inputs.lidar, &SubProgress::new(ctx.progress, 0.0, 0.4))?;
+    if cloud.is_empty() {
+        return Err(StageError::Input(format!(
+            "{lidar_name}: the point cloud has no points"
+        )));
+    }
+    let (lo, hi) = cloud
+        .bounds()
+        .ok_or_else(|| StageError::Input(format!("{lidar_name}: no finite bounds")))?;
+    let extent = hi - lo;
+    let diagonal = extent.length();
+    if diagonal > p.max_plausible_extent_m {
+        warnings.push(format!(
+            "{lidar_name}: the cloud spans {diagonal:.0} units; a forest plot spans tens of \
+             metres, so the file may not be in metres (millimetres or centimetres?)"
+        ));
+    }
+    if diagonal < 0.5 {
+        warnings.push(format!(
+            "{lidar_name}: the cloud spans only {diagonal:.3} units; is it in metres?"
+        ));
+    }
+    ctx.progress.log(&format!(
+        "{} points, extent {:.1} × {:.1} × {:.1} m",
+        cloud.len(),
+        extent.x,
+        extent.y,
+        extent.z
+    ));
+    let cloud_path = ctx.out_dir.join("cloud.ply");
+    ply::write_ply(&cloud_path, &cloud, &[])?;
+    if ctx.progress.is_cancelled() {
+        return Err(StageError::Cancelled);
+    }
+    ctx.progress.set(0.5);
+
+    // 2. The COLMAP project (0.5 .. 0.95).
+    let project = colmap::find_project(&ctx.inputs.colmap)?;
+    let model = colmap::read_model(
+        &project.sparse_dir,
+        &SubProgress::new(ctx.progress, 0.5, 0.1),
+    )?;
+    if model.images.is_empty() {
+        return Err(StageError::Input(
+            "COLMAP model: no registered images".into(),
+        ));
+    }
+    let unsupported: Vec<String> = model
+        .cameras
+        .values()
+        .filter(|c| !c.model.is_supported())
+        .map(|c| format!("camera {} uses {}", c.id, c.model.name()))
+        .collect();
+    if !unsupported.is_empty() {
+        return Err(StageError::Input(format!(
+            "COLMAP cameras: unsupported camera model ({}); supported: {}",
+            list(&unsupported),
+            supported_models()
+        )));
+    }
+    let Some(_) = project.images_dir.as_ref() else {
+        return Err(StageError::Input(
+            "COLMAP project: no images/ folder beside the sparse model".into(),
+        ));
+    };
+    let check = if p.decode_images {
+        Some(colmap::validate_images(
+            &project,
+            &model,
+            &SubProgress::new(ctx.progress, 0.6, 0.35),
+        )?)
+    } else {
+        None
+    };
+    if let Some(check) = &check {
+        if !check.missing.is_empty() {
+            return Err(StageError::Input(format!(
+                "COLMAP images: {} registered image(s) missing from images/: {}",
+                check.missing.len(),
+                list(&check.missing)
+            )));
+        }
+        let broken: Vec<String> = check
+            .undecodable
+            .iter()
+            .map(|u| format!("{} ({})", u.name, u.fault))
+            .chain(check.size_mismatch.iter().map(|m| {
+                format!(
+                    "{} is {}×{} px but its camera says {}×{}",
+                    m.name, m.found[0], m.found[1], m.expected[0], m.expected[1]
+                )
+            }))
+            .collect();
+        if !broken.is_empty() {
+            return Err(StageError::Input(format!(
+                "COLMAP images: {} image(s) unusable: {}",
+                broken.len(),
+                list(&broken)
+            )));
+        }
+    }
+    if ctx.progress.is_cancelled() {
+        return Err(StageError::Cancelled);
+    }
+    let sparse_out = ctx.out_dir.join("sparse");
+    std::fs::create_dir_all(&sparse_out).map_err(|e| crate::io::IoError::Io {
+        path: sparse_out.clone(),
+        source: e,
+    })?;
+    colmap::write_text(&model, &sparse_out)?;
+    if model.points.len() < 100 {
+        warnings.push(format!(
+            "COLMAP model has only {} 3-D points; registration needs more",
+            model.points.len()
+        ));
+    }
+
+    // 3. Optional tables.
+    let control_points = match &ctx.inputs.control_points {
+        Some(path) => Some(tables::read_control_points(path)?.len()),
+        None => None,
+    };
+    let field_trees = match &ctx.inputs.field_dbh {
+        Some(path) => Some(tables::read_field_dbh(path)?.len()),
+        None => None,
+    };
+    for w in &warnings {
+        ctx.progress.log(&format!("warning: {w}"));
+    }
+    ctx.progress.set(1.0);
+
+    let mut models: Vec<&str> = model.cameras.values().map(|c| c.model.name()).collect();
+    models.sort_unstable();
+    models.dedup();
+    Ok(json!({
+        "lidar": {
+            "format": cloud.format,
+            "points": cloud.len(),
+            "offset": [cloud.offset.x, cloud.offset.y, cloud.offset.z],
+            "bounds_min": [lo.x, lo.y, lo.z],
+            "bounds_max": [hi.x, hi.y, hi.z],
+            "extent_m": [extent.x, extent.y, extent.z],
+            "has_color": cloud.colors.is_some(),
+            "has_intensity": cloud.intensity.is_some(),
+        },
+        "colmap": {
+            "format": if project.binary { "binary" } else { "text" },
+            "cameras": model.cameras.len(),
+            "camera_models": models,
+            "images_registered": model.images.len(),
+            "points3d": model.points.len(),
+            "images_checked": check.as_ref().map(|c| c.images_found),
+        },
+        "control_points": control_points,
+        "field_trees": field_trees,
+        "warnings": warnings,
+    }))
+}
+
+fn supported_models() -> String {
+    [
+        CameraModel::SimplePinhole,
+        CameraModel::Pinhole,
+        CameraModel::SimpleRadial,
+        CameraModel::Radial,
+        CameraModel::Opencv,
+    ]
+    .iter()
+    .map(|m| m.name())
+    .collect::<Vec<_>>()
+    .join(", ")
+}

@@ -1,0 +1,174 @@
+//! Content inspection of a finished upload: is this file what its kind says, and usable?
+//!
+//! Runs when a client completes an upload, so a broken file is refused with reasons (HTTP 422)
+//! before any job is queued on it. A COLMAP archive is extracted here, safely, once; jobs
+//! read the extracted folder.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use crate::io::archive::{self, ExtractLimits};
+use crate::io::{IoError, colmap, pointcloud, tables};
+use crate::progress::Progress;
+
+/// What an upload holds (SERVICE.md "Kinds").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum UploadKind {
+    /// A point cloud: LAS/LAZ/PLY/XYZ.
+    Lidar,
+    /// A zip or tar(.gz) of a COLMAP project: images/ and sparse/0 or sparse/.
+    Colmap,
+    /// Control point pairs (CSV).
+    ControlPoints,
+    /// Field-measured DBH (CSV).
+    FieldDbh,
+}
+
+impl UploadKind {
+    pub const ALL: &'static [UploadKind] = &[
+        UploadKind::Lidar,
+        UploadKind::Colmap,
+        UploadKind::ControlPoints,
+        UploadKind::FieldDbh,
+    ];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            UploadKind::Lidar => "lidar",
+            UploadKind::Colmap => "colmap",
+            UploadKind::ControlPoints => "control_points",
+            UploadKind::FieldDbh => "field_dbh",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Self> {
+        Self::ALL.iter().copied().find(|k| k.as_str() == s)
+    }
+}
+
+/// Why an upload is unusable.
+#[derive(Debug, thiserror::Error)]
+pub enum InspectError {
+    /// The content is not usable; the message names the file and the fault.
+    #[error("{0}")]
+    Unusable(String),
+    #[error(transparent)]
+    Io(IoError),
+    #[error("cancelled")]
+    Cancelled,
+}
+
+impl From<IoError> for InspectError {
+    fn from(e: IoError) -> Self {
+        match e {
+            IoError::Format { .. } => InspectError::Unusable(e.to_string()),
+            IoError::Cancelled => InspectError::Cancelled,
+            other => InspectError::Io(other),
+        }
+    }
+}
+
+/// Inspects `blob` (named `filename` by the client) as an upload of `kind`; for an archive,
+/// extracts it into `unpack_dir`. Returns what was found, for the upload's `inspection`.
+pub fn inspect_upload(
+    kind: UploadKind,
+    filename: &str,
+    blob: &Path,
+    unpack_dir: &Path,
+    limits: &ExtractLimits,
+    progress: &dyn Progress,
+) -> Result<serde_json::Value, InspectError> {
+    let named = |e: InspectError| match e {
+        InspectError::Unusable(m) => InspectError::Unusable(format!(
+            "{filename}: {}",
+            m.strip_prefix(&format!("{}: ", blob.display()))
+                .unwrap_or(&m)
+        )),
+        other => other,
+    };
+    let result = match kind {
+        UploadKind::Lidar => pointcloud::inspect_point_cloud(blob)
+            .map_err(InspectError::from)
+            .map(|s| json!({ "point_cloud": s })),
+        UploadKind::Colmap => inspect_colmap(blob, unpack_dir, limits, progress),
+        UploadKind::ControlPoints => tables::read_control_points(blob)
+            .map_err(InspectError::from)
+            .map(|v| json!({ "control_points": v.len() })),
+        UploadKind::FieldDbh => tables::read_field_dbh(blob)
+            .map_err(InspectError::from)
+            .map(|v| json!({ "field_trees": v.len() })),
+    };
+    result.map_err(named)
+}
+
+fn inspect_colmap(
+    blob: &Path,
+    unpack_dir: &Path,
+    limits: &ExtractLimits,
+    progress: &dyn Progress,
+) -> Result<serde_json::Value, InspectError> {
+    if unpack_dir.exists() {
+        std::fs::remove_dir_all(unpack_dir).map_err(|e| {
+            InspectError::Io(IoError::Io {
+                path: unpack_dir.to_path_buf(),
+                source: e,
+            })
+        })?;
+    }
+    let summary =
+        archive::extract_archive(blob, unpack_dir, limits, progress).map_err(|e| match e {
+            archive::ArchiveError::Io { path, source } => {
+                InspectError::Io(IoError::Io { path, source })
+            }
+            archive::ArchiveError::Cancelled => InspectError::Cancelled,
+            other => InspectError::Unusable(format!("archive: {other}")),
+        })?;
+    let project = colmap::find_project(unpack_dir)?;
+    let model = colmap::read_model(&project.sparse_dir, progress)?;
+    let images_dir = project.images_dir.as_ref().ok_or_else(|| {
+        InspectError::Unusable("no images/ folder beside the sparse model".into())
+    })?;
+    let missing: Vec<&str> = model
+        .images
+        .values()
+        .filter(|im| !colmap::image_path(images_dir, &im.name).is_some_and(|p| p.is_file()))
+        .map(|im| im.name.as_str())
+        .collect();
+    if !missing.is_empty() {
+        let shown: Vec<&str> = missing.iter().take(5).copied().collect();
+        return Err(InspectError::Unusable(format!(
+            "{} registered image(s) missing from images/: {}{}",
+            missing.len(),
+            shown.join(", "),
+            if missing.len() > 5 { ", …" } else { "" }
+        )));
+    }
+    let unsupported: Vec<String> = model
+        .cameras
+        .values()
+        .filter(|c| !c.model.is_supported())
+        .map(|c| format!("camera {} ({})", c.id, c.model.name()))
+        .collect();
+    if !unsupported.is_empty() {
+        return Err(InspectError::Unusable(format!(
+            "unsupported camera model: {}",
+            unsupported.join(", ")
+        )));
+    }
+    let mut models: Vec<&str> = model.cameras.values().map(|c| c.model.name()).collect();
+    models.sort_unstable();
+    models.dedup();
+    Ok(json!({
+        "archive": summary,
+        "colmap": {
+            "format": if project.binary { "binary" } else { "text" },
+            "cameras": model.cameras.len(),
+            "camera_models": models,
+            "images_registered": model.images.len(),
+            "points3d": model.points.len(),
+        }
+    }))
+}

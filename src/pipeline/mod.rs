@@ -1,0 +1,377 @@
+//! The pipeline: seven stages, each a function of files in and files out.
+//!
+//! A stage reads its inputs and the outputs of earlier stages from the job's work directory,
+//! writes its own outputs into a fresh `<stage>.partial/` folder, and [`execute_stage`] renames
+//! that folder to `<stage>/` only when the stage succeeded. A crash therefore never leaves a
+//! half-written stage that looks finished, and a resumed job simply starts again at the first
+//! stage without a folder. The same code serves the HTTP worker and `sylva run`; nothing here
+//! knows about HTTP or SQL.
+
+pub mod ingest;
+pub mod inspect;
+pub mod params;
+
+use std::fs;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::io::IoError;
+use crate::progress::Progress;
+pub use params::PipelineParams;
+
+/// The stages of a job, in order (SERVICE.md).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize, JsonSchema,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Stage {
+    Ingest,
+    Register,
+    Anchors,
+    Segment,
+    Train,
+    Dbh,
+    Export,
+}
+
+impl Stage {
+    pub const ALL: [Stage; 7] = [
+        Stage::Ingest,
+        Stage::Register,
+        Stage::Anchors,
+        Stage::Segment,
+        Stage::Train,
+        Stage::Dbh,
+        Stage::Export,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Ingest => "ingest",
+            Stage::Register => "register",
+            Stage::Anchors => "anchors",
+            Stage::Segment => "segment",
+            Stage::Train => "train",
+            Stage::Dbh => "dbh",
+            Stage::Export => "export",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Stage> {
+        Stage::ALL.into_iter().find(|s| s.name() == name)
+    }
+
+    pub fn index(self) -> usize {
+        self as usize
+    }
+
+    /// Share of a whole job's progress bar this stage takes; training dominates a real run.
+    pub fn weight(self) -> f64 {
+        match self {
+            Stage::Ingest => 0.05,
+            Stage::Register => 0.05,
+            Stage::Anchors => 0.05,
+            Stage::Segment => 0.10,
+            Stage::Train => 0.60,
+            Stage::Dbh => 0.05,
+            Stage::Export => 0.10,
+        }
+    }
+
+    /// Whether the stage needs the GPU slot while it runs.
+    pub fn uses_gpu(self) -> bool {
+        matches!(self, Stage::Train)
+    }
+}
+
+impl std::fmt::Display for Stage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// The files a job starts from, already on local disk. `colmap` is a folder holding the
+/// COLMAP project (an uploaded archive is unpacked before the pipeline sees it).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StageInputs {
+    pub lidar: PathBuf,
+    pub colmap: PathBuf,
+    pub control_points: Option<PathBuf>,
+    pub field_dbh: Option<PathBuf>,
+}
+
+/// Why a stage did not finish.
+#[derive(Debug, thiserror::Error)]
+pub enum StageError {
+    /// The stage's code is not part of this build yet.
+    #[error("stage {0} is not available in this build")]
+    NotAvailable(Stage),
+    /// An input file is unusable: the message names the file and the fault.
+    #[error("{0}")]
+    Input(String),
+    /// Reading or writing files failed.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// The job was cancelled while the stage ran.
+    #[error("cancelled")]
+    Cancelled,
+    /// A stage needs the output of an earlier stage that is missing.
+    #[error("stage {stage} needs the output of stage {needs}, which has not finished")]
+    MissingPredecessor { stage: Stage, needs: Stage },
+}
+
+impl StageError {
+    /// True when the failure is the user's input (a 422-like fault), not the service's.
+    pub fn is_input_fault(&self) -> bool {
+        matches!(self, StageError::Input(_))
+            || matches!(self, StageError::Io(IoError::Format { .. }))
+    }
+
+    /// True when the disk is full (mapped to HTTP 507 by the API).
+    pub fn is_storage_full(&self) -> bool {
+        matches!(self, StageError::Io(IoError::Io { source, .. })
+            if source.kind() == std::io::ErrorKind::StorageFull)
+    }
+}
+
+/// What one stage sees while it runs.
+pub struct StageContext<'a> {
+    pub inputs: &'a StageInputs,
+    /// The job's work directory; earlier stages' outputs are in `<work_dir>/<stage>/`.
+    pub work_dir: &'a Path,
+    /// This stage's (temporary) output folder, empty when the stage starts.
+    pub out_dir: &'a Path,
+    pub params: &'a PipelineParams,
+    pub progress: &'a dyn Progress,
+}
+
+impl StageContext<'_> {
+    /// The finished output folder of an earlier stage, or a clear error if it is missing.
+    pub fn output_of(&self, stage: Stage, me: Stage) -> Result<PathBuf, StageError> {
+        let dir = self.work_dir.join(stage.name());
+        if dir.join(REPORT_FILE).is_file() {
+            Ok(dir)
+        } else {
+            Err(StageError::MissingPredecessor {
+                stage: me,
+                needs: stage,
+            })
+        }
+    }
+}
+
+/// Name of the report every stage leaves in its folder.
+pub const REPORT_FILE: &str = "report.json";
+
+/// One file a finished stage produced.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct OutputFile {
+    /// Path relative to the job's work directory, with `/` separators (e.g. `ingest/report.json`).
+    pub name: String,
+    pub stage: Stage,
+    pub kind: String,
+    pub size: u64,
+    pub sha256: String,
+    pub content_type: String,
+}
+
+/// The result of a finished stage: its report (also written as `<stage>/report.json`) and
+/// every file it left.
+#[derive(Debug, Clone)]
+pub struct StageOutcome {
+    pub report: serde_json::Value,
+    pub files: Vec<OutputFile>,
+}
+
+/// Runs one stage function. Not-yet-built stages fail with [`StageError::NotAvailable`].
+pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
+    match stage {
+        Stage::Ingest => ingest::run(ctx),
+        other => Err(StageError::NotAvailable(other)),
+    }
+}
+
+fn io_err(path: &Path, source: std::io::Error) -> StageError {
+    StageError::Io(IoError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Runs `stage` for a job whose files live in `work_dir`: output goes to a fresh
+/// `<stage>.partial/`, which becomes `<stage>/` (replacing any older one) only on success,
+/// after the report is written and synced.
+pub fn execute_stage(
+    stage: Stage,
+    inputs: &StageInputs,
+    work_dir: &Path,
+    params: &PipelineParams,
+    progress: &dyn Progress,
+) -> Result<StageOutcome, StageError> {
+    let partial = work_dir.join(format!("{}.partial", stage.name()));
+    let done = work_dir.join(stage.name());
+    if partial.exists() {
+        fs::remove_dir_all(&partial).map_err(|e| io_err(&partial, e))?;
+    }
+    fs::create_dir_all(&partial).map_err(|e| io_err(&partial, e))?;
+    let ctx = StageContext {
+        inputs,
+        work_dir,
+        out_dir: &partial,
+        params,
+        progress,
+    };
+    let report = match run_stage(stage, &ctx) {
+        Ok(r) => r,
+        Err(e) => {
+            let _ = fs::remove_dir_all(&partial);
+            return Err(e);
+        }
+    };
+    let report_path = partial.join(REPORT_FILE);
+    let text = serde_json::to_vec_pretty(&report).unwrap_or_default();
+    write_synced(&report_path, &text).map_err(|e| io_err(&report_path, e))?;
+    if done.exists() {
+        fs::remove_dir_all(&done).map_err(|e| io_err(&done, e))?;
+    }
+    fs::rename(&partial, &done).map_err(|e| io_err(&done, e))?;
+    sync_dir(work_dir);
+    let files = list_outputs(stage, work_dir)?;
+    Ok(StageOutcome { report, files })
+}
+
+/// Writes a file and syncs it to disk before returning.
+pub fn write_synced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut f = fs::File::create(path)?;
+    f.write_all(bytes)?;
+    f.sync_all()
+}
+
+/// Best-effort sync of a directory entry (so a rename survives power loss).
+pub fn sync_dir(dir: &Path) {
+    if let Ok(d) = fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
+/// Every regular file under `<work_dir>/<stage>/`, with size, hash and content type.
+pub fn list_outputs(stage: Stage, work_dir: &Path) -> Result<Vec<OutputFile>, StageError> {
+    let root = work_dir.join(stage.name());
+    let mut out = Vec::new();
+    let mut stack = vec![root.clone()];
+    while let Some(dir) = stack.pop() {
+        let entries = fs::read_dir(&dir).map_err(|e| io_err(&dir, e))?;
+        for entry in entries {
+            let entry = entry.map_err(|e| io_err(&dir, e))?;
+            let path = entry.path();
+            let ft = entry.file_type().map_err(|e| io_err(&path, e))?;
+            if ft.is_dir() {
+                stack.push(path);
+            } else if ft.is_file() {
+                let rel = path
+                    .strip_prefix(work_dir)
+                    .unwrap_or(&path)
+                    .components()
+                    .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                    .collect::<Vec<_>>()
+                    .join("/");
+                let (size, sha256) = hash_file(&path).map_err(|e| io_err(&path, e))?;
+                let (kind, content_type) = classify(&rel);
+                out.push(OutputFile {
+                    name: rel,
+                    stage,
+                    kind: kind.to_string(),
+                    size,
+                    sha256,
+                    content_type: content_type.to_string(),
+                });
+            }
+        }
+    }
+    out.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(out)
+}
+
+/// Size in bytes and hex SHA-256 of a file, read in 1 MiB blocks.
+pub fn hash_file(path: &Path) -> std::io::Result<(u64, String)> {
+    let mut f = fs::File::open(path)?;
+    let mut hasher = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut size = 0u64;
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        size += n as u64;
+        hasher.update(&buf[..n]);
+    }
+    Ok((size, hex::encode(hasher.finalize())))
+}
+
+/// Artifact kind and MIME type from a file name.
+pub fn classify(name: &str) -> (&'static str, &'static str) {
+    let lower = name.to_ascii_lowercase();
+    let ext = lower.rsplit('.').next().unwrap_or("");
+    if lower.ends_with(REPORT_FILE) {
+        return ("report", "application/json");
+    }
+    match ext {
+        "json" => ("json", "application/json"),
+        "geojson" => ("geojson", "application/geo+json"),
+        "csv" => ("csv", "text/csv"),
+        "ply" => ("point_cloud", "application/octet-stream"),
+        "las" | "laz" => ("point_cloud", "application/octet-stream"),
+        "splat" | "ksplat" | "spz" => ("splat", "application/octet-stream"),
+        "png" => ("image", "image/png"),
+        "jpg" | "jpeg" => ("image", "image/jpeg"),
+        "svg" => ("image", "image/svg+xml"),
+        "txt" => ("text", "text/plain; charset=utf-8"),
+        "bin" => ("binary", "application/octet-stream"),
+        _ => ("file", "application/octet-stream"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stage_names_round_trip_and_weights_sum_to_one() {
+        for s in Stage::ALL {
+            assert_eq!(Stage::from_name(s.name()), Some(s));
+        }
+        let total: f64 = Stage::ALL.iter().map(|s| s.weight()).sum();
+        assert!((total - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn unbuilt_stage_fails_clearly() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let inputs = StageInputs {
+            lidar: dir.path().join("x.las"),
+            colmap: dir.path().join("colmap"),
+            control_points: None,
+            field_dbh: None,
+        };
+        let err = execute_stage(
+            Stage::Train,
+            &inputs,
+            dir.path(),
+            &PipelineParams::default(),
+            &crate::progress::NoProgress,
+        )
+        .expect_err("train is not built");
+        assert_eq!(
+            err.to_string(),
+            "stage train is not available in this build"
+        );
+        assert!(!dir.path().join("train").exists());
+        assert!(!dir.path().join("train.partial").exists());
+    }
+}

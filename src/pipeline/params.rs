@@ -1,0 +1,269 @@
+//! Parameters of every pipeline stage, one serde struct per stage, with the paper's defaults.
+//!
+//! A job's `params` object is a [`PipelineParams`]; unknown keys are refused so a typo never
+//! silently falls back to a default. `GET /v1/options` and `sylva run --help` show these
+//! structs with their defaults; the doc comments here are the descriptions users read.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use super::Stage;
+
+/// Everything a job can be told, grouped by stage.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineParams {
+    /// Stop after this stage and call the job succeeded (default: run every stage).
+    pub until: Option<Stage>,
+    pub ingest: IngestParams,
+    pub register: RegisterParams,
+    pub anchors: AnchorParams,
+    pub segment: SegmentParams,
+    pub train: TrainParams,
+    pub dbh: DbhParams,
+    pub export: ExportParams,
+}
+
+/// Stage `ingest`: read and validate the inputs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct IngestParams {
+    /// Fully decode every registered image to prove it is readable (default true). Turning it
+    /// off only checks that the files exist, which is faster for thousands of large photos.
+    pub decode_images: bool,
+    /// A cloud whose bounding-box diagonal exceeds this many metres is reported as probably
+    /// not in metres (e.g. millimetres). Default 5000 m: larger than any forest plot a
+    /// handheld scanner covers.
+    pub max_plausible_extent_m: f64,
+}
+
+impl Default for IngestParams {
+    fn default() -> Self {
+        Self {
+            decode_images: true,
+            max_plausible_extent_m: 5000.0,
+        }
+    }
+}
+
+/// Stage `register`: similarity transform from the SfM frame to the LiDAR frame (METHOD.md
+/// Stage 1).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct RegisterParams {
+    /// ICP iteration cap (default 50).
+    pub icp_max_iterations: u32,
+    /// ICP stops when the relative change of inlier RMSE falls below this (default 1e-6).
+    pub icp_relative_rmse: f64,
+    /// Initial correspondence distance in metres; it shrinks as ICP converges (default 0.5 m).
+    pub icp_max_distance_m: f64,
+    /// Estimate scale in ICP as well (similarity ICP), since SfM scale is only approximately
+    /// fixed by the coarse step (METHOD.md Stage 1.2; default true).
+    pub estimate_scale: bool,
+    /// Use the point-to-plane objective instead of the paper's point-to-point (default false).
+    pub point_to_plane: bool,
+}
+
+impl Default for RegisterParams {
+    fn default() -> Self {
+        Self {
+            icp_max_iterations: 50,
+            icp_relative_rmse: 1e-6,
+            icp_max_distance_m: 0.5,
+            estimate_scale: true,
+            point_to_plane: false,
+        }
+    }
+}
+
+/// Stage `anchors`: voxel homogenisation and statistical outlier removal (paper 3.3).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct AnchorParams {
+    /// Voxel edge in metres; the paper gives none, METHOD.md Stage 2.1 sets 0.02 m.
+    pub voxel_size_m: f64,
+    /// Neighbours for the mean-distance statistic (paper 3.3.2: k = 16).
+    pub outlier_k: u32,
+    /// Keep a point iff its mean neighbour distance <= mean + alpha * std (paper: 2.5).
+    pub outlier_alpha: f64,
+}
+
+impl Default for AnchorParams {
+    fn default() -> Self {
+        Self {
+            voxel_size_m: 0.02,
+            outlier_k: 16,
+            outlier_alpha: 2.5,
+        }
+    }
+}
+
+/// Stage `segment`: wood/leaf labels from eigen features and 2-means (paper 3.4).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct SegmentParams {
+    /// Neighbours for the covariance eigen features (paper 3.4: k = 20).
+    pub k: u32,
+    /// Weight of RGB in the feature vector (paper 3.4: w = 0.5).
+    pub color_weight: f64,
+    /// Components smaller than this take their neighbours' label (paper 3.4: tau_c = 50).
+    pub min_component: u32,
+}
+
+impl Default for SegmentParams {
+    fn default() -> Self {
+        Self {
+            k: 20,
+            color_weight: 0.5,
+            min_component: 50,
+        }
+    }
+}
+
+/// How the Gaussians are initialised (paper Table 5 ablation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum InitSource {
+    /// From the SfM sparse points (vanilla 3DGS).
+    Sfm,
+    /// From the LiDAR anchors (the paper's method).
+    Lidar,
+}
+
+/// Stage `train`: LiDAR-guided semantic Gaussian splatting (paper 3.5).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainParams {
+    /// Optimisation steps (Kerbl et al. 2023: 30,000).
+    pub steps: u32,
+    /// Weight of (1 - SSIM) in the photometric loss (Kerbl et al. 2023: 0.2).
+    pub lambda_dssim: f64,
+    /// Initialisation source (default lidar, the paper's method).
+    pub init: InitSource,
+    /// Add the semantic trunk term L_geo (default true, the paper's method).
+    pub semantic: bool,
+    /// Final weight of L_geo (paper: 0.02; 0.01-0.03 is stable).
+    pub gamma_max: f64,
+    /// Step where the L_geo ramp starts (paper: 3000).
+    pub gamma_start: u32,
+    /// Step where the L_geo ramp reaches gamma_max (paper: 7000).
+    pub gamma_end: u32,
+    /// Trunk anchors averaged for the target scale (METHOD.md: K = 8).
+    pub trunk_k: u32,
+    /// Target scale factor on the mean trunk-anchor distance (METHOD.md: beta = 0.5).
+    pub trunk_beta: f64,
+    /// Longest image side in pixels used for training; 0 keeps the full resolution.
+    pub resolution: u32,
+}
+
+impl Default for TrainParams {
+    fn default() -> Self {
+        Self {
+            steps: 30_000,
+            lambda_dssim: 0.2,
+            init: InitSource::Lidar,
+            semantic: true,
+            gamma_max: 0.02,
+            gamma_start: 3000,
+            gamma_end: 7000,
+            trunk_k: 8,
+            trunk_beta: 0.5,
+            resolution: 1600,
+        }
+    }
+}
+
+/// Stage `dbh`: diameter at breast height from Gaussians and LiDAR (paper 3.6).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct DbhParams {
+    /// Breast height above the ground model in metres (paper 3.6: 1.3 m).
+    pub breast_height_m: f64,
+    /// Half thickness of the slice in metres (paper 3.6: 0.1 m, i.e. 1.2-1.4 m).
+    pub slice_half_thickness_m: f64,
+    /// Minimum opacity of a Gaussian used in the fit (paper 3.6: 0.1).
+    pub min_opacity: f64,
+    /// RANSAC inlier distance in metres (METHOD.md: of the order of 1-2 cm).
+    pub ransac_threshold_m: f64,
+}
+
+impl Default for DbhParams {
+    fn default() -> Self {
+        Self {
+            breast_height_m: 1.3,
+            slice_half_thickness_m: 0.1,
+            min_opacity: 0.1,
+            ransac_threshold_m: 0.015,
+        }
+    }
+}
+
+/// Stage `export`: splat files and the inventory in the LiDAR file's own coordinates.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct ExportParams {
+    /// Also write the compact (quantised) splat file for web viewers (default true).
+    pub compact: bool,
+}
+
+impl Default for ExportParams {
+    fn default() -> Self {
+        Self { compact: true }
+    }
+}
+
+impl PipelineParams {
+    /// The stages a job with these parameters runs, in order.
+    pub fn stages(&self) -> Vec<Stage> {
+        let last = self.until.unwrap_or(Stage::Export);
+        Stage::ALL.iter().copied().filter(|s| *s <= last).collect()
+    }
+
+    /// JSON Schema of the params object (shown by `GET /v1/options`).
+    pub fn schema() -> serde_json::Value {
+        serde_json::to_value(schemars::schema_for!(PipelineParams)).unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_keys_are_refused() {
+        let r: Result<PipelineParams, _> =
+            serde_json::from_value(serde_json::json!({"anchors": {"voxel": 0.1}}));
+        assert!(r.is_err());
+    }
+
+    #[test]
+    fn partial_params_keep_defaults() {
+        let p: PipelineParams =
+            serde_json::from_value(serde_json::json!({"anchors": {"voxel_size_m": 0.05}}))
+                .expect("valid params");
+        assert_eq!(p.anchors.voxel_size_m, 0.05);
+        assert_eq!(p.anchors.outlier_k, 16);
+        assert_eq!(p.train.steps, 30_000);
+    }
+
+    #[test]
+    fn until_limits_the_stages() {
+        let p = PipelineParams {
+            until: Some(Stage::Anchors),
+            ..Default::default()
+        };
+        assert_eq!(
+            p.stages(),
+            vec![Stage::Ingest, Stage::Register, Stage::Anchors]
+        );
+        assert_eq!(PipelineParams::default().stages().len(), 7);
+    }
+
+    #[test]
+    fn schema_describes_every_stage() {
+        let s = PipelineParams::schema().to_string();
+        for stage in Stage::ALL {
+            assert!(s.contains(stage.name()), "{} missing", stage.name());
+        }
+    }
+}

@@ -1,0 +1,512 @@
+//! Workers: claim jobs from the queue and run their stages with progress, heartbeats,
+//! cancellation and checkpoints.
+//!
+//! One worker slot runs one job at a time. While a stage runs on a blocking thread, a
+//! heartbeat task renews the lease every [`tick`], publishes progress (never lower than
+//! before), flushes the stage's log lines and learns whether the user cancelled or another
+//! worker took the job over. Either stops the stage through its cancellation flag. Stages
+//! that use the GPU also hold a slot of the process-wide GPU semaphore.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use serde_json::json;
+use tokio::sync::{Notify, Semaphore, watch};
+
+use crate::config::WorkerArgs;
+use crate::jobs::{Claim, DbError, Heartbeat, JobStore, RunEnd, UploadKind};
+use crate::pipeline::{self, PipelineParams, Stage, StageError, StageInputs};
+use crate::progress::{CancelFlag, Progress};
+use crate::store::BlobStore;
+
+/// What runs the worker loops; cheap to clone.
+#[derive(Clone)]
+pub struct WorkerPool {
+    db: JobStore,
+    blobs: BlobStore,
+    args: WorkerArgs,
+    gpu: Arc<Semaphore>,
+    wake: Arc<Notify>,
+    host: String,
+}
+
+/// The heartbeat period: a third of the lease, at most half a second so progress and
+/// cancellation are seen promptly.
+pub fn tick(lease: Duration) -> Duration {
+    (lease / 3).min(Duration::from_millis(500))
+}
+
+/// Progress of the running stage, shared between the stage thread and the heartbeat task.
+struct StageProgress {
+    fraction_bits: AtomicU64,
+    lines: Mutex<Vec<String>>,
+    cancel: CancelFlag,
+}
+
+impl StageProgress {
+    fn fraction(&self) -> f64 {
+        f64::from_bits(self.fraction_bits.load(Ordering::Relaxed))
+    }
+}
+
+impl Progress for StageProgress {
+    fn set(&self, fraction: f64) {
+        let f = fraction.clamp(0.0, 1.0);
+        let _ = self
+            .fraction_bits
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |old| {
+                (f > f64::from_bits(old)).then_some(f.to_bits())
+            });
+    }
+    fn log(&self, message: &str) {
+        if let Ok(mut lines) = self.lines.lock() {
+            lines.push(message.to_string());
+        }
+    }
+    fn is_cancelled(&self) -> bool {
+        self.cancel.is_cancelled()
+    }
+}
+
+/// Job progress once `stage` is `fraction` done, given the stages the job runs.
+fn job_progress(stages: &[Stage], stage: Stage, fraction: f64) -> f64 {
+    let total: f64 = stages.iter().map(|s| s.weight()).sum();
+    let before: f64 = stages
+        .iter()
+        .filter(|s| **s < stage)
+        .map(|s| s.weight())
+        .sum();
+    ((before + stage.weight() * fraction) / total.max(1e-9)).clamp(0.0, 1.0)
+}
+
+/// A problem+json object for a failed stage.
+fn stage_problem(stage: Stage, e: &StageError) -> serde_json::Value {
+    let (slug, title, status) = match e {
+        StageError::NotAvailable(_) => ("stage-unavailable", "Stage not available", 501),
+        _ if e.is_storage_full() => ("insufficient-storage", "Disk full", 507),
+        _ if e.is_input_fault() => ("input-unusable", "Input unusable", 422),
+        _ => ("stage-failed", "Stage failed", 500),
+    };
+    json!({
+        "type": format!("urn:sylva:problem:{slug}"),
+        "title": title,
+        "status": status,
+        "detail": e.to_string(),
+        "stage": stage.name(),
+    })
+}
+
+enum Outcome {
+    Done,
+    /// The run ended (failed, canceled or lost its lease); stop working on the job.
+    Stop,
+}
+
+impl WorkerPool {
+    pub fn new(db: JobStore, blobs: BlobStore, args: WorkerArgs, wake: Arc<Notify>) -> Self {
+        let host = std::fs::read_to_string("/etc/hostname")
+            .map(|h| h.trim().to_string())
+            .unwrap_or_else(|_| "localhost".into());
+        Self {
+            db,
+            blobs,
+            gpu: Arc::new(Semaphore::new(args.gpu_slots.max(1) as usize)),
+            args,
+            wake,
+            host,
+        }
+    }
+
+    pub fn host(&self) -> &str {
+        &self.host
+    }
+
+    /// Runs `args.workers` worker loops until `shutdown` turns true.
+    pub async fn run(self, shutdown: watch::Receiver<bool>) {
+        match self.db.recover(&self.host, self.args.lease() * 4).await {
+            Ok(n) if n > 0 => tracing::warn!(jobs = n, "recovered jobs of a crashed process"),
+            Ok(_) => {}
+            Err(e) => tracing::error!(error = %e, "start-up recovery failed"),
+        }
+        let mut handles = Vec::new();
+        for slot in 0..self.args.workers {
+            let me = self.clone();
+            let rx = shutdown.clone();
+            let id = format!(
+                "{}-{}-{slot}-{}",
+                self.host,
+                std::process::id(),
+                &uuid::Uuid::new_v4().simple().to_string()[..8]
+            );
+            handles.push(tokio::spawn(async move { me.slot_loop(id, rx).await }));
+        }
+        for h in handles {
+            let _ = h.await;
+        }
+    }
+
+    async fn slot_loop(self, id: String, mut shutdown: watch::Receiver<bool>) {
+        tracing::info!(worker = %id, "worker started");
+        let poll = Duration::from_millis(self.args.poll_ms.max(10));
+        while !*shutdown.borrow() {
+            if let Err(e) = self
+                .db
+                .register_worker(&id, &self.host, std::process::id())
+                .await
+            {
+                tracing::warn!(error = %e, "worker registration failed");
+            }
+            match self
+                .db
+                .claim(&id, self.args.lease(), self.args.max_attempts.max(1) as i64)
+                .await
+            {
+                Ok(Some(claim)) => {
+                    let span =
+                        tracing::info_span!("job", id = %claim.job_id, attempt = claim.attempt);
+                    let _ = tracing::Instrument::instrument(self.run_job(&id, claim), span).await;
+                    continue;
+                }
+                Ok(None) => {}
+                Err(e) => tracing::warn!(error = %e, "claim failed"),
+            }
+            tokio::select! {
+                _ = tokio::time::sleep(poll) => {}
+                _ = self.wake.notified() => {}
+                _ = shutdown.changed() => {}
+            }
+        }
+        let _ = self.db.unregister_worker(&id).await;
+        tracing::info!(worker = %id, "worker stopped");
+    }
+
+    async fn log(&self, job: &str, level: &str, stage: Option<Stage>, message: &str) {
+        if let Err(e) = self
+            .db
+            .append_log(job, level, stage.map(|s| s.name()), message)
+            .await
+        {
+            tracing::warn!(error = %e, "job log write failed");
+        }
+    }
+
+    async fn inputs(&self, claim: &Claim) -> Result<StageInputs, String> {
+        let mut paths = Vec::new();
+        for (kind, id) in claim.inputs.all() {
+            let up = self
+                .db
+                .get_upload(id)
+                .await
+                .map_err(|e| e.to_string())?
+                .ok_or_else(|| format!("input upload {id} no longer exists"))?;
+            let path = if kind == UploadKind::Colmap {
+                self.blobs.upload_unpacked(id)
+            } else {
+                self.blobs.upload_blob(id, &up.filename)
+            };
+            paths.push((kind, path));
+        }
+        let get = |k: UploadKind| {
+            paths
+                .iter()
+                .find(|(kk, _)| *kk == k)
+                .map(|(_, p)| p.clone())
+        };
+        Ok(StageInputs {
+            lidar: get(UploadKind::Lidar).ok_or("no lidar input")?,
+            colmap: get(UploadKind::Colmap).ok_or("no colmap input")?,
+            control_points: get(UploadKind::ControlPoints),
+            field_dbh: get(UploadKind::FieldDbh),
+        })
+    }
+
+    async fn run_job(&self, worker: &str, claim: Claim) {
+        let job = claim.job_id.clone();
+        let fail = |detail: String| RunEnd::Failed {
+            stage: None,
+            problem: json!({
+                "type": "urn:sylva:problem:job-invalid",
+                "title": "Job cannot run",
+                "status": 422,
+                "detail": detail,
+            }),
+        };
+        let params: PipelineParams = match serde_json::from_value(claim.params.clone()) {
+            Ok(p) => p,
+            Err(e) => {
+                let _ = self
+                    .db
+                    .finish_job(&job, &claim.token, &fail(format!("params: {e}")))
+                    .await;
+                return;
+            }
+        };
+        let inputs = match self.inputs(&claim).await {
+            Ok(i) => i,
+            Err(e) => {
+                let _ = self.db.finish_job(&job, &claim.token, &fail(e)).await;
+                return;
+            }
+        };
+        let stages = params.stages();
+        let first = stages
+            .iter()
+            .find(|s| !claim.done.iter().any(|d| d == s.name()));
+        let msg = match (claim.attempt, first) {
+            (1, _) => format!("claimed by worker {worker}"),
+            (n, Some(s)) => format!("resumed at stage {s} by worker {worker} (attempt {n})"),
+            (n, None) => format!("resumed by worker {worker} (attempt {n})"),
+        };
+        tracing::info!("{msg}");
+        self.log(&job, "info", None, &msg).await;
+        let work_dir = self.blobs.job_dir(&job);
+        if let Err(e) = std::fs::create_dir_all(&work_dir) {
+            let _ = self
+                .db
+                .finish_job(
+                    &job,
+                    &claim.token,
+                    &fail(format!("cannot create the job folder: {e}")),
+                )
+                .await;
+            return;
+        }
+        for &stage in &stages {
+            if claim.done.iter().any(|d| d == stage.name()) {
+                continue;
+            }
+            match self
+                .run_stage(&claim, stage, &stages, &inputs, &params, &work_dir)
+                .await
+            {
+                Outcome::Done => {}
+                Outcome::Stop => return,
+            }
+        }
+        match self
+            .db
+            .finish_job(&job, &claim.token, &RunEnd::Succeeded)
+            .await
+        {
+            Ok(()) => self.log(&job, "info", None, "job succeeded").await,
+            Err(e) => tracing::warn!(error = %e, "could not mark the job succeeded"),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    async fn run_stage(
+        &self,
+        claim: &Claim,
+        stage: Stage,
+        stages: &[Stage],
+        inputs: &StageInputs,
+        params: &PipelineParams,
+        work_dir: &std::path::Path,
+    ) -> Outcome {
+        let job = &claim.job_id;
+        match self
+            .db
+            .start_stage(job, &claim.token, stage, claim.attempt)
+            .await
+        {
+            Ok(()) => {}
+            Err(DbError::Fenced) => return Outcome::Stop,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot start stage");
+                return Outcome::Stop;
+            }
+        }
+        self.log(job, "info", Some(stage), &format!("stage {stage} started"))
+            .await;
+        let progress = Arc::new(StageProgress {
+            fraction_bits: AtomicU64::new(0f64.to_bits()),
+            lines: Mutex::new(Vec::new()),
+            cancel: CancelFlag::new(),
+        });
+
+        // Heartbeat: lease, progress, log lines, cancellation.
+        let (stop_tx, mut stop_rx) = watch::channel(false);
+        let lost = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let hb = {
+            let db = self.db.clone();
+            let progress = progress.clone();
+            let lost = lost.clone();
+            let (job, token) = (job.clone(), claim.token.clone());
+            let lease = self.args.lease();
+            let stages = stages.to_vec();
+            tokio::spawn(async move {
+                loop {
+                    let stop = tokio::select! {
+                        _ = tokio::time::sleep(tick(lease)) => false,
+                        _ = stop_rx.changed() => true,
+                    };
+                    let lines: Vec<String> = progress
+                        .lines
+                        .lock()
+                        .map(|mut l| std::mem::take(&mut *l))
+                        .unwrap_or_default();
+                    for line in lines {
+                        let level = if line.starts_with("warning") {
+                            "warn"
+                        } else {
+                            "info"
+                        };
+                        let _ = db.append_log(&job, level, Some(stage.name()), &line).await;
+                    }
+                    let f = progress.fraction();
+                    let jp = job_progress(&stages, stage, f);
+                    match db
+                        .heartbeat(&job, &token, lease, jp, Some((stage.name(), f)))
+                        .await
+                    {
+                        Ok(Heartbeat::Ok) => {}
+                        Ok(Heartbeat::CancelRequested) => progress.cancel.cancel(),
+                        Ok(Heartbeat::Lost) => {
+                            lost.store(true, Ordering::SeqCst);
+                            progress.cancel.cancel();
+                        }
+                        Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
+                    }
+                    if stop {
+                        break;
+                    }
+                }
+            })
+        };
+
+        let _gpu = if stage.uses_gpu() {
+            tokio::select! {
+                p = self.gpu.clone().acquire_owned() => p.ok(),
+                _ = wait_cancel(&progress.cancel) => None,
+            }
+        } else {
+            None
+        };
+
+        let pause = Duration::from_millis(self.args.debug_stage_pause_ms);
+        if !pause.is_zero() {
+            tokio::select! {
+                _ = tokio::time::sleep(pause) => {}
+                _ = wait_cancel(&progress.cancel) => {}
+            }
+        }
+        let result = if progress.cancel.is_cancelled() {
+            Err(StageError::Cancelled)
+        } else {
+            let (inputs, params, work_dir) =
+                (inputs.clone(), params.clone(), work_dir.to_path_buf());
+            let p = progress.clone();
+            tokio::task::spawn_blocking(move || {
+                pipeline::execute_stage(stage, &inputs, &work_dir, &params, p.as_ref())
+            })
+            .await
+            .unwrap_or_else(|join| {
+                Err(StageError::Input(format!(
+                    "internal error: stage {stage} crashed: {join}"
+                )))
+            })
+        };
+        let _ = stop_tx.send(true);
+        let _ = hb.await;
+        drop(_gpu);
+
+        if lost.load(Ordering::SeqCst) {
+            tracing::warn!("lease lost during stage {stage}; another worker owns the job");
+            return Outcome::Stop;
+        }
+        let token = &claim.token;
+        match result {
+            Ok(outcome) => {
+                let jp = job_progress(stages, stage, 1.0);
+                match self
+                    .db
+                    .finish_stage(job, token, stage, &outcome.report, &outcome.files, jp)
+                    .await
+                {
+                    Ok(()) => {
+                        self.log(job, "info", Some(stage), &format!("stage {stage} finished"))
+                            .await;
+                        Outcome::Done
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "checkpoint refused");
+                        Outcome::Stop
+                    }
+                }
+            }
+            Err(StageError::Cancelled) | Err(_) if progress.cancel.is_cancelled() => {
+                self.log(
+                    job,
+                    "info",
+                    Some(stage),
+                    &format!("canceled during stage {stage}"),
+                )
+                .await;
+                let end = RunEnd::Canceled {
+                    stage: Some(stage.name().into()),
+                };
+                let _ = self.db.finish_job(job, token, &end).await;
+                Outcome::Stop
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "stage {stage} failed");
+                self.log(
+                    job,
+                    "error",
+                    Some(stage),
+                    &format!("stage {stage} failed: {e}"),
+                )
+                .await;
+                let end = RunEnd::Failed {
+                    stage: Some(stage.name().into()),
+                    problem: stage_problem(stage, &e),
+                };
+                let _ = self.db.finish_job(job, token, &end).await;
+                Outcome::Stop
+            }
+        }
+    }
+}
+
+/// Resolves once `flag` is set (checked every 20 ms).
+async fn wait_cancel(flag: &CancelFlag) {
+    while !flag.is_cancelled() {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn job_progress_is_monotonic_across_stages() {
+        let stages = PipelineParams::default().stages();
+        let mut last = 0.0;
+        for &s in &stages {
+            for k in 0..=10 {
+                let p = job_progress(&stages, s, k as f64 / 10.0);
+                assert!(p >= last - 1e-12, "{s} {k}: {p} < {last}");
+                last = p;
+            }
+        }
+        assert!((last - 1.0).abs() < 1e-9);
+        let only_ingest = [Stage::Ingest];
+        assert!((job_progress(&only_ingest, Stage::Ingest, 1.0) - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn stage_progress_never_decreases() {
+        let p = StageProgress {
+            fraction_bits: AtomicU64::new(0f64.to_bits()),
+            lines: Mutex::new(Vec::new()),
+            cancel: CancelFlag::new(),
+        };
+        p.set(0.5);
+        p.set(0.2);
+        assert_eq!(p.fraction(), 0.5);
+        p.set(2.0);
+        assert_eq!(p.fraction(), 1.0);
+    }
+}
