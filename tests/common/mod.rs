@@ -1,0 +1,382 @@
+//! Shared test support: generated fixtures (a small LAS cloud, a COLMAP project with real
+//! PNG photos, zipped), and real `sylva` processes on ephemeral ports.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use glam::{DVec3, Vec3};
+use reqwest::{Client, StatusCode};
+use serde_json::{Value, json};
+use sha2::{Digest, Sha256};
+use sylva::io::colmap::{self, Camera, CameraModel, ColmapModel, Image, Point3D};
+use sylva::io::pointcloud::{CloudFormat, PointCloud};
+
+pub const BIN: &str = env!("CARGO_BIN_EXE_sylva");
+
+/// Input files for one small plot.
+pub struct Fixture {
+    pub dir: tempfile::TempDir,
+    pub lidar: PathBuf,
+    pub lidar_points: usize,
+    pub colmap_dir: PathBuf,
+    pub colmap_zip: PathBuf,
+    pub control_points: PathBuf,
+    pub field_dbh: PathBuf,
+}
+
+/// A trunk (cylinder of radius 0.15 m) on flat ground, at georeferenced-like coordinates,
+/// and a COLMAP project of 4 photos around it. Deterministic.
+pub fn fixture() -> Fixture {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut positions = Vec::new();
+    for i in 0..40 {
+        for j in 0..40 {
+            positions.push(Vec3::new(i as f32 * 0.1, j as f32 * 0.1, 0.0));
+        }
+    }
+    for k in 0..60 {
+        for a in 0..24 {
+            let t = a as f32 / 24.0 * std::f32::consts::TAU;
+            positions.push(Vec3::new(2.0 + 0.15 * t.cos(), 2.0 + 0.15 * t.sin(), k as f32 * 0.05));
+        }
+    }
+    let n = positions.len();
+    let cloud = PointCloud {
+        offset: DVec3::new(500_000.0, 4_000_000.0, 100.0),
+        colors: Some((0..n).map(|i| [(i % 200) as u8, 90, 40]).collect()),
+        intensity: None,
+        positions,
+        format: CloudFormat::Las,
+    };
+    let lidar = dir.path().join("plot.las");
+    sylva::io::las::write_las(&lidar, &cloud, false).expect("write las");
+
+    let colmap_dir = dir.path().join("project");
+    let images = colmap_dir.join("images");
+    let sparse = colmap_dir.join("sparse").join("0");
+    std::fs::create_dir_all(&images).expect("mkdir");
+    std::fs::create_dir_all(&sparse).expect("mkdir");
+    let mut model = ColmapModel::default();
+    model.cameras.insert(
+        1,
+        Camera {
+            id: 1,
+            model: CameraModel::Pinhole,
+            width: 32,
+            height: 24,
+            params: vec![30.0, 30.0, 16.0, 12.0],
+        },
+    );
+    for k in 0..4u32 {
+        let name = format!("img_{k:03}.png");
+        let img = image::RgbImage::from_fn(32, 24, |x, y| {
+            image::Rgb([(x * 8) as u8, (y * 10) as u8, (k * 60) as u8])
+        });
+        img.save(images.join(&name)).expect("png");
+        model.images.insert(
+            k + 1,
+            Image {
+                id: k + 1,
+                qvec: [1.0, 0.0, 0.0, 0.0],
+                tvec: [k as f64 * 0.5, 0.0, 5.0],
+                camera_id: 1,
+                name,
+                points2d: Vec::new(),
+            },
+        );
+    }
+    for p in 0..150u64 {
+        model.points.push(Point3D {
+            id: p + 1,
+            xyz: DVec3::new((p % 10) as f64 * 0.1, (p / 10) as f64 * 0.1, 1.0),
+            rgb: [100, 120, 80],
+            error: 0.5,
+            track: Vec::new(),
+        });
+    }
+    colmap::write_text(&model, &sparse).expect("write model");
+    let colmap_zip = dir.path().join("project.zip");
+    zip_dir(&colmap_dir, &colmap_zip);
+
+    let control_points = dir.path().join("control.csv");
+    std::fs::write(
+        &control_points,
+        "sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z\n0,0,0,500000,4000000,100\n1,0,0,500002,4000000,100\n\
+         0,1,0,500000,4000002,100\n0,0,1,500000,4000000,102\n",
+    )
+    .expect("write");
+    let field_dbh = dir.path().join("field.csv");
+    std::fs::write(&field_dbh, "tree_id,x,y,dbh_cm\n1,500002,4000002,30\n").expect("write");
+    Fixture {
+        dir,
+        lidar,
+        lidar_points: n,
+        colmap_dir,
+        colmap_zip,
+        control_points,
+        field_dbh,
+    }
+}
+
+/// Zips every file under `dir` (names relative to it).
+pub fn zip_dir(dir: &Path, out: &Path) {
+    let f = std::fs::File::create(out).expect("create zip");
+    let mut z = zip::ZipWriter::new(f);
+    let opts = zip::write::SimpleFileOptions::default();
+    let mut stack = vec![dir.to_path_buf()];
+    let mut files = Vec::new();
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).expect("read_dir") {
+            let p = e.expect("entry").path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                files.push(p);
+            }
+        }
+    }
+    files.sort();
+    for p in files {
+        let name = p.strip_prefix(dir).expect("prefix").to_string_lossy().replace('\\', "/");
+        z.start_file(name, opts).expect("start_file");
+        z.write_all(&std::fs::read(&p).expect("read")).expect("write");
+    }
+    z.finish().expect("finish zip");
+}
+
+/// A running `sylva` process, killed when dropped.
+pub struct Proc {
+    pub child: Child,
+    pub base: String,
+    pub stderr: PathBuf,
+}
+
+impl Proc {
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+    pub fn stderr_text(&self) -> String {
+        std::fs::read_to_string(&self.stderr).unwrap_or_default()
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+fn spawn(args: &[&str], data: &Path, ready_prefix: &str) -> Proc {
+    let stderr = data.join(format!("stderr-{}.log", uuid::Uuid::new_v4().simple()));
+    std::fs::create_dir_all(data).expect("data dir");
+    let mut cmd = Command::new(BIN);
+    for (k, _) in std::env::vars() {
+        if k.starts_with("SYLVA_") {
+            cmd.env_remove(k);
+        }
+    }
+    let mut child = cmd
+        .args(args)
+        .arg("--data")
+        .arg(data)
+        .env("SYLVA_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&stderr).expect("stderr file"))
+        .spawn()
+        .expect("spawn sylva");
+    let stdout = child.stdout.take().expect("stdout");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(line) if line.starts_with(ready_prefix) => {
+                let base = line
+                    .split_whitespace()
+                    .find(|w| w.starts_with("http://"))
+                    .unwrap_or("")
+                    .to_string();
+                return Proc { child, base, stderr };
+            }
+            Ok(_) => {}
+            Err(_) => {
+                let _ = child.kill();
+                panic!(
+                    "sylva {args:?} did not start: {}",
+                    std::fs::read_to_string(&stderr).unwrap_or_default()
+                );
+            }
+        }
+    }
+}
+
+/// `sylva serve` on an ephemeral port with `extra` flags.
+pub fn serve(data: &Path, extra: &[&str]) -> Proc {
+    let mut args = vec!["serve", "--listen", "127.0.0.1:0"];
+    args.extend_from_slice(extra);
+    spawn(&args, data, "sylva listening on")
+}
+
+/// `sylva worker` with `extra` flags.
+pub fn worker(data: &Path, extra: &[&str]) -> Proc {
+    let mut args = vec!["worker"];
+    args.extend_from_slice(extra);
+    spawn(&args, data, "sylva worker started")
+}
+
+pub fn client() -> Client {
+    Client::builder()
+        .timeout(Duration::from_secs(60))
+        .build()
+        .expect("client")
+}
+
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex::encode(Sha256::digest(bytes))
+}
+
+/// Asserts a problem+json answer with `status`; returns the problem.
+pub async fn expect_problem(resp: reqwest::Response, status: StatusCode) -> Value {
+    assert_eq!(resp.status(), status, "unexpected status");
+    let ct = resp
+        .headers()
+        .get("content-type")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string();
+    assert!(ct.starts_with("application/problem+json"), "content type {ct}");
+    let v: Value = resp.json().await.expect("problem body");
+    assert_eq!(v["status"], status.as_u16());
+    assert!(v["type"].as_str().is_some_and(|t| !t.is_empty()));
+    v
+}
+
+/// Uploads a file in parts through the resumable API; returns the upload id.
+pub async fn upload(c: &Client, base: &str, kind: &str, path: &Path) -> String {
+    let bytes = std::fs::read(path).expect("read input");
+    let created: Value = c
+        .post(format!("{base}/v1/uploads"))
+        .json(&json!({
+            "kind": kind,
+            "filename": path.file_name().and_then(|n| n.to_str()).unwrap_or("file"),
+            "size": bytes.len(),
+            "sha256": sha256_hex(&bytes),
+        }))
+        .send()
+        .await
+        .expect("create upload")
+        .error_for_status()
+        .expect("201")
+        .json()
+        .await
+        .expect("json");
+    let id = created["id"].as_str().expect("id").to_string();
+    let part = created["part_size"].as_u64().expect("part_size") as usize;
+    for (n, chunk) in bytes.chunks(part).enumerate() {
+        c.put(format!("{base}/v1/uploads/{id}/parts/{n}"))
+            .body(chunk.to_vec())
+            .send()
+            .await
+            .expect("put part")
+            .error_for_status()
+            .expect("part accepted");
+    }
+    let done = c
+        .post(format!("{base}/v1/uploads/{id}/complete"))
+        .send()
+        .await
+        .expect("complete");
+    assert_eq!(done.status(), StatusCode::OK, "{:?}", done.text().await);
+    id
+}
+
+/// Uploads the fixture's lidar and colmap; returns the job's `inputs` object.
+pub async fn upload_inputs(c: &Client, base: &str, fx: &Fixture) -> Value {
+    let lidar = upload(c, base, "lidar", &fx.lidar).await;
+    let colmap = upload(c, base, "colmap", &fx.colmap_zip).await;
+    json!({ "lidar": lidar, "colmap": colmap })
+}
+
+pub async fn create_job(c: &Client, base: &str, body: &Value) -> Value {
+    let resp = c
+        .post(format!("{base}/v1/jobs"))
+        .json(body)
+        .send()
+        .await
+        .expect("create job");
+    assert_eq!(resp.status(), StatusCode::ACCEPTED, "{:?}", resp.text().await);
+    resp.json().await.expect("job json")
+}
+
+pub async fn get_job(c: &Client, base: &str, id: &str) -> Value {
+    c.get(format!("{base}/v1/jobs/{id}"))
+        .send()
+        .await
+        .expect("get job")
+        .error_for_status()
+        .expect("200")
+        .json()
+        .await
+        .expect("json")
+}
+
+/// Polls a job until `done(job)` holds; returns the job and every progress value seen.
+pub async fn wait_job(
+    c: &Client,
+    base: &str,
+    id: &str,
+    timeout: Duration,
+    done: impl Fn(&Value) -> bool,
+) -> (Value, Vec<f64>) {
+    let deadline = Instant::now() + timeout;
+    let mut seen = Vec::new();
+    loop {
+        let j = get_job(c, base, id).await;
+        seen.push(j["progress"].as_f64().expect("progress"));
+        if done(&j) {
+            return (j, seen);
+        }
+        assert!(Instant::now() < deadline, "timed out waiting for job {id}: {j}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+pub fn is_terminal(j: &Value) -> bool {
+    matches!(j["state"].as_str(), Some("succeeded" | "failed" | "canceled"))
+}
+
+pub fn stage<'a>(j: &'a Value, name: &str) -> &'a Value {
+    j["stages"]
+        .as_array()
+        .and_then(|s| s.iter().find(|s| s["name"] == name))
+        .unwrap_or(&Value::Null)
+}
+
+pub async fn log_text(c: &Client, base: &str, id: &str) -> String {
+    let v: Value = c
+        .get(format!("{base}/v1/jobs/{id}/log"))
+        .send()
+        .await
+        .expect("log")
+        .json()
+        .await
+        .expect("json");
+    v["lines"]
+        .as_array()
+        .map(|l| {
+            l.iter()
+                .filter_map(|x| x["message"].as_str())
+                .collect::<Vec<_>>()
+                .join("\n")
+        })
+        .unwrap_or_default()
+}
