@@ -3,7 +3,6 @@
 //! for each other instead of failing with "database is locked").
 
 use std::path::Path;
-use std::str::FromStr;
 use std::time::Duration;
 
 use sqlx::sqlite::{
@@ -80,16 +79,6 @@ impl JobStore {
             .acquire_timeout(BUSY_TIMEOUT)
             .connect_with(options)
             .await?;
-        sqlx::migrate!("./migrations/sqlite").run(&pool).await?;
-        Ok(Self { pool })
-    }
-
-    /// Opens an in-memory-like store in a file path given as a URL (tests).
-    pub async fn open_url(url: &str) -> Result<Self, DbError> {
-        let options = SqliteConnectOptions::from_str(url)?
-            .busy_timeout(BUSY_TIMEOUT)
-            .foreign_keys(true);
-        let pool = SqlitePoolOptions::new().connect_with(options).await?;
         sqlx::migrate!("./migrations/sqlite").run(&pool).await?;
         Ok(Self { pool })
     }
@@ -949,5 +938,172 @@ fn process_alive(pid: i64) -> bool {
         Path::new(&format!("/proc/{pid}")).exists()
     } else {
         true
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::PipelineParams;
+
+    async fn store_with_job() -> (tempfile::TempDir, JobStore, String) {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let db = JobStore::open(&dir.path().join("t.db"), 4)
+            .await
+            .expect("open");
+        let now = now_ms();
+        for (id, kind) in [("l", UploadKind::Lidar), ("c", UploadKind::Colmap)] {
+            db.create_upload(&UploadRecord {
+                id: id.into(),
+                kind,
+                filename: "f".into(),
+                size: 1,
+                sha256: None,
+                part_size: 1,
+                complete: false,
+                inspection: None,
+                created_at: now,
+                expires_at: now,
+                completed_at: None,
+                parts: vec![],
+            })
+            .await
+            .expect("upload");
+            db.put_part(id, 0, 1, "x").await.expect("part");
+            db.complete_upload(id, "x", &serde_json::json!({}))
+                .await
+                .expect("complete");
+        }
+        let inputs = JobInputs {
+            lidar: "l".into(),
+            colmap: "c".into(),
+            control_points: None,
+            field_dbh: None,
+        };
+        let params = serde_json::to_value(PipelineParams::default()).expect("params");
+        db.create_job("j", &inputs, &params, &Stage::ALL, None, "h", 10)
+            .await
+            .expect("job");
+        (dir, db, "j".into())
+    }
+
+    #[tokio::test]
+    async fn a_worker_that_lost_its_lease_cannot_write() {
+        let (_d, db, job) = store_with_job().await;
+        let short = Duration::from_millis(50);
+        let a = db
+            .claim("A", short, 5)
+            .await
+            .expect("claim")
+            .expect("a job");
+        assert_eq!(a.attempt, 1);
+        assert!(
+            db.claim("B", short, 5).await.expect("claim").is_none(),
+            "leased"
+        );
+        tokio::time::sleep(Duration::from_millis(80)).await;
+        let b = db
+            .claim("B", short, 5)
+            .await
+            .expect("claim")
+            .expect("expired lease");
+        assert_eq!(b.attempt, 2);
+        // A is fenced out of every write.
+        let r = db
+            .finish_stage(
+                &job,
+                &a.token,
+                Stage::Ingest,
+                &serde_json::json!({}),
+                &[],
+                0.1,
+            )
+            .await;
+        assert!(matches!(r, Err(DbError::Fenced)), "{r:?}");
+        assert!(matches!(
+            db.start_stage(&job, &a.token, Stage::Ingest, 1).await,
+            Err(DbError::Fenced)
+        ));
+        assert!(matches!(
+            db.finish_job(&job, &a.token, &RunEnd::Succeeded).await,
+            Err(DbError::Fenced)
+        ));
+        assert_eq!(
+            db.heartbeat(&job, &a.token, short, 0.5, None)
+                .await
+                .expect("hb"),
+            Heartbeat::Lost
+        );
+        // B writes its checkpoint; a later claim resumes after it.
+        db.start_stage(&job, &b.token, Stage::Ingest, 2)
+            .await
+            .expect("start");
+        db.finish_stage(
+            &job,
+            &b.token,
+            Stage::Ingest,
+            &serde_json::json!({"n": 1}),
+            &[],
+            0.05,
+        )
+        .await
+        .expect("checkpoint");
+        tokio::time::sleep(Duration::from_millis(80)).await;
+        let c = db
+            .claim("C", short, 5)
+            .await
+            .expect("claim")
+            .expect("expired");
+        assert_eq!(c.done, vec!["ingest".to_string()]);
+        assert!(c.progress >= 0.05);
+    }
+
+    #[tokio::test]
+    async fn a_job_whose_workers_keep_dying_fails_after_max_attempts() {
+        let (_d, db, job) = store_with_job().await;
+        let short = Duration::from_millis(20);
+        for _ in 0..2 {
+            assert!(db.claim("W", short, 2).await.expect("claim").is_some());
+            tokio::time::sleep(Duration::from_millis(40)).await;
+        }
+        assert!(db.claim("W", short, 2).await.expect("claim").is_none());
+        let j = db.get_job(&job).await.expect("get").expect("job");
+        assert_eq!(j.state, JobState::Failed);
+        assert!(
+            j.error
+                .is_some_and(|e| e.to_string().contains("worker-lost"))
+        );
+    }
+
+    #[tokio::test]
+    async fn heartbeat_sees_cancel_and_progress_never_decreases() {
+        let (_d, db, job) = store_with_job().await;
+        let lease = Duration::from_secs(30);
+        let a = db.claim("A", lease, 3).await.expect("claim").expect("job");
+        assert_eq!(
+            db.heartbeat(&job, &a.token, lease, 0.4, None)
+                .await
+                .expect("hb"),
+            Heartbeat::Ok
+        );
+        db.heartbeat(&job, &a.token, lease, 0.2, None)
+            .await
+            .expect("hb");
+        assert_eq!(
+            db.get_job(&job).await.expect("get").expect("job").progress,
+            0.4
+        );
+        assert_eq!(db.cancel(&job).await.expect("cancel"), JobState::Canceling);
+        assert_eq!(
+            db.heartbeat(&job, &a.token, lease, 0.5, None)
+                .await
+                .expect("hb"),
+            Heartbeat::CancelRequested
+        );
+        db.finish_job(&job, &a.token, &RunEnd::Canceled { stage: None })
+            .await
+            .expect("end");
+        assert!(matches!(db.cancel(&job).await, Err(DbError::Conflict(_))));
+        assert_eq!(db.integrity_check().await.expect("check"), "ok");
     }
 }

@@ -40,7 +40,11 @@ pub fn fixture() -> Fixture {
     for k in 0..60 {
         for a in 0..24 {
             let t = a as f32 / 24.0 * std::f32::consts::TAU;
-            positions.push(Vec3::new(2.0 + 0.15 * t.cos(), 2.0 + 0.15 * t.sin(), k as f32 * 0.05));
+            positions.push(Vec3::new(
+                2.0 + 0.15 * t.cos(),
+                2.0 + 0.15 * t.sin(),
+                k as f32 * 0.05,
+            ));
         }
     }
     let n = positions.len();
@@ -140,9 +144,14 @@ pub fn zip_dir(dir: &Path, out: &Path) {
     }
     files.sort();
     for p in files {
-        let name = p.strip_prefix(dir).expect("prefix").to_string_lossy().replace('\\', "/");
+        let name = p
+            .strip_prefix(dir)
+            .expect("prefix")
+            .to_string_lossy()
+            .replace('\\', "/");
         z.start_file(name, opts).expect("start_file");
-        z.write_all(&std::fs::read(&p).expect("read")).expect("write");
+        z.write_all(&std::fs::read(&p).expect("read"))
+            .expect("write");
     }
     z.finish().expect("finish zip");
 }
@@ -205,7 +214,11 @@ fn spawn(args: &[&str], data: &Path, ready_prefix: &str) -> Proc {
                     .find(|w| w.starts_with("http://"))
                     .unwrap_or("")
                     .to_string();
-                return Proc { child, base, stderr };
+                return Proc {
+                    child,
+                    base,
+                    stderr,
+                };
             }
             Ok(_) => {}
             Err(_) => {
@@ -253,7 +266,10 @@ pub async fn expect_problem(resp: reqwest::Response, status: StatusCode) -> Valu
         .and_then(|v| v.to_str().ok())
         .unwrap_or("")
         .to_string();
-    assert!(ct.starts_with("application/problem+json"), "content type {ct}");
+    assert!(
+        ct.starts_with("application/problem+json"),
+        "content type {ct}"
+    );
     let v: Value = resp.json().await.expect("problem body");
     assert_eq!(v["status"], status.as_u16());
     assert!(v["type"].as_str().is_some_and(|t| !t.is_empty()));
@@ -313,7 +329,12 @@ pub async fn create_job(c: &Client, base: &str, body: &Value) -> Value {
         .send()
         .await
         .expect("create job");
-    assert_eq!(resp.status(), StatusCode::ACCEPTED, "{:?}", resp.text().await);
+    assert_eq!(
+        resp.status(),
+        StatusCode::ACCEPTED,
+        "{:?}",
+        resp.text().await
+    );
     resp.json().await.expect("job json")
 }
 
@@ -345,13 +366,19 @@ pub async fn wait_job(
         if done(&j) {
             return (j, seen);
         }
-        assert!(Instant::now() < deadline, "timed out waiting for job {id}: {j}");
+        assert!(
+            Instant::now() < deadline,
+            "timed out waiting for job {id}: {j}"
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
 
 pub fn is_terminal(j: &Value) -> bool {
-    matches!(j["state"].as_str(), Some("succeeded" | "failed" | "canceled"))
+    matches!(
+        j["state"].as_str(),
+        Some("succeeded" | "failed" | "canceled")
+    )
 }
 
 pub fn stage<'a>(j: &'a Value, name: &str) -> &'a Value {

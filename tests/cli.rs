@@ -1,0 +1,113 @@
+//! The command line: `sylva run` on local files, and flags mirrored by environment variables.
+
+mod common;
+
+use std::process::Command;
+
+use common::*;
+use serde_json::Value;
+
+#[test]
+fn run_until_ingest_writes_stage_folders_and_results() {
+    let fx = fixture();
+    let out = fx.dir.path().join("out");
+    let status = Command::new(BIN)
+        .args(["run", "--until", "ingest", "--lidar"])
+        .arg(&fx.lidar)
+        .arg("--colmap")
+        .arg(&fx.colmap_zip)
+        .arg("--control-points")
+        .arg(&fx.control_points)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("run");
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let results: Value =
+        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
+            .expect("json");
+    assert_eq!(results["ingest"]["lidar"]["points"], fx.lidar_points);
+    assert_eq!(results["ingest"]["control_points"], 4);
+    assert!(out.join("ingest/cloud.ply").is_file());
+    assert!(out.join("ingest/report.json").is_file());
+    assert!(!out.join("ingest.partial").exists());
+}
+
+#[test]
+fn run_of_every_stage_stops_clearly_at_the_first_unbuilt_one() {
+    let fx = fixture();
+    let out = fx.dir.path().join("out");
+    let output = Command::new(BIN)
+        .args(["run", "--lidar"])
+        .arg(&fx.lidar)
+        .arg("--colmap")
+        .arg(&fx.colmap_dir)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("run");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("stage register is not available in this build"),
+        "{stderr}"
+    );
+    let results: Value =
+        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
+            .expect("json");
+    assert!(results.get("ingest").is_some());
+    assert!(results.get("register").is_none());
+}
+
+#[test]
+fn bad_input_fails_with_the_file_named() {
+    let fx = fixture();
+    let bad = fx.dir.path().join("bad.las");
+    std::fs::write(&bad, b"LASF but not really a LAS file").expect("write");
+    let output = Command::new(BIN)
+        .args(["run", "--until", "ingest", "--lidar"])
+        .arg(&bad)
+        .arg("--colmap")
+        .arg(&fx.colmap_dir)
+        .arg("--out")
+        .arg(fx.dir.path().join("out"))
+        .output()
+        .expect("run");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("bad.las"), "{stderr}");
+}
+
+#[test]
+fn every_flag_is_documented_and_mirrored_by_an_environment_variable() {
+    for sub in ["serve", "worker", "run"] {
+        let out = Command::new(BIN)
+            .args([sub, "--help"])
+            .output()
+            .expect("help");
+        let help = String::from_utf8_lossy(&out.stdout).to_string();
+        // Each option starts a paragraph: "  --flag <VALUE>" then its text up to the next option.
+        let mut blocks: Vec<String> = Vec::new();
+        for line in help.lines() {
+            let t = line.trim_start();
+            if t.starts_with("--") || (t.starts_with('-') && t.get(2..4) == Some(", ")) {
+                blocks.push(line.to_string());
+            } else if let Some(b) = blocks.last_mut() {
+                b.push_str(line);
+            }
+        }
+        assert!(blocks.len() > 3, "{sub}: {help}");
+        for b in blocks {
+            if b.contains("--help") || b.contains("--version") {
+                continue;
+            }
+            assert!(b.contains("[env: SYLVA_"), "{sub}: no env var for {b}");
+            let text_len = b.split_whitespace().count();
+            assert!(text_len > 4, "{sub}: undocumented flag {b}");
+        }
+    }
+}
