@@ -340,10 +340,10 @@ async fn upload_interrupted_and_resumed_with_repeated_part() {
     assert_eq!(created["parts_total"], parts.len());
 
     // The connection "dies" after two parts.
-    for n in 0..2 {
+    for (n, p) in parts.iter().enumerate().take(2) {
         let r = c
             .put(format!("{base}/v1/uploads/{id}/parts/{n}"))
-            .body(parts[n].to_vec())
+            .body(p.to_vec())
             .send()
             .await
             .expect("part");
