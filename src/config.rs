@@ -135,9 +135,10 @@ pub struct ApiArgs {
     #[arg(long, env = "SYLVA_MIN_FREE_BYTES", default_value_t = GIB)]
     pub min_free_bytes: u64,
 
-    /// Hours an incomplete upload stays resumable.
-    #[arg(long, env = "SYLVA_UPLOAD_TTL_HOURS", default_value_t = 24)]
-    pub upload_ttl_hours: u64,
+    /// Seconds an incomplete upload stays resumable (default 86400: a day, enough for a
+    /// field laptop on a poor connection).
+    #[arg(long, env = "SYLVA_UPLOAD_TTL_SECS", default_value_t = 86_400)]
+    pub upload_ttl_secs: u64,
 }
 
 impl ApiArgs {

@@ -1005,3 +1005,37 @@ async fn one_request_multipart_submission_runs() {
         .expect("post");
     expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_expired_upload_is_gone() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let srv = serve(
+        &dir.path().join("data"),
+        &["--upload-ttl-secs", "1", "--workers", "0"],
+    );
+    let (c, base) = (client(), srv.base.clone());
+    let v: Value = c
+        .post(format!("{base}/v1/uploads"))
+        .json(&json!({ "kind": "lidar", "filename": "a.xyz", "size": 6 }))
+        .send()
+        .await
+        .expect("create")
+        .json()
+        .await
+        .expect("json");
+    let id = v["id"].as_str().expect("id");
+    tokio::time::sleep(Duration::from_millis(1100)).await;
+    let r = c
+        .put(format!("{base}/v1/uploads/{id}/parts/0"))
+        .body("1 2 3\n")
+        .send()
+        .await
+        .expect("part");
+    expect_problem(r, StatusCode::GONE).await;
+    let r = c
+        .post(format!("{base}/v1/uploads/{id}/complete"))
+        .send()
+        .await
+        .expect("complete");
+    expect_problem(r, StatusCode::GONE).await;
+}

@@ -206,7 +206,7 @@ async fn multipart_inputs(
             complete: false,
             inspection: None,
             created_at: now,
-            expires_at: now + state.args.upload_ttl_hours as i64 * 3_600_000,
+            expires_at: now + state.args.upload_ttl_secs as i64 * 1000,
             completed_at: None,
             parts: vec![(0, size as i64)],
         };

@@ -109,7 +109,7 @@ pub async fn create_record(state: &AppState, req: UploadCreate) -> Result<Upload
         complete: false,
         inspection: None,
         created_at: now,
-        expires_at: now + a.upload_ttl_hours as i64 * 3_600_000,
+        expires_at: now + a.upload_ttl_secs as i64 * 1000,
         completed_at: None,
         parts: Vec::new(),
     };
@@ -150,6 +150,22 @@ pub async fn status(
     Ok((status_headers(&u), Json(views::upload(&u))).into_response())
 }
 
+/// An open upload past its `expires_at` can no longer be resumed.
+fn expired(u: &UploadRecord) -> Result<(), ApiError> {
+    if !u.complete && now_ms() > u.expires_at {
+        return Err(ApiError::new(
+            StatusCode::GONE,
+            "upload-expired",
+            format!(
+                "upload {} expired at {}; start a new upload",
+                u.id,
+                crate::jobs::rfc3339(u.expires_at)
+            ),
+        ));
+    }
+    Ok(())
+}
+
 pub async fn put_part(
     State(state): State<AppState>,
     Path((id, n)): Path<(String, i64)>,
@@ -159,6 +175,7 @@ pub async fn put_part(
     if u.complete {
         return Err(ApiError::conflict("the upload is already complete"));
     }
+    expired(&u)?;
     if n < 0 || n >= u.parts_total() {
         return Err(ApiError::unprocessable(format!(
             "part {n} is out of range: this upload has parts 0..{}",
@@ -202,6 +219,7 @@ pub async fn complete(
     if u.complete {
         return Ok((status_headers(&u), Json(views::upload(&u))).into_response());
     }
+    expired(&u)?;
     let missing = u.missing_parts();
     if !missing.is_empty() {
         let shown: Vec<String> = missing.iter().take(20).map(|n| n.to_string()).collect();

@@ -22,6 +22,7 @@ pub enum CloudFormat {
     Laz,
     Ply,
     Xyz,
+    E57,
 }
 
 /// A point cloud with optional per-point colour and intensity.
@@ -223,6 +224,9 @@ pub fn detect_format(path: &Path) -> Result<CloudFormat, IoError> {
     if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
         return Ok(CloudFormat::Ply);
     }
+    if head.starts_with(b"ASTM-E57") {
+        return Ok(CloudFormat::E57);
+    }
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -238,9 +242,13 @@ pub fn detect_format(path: &Path) -> Result<CloudFormat, IoError> {
             "not a PLY file (no 'ply' magic line)",
         )),
         "xyz" | "txt" | "csv" | "pts" => Ok(CloudFormat::Xyz),
+        "e57" => Err(IoError::format(
+            path,
+            "not an E57 file (no ASTM-E57 signature)",
+        )),
         _ => Err(IoError::format(
             path,
-            "unrecognised point-cloud format (expected LAS, LAZ, PLY or XYZ text)",
+            "unrecognised point-cloud format (expected LAS, LAZ, PLY, E57 or XYZ text)",
         )),
     }
 }
@@ -251,6 +259,7 @@ pub fn read_point_cloud(path: &Path, progress: &dyn Progress) -> Result<PointClo
         CloudFormat::Las | CloudFormat::Laz => super::las::read_las(path, progress),
         CloudFormat::Ply => super::ply::read_ply(path, progress),
         CloudFormat::Xyz => super::xyz::read_xyz(path, progress),
+        CloudFormat::E57 => super::e57::read_e57(path, progress),
     }
 }
 
@@ -274,6 +283,7 @@ pub enum SummaryDetails {
     Las(super::las::LasInfo),
     Ply(super::ply::PlyInfo),
     Xyz(super::xyz::XyzInfo),
+    E57(super::e57::E57Info),
 }
 
 /// Reads only the header of a point cloud and checks it against the file size. Rejects an
@@ -292,6 +302,10 @@ pub fn inspect_point_cloud(path: &Path) -> Result<CloudSummary, IoError> {
             (Some(info.vertex_count), SummaryDetails::Ply(info))
         }
         CloudFormat::Xyz => (None, SummaryDetails::Xyz(super::xyz::inspect_xyz(path)?)),
+        CloudFormat::E57 => {
+            let info = super::e57::inspect_e57(path)?;
+            (Some(info.declared_points), SummaryDetails::E57(info))
+        }
     };
     Ok(CloudSummary {
         format,
