@@ -80,7 +80,7 @@ pub fn read_e57(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoEr
         for point in iter {
             let point = point.map_err(|e| e57_err(path, e))?;
             seen += 1;
-            if seen % PROGRESS_STEP as u64 == 0 {
+            if seen.is_multiple_of(PROGRESS_STEP as u64) {
                 check_cancel(progress)?;
                 progress.set(seen as f64 / total.max(1) as f64);
             }
