@@ -8,6 +8,8 @@
 pub mod api;
 pub mod cli;
 pub mod config;
+pub mod forest;
+pub mod geom;
 pub mod gpu;
 pub mod io;
 pub mod jobs;

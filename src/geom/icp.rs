@@ -1,0 +1,403 @@
+//! Iterative closest point (METHOD.md Stage 1.2): refines a coarse similarity from SfM points
+//! (source) to the LiDAR cloud (target) by alternating nearest-neighbour correspondences
+//! within a shrinking maximum distance and a weighted least-squares update.
+//!
+//! - Point-to-point (the paper's objective) solves each update in closed form with the
+//!   weighted Umeyama/Horn fit, with or without scale.
+//! - Point-to-plane linearises sum w ((s R p + t - q) · n_q)^2 about the current pose (small
+//!   rotation, translation and log-scale about the correspondences' centroid) and solves the
+//!   6×6 or 7×7 normal equations in f64.
+//!
+//! Robust weights: trimming keeps the best fraction of residuals (weight 1, others 0); Huber
+//! weights are min(1, delta / r). The result mirrors Open3D's `RegistrationResult`.
+
+use glam::{DVec3, Vec3};
+use serde::{Deserialize, Serialize};
+
+use super::index::par_map_chunked;
+use super::similarity::fit_similarity;
+use super::{GeomError, NormalOrientation, NormalParams, PointIndex, Similarity};
+use crate::progress::{Progress, SubProgress};
+use plane::point_to_plane_step;
+
+/// The ICP objective.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum IcpMethod {
+    /// min sum w |T(p) - q|^2 (the paper's objective).
+    PointToPoint,
+    /// min sum w ((T(p) - q) · n_q)^2; converges faster on surfaces, needs target normals.
+    PointToPlane,
+}
+
+/// Robust weighting of correspondences.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum RobustKernel {
+    /// All correspondences within the max distance weigh 1.
+    None,
+    /// Keep the `keep_fraction` (0, 1] of correspondences with the smallest residuals.
+    Trimmed { keep_fraction: f64 },
+    /// Huber weights min(1, scale / r), `scale` in metres.
+    Huber { scale: f64 },
+}
+
+/// Parameters of [`icp`]; distances in target units (metres).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct IcpParams {
+    /// Objective. Default point-to-point, the paper's (METHOD.md Stage 1.2).
+    pub method: IcpMethod,
+    /// Estimate scale too (similarity ICP). Default true: METHOD.md Stage 1.2, SfM scale is
+    /// only approximately fixed by the coarse step.
+    pub estimate_scale: bool,
+    /// Iteration cap. Default 50 (Open3D's default is 30; the shrinking schedule uses ~15).
+    pub max_iterations: usize,
+    /// Max correspondence distance at the first iteration. Default 1.0 m: a coarse
+    /// registration from control points is good to decimetres.
+    pub start_distance: f64,
+    /// Factor applied to the max distance after each iteration, in (0, 1]. Default 0.8.
+    pub shrink: f64,
+    /// Floor of the max distance. Default 0.05 m: a few LiDAR point spacings after 2 cm
+    /// voxelisation, well above SfM point noise after alignment.
+    pub min_distance: f64,
+    /// Robust weighting. Default trimmed, keeping the best 80% (SfM clouds carry sky and
+    /// mismatched points that LiDAR does not see).
+    pub robust: RobustKernel,
+    /// Converged once the max distance is at its floor and the weighted RMSE changes by less
+    /// than this fraction between iterations. Default 1e-6 (Open3D's relative_rmse).
+    pub relative_rmse_tolerance: f64,
+    /// Neighbours for target normals when point-to-plane is asked for without normals.
+    /// Default 20 (as [`NormalParams`]).
+    pub normal_k: usize,
+}
+
+impl Default for IcpParams {
+    fn default() -> Self {
+        Self {
+            method: IcpMethod::PointToPoint,
+            estimate_scale: true,
+            max_iterations: 50,
+            start_distance: 1.0,
+            shrink: 0.8,
+            min_distance: 0.05,
+            robust: RobustKernel::Trimmed { keep_fraction: 0.8 },
+            relative_rmse_tolerance: 1e-6,
+            normal_k: 20,
+        }
+    }
+}
+
+/// Outcome of [`icp`], after Open3D's `RegistrationResult`: x_target = s R x_source + t.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct IcpResult {
+    pub rotation: glam::DMat3,
+    pub translation: DVec3,
+    pub scale: f64,
+    /// Share of source points with a target point within the final max distance, [0, 1].
+    pub fitness: f64,
+    /// RMS Euclidean distance of those correspondences (metres).
+    pub inlier_rmse: f64,
+    /// Final max correspondence distance (metres).
+    pub max_distance: f64,
+    pub iterations: usize,
+    /// True when the RMSE change fell below the tolerance before the iteration cap.
+    pub converged: bool,
+}
+
+impl IcpResult {
+    /// The estimated transform as a [`Similarity`].
+    pub fn transform(&self) -> Similarity {
+        Similarity {
+            scale: self.scale,
+            rotation: self.rotation,
+            translation: self.translation,
+        }
+    }
+}
+
+/// One correspondence: source index, target index, residual (metres) and weight.
+#[derive(Debug, Clone, Copy, Default)]
+struct Pair {
+    src: u32,
+    tgt: u32,
+    residual: f64,
+    weight: f64,
+}
+
+/// Registers `source` onto `target` from `initial`, building the target index (and target
+/// normals for point-to-plane when `target_normals` is `None`).
+pub fn icp(
+    source: &[Vec3],
+    target: &[Vec3],
+    target_normals: Option<&[Vec3]>,
+    initial: &Similarity,
+    params: &IcpParams,
+    progress: &dyn Progress,
+) -> Result<IcpResult, GeomError> {
+    let index = PointIndex::new(target)?;
+    let estimated;
+    let normals = match (params.method, target_normals) {
+        (IcpMethod::PointToPlane, None) => {
+            let np = NormalParams {
+                k: params.normal_k,
+                orientation: NormalOrientation::None,
+            };
+            estimated = super::estimate_normals_with_index(
+                target,
+                &index,
+                &np,
+                &SubProgress::new(progress, 0.0, 0.3),
+            )?;
+            Some(estimated.normals.as_slice())
+        }
+        (_, n) => n,
+    };
+    icp_with_index(
+        source,
+        target,
+        &index,
+        normals,
+        initial,
+        params,
+        &SubProgress::new(progress, 0.3, 0.7),
+    )
+}
+
+/// As [`icp`], with a prebuilt index over exactly `target`. Point-to-plane needs
+/// `target_normals`.
+pub fn icp_with_index(
+    source: &[Vec3],
+    target: &[Vec3],
+    index: &PointIndex,
+    target_normals: Option<&[Vec3]>,
+    initial: &Similarity,
+    params: &IcpParams,
+    progress: &dyn Progress,
+) -> Result<IcpResult, GeomError> {
+    validate(source, target, index, target_normals, initial, params)?;
+    let plane = params.method == IcpMethod::PointToPlane;
+    let normals = target_normals.unwrap_or(&[]);
+    let mut t = *initial;
+    let mut dist = params.start_distance;
+    let mut prev_rmse: Option<f64> = None;
+    let mut converged = false;
+    let mut iterations = 0;
+    while iterations < params.max_iterations {
+        if progress.is_cancelled() {
+            return Err(GeomError::Cancelled);
+        }
+        let at_floor = dist <= params.min_distance;
+        let mut pairs = correspond(source, index, &t, dist, |q, j| {
+            if plane {
+                (q - target[j].as_dvec3()).dot(normals[j].as_dvec3()).abs()
+            } else {
+                (q - target[j].as_dvec3()).length()
+            }
+        })?;
+        let min_pairs = if plane { 7 } else { 3 };
+        if pairs.len() < min_pairs {
+            return Err(GeomError::Empty(
+                "ICP correspondences within the max distance; improve the initial alignment or raise start_distance",
+            ));
+        }
+        weigh(&mut pairs, params.robust);
+        let sw: f64 = pairs.iter().map(|p| p.weight).sum();
+        let rmse = (pairs
+            .iter()
+            .map(|p| p.weight * p.residual * p.residual)
+            .sum::<f64>()
+            / sw.max(1e-300))
+        .sqrt();
+        t = if plane {
+            point_to_plane_step(source, target, normals, &pairs, &t, params.estimate_scale)?
+        } else {
+            fit_similarity(
+                pairs.len(),
+                |k| {
+                    let p = pairs[k];
+                    (
+                        source[p.src as usize].as_dvec3(),
+                        target[p.tgt as usize].as_dvec3(),
+                        p.weight,
+                    )
+                },
+                params.estimate_scale,
+            )?
+        };
+        iterations += 1;
+        progress.log(&format!(
+            "ICP iteration {iterations}: max distance {dist:.4} m, {} correspondences, weighted RMSE {rmse:.5} m, scale {:.6}",
+            pairs.len(),
+            t.scale
+        ));
+        progress.set(iterations as f64 / params.max_iterations as f64);
+        if at_floor {
+            if let Some(prev) = prev_rmse
+                && (rmse == 0.0 || (prev - rmse).abs() <= params.relative_rmse_tolerance * prev)
+            {
+                converged = true;
+                break;
+            }
+            prev_rmse = Some(rmse);
+        }
+        dist = (dist * params.shrink).max(params.min_distance);
+    }
+    let final_pairs = correspond(source, index, &t, dist, |q, j| {
+        (q - target[j].as_dvec3()).length()
+    })?;
+    let inlier_rmse = if final_pairs.is_empty() {
+        0.0
+    } else {
+        (final_pairs
+            .iter()
+            .map(|p| p.residual * p.residual)
+            .sum::<f64>()
+            / final_pairs.len() as f64)
+            .sqrt()
+    };
+    progress.set(1.0);
+    Ok(IcpResult {
+        rotation: t.rotation,
+        translation: t.translation,
+        scale: t.scale,
+        fitness: final_pairs.len() as f64 / source.len() as f64,
+        inlier_rmse,
+        max_distance: dist,
+        iterations,
+        converged,
+    })
+}
+
+fn validate(
+    source: &[Vec3],
+    target: &[Vec3],
+    index: &PointIndex,
+    target_normals: Option<&[Vec3]>,
+    initial: &Similarity,
+    p: &IcpParams,
+) -> Result<(), GeomError> {
+    if source.is_empty() || target.is_empty() {
+        return Err(GeomError::Empty(
+            "ICP needs non-empty source and target clouds",
+        ));
+    }
+    if index.len() != target.len() {
+        return Err(GeomError::LengthMismatch {
+            what: "index vs target",
+            left: index.len(),
+            right: target.len(),
+        });
+    }
+    if p.method == IcpMethod::PointToPlane {
+        match target_normals {
+            None => {
+                return Err(GeomError::InvalidParameter(
+                    "point-to-plane ICP needs target normals".into(),
+                ));
+            }
+            Some(n) if n.len() != target.len() => {
+                return Err(GeomError::LengthMismatch {
+                    what: "target normals vs target",
+                    left: n.len(),
+                    right: target.len(),
+                });
+            }
+            Some(n) if !n.iter().all(|v| v.is_finite()) => {
+                return Err(GeomError::NonFinite("target normals"));
+            }
+            _ => {}
+        }
+    }
+    if !source.iter().all(|v| v.is_finite()) {
+        return Err(GeomError::NonFinite("source points"));
+    }
+    let finite_init = initial.scale.is_finite()
+        && initial.scale > 0.0
+        && initial.rotation.is_finite()
+        && initial.translation.is_finite();
+    if !finite_init {
+        return Err(GeomError::NonFinite(
+            "initial transform (scale must be > 0)",
+        ));
+    }
+    let ok = p.max_iterations > 0
+        && p.start_distance.is_finite()
+        && p.min_distance.is_finite()
+        && p.min_distance > 0.0
+        && p.start_distance >= p.min_distance
+        && p.shrink > 0.0
+        && p.shrink <= 1.0
+        && p.relative_rmse_tolerance >= 0.0
+        && match p.robust {
+            RobustKernel::None => true,
+            RobustKernel::Trimmed { keep_fraction } => keep_fraction > 0.0 && keep_fraction <= 1.0,
+            RobustKernel::Huber { scale } => scale > 0.0 && scale.is_finite(),
+        };
+    if !ok {
+        return Err(GeomError::InvalidParameter(format!(
+            "ICP parameters out of range: {p:?} (need 0 < min_distance <= start_distance, 0 < shrink <= 1, max_iterations >= 1, keep_fraction in (0, 1], Huber scale > 0)"
+        )));
+    }
+    Ok(())
+}
+
+/// Nearest target point of every transformed source point within `max_dist`, in parallel.
+fn correspond(
+    source: &[Vec3],
+    index: &PointIndex,
+    t: &Similarity,
+    max_dist: f64,
+    residual: impl Fn(DVec3, usize) -> f64 + Sync,
+) -> Result<Vec<Pair>, GeomError> {
+    let nearest: Vec<Option<Pair>> =
+        par_map_chunked(source.len(), &crate::progress::NoProgress, |i, _| {
+            let q = t.apply(source[i].as_dvec3());
+            let m = index.nearest(q.as_vec3())?;
+            if (m.dist2 as f64) > max_dist * max_dist {
+                return None;
+            }
+            Some(Pair {
+                src: i as u32,
+                tgt: m.index,
+                residual: residual(q, m.index as usize),
+                weight: 1.0,
+            })
+        })?;
+    Ok(nearest.into_iter().flatten().collect())
+}
+
+/// Sets each pair's robust weight.
+fn weigh(pairs: &mut [Pair], kernel: RobustKernel) {
+    match kernel {
+        RobustKernel::None => {}
+        RobustKernel::Trimmed { keep_fraction } => {
+            let keep = ((pairs.len() as f64 * keep_fraction).ceil() as usize).clamp(1, pairs.len());
+            let mut r: Vec<f64> = pairs.iter().map(|p| p.residual).collect();
+            let (_, cut, _) = r.select_nth_unstable_by(keep - 1, |a, b| a.total_cmp(b));
+            let cut = *cut;
+            let mut kept = 0;
+            for p in pairs.iter_mut() {
+                // Ties at the cut keep at most `keep` pairs.
+                p.weight = if p.residual <= cut && kept < keep {
+                    kept += 1;
+                    1.0
+                } else {
+                    0.0
+                };
+            }
+        }
+        RobustKernel::Huber { scale } => {
+            for p in pairs.iter_mut() {
+                p.weight = if p.residual <= scale {
+                    1.0
+                } else {
+                    scale / p.residual
+                };
+            }
+        }
+    }
+}
+
+mod plane;
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,101 @@
+//! The point-to-plane update of ICP: one Gauss-Newton step of
+//! min sum w ((s R p + t - q) · n_q)^2, linearised about the current pose as a small rotation
+//! omega, translation tau and log-scale sigma about the weighted centroid c of the moved
+//! source points, so that the unknowns are well conditioned and decoupled.
+
+use glam::{DQuat, DVec3, Vec3};
+
+use super::Pair;
+use crate::geom::{GeomError, Similarity};
+
+// Index loops mirror the matrix algebra.
+#[allow(clippy::needless_range_loop)]
+/// One Gauss-Newton step of point-to-plane (similarity) ICP; returns the updated transform.
+pub(super) fn point_to_plane_step(
+    source: &[Vec3],
+    target: &[Vec3],
+    normals: &[Vec3],
+    pairs: &[Pair],
+    t: &Similarity,
+    with_scale: bool,
+) -> Result<Similarity, GeomError> {
+    let dim = if with_scale { 7 } else { 6 };
+    let (mut sw, mut c) = (0.0, DVec3::ZERO);
+    for p in pairs.iter().filter(|p| p.weight > 0.0) {
+        let q = t.apply(source[p.src as usize].as_dvec3());
+        sw += p.weight;
+        c += q * p.weight;
+    }
+    if sw.is_nan() || sw <= 0.0 {
+        return Err(GeomError::Degenerate(
+            "no correspondence has a positive weight",
+        ));
+    }
+    c /= sw;
+    let mut ata = [[0.0f64; 7]; 7];
+    let mut atb = [0.0f64; 7];
+    for p in pairs.iter().filter(|p| p.weight > 0.0) {
+        let q = t.apply(source[p.src as usize].as_dvec3());
+        let n = normals[p.tgt as usize].as_dvec3();
+        let x = q - c;
+        let r0 = (q - target[p.tgt as usize].as_dvec3()).dot(n);
+        let xn = x.cross(n);
+        let row = [xn.x, xn.y, xn.z, n.x, n.y, n.z, x.dot(n)];
+        for a in 0..dim {
+            atb[a] -= p.weight * row[a] * r0;
+            for b in a..dim {
+                ata[a][b] += p.weight * row[a] * row[b];
+            }
+        }
+    }
+    for a in 0..dim {
+        for b in 0..a {
+            ata[a][b] = ata[b][a];
+        }
+    }
+    let delta = solve(ata, atb, dim).ok_or(GeomError::Degenerate(
+        "point-to-plane system is singular: the overlapping surfaces do not constrain all axes",
+    ))?;
+    let omega = DVec3::new(delta[0], delta[1], delta[2]);
+    let tau = DVec3::new(delta[3], delta[4], delta[5]);
+    let s_inc = if with_scale { delta[6].exp() } else { 1.0 };
+    let r_inc = glam::DMat3::from_quat(DQuat::from_scaled_axis(omega));
+    let inc = Similarity {
+        scale: s_inc,
+        rotation: r_inc,
+        translation: c + tau - r_inc * c * s_inc,
+    };
+    Ok(t.then(&inc))
+}
+
+// Index loops mirror the matrix algebra.
+#[allow(clippy::needless_range_loop)]
+/// Solves the `dim`×`dim` system by Gaussian elimination with partial pivoting; `None` when
+/// a pivot is negligible against the matrix's largest diagonal entry.
+fn solve(mut a: [[f64; 7]; 7], mut b: [f64; 7], dim: usize) -> Option<[f64; 7]> {
+    let scale = (0..dim).map(|i| a[i][i].abs()).fold(0.0, f64::max);
+    if scale.is_nan() || scale <= 0.0 {
+        return None;
+    }
+    for col in 0..dim {
+        let piv = (col..dim).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[piv][col].abs() <= 1e-12 * scale {
+            return None;
+        }
+        a.swap(col, piv);
+        b.swap(col, piv);
+        for r in col + 1..dim {
+            let f = a[r][col] / a[col][col];
+            for k in col..dim {
+                a[r][k] -= f * a[col][k];
+            }
+            b[r] -= f * b[col];
+        }
+    }
+    let mut x = [0.0; 7];
+    for r in (0..dim).rev() {
+        let s: f64 = (r + 1..dim).map(|k| a[r][k] * x[k]).sum();
+        x[r] = (b[r] - s) / a[r][r];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}

@@ -1,0 +1,203 @@
+//! ICP tests on a structured synthetic plot: rolling ground plus a few stems.
+
+use super::*;
+use crate::geom::estimate_normals;
+use crate::progress::NoProgress;
+use glam::{DMat3, DQuat};
+use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
+
+const STEMS: [(f32, f32, f32); 5] = [
+    (2.0, 3.0, 0.15),
+    (7.5, 2.5, 0.25),
+    (4.0, 8.0, 0.2),
+    (9.0, 9.5, 0.3),
+    (1.5, 10.0, 0.12),
+];
+
+fn ground_z(x: f32, y: f32) -> f32 {
+    0.3 * (x / 3.0).sin() * (y / 4.0).cos() + 0.05 * x
+}
+
+/// Points on the scene surfaces within x in [x0, x1), y in [0, 12).
+fn scene(rng: &mut ChaCha8Rng, x0: f32, x1: f32, ground: usize, per_stem: usize) -> Vec<Vec3> {
+    let mut pts = Vec::with_capacity(ground + 5 * per_stem);
+    for _ in 0..ground {
+        let (x, y) = (rng.random_range(x0..x1), rng.random_range(0.0..12.0));
+        pts.push(Vec3::new(x, y, ground_z(x, y)));
+    }
+    for &(cx, cy, r) in &STEMS {
+        if cx < x0 || cx >= x1 {
+            continue;
+        }
+        for _ in 0..per_stem {
+            let a = rng.random_range(0.0..std::f32::consts::TAU);
+            let h = rng.random_range(0.0..6.0);
+            pts.push(Vec3::new(
+                cx + r * a.cos(),
+                cy + r * a.sin(),
+                ground_z(cx, cy) + h,
+            ));
+        }
+    }
+    pts
+}
+
+fn truth(scale: f64) -> Similarity {
+    Similarity {
+        scale,
+        rotation: DMat3::from_euler(
+            glam::EulerRot::ZYX,
+            0.8f64.to_radians(),
+            0.4f64.to_radians(),
+            -0.3f64.to_radians(),
+        ),
+        translation: DVec3::new(0.08, -0.06, 0.05),
+    }
+}
+
+/// Source in the "SfM frame": scene points mapped by the inverse of `truth`, 20% of them
+/// replaced by uniform outliers in the plot's volume, plus `noise` metres of jitter.
+fn source_from(
+    scene_pts: &[Vec3],
+    truth: &Similarity,
+    rng: &mut ChaCha8Rng,
+    noise: f32,
+) -> Vec<Vec3> {
+    let inv = truth.inverse();
+    scene_pts
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let p = if i % 5 == 0 {
+                Vec3::new(
+                    rng.random_range(0.0..14.0),
+                    rng.random_range(0.0..12.0),
+                    rng.random_range(-1.0..8.0),
+                )
+            } else {
+                *p + Vec3::new(
+                    rng.random_range(-noise..noise),
+                    rng.random_range(-noise..noise),
+                    rng.random_range(-noise..noise),
+                )
+            };
+            inv.apply_f32(p)
+        })
+        .collect()
+}
+
+fn assert_close(got: &IcpResult, want: &Similarity, what: &str) {
+    let dr = DQuat::from_mat3(&(got.rotation * want.rotation.transpose()));
+    let angle = dr.angle_between(DQuat::IDENTITY).to_degrees();
+    let dt = (got.translation - want.translation).length();
+    let ds = (got.scale / want.scale - 1.0).abs();
+    assert!(
+        angle < 0.05 && dt < 1e-3 && ds < 1e-3,
+        "{what}: rotation error {angle}°, translation {dt} m, scale {ds}; {got:?}"
+    );
+}
+
+#[test]
+fn point_to_point_recovers_similarity_with_partial_overlap_and_outliers() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let target = scene(&mut rng, 0.0, 12.0, 80_000, 12_000);
+    // Source: a subset of the target's own points (as SfM points on LiDAR-seen surfaces),
+    // only from x in [0, 9), i.e. partial overlap of the plot.
+    let sub: Vec<Vec3> = target
+        .iter()
+        .copied()
+        .filter(|p| p.x < 9.0)
+        .step_by(4)
+        .collect();
+    for scale in [1.0, 1.005] {
+        let t = truth(scale);
+        let source = source_from(&sub, &t, &mut rng, 0.0002);
+        let params = IcpParams {
+            estimate_scale: scale != 1.0,
+            ..IcpParams::default()
+        };
+        let res = icp(
+            &source,
+            &target,
+            None,
+            &Similarity::IDENTITY,
+            &params,
+            &NoProgress,
+        )
+        .unwrap();
+        assert!(res.converged, "{res:?}");
+        assert_close(&res, &t, "point-to-point");
+        assert!(
+            res.fitness > 0.75 && res.fitness < 0.9,
+            "fitness {}",
+            res.fitness
+        );
+    }
+}
+
+#[test]
+fn point_to_plane_recovers_similarity_from_independent_samples() {
+    let mut rng = ChaCha8Rng::seed_from_u64(22);
+    let target = scene(&mut rng, 0.0, 12.0, 100_000, 20_000);
+    // Independent samples of the same surfaces, a partly different region (x in [3, 14):
+    // the part beyond x = 12 has no target).
+    let sub = scene(&mut rng, 3.0, 14.0, 15_000, 3_000);
+    let normals = estimate_normals(&target, &NormalParams::default(), &NoProgress).unwrap();
+    for (scale, robust) in [
+        (1.0, RobustKernel::Trimmed { keep_fraction: 0.7 }),
+        (0.97, RobustKernel::Huber { scale: 0.01 }),
+    ] {
+        let t = truth(scale);
+        let source = source_from(&sub, &t, &mut rng, 0.0005);
+        let params = IcpParams {
+            method: IcpMethod::PointToPlane,
+            estimate_scale: scale != 1.0,
+            robust,
+            min_distance: 0.03,
+            ..IcpParams::default()
+        };
+        let res = icp(
+            &source,
+            &target,
+            Some(&normals.normals),
+            &Similarity::IDENTITY,
+            &params,
+            &NoProgress,
+        )
+        .unwrap();
+        assert_close(&res, &t, &format!("point-to-plane {robust:?}"));
+        assert!(res.inlier_rmse < 0.02, "{res:?}");
+    }
+}
+
+#[test]
+fn icp_stops_on_cancel_and_rejects_bad_input() {
+    struct Cancelled;
+    impl Progress for Cancelled {
+        fn set(&self, _: f64) {}
+        fn is_cancelled(&self) -> bool {
+            true
+        }
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    let target = scene(&mut rng, 0.0, 12.0, 2_000, 200);
+    let p = IcpParams::default();
+    let id = Similarity::IDENTITY;
+    assert_eq!(
+        icp(&target, &target, None, &id, &p, &Cancelled).unwrap_err(),
+        GeomError::Cancelled
+    );
+    let bad = IcpParams { shrink: 0.0, ..p };
+    assert!(matches!(
+        icp(&target, &target, None, &id, &bad, &NoProgress),
+        Err(GeomError::InvalidParameter(_))
+    ));
+    let far: Vec<Vec3> = target.iter().map(|v| *v + Vec3::splat(100.0)).collect();
+    assert!(matches!(
+        icp(&far, &target, None, &id, &p, &NoProgress),
+        Err(GeomError::Empty(_))
+    ));
+    // Identical clouds: exact identity, full fitness.
+    let res = icp(&target, &target, None, &id, &p, &NoProgress).unwrap();
+    assert!(res.fitness == 1.0 && res.inlier_rmse < 1e-9 && res.converged);
+}
