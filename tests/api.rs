@@ -231,7 +231,7 @@ async fn job_lifecycle_through_ingest() {
 }
 
 #[tokio::test(flavor = "multi_thread")]
-async fn unbuilt_stage_fails_the_job_clearly_and_retry_resumes_there() {
+async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there() {
     let fx = fixture();
     let srv = serve(&fx.dir.path().join("data"), &[]);
     let (c, base) = (client(), srv.base.clone());
@@ -241,10 +241,10 @@ async fn unbuilt_stage_fails_the_job_clearly_and_retry_resumes_there() {
     let (job, _) = wait_job(&c, &base, &id, LONG, is_terminal).await;
     assert_eq!(job["state"], "failed");
     assert_eq!(job["stage"], "register");
-    assert_eq!(
-        job["error"]["detail"],
-        "stage register is not available in this build"
-    );
+    // The fixture's photos do not show its LiDAR scene: registration refuses clearly.
+    let detail = job["error"]["detail"].as_str().expect("detail");
+    assert!(detail.contains("supply control points"), "{detail}");
+    assert_eq!(job["error"]["status"], 422);
     assert_eq!(stage(&job, "ingest")["state"], "done");
     assert_eq!(stage(&job, "register")["state"], "failed");
     let ingest_done_at = stage(&job, "ingest")["finished_at"].clone();

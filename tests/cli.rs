@@ -38,7 +38,7 @@ fn run_until_ingest_writes_stage_folders_and_results() {
 }
 
 #[test]
-fn run_of_every_stage_stops_clearly_at_the_first_unbuilt_one() {
+fn run_stops_with_a_clear_error_when_registration_is_impossible() {
     let fx = fixture();
     let out = fx.dir.path().join("out");
     let output = Command::new(BIN)
@@ -52,10 +52,9 @@ fn run_of_every_stage_stops_clearly_at_the_first_unbuilt_one() {
         .expect("run");
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        stderr.contains("stage register is not available in this build"),
-        "{stderr}"
-    );
+    // The fixture's photos do not show its LiDAR scene: registration must refuse, not guess.
+    assert!(stderr.contains("stage register failed"), "{stderr}");
+    assert!(stderr.contains("supply control points"), "{stderr}");
     let results: Value =
         serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
             .expect("json");

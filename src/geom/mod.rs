@@ -10,6 +10,7 @@
 //! The algorithms follow METHOD.md Stages 1–2 (paper sections 3.3 and registration); where
 //! the paper is silent the choice is written down on the function.
 
+pub mod coarse;
 mod error;
 mod icp;
 mod index;

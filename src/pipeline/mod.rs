@@ -7,9 +7,11 @@
 //! stage without a folder. The same code serves the HTTP worker and `sylva run`; nothing here
 //! knows about HTTP or SQL.
 
+pub mod anchors;
 pub mod ingest;
 pub mod inspect;
 pub mod params;
+pub mod register;
 
 use std::fs;
 use std::io::Read;
@@ -191,6 +193,8 @@ pub struct StageOutcome {
 pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     match stage {
         Stage::Ingest => ingest::run(ctx),
+        Stage::Register => register::run(ctx),
+        Stage::Anchors => anchors::run(ctx),
         other => Err(StageError::NotAvailable(other)),
     }
 }

@@ -53,15 +53,28 @@ impl Default for IngestParams {
 pub struct RegisterParams {
     /// ICP iteration cap (default 50).
     pub icp_max_iterations: u32,
-    /// ICP stops when the relative change of inlier RMSE falls below this (default 1e-6).
+    /// ICP stops when the relative change of the RMSE falls below this (default 1e-6,
+    /// Open3D's relative_rmse).
     pub icp_relative_rmse: f64,
-    /// Initial correspondence distance in metres; it shrinks as ICP converges (default 0.5 m).
+    /// Initial correspondence distance in metres; it shrinks by 0.8 per iteration (default
+    /// 1.0 m: a coarse alignment is good to decimetres).
     pub icp_max_distance_m: f64,
+    /// Floor of the correspondence distance in metres (default 0.05 m).
+    pub icp_min_distance_m: f64,
+    /// Share of correspondences kept by the trimmed robust estimator (default 0.8: SfM
+    /// clouds carry sky and mismatched points LiDAR does not see).
+    pub icp_keep_fraction: f64,
     /// Estimate scale in ICP as well (similarity ICP), since SfM scale is only approximately
     /// fixed by the coarse step (METHOD.md Stage 1.2; default true).
     pub estimate_scale: bool,
     /// Use the point-to-plane objective instead of the paper's point-to-point (default false).
     pub point_to_plane: bool,
+    /// The LiDAR cloud is thinned to this voxel size (metres) as the ICP target (default
+    /// 0.05 m: well below SfM point noise, and fast).
+    pub target_voxel_m: f64,
+    /// Without control points, the automatic coarse alignment must reach this confidence in
+    /// [0, 1], or the stage refuses and asks for control points (default 0.5).
+    pub min_confidence: f64,
 }
 
 impl Default for RegisterParams {
@@ -69,9 +82,13 @@ impl Default for RegisterParams {
         Self {
             icp_max_iterations: 50,
             icp_relative_rmse: 1e-6,
-            icp_max_distance_m: 0.5,
+            icp_max_distance_m: 1.0,
+            icp_min_distance_m: 0.05,
+            icp_keep_fraction: 0.8,
             estimate_scale: true,
             point_to_plane: false,
+            target_voxel_m: 0.05,
+            min_confidence: 0.5,
         }
     }
 }

@@ -1,0 +1,540 @@
+//! Automatic coarse registration of an SfM reconstruction onto a LiDAR cloud, without
+//! control points (beyond the paper, which needs a person with CloudCompare).
+//!
+//! 1. Up: UAV cameras fly at a roughly constant height and look down, so the normal of the
+//!    plane through the camera centres, signed against the mean viewing direction, is "up"
+//!    in the SfM frame (the mean viewing direction alone when the centres are not planar).
+//! 2. Level the SfM points so that up is +z; the LiDAR frame is assumed z-up (metres).
+//! 3. Search yaw, scale and horizontal offset by matching two rasters of both clouds: a
+//!    canopy-height model (highest point minus the local lowest) and the detrended terrain
+//!    (local lowest point). Normalised cross-correlation on a coarse grid over every yaw and
+//!    a log-spaced range of scales (from the ratio of robust horizontal and vertical
+//!    extents), then a fine grid around the best hypotheses.
+//! 4. The vertical offset comes from the terrain rasters; the confidence from how clearly
+//!    the best hypothesis beats the best distinct other one and from its correlation.
+//!
+//! ICP then refines the result (stage `register`).
+
+use glam::{DMat3, DVec3, Vec3};
+use serde::{Deserialize, Serialize};
+
+use super::{GeomError, Similarity, symmetric_eigen3};
+use crate::progress::Progress;
+
+/// Search settings; the defaults suit plots of 10–100 m.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoarseParams {
+    /// Yaw step of the coarse search, degrees (default 4°; the fine search goes to 1°).
+    pub yaw_step_deg: f64,
+    /// Ratio between consecutive candidate scales (default 1.04, i.e. 4 %).
+    pub scale_step: f64,
+    /// How far the scale search reaches beyond the extent-based estimates (default 1.35×).
+    pub scale_margin: f64,
+    /// Cells across the LiDAR cloud's larger side in the coarse raster (default 24).
+    pub coarse_cells: usize,
+    /// Fraction of the valid raster cells that must overlap for a hypothesis (default 0.3).
+    pub min_overlap: f64,
+}
+
+impl Default for CoarseParams {
+    fn default() -> Self {
+        Self {
+            yaw_step_deg: 4.0,
+            scale_step: 1.04,
+            scale_margin: 1.35,
+            coarse_cells: 24,
+            min_overlap: 0.3,
+        }
+    }
+}
+
+/// The coarse alignment found, SfM → LiDAR (local frame).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoarseAlignment {
+    pub transform: Similarity,
+    /// In [0, 1]: how clearly the best hypothesis wins (0: no match).
+    pub confidence: f64,
+    /// Correlation score of the best hypothesis (sum of two NCCs, up to 1.5).
+    pub score: f64,
+    /// Score of the best hypothesis at least 20° or 3 coarse cells away from the best.
+    pub runner_up: f64,
+    pub yaw_deg: f64,
+    pub scale: f64,
+}
+
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let k = ((v.len() - 1) as f64 * q).round() as usize;
+    let (_, x, _) = v.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
+    *x
+}
+
+/// Up direction of the SfM frame from camera centres and viewing directions.
+pub fn up_from_cameras(cameras: &[(DVec3, DVec3)]) -> Result<DVec3, GeomError> {
+    if cameras.len() < 3 {
+        return Err(GeomError::Degenerate(
+            "fewer than 3 cameras to find the up direction",
+        ));
+    }
+    let down: DVec3 = cameras.iter().map(|c| c.1.normalize_or_zero()).sum();
+    let mean_up = (-down).normalize_or_zero();
+    let centres: Vec<DVec3> = cameras.iter().map(|c| c.0).collect();
+    if let Some(cov) = covariance_of(&centres) {
+        let e = symmetric_eigen3(cov);
+        // values sorted descending: the plane is good when the smallest is tiny.
+        let planar = e.values[2] <= 0.05 * e.values[1].max(1e-300);
+        let mut n = e.vectors[2].normalize_or_zero();
+        if mean_up != DVec3::ZERO && n.dot(mean_up) < 0.0 {
+            n = -n;
+        }
+        if planar && (mean_up == DVec3::ZERO || n.dot(mean_up) > 0.5) {
+            return Ok(n);
+        }
+    }
+    if mean_up == DVec3::ZERO {
+        return Err(GeomError::Degenerate(
+            "cameras give no consistent up direction",
+        ));
+    }
+    Ok(mean_up)
+}
+
+/// Covariance of a set of f64 points (None for fewer than 3).
+fn covariance_of(points: &[DVec3]) -> Option<DMat3> {
+    if points.len() < 3 {
+        return None;
+    }
+    let n = points.len() as f64;
+    let m = points.iter().copied().sum::<DVec3>() / n;
+    let mut c = DMat3::ZERO;
+    for p in points {
+        let d = *p - m;
+        c += DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+    }
+    Some(c * (1.0 / n))
+}
+
+/// Rotation taking `u` to +z (the shortest arc).
+fn level(u: DVec3) -> DMat3 {
+    DMat3::from_quat(glam::DQuat::from_rotation_arc(u.normalize(), DVec3::Z))
+}
+
+/// Two rasters of a cloud on a grid: canopy height and detrended terrain (NaN: empty).
+struct Rasters {
+    nx: usize,
+    ny: usize,
+    chm: Vec<f64>,
+    dtm: Vec<f64>,
+}
+
+fn rasterise(
+    points: impl Iterator<Item = DVec3>,
+    x0: f64,
+    y0: f64,
+    cell: f64,
+    nx: usize,
+    ny: usize,
+) -> Rasters {
+    let mut hi = vec![f64::NAN; nx * ny];
+    let mut lo = vec![f64::NAN; nx * ny];
+    for p in points {
+        let i = ((p.x - x0) / cell).floor();
+        let j = ((p.y - y0) / cell).floor();
+        if i < 0.0 || j < 0.0 || i >= nx as f64 || j >= ny as f64 {
+            continue;
+        }
+        let k = j as usize * nx + i as usize;
+        hi[k] = if hi[k].is_nan() { p.z } else { hi[k].max(p.z) };
+        lo[k] = if lo[k].is_nan() { p.z } else { lo[k].min(p.z) };
+    }
+    // Local ground: lowest point within the 5×5 neighbourhood.
+    let mut ground = vec![f64::NAN; nx * ny];
+    for j in 0..ny {
+        for i in 0..nx {
+            let mut m = f64::NAN;
+            for b in j.saturating_sub(2)..(j + 3).min(ny) {
+                for a in i.saturating_sub(2)..(i + 3).min(nx) {
+                    let v = lo[b * nx + a];
+                    if !v.is_nan() && (m.is_nan() || v < m) {
+                        m = v;
+                    }
+                }
+            }
+            ground[j * nx + i] = m;
+        }
+    }
+    let chm: Vec<f64> = hi.iter().zip(&ground).map(|(h, g)| h - g).collect();
+    // Detrend the terrain by its mean so only its shape counts.
+    let valid: Vec<f64> = ground.iter().copied().filter(|v| !v.is_nan()).collect();
+    let mean = valid.iter().sum::<f64>() / valid.len().max(1) as f64;
+    let dtm = ground.iter().map(|g| g - mean).collect();
+    Rasters { nx, ny, chm, dtm }
+}
+
+/// A view of one raster: values row-major, `ny` rows of `nx`.
+#[derive(Clone, Copy)]
+struct View<'a> {
+    v: &'a [f64],
+    nx: usize,
+    ny: usize,
+}
+
+/// Normalised cross-correlation of `a` (placed at offset (ox, oy) inside `b`) over cells
+/// valid in both; None when they overlap on fewer than `min_cells` cells.
+fn ncc(a: View<'_>, b: View<'_>, ox: i64, oy: i64, min_cells: usize) -> Option<f64> {
+    let (anx, any, bnx, bny) = (a.nx, a.ny, b.nx, b.ny);
+    let (a, b) = (a.v, b.v);
+    let (mut n, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0usize, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for j in 0..any {
+        let bj = j as i64 + oy;
+        if bj < 0 || bj >= bny as i64 {
+            continue;
+        }
+        for i in 0..anx {
+            let bi = i as i64 + ox;
+            if bi < 0 || bi >= bnx as i64 {
+                continue;
+            }
+            let (x, y) = (a[j * anx + i], b[bj as usize * bnx + bi as usize]);
+            if x.is_nan() || y.is_nan() {
+                continue;
+            }
+            n += 1;
+            sa += x;
+            sb += y;
+            saa += x * x;
+            sbb += y * y;
+            sab += x * y;
+        }
+    }
+    if n < min_cells.max(8) {
+        return None;
+    }
+    let nf = n as f64;
+    let va = saa - sa * sa / nf;
+    let vb = sbb - sb * sb / nf;
+    if va <= 1e-12 || vb <= 1e-12 {
+        return Some(0.0);
+    }
+    Some((sab - sa * sb / nf) / (va * vb).sqrt())
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Hypothesis {
+    yaw: f64,
+    scale: f64,
+    /// Horizontal translation (metres) after levelling, rotating and scaling.
+    t: [f64; 2],
+    score: f64,
+}
+
+struct Scene<'a> {
+    level: &'a [DVec3],
+    lidar: Rasters,
+    x0: f64,
+    y0: f64,
+    cell: f64,
+    min_cells: usize,
+}
+
+impl Scene<'_> {
+    /// Best offset of the SfM rasters for one yaw and scale, searching offsets within
+    /// `around` (metres, cells) or everywhere.
+    fn evaluate(
+        &self,
+        yaw: f64,
+        scale: f64,
+        around: Option<([f64; 2], i64)>,
+    ) -> Option<Hypothesis> {
+        let (s, c) = yaw.to_radians().sin_cos();
+        let moved: Vec<DVec3> = self
+            .level
+            .iter()
+            .map(|p| {
+                DVec3::new(
+                    scale * (c * p.x - s * p.y),
+                    scale * (s * p.x + c * p.y),
+                    scale * p.z,
+                )
+            })
+            .collect();
+        let (mut lo, mut hi) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
+        for p in &moved {
+            lo = lo.min(*p);
+            hi = hi.max(*p);
+        }
+        let anx = ((hi.x - lo.x) / self.cell).ceil().max(1.0);
+        let any = ((hi.y - lo.y) / self.cell).ceil().max(1.0);
+        // A reconstruction scaled to several times the LiDAR plot cannot overlap it enough.
+        if anx > 3.0 * self.lidar.nx as f64 + 4.0 || any > 3.0 * self.lidar.ny as f64 + 4.0 {
+            return None;
+        }
+        let (anx, any) = (anx as usize, any as usize);
+        let a = rasterise(moved.iter().copied(), lo.x, lo.y, self.cell, anx, any);
+        let b = &self.lidar;
+        let mut best: Option<Hypothesis> = None;
+        let (range_x, range_y) = match around {
+            Some((t, r)) => {
+                let cx = ((lo.x + t[0] - self.x0) / self.cell).round() as i64;
+                let cy = ((lo.y + t[1] - self.y0) / self.cell).round() as i64;
+                ((cx - r)..=(cx + r), (cy - r)..=(cy + r))
+            }
+            None => (-(anx as i64)..=(b.nx as i64), -(any as i64)..=(b.ny as i64)),
+        };
+        let va = |v| View {
+            v,
+            nx: anx,
+            ny: any,
+        };
+        let vb = |v| View {
+            v,
+            nx: b.nx,
+            ny: b.ny,
+        };
+        for oy in range_y {
+            for ox in range_x.clone() {
+                let Some(s1) = ncc(va(&a.chm), vb(&b.chm), ox, oy, self.min_cells) else {
+                    continue;
+                };
+                let s2 = ncc(va(&a.dtm), vb(&b.dtm), ox, oy, self.min_cells).unwrap_or(0.0);
+                let score = s1 + 0.5 * s2;
+                if best.is_none_or(|h| score > h.score) {
+                    best = Some(Hypothesis {
+                        yaw,
+                        scale,
+                        t: [
+                            self.x0 + ox as f64 * self.cell - lo.x,
+                            self.y0 + oy as f64 * self.cell - lo.y,
+                        ],
+                        score,
+                    });
+                }
+            }
+        }
+        best
+    }
+}
+
+/// Finds the similarity mapping `sfm` points onto `lidar` (local frame, z up) from the
+/// camera poses and the two clouds' shapes.
+pub fn align(
+    sfm: &[DVec3],
+    cameras: &[(DVec3, DVec3)],
+    lidar: &[Vec3],
+    params: &CoarseParams,
+    progress: &dyn Progress,
+) -> Result<CoarseAlignment, GeomError> {
+    if sfm.len() < 10 || lidar.len() < 10 {
+        return Err(GeomError::Empty(
+            "too few points for automatic registration",
+        ));
+    }
+    let up = up_from_cameras(cameras)?;
+    let r_up = level(up);
+    let level: Vec<DVec3> = sfm.iter().map(|p| r_up * *p).collect();
+    let lid: Vec<DVec3> = lidar.iter().map(|p| p.as_dvec3()).collect();
+
+    // Scale candidates from robust extents: horizontal spread (rotation-invariant) and
+    // vertical range.
+    let spread = |pts: &[DVec3]| -> (f64, f64) {
+        let n = pts.len() as f64;
+        let m = pts.iter().copied().sum::<DVec3>() / n;
+        let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
+        for p in pts {
+            let d = *p - m;
+            sxx += d.x * d.x;
+            syy += d.y * d.y;
+            sxy += d.x * d.y;
+        }
+        let det = ((sxx * syy - sxy * sxy) / (n * n)).max(0.0);
+        let mut z: Vec<f64> = pts.iter().map(|p| p.z).collect();
+        let lo = percentile(&mut z, 0.02);
+        let hi = percentile(&mut z, 0.98);
+        (det.powf(0.25), hi - lo)
+    };
+    let (hs, vs) = spread(&level);
+    let (hl, vl) = spread(&lid);
+    if hs <= 0.0 || vs <= 0.0 || hl <= 0.0 || vl <= 0.0 {
+        return Err(GeomError::Degenerate("a cloud is flat or a single line"));
+    }
+    let (r1, r2) = (hl / hs, vl / vs);
+    let (smin, smax) = (
+        r1.min(r2) / params.scale_margin,
+        r1.max(r2) * params.scale_margin,
+    );
+    // Log-spaced candidates; at most 64 (a wider disagreement gets coarser steps).
+    let steps = ((smax / smin).ln() / params.scale_step.ln())
+        .ceil()
+        .clamp(1.0, 63.0);
+    let ratio = (smax / smin).powf(1.0 / steps);
+    let scales: Vec<f64> = (0..=steps as usize)
+        .map(|k| smin * ratio.powi(k as i32))
+        .collect();
+
+    // LiDAR rasters.
+    let (mut lo, mut hi) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
+    for p in &lid {
+        lo = lo.min(*p);
+        hi = hi.max(*p);
+    }
+    let side = (hi.x - lo.x).max(hi.y - lo.y).max(1e-3);
+    let coarse_cell = side / params.coarse_cells as f64;
+    let make = |cell: f64| {
+        let nx = ((hi.x - lo.x) / cell).ceil() as usize + 1;
+        let ny = ((hi.y - lo.y) / cell).ceil() as usize + 1;
+        let r = rasterise(lid.iter().copied(), lo.x, lo.y, cell, nx, ny);
+        let valid = r.chm.iter().filter(|v| !v.is_nan()).count();
+        Scene {
+            level: &level,
+            lidar: r,
+            x0: lo.x,
+            y0: lo.y,
+            cell,
+            min_cells: (valid as f64 * params.min_overlap) as usize,
+        }
+    };
+
+    // Coarse search over every yaw and scale.
+    let scene = make(coarse_cell);
+    let yaws: Vec<f64> = (0..)
+        .map(|k| k as f64 * params.yaw_step_deg)
+        .take_while(|y| *y < 360.0)
+        .collect();
+    let total = (yaws.len() * scales.len()).max(1);
+    let mut hyps: Vec<Hypothesis> = Vec::new();
+    for (k, &yaw) in yaws.iter().enumerate() {
+        if progress.is_cancelled() {
+            return Err(GeomError::Cancelled);
+        }
+        progress.set(0.7 * (k * scales.len()) as f64 / total as f64);
+        let found: Vec<Hypothesis> = {
+            use rayon::prelude::*;
+            scales
+                .par_iter()
+                .filter_map(|&s| scene.evaluate(yaw, s, None))
+                .collect()
+        };
+        hyps.extend(found);
+    }
+    hyps.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let Some(best) = hyps.first().copied() else {
+        return Err(GeomError::Degenerate(
+            "the clouds never overlap enough to compare",
+        ));
+    };
+    let distinct = |h: &Hypothesis, b: &Hypothesis| {
+        let dyaw = ((h.yaw - b.yaw + 540.0) % 360.0 - 180.0).abs();
+        let dt = ((h.t[0] - b.t[0]).powi(2) + (h.t[1] - b.t[1]).powi(2)).sqrt();
+        dyaw > 20.0 || dt > 3.0 * coarse_cell
+    };
+    let runner_up = hyps
+        .iter()
+        .find(|h| distinct(h, &best))
+        .map(|h| h.score)
+        .unwrap_or(0.0);
+
+    // Fine search around the few best distinct hypotheses.
+    let fine_cell = coarse_cell / 4.0;
+    let fine = make(fine_cell);
+    let mut seeds: Vec<Hypothesis> = Vec::new();
+    for h in &hyps {
+        if seeds.len() >= 3 {
+            break;
+        }
+        if seeds.iter().all(|s| distinct(h, s)) {
+            seeds.push(*h);
+        }
+    }
+    let mut refined = best;
+    refined.score = f64::MIN;
+    for (k, seed) in seeds.iter().enumerate() {
+        progress.set(0.7 + 0.3 * k as f64 / seeds.len() as f64);
+        let mut cands = Vec::new();
+        for dy in -4..=4 {
+            for ds in -2..=2 {
+                cands.push((
+                    seed.yaw + dy as f64 * params.yaw_step_deg / 4.0,
+                    seed.scale * params.scale_step.powf(ds as f64 / 2.0),
+                ));
+            }
+        }
+        use rayon::prelude::*;
+        let found: Vec<Hypothesis> = cands
+            .par_iter()
+            .filter_map(|&(y, s)| fine.evaluate(y, s, Some((seed.t, 6))))
+            .collect();
+        for h in found {
+            if h.score > refined.score {
+                refined = h;
+            }
+        }
+    }
+    if refined.score == f64::MIN {
+        refined = best;
+    }
+
+    // Compose, then the vertical offset from the terrain.
+    let (sn, cs) = refined.yaw.to_radians().sin_cos();
+    let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
+    let partial = Similarity {
+        scale: refined.scale,
+        rotation: rz * r_up,
+        translation: DVec3::new(refined.t[0], refined.t[1], 0.0),
+    };
+    let moved: Vec<DVec3> = sfm.iter().map(|p| partial.apply(*p)).collect();
+    let (nx, ny) = (fine.lidar.nx, fine.lidar.ny);
+    let ground_a = rasterise_ground(&moved, fine.x0, fine.y0, fine.cell, nx, ny);
+    let ground_b = rasterise_ground(&lid, fine.x0, fine.y0, fine.cell, nx, ny);
+    let mut dz: Vec<f64> = ground_a
+        .iter()
+        .zip(&ground_b)
+        .filter(|(x, y)| !x.is_nan() && !y.is_nan())
+        .map(|(x, y)| y - x)
+        .collect();
+    let offset_z = if dz.is_empty() {
+        let mut za: Vec<f64> = moved.iter().map(|p| p.z).collect();
+        let mut zb: Vec<f64> = lid.iter().map(|p| p.z).collect();
+        percentile(&mut zb, 0.02) - percentile(&mut za, 0.02)
+    } else {
+        percentile(&mut dz, 0.5)
+    };
+    let transform = Similarity {
+        translation: partial.translation + DVec3::new(0.0, 0.0, offset_z),
+        ..partial
+    };
+    let margin = ((refined.score.max(best.score) - runner_up) / 0.15).clamp(0.0, 1.0);
+    let level_score = (refined.score.max(best.score) / 1.0).clamp(0.0, 1.0);
+    progress.set(1.0);
+    Ok(CoarseAlignment {
+        transform,
+        confidence: margin.min(level_score),
+        score: refined.score.max(best.score),
+        runner_up,
+        yaw_deg: refined.yaw,
+        scale: refined.scale,
+    })
+}
+
+/// The lowest point of each cell (NaN when empty), metres.
+fn rasterise_ground(
+    points: &[DVec3],
+    x0: f64,
+    y0: f64,
+    cell: f64,
+    nx: usize,
+    ny: usize,
+) -> Vec<f64> {
+    let mut lo = vec![f64::NAN; nx * ny];
+    for p in points {
+        let i = ((p.x - x0) / cell).floor();
+        let j = ((p.y - y0) / cell).floor();
+        if i < 0.0 || j < 0.0 || i >= nx as f64 || j >= ny as f64 {
+            continue;
+        }
+        let k = j as usize * nx + i as usize;
+        lo[k] = if lo[k].is_nan() { p.z } else { lo[k].min(p.z) };
+    }
+    lo
+}
