@@ -38,6 +38,62 @@ pub enum Command {
     Worker(WorkerOnlyArgs),
     /// Run the pipeline in-process on local files, without a server.
     Run(RunArgs),
+    /// Generate a synthetic forest plot with known truth (LiDAR, photos + COLMAP, truth).
+    Synth(SynthArgs),
+    /// LiDAR-only tree inventory of a point cloud: stems and DBH (trees.csv, GeoJSON).
+    Inventory(InventoryArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct SynthArgs {
+    /// Scene preset: tiny (1-3 trees, 30 small images), plot (one large broadleaf tree), stand
+    /// (17 trees, canopy closure about 0.5).
+    #[arg(long, env = "SYLVA_SYNTH_PRESET", default_value = "tiny")]
+    pub preset: String,
+    /// Random seed: the same seed gives byte-identical files.
+    #[arg(long, env = "SYLVA_SYNTH_SEED", default_value_t = 1)]
+    pub seed: u64,
+    /// Output folder (lidar.laz, colmap/, control_points.csv, field_dbh.csv, truth.json,
+    /// labels.bin).
+    #[arg(long, env = "SYLVA_SYNTH_OUT")]
+    pub out: PathBuf,
+    /// LiDAR range noise, standard deviation in centimetres (default 1 cm).
+    #[arg(long, env = "SYLVA_SYNTH_NOISE_CM", default_value_t = 1.0)]
+    pub noise_cm: f64,
+    /// Number of photos (default: the preset's).
+    #[arg(long, env = "SYLVA_SYNTH_IMAGES")]
+    pub images: Option<usize>,
+    /// Photo width in pixels (default: the preset's).
+    #[arg(long, env = "SYLVA_SYNTH_WIDTH")]
+    pub width: Option<u32>,
+    /// Photo height in pixels (default: the preset's).
+    #[arg(long, env = "SYLVA_SYNTH_HEIGHT")]
+    pub height: Option<u32>,
+    /// Write the COLMAP model in binary instead of text.
+    #[arg(long, env = "SYLVA_SYNTH_BINARY", default_value_t = false)]
+    pub binary: bool,
+    /// Trees without leaves (branches only).
+    #[arg(long, env = "SYLVA_SYNTH_LEAFLESS", default_value_t = false)]
+    pub leafless: bool,
+    /// Write PNG photos instead of JPEG.
+    #[arg(long, env = "SYLVA_SYNTH_PNG", default_value_t = false)]
+    pub png: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct InventoryArgs {
+    /// The point cloud (LAS, LAZ, PLY, E57, XYZ), in metres.
+    #[arg(env = "SYLVA_INVENTORY_CLOUD")]
+    pub cloud: PathBuf,
+    /// Where to write the inventory CSV.
+    #[arg(long, env = "SYLVA_INVENTORY_OUT", default_value = "trees.csv")]
+    pub out: PathBuf,
+    /// Also write the stems as GeoJSON points here.
+    #[arg(long, env = "SYLVA_INVENTORY_GEOJSON")]
+    pub geojson: Option<PathBuf>,
+    /// Field-measured DBH (CSV x,y,dbh_cm): match trees within 1 m and print the accuracy.
+    #[arg(long, env = "SYLVA_INVENTORY_FIELD")]
+    pub field: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -101,6 +157,8 @@ pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Serve(a) => serve(a).await.map(|_| ExitCode::SUCCESS),
         Command::Worker(a) => worker(a).await.map(|_| ExitCode::SUCCESS),
         Command::Run(a) => run(a).await,
+        Command::Synth(a) => synth(a).await,
+        Command::Inventory(a) => inventory(a).await,
     }
 }
 
@@ -332,5 +390,95 @@ async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
         }
     }
     eprintln!("results: {}", a.out.join("results.json").display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// A progress line on stderr for one-off commands.
+struct LineProgress {
+    label: &'static str,
+    last: Mutex<(Instant, f64)>,
+}
+
+impl LineProgress {
+    fn new(label: &'static str) -> Self {
+        Self {
+            label,
+            last: Mutex::new((Instant::now(), -1.0)),
+        }
+    }
+}
+
+impl Progress for LineProgress {
+    fn set(&self, fraction: f64) {
+        if let Ok(mut last) = self.last.lock()
+            && fraction > last.1 + 0.01
+            && last.0.elapsed() > Duration::from_millis(200)
+        {
+            *last = (Instant::now(), fraction);
+            eprint!(
+                "\r{}: {:>3.0}%",
+                self.label,
+                fraction.clamp(0.0, 1.0) * 100.0
+            );
+        }
+    }
+    fn log(&self, message: &str) {
+        eprintln!("\r{}: {message}", self.label);
+    }
+}
+
+async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
+    let Some(preset) = crate::synth::Preset::from_name(&a.preset) else {
+        anyhow::bail!("unknown preset {:?}; presets: tiny, plot, stand", a.preset);
+    };
+    let mut p = crate::synth::SynthParams::new(preset);
+    p.seed = a.seed;
+    p.noise_cm = a.noise_cm;
+    p.images = a.images.or(p.images);
+    p.width = a.width.or(p.width);
+    p.height = a.height.or(p.height);
+    p.binary = a.binary;
+    p.leafless = a.leafless;
+    p.png = a.png;
+    let out = a.out.clone();
+    let summary = tokio::task::spawn_blocking(move || {
+        crate::synth::generate(&p, &out, &LineProgress::new("synth"))
+    })
+    .await??;
+    eprintln!();
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(ExitCode::SUCCESS)
+}
+
+async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
+    let path = a.cloud.clone();
+    let (rows, cloud_points) = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+        let progress = LineProgress::new("inventory");
+        let cloud = crate::io::pointcloud::read_point_cloud(&path, &progress)?;
+        let inv = crate::forest::inventory(
+            &cloud,
+            &crate::forest::InventoryParams::default(),
+            &progress,
+        )?;
+        Ok((inv.trees, cloud.len()))
+    })
+    .await??;
+    eprintln!();
+    crate::forest::write_trees_csv(&a.out, &rows)?;
+    if let Some(g) = &a.geojson {
+        crate::forest::write_trees_geojson(g, &rows)?;
+    }
+    println!(
+        "{} stems from {} points; inventory in {}",
+        rows.len(),
+        cloud_points,
+        a.out.display()
+    );
+    if let Some(field) = &a.field {
+        let cmp = crate::forest::compare_with_field_file(&rows, field)?;
+        for line in crate::forest::accuracy_lines(&cmp) {
+            println!("{line}");
+        }
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -16,4 +16,5 @@ pub mod jobs;
 pub mod pipeline;
 pub mod progress;
 pub mod store;
+pub mod synth;
 pub mod worker;

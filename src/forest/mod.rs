@@ -1,6 +1,85 @@
-//! Forest analysis: the ground model, stems and their diameters at breast height.
+//! Forest analysis: the ground model, wood/leaf segmentation, stems and their diameters at
+//! breast height, the per-tree inventory and its comparison with field data.
 //!
-//! Built on the geometry room (`geom`) and used by the `segment` and `dbh` stages and by
-//! `sylva inventory`; nothing here knows about jobs or HTTP.
+//! The pipeline of [`inventory`] follows METHOD.md Stages 3 and 5 on the LiDAR cloud:
+//! ground (cloth simulation, [`ground`]) → wood/leaf labels on the non-ground points
+//! ([`segment`], paper 3.4) → stems from the trunk points in a band around breast height
+//! ([`stems`]) → a robust circle per stem at 1.3 m above ground in the stem's own frame
+//! ([`dbh`], [`ransac`], [`circle`]). Built on the geometry room (`geom`); nothing here knows
+//! about jobs or HTTP.
 
+pub mod accuracy;
+pub mod circle;
+pub mod components;
+pub mod dbh;
 pub mod ground;
+pub mod inventory;
+pub mod kmeans;
+pub mod output;
+pub mod ransac;
+pub mod segment;
+mod stem_axis;
+mod stem_base;
+pub mod stems;
+pub mod synthetic;
+
+#[cfg(test)]
+mod tests;
+#[cfg(test)]
+mod unit_tests;
+
+pub use accuracy::{
+    FieldComparison, MatchedTree, accuracy_lines, compare_with_field, compare_with_field_file,
+};
+pub use circle::{CircleFit, fit_circle_weighted};
+pub use dbh::{DbhParams, FitQuality, StemDbh, measure_dbh};
+pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
+pub use output::{trees_csv, trees_geojson, write_trees_csv, write_trees_geojson};
+pub use ransac::{CircleParams, RobustCircle, fit_circle_robust};
+pub use segment::{LEAF, SegmentParams, TRUNK, WoodLeaf, segment_wood_leaf};
+pub use stems::{Stem, StemParams, detect_stems};
+
+use crate::geom::GeomError;
+use crate::io::IoError;
+use ground::GroundError;
+
+/// Why a forest analysis could not produce a result.
+#[derive(Debug, thiserror::Error)]
+pub enum ForestError {
+    /// A parameter is outside its valid range; the message names it.
+    #[error("invalid forest parameters: {0}")]
+    Params(String),
+    /// The cloud (or the part of it an operation needs) is too small.
+    #[error("not enough points: {0}")]
+    NotEnoughPoints(String),
+    /// The ground filter failed.
+    #[error("ground filter: {0}")]
+    Ground(GroundError),
+    /// A geometry operation (spatial index, features) failed.
+    #[error("geometry: {0}")]
+    Geom(GeomError),
+    /// Reading field data or writing an output failed.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// The progress sink asked to stop.
+    #[error("cancelled")]
+    Cancelled,
+}
+
+impl From<GeomError> for ForestError {
+    fn from(e: GeomError) -> Self {
+        match e {
+            GeomError::Cancelled => ForestError::Cancelled,
+            e => ForestError::Geom(e),
+        }
+    }
+}
+
+impl From<GroundError> for ForestError {
+    fn from(e: GroundError) -> Self {
+        match e {
+            GroundError::Cancelled => ForestError::Cancelled,
+            e => ForestError::Ground(e),
+        }
+    }
+}

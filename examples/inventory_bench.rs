@@ -1,0 +1,87 @@
+//! Times the inventory on a ~10-million-point synthetic plot (the generated 20 × 20 m plot
+//! tiled) and on TreeLS pine_plot.laz, and prints a table: points, stems, seconds per phase.
+//!
+//! `cargo run --release --example inventory_bench [POINTS]` (default 10e6: the plot is tiled
+//! n × n times with n chosen to come closest to POINTS).
+
+use std::time::Instant;
+
+use sylva_forest_dev::forest::synthetic::{PlotSpec, synthetic_plot, tile_plot};
+use sylva_forest_dev::forest::{InventoryParams, compare_with_field, inventory};
+use sylva_forest_dev::io::pointcloud::{PointCloud, read_point_cloud};
+use sylva_forest_dev::io::tables::FieldTree;
+use sylva_forest_dev::progress::NoProgress;
+
+fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
+    let t = Instant::now();
+    let inv = match inventory(cloud, &InventoryParams::default(), &NoProgress) {
+        Ok(inv) => inv,
+        Err(e) => {
+            println!("| {name} | {} | failed: {e} |", cloud.len());
+            return;
+        }
+    };
+    let total = t.elapsed().as_secs_f64();
+    let s = inv.seconds;
+    let acc = field.map_or(String::new(), |f| {
+        let c = compare_with_field(&inv.trees, f, 1.0);
+        format!(
+            " recall {:.3} precision {:.3} RMSE {:.2} cm",
+            c.recall,
+            c.precision,
+            c.rmse_cm.unwrap_or(f64::NAN)
+        )
+    });
+    println!(
+        "| {name} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |{acc}",
+        cloud.len(),
+        inv.trees.len(),
+        s.ground,
+        s.segment,
+        s.stems,
+        s.dbh,
+        total
+    );
+}
+
+fn main() {
+    let target: f64 = std::env::args()
+        .nth(1)
+        .and_then(|a| a.parse().ok())
+        .unwrap_or(10e6);
+    println!(
+        "threads: {}\n\n| cloud | points | stems | ground s | segment s | stems s | dbh s | total s |\n|---|---|---|---|---|---|---|---|",
+        rayon::current_num_threads()
+    );
+    let spec = PlotSpec {
+        leaf_discs: 600,
+        ..PlotSpec::default()
+    };
+    let plot = synthetic_plot(&spec);
+    let tiles = (target / plot.cloud.len() as f64).sqrt().round().max(1.0) as usize;
+    let (cloud, trees) = tile_plot(&plot, spec.size_m, tiles, tiles);
+    let field: Vec<FieldTree> = trees
+        .iter()
+        .map(|t| FieldTree {
+            tree_id: None,
+            x: cloud.offset.x + t.base.x as f64,
+            y: cloud.offset.y + t.base.y as f64,
+            dbh_cm: t.dbh_cm as f64,
+        })
+        .collect();
+    run("synthetic 20 m plot", &plot.cloud, None);
+    run(
+        &format!("synthetic {tiles}x{tiles} tiles"),
+        &cloud,
+        Some(&field),
+    );
+    drop(cloud);
+    let dir = std::env::var_os("SYLVA_REAL_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::PathBuf::from("/work/shared/data/real"));
+    let path = dir.join("TreeLS_extdata/pine_plot.laz");
+    match read_point_cloud(&path, &NoProgress) {
+        Ok(c) => run("pine_plot.laz", &c, None),
+        Err(e) => println!("skipping pine_plot.laz: {e}"),
+    }
+}

@@ -1,0 +1,184 @@
+//! The per-tree inventory of one cloud: ground → wood/leaf → stems → DBH, with the seconds
+//! each phase took. One row per stem that holds a circle; positions in the cloud's original
+//! coordinates.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::dbh::{DbhParams, measure_dbh};
+use super::ground::{CsfParams, Dtm, classify_ground};
+use super::segment::{SegmentParams, segment_wood_leaf};
+use super::stems::{Stem, StemParams, detect_stems};
+use super::{ForestError, StemDbh};
+use crate::io::pointcloud::PointCloud;
+use crate::progress::{Progress, SubProgress};
+
+/// Everything the inventory can be tuned with; every part has documented defaults.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct InventoryParams {
+    /// Ground filter and DTM.
+    pub ground: CsfParams,
+    /// Wood/leaf segmentation (paper 3.4).
+    pub segment: SegmentParams,
+    /// Stem detection in the breast-height band.
+    pub stems: StemParams,
+    /// Breast-height slice and circle fitting (METHOD.md Stage 5).
+    pub dbh: DbhParams,
+}
+
+/// One tree of the inventory: one row of trees.csv.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TreeRow {
+    /// 1-based id, the stem's id.
+    pub tree_id: u32,
+    /// Stem position where it meets the ground, in the cloud's original coordinates, metres.
+    pub x: f64,
+    pub y: f64,
+    /// Ground height under the stem (DTM), original coordinates, metres.
+    pub ground_z: f64,
+    /// DBH from the LiDAR points, centimetres.
+    pub dbh_lidar_cm: f64,
+    /// DBH from the Gaussians, centimetres (filled by the splatting stage; `None` here).
+    pub dbh_gs_cm: Option<f64>,
+    /// Points used by the circle fit (inliers).
+    pub n_points: usize,
+    /// RMS residual of the circle fit, millimetres.
+    pub rms_mm: f64,
+    /// Share of 10° sectors holding a fitted point, [0, 1].
+    pub arc_coverage: f64,
+    /// good, partial_arc, fallback_slice or poor.
+    pub quality: String,
+}
+
+/// Wall-clock seconds of each inventory phase.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct PhaseSeconds {
+    pub ground: f64,
+    pub segment: f64,
+    pub stems: f64,
+    pub dbh: f64,
+}
+
+/// The inventory of one cloud with its intermediate products.
+#[derive(Debug, Clone)]
+pub struct Inventory {
+    pub trees: Vec<TreeRow>,
+    /// The stems the rows came from (local coordinates), same order as `trees`.
+    pub stems: Vec<Stem>,
+    /// The diameter fits, same order as `trees`.
+    pub dbh: Vec<StemDbh>,
+    /// Wood/leaf label per point (leaf = 0, trunk = 1; ground points are 0).
+    pub labels: Vec<u8>,
+    /// Trunk probability per point, [0, 1] (ground points 0).
+    pub trunk_probability: Vec<f32>,
+    /// Ground mask per point.
+    pub is_ground: Vec<bool>,
+    /// The terrain model (local coordinates).
+    pub dtm: Dtm,
+    pub seconds: PhaseSeconds,
+}
+
+/// Runs ground → segmentation (non-ground points only) → stems → DBH on `cloud`.
+pub fn inventory(
+    cloud: &PointCloud,
+    params: &InventoryParams,
+    progress: &dyn Progress,
+) -> Result<Inventory, ForestError> {
+    let pts = &cloud.positions;
+    if pts.len() < params.segment.k.max(3) {
+        return Err(ForestError::NotEnoughPoints(format!(
+            "an inventory needs at least {} points, the cloud has {}",
+            params.segment.k.max(3),
+            pts.len()
+        )));
+    }
+    let mut seconds = PhaseSeconds::default();
+    let t = Instant::now();
+    progress.log("ground: cloth simulation");
+    let ground = classify_ground(pts, &params.ground, &SubProgress::new(progress, 0.0, 0.1))?;
+    let heights = ground.dtm.heights_above(pts);
+    seconds.ground = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    progress.log("wood/leaf segmentation of the non-ground points");
+    let include: Vec<bool> = ground.is_ground.iter().map(|g| !g).collect();
+    let wood = segment_wood_leaf(
+        pts,
+        cloud.colors.as_deref(),
+        Some(&include),
+        &params.segment,
+        &SubProgress::new(progress, 0.1, 0.7),
+    )?;
+    seconds.segment = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    progress.log("stems in the breast-height band");
+    let stems = detect_stems(
+        pts,
+        &heights,
+        &wood.labels,
+        &ground.is_ground,
+        &ground.dtm,
+        &params.stems,
+        &SubProgress::new(progress, 0.8, 0.1),
+    )?;
+    seconds.stems = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    progress.log(&format!("DBH of {} stems", stems.len()));
+    let total = stems.len().max(1);
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let fits: Vec<Option<StemDbh>> = stems
+        .par_iter()
+        .map(|stem| {
+            if progress.is_cancelled() {
+                return None;
+            }
+            let d = measure_dbh(pts, stem, &params.dbh);
+            let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress.set(0.9 + 0.1 * k as f64 / total as f64);
+            d
+        })
+        .collect();
+    if progress.is_cancelled() {
+        return Err(ForestError::Cancelled);
+    }
+    let mut kept = Vec::new();
+    let mut dbh = Vec::new();
+    let mut trees = Vec::new();
+    for (stem, d) in stems.into_iter().zip(fits) {
+        let Some(d) = d else {
+            continue;
+        };
+        let id = trees.len() as u32 + 1;
+        trees.push(TreeRow {
+            tree_id: id,
+            x: cloud.offset.x + stem.base.x as f64,
+            y: cloud.offset.y + stem.base.y as f64,
+            ground_z: cloud.offset.z + stem.base.z as f64,
+            dbh_lidar_cm: d.diameter_m * 100.0,
+            dbh_gs_cm: None,
+            n_points: d.circle.fit.n,
+            rms_mm: d.circle.fit.rms * 1000.0,
+            arc_coverage: d.circle.arc_coverage,
+            quality: d.quality.as_str().to_string(),
+        });
+        kept.push(Stem { id, ..stem });
+        dbh.push(d);
+    }
+    seconds.dbh = t.elapsed().as_secs_f64();
+    progress.set(1.0);
+    Ok(Inventory {
+        trees,
+        stems: kept,
+        dbh,
+        labels: wood.labels,
+        trunk_probability: wood.trunk_probability,
+        is_ground: ground.is_ground,
+        dtm: ground.dtm,
+        seconds,
+    })
+}

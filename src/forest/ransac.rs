@@ -1,0 +1,196 @@
+//! Robust circle fit of one stem slice: RANSAC on 3-point samples (METHOD.md Stage 5.2), the
+//! weighted algebraic fit on the inliers (Stage 5.3), an optional geometric Gauss–Newton
+//! refinement, and the quality figures (RMS residual, arc coverage, inlier share).
+//!
+//! Sampling is deterministic: a SplitMix64 generator seeded from `CircleParams::seed` and the
+//! number of points, so the same slice always gives the same circle.
+
+use serde::{Deserialize, Serialize};
+
+use super::circle::{CircleFit, arc_coverage, fit_circle_weighted, refine_circle_geometric};
+
+/// Parameters of [`fit_circle_robust`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct CircleParams {
+    /// A point within this distance of a candidate circle is an inlier, metres. METHOD.md
+    /// Stage 5.2: "of the order of 1–2 cm"; 1.5 cm is 1.5 sigma of a handheld scanner's range
+    /// noise (1 cm).
+    pub inlier_threshold_m: f64,
+    /// RANSAC samples. 3-point samples with 30% inliers need 169 draws for 99% confidence;
+    /// 250 leaves margin.
+    pub iterations: usize,
+    /// Seed of the deterministic sampler.
+    pub seed: u64,
+    /// Circles with a radius outside [min, max] are rejected, metres (DBH 4 cm – 3 m).
+    pub min_radius_m: f64,
+    pub max_radius_m: f64,
+    /// Gauss–Newton steps of the geometric refinement (0 = algebraic fit only).
+    pub refine_iterations: usize,
+    /// Below this arc coverage (share of 10° sectors, [0, 1]) the fit is a partial arc.
+    pub min_arc_coverage: f64,
+}
+
+impl Default for CircleParams {
+    fn default() -> Self {
+        Self {
+            inlier_threshold_m: 0.015,
+            iterations: 250,
+            seed: 0x5eed_c1c1e,
+            min_radius_m: 0.02,
+            max_radius_m: 1.5,
+            refine_iterations: 20,
+            min_arc_coverage: 0.45,
+        }
+    }
+}
+
+/// A robust circle fit with its quality figures.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RobustCircle {
+    /// The final circle: `n` inliers, `rms` over them (metres).
+    pub fit: CircleFit,
+    /// Share of the 36 ten-degree sectors around the centre holding an inlier, [0, 1].
+    pub arc_coverage: f64,
+    /// Inliers / points given, [0, 1].
+    pub inlier_share: f64,
+    /// True when the arc coverage is below `min_arc_coverage`.
+    pub partial_arc: bool,
+    /// Whether the Gauss–Newton refinement converged (true when it was not asked for).
+    pub converged: bool,
+}
+
+/// SplitMix64: a tiny, well-mixed deterministic generator for sampling.
+pub(crate) struct SplitMix(u64);
+
+impl SplitMix {
+    pub(crate) fn new(seed: u64) -> Self {
+        SplitMix(seed)
+    }
+    pub(crate) fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in [0, n) (n > 0).
+    pub(crate) fn below(&mut self, n: usize) -> usize {
+        ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64 * n as f64) as usize % n.max(1)
+    }
+    /// Uniform in [0, 1).
+    pub(crate) fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// Circle through three points; `None` when they are (nearly) collinear.
+fn circle_through(a: [f64; 2], b: [f64; 2], c: [f64; 2]) -> Option<([f64; 2], f64)> {
+    let (bx, by) = (b[0] - a[0], b[1] - a[1]);
+    let (cx, cy) = (c[0] - a[0], c[1] - a[1]);
+    let d = 2.0 * (bx * cy - by * cx);
+    if d.abs() < 1e-12 {
+        return None;
+    }
+    let (b2, c2) = (bx * bx + by * by, cx * cx + cy * cy);
+    let ux = (cy * b2 - by * c2) / d;
+    let uy = (bx * c2 - cx * b2) / d;
+    Some(([a[0] + ux, a[1] + uy], ux.hypot(uy)))
+}
+
+fn inliers_of(points: &[[f64; 2]], center: [f64; 2], radius: f64, thr: f64) -> Vec<usize> {
+    (0..points.len())
+        .filter(|&i| {
+            let p = points[i];
+            ((p[0] - center[0]).hypot(p[1] - center[1]) - radius).abs() <= thr
+        })
+        .collect()
+}
+
+/// RANSAC → weighted algebraic fit on the inliers → Gauss–Newton, with quality figures.
+///
+/// The RANSAC score is the inlier count, ties broken by the smaller sum of squared residuals.
+/// After the refinement the inliers are selected once more against the refined circle and the
+/// fit repeated on them. `None` when fewer than 5 points are given or no candidate circle with
+/// at least 5 inliers and a radius within bounds exists.
+pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<RobustCircle> {
+    let n = points.len();
+    if n < 5
+        || points
+            .iter()
+            .any(|p| !p[0].is_finite() || !p[1].is_finite())
+    {
+        return None;
+    }
+    let thr = params.inlier_threshold_m.max(1e-6);
+    let radius_ok = |r: f64| r >= params.min_radius_m && r <= params.max_radius_m;
+    let mut rng = SplitMix::new(params.seed ^ (n as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
+    let mut best: Option<(usize, f64, [f64; 2], f64)> = None;
+    for _ in 0..params.iterations.max(1) {
+        let (i, j, k) = (rng.below(n), rng.below(n), rng.below(n));
+        if i == j || j == k || i == k {
+            continue;
+        }
+        let Some((c, r)) = circle_through(points[i], points[j], points[k]) else {
+            continue;
+        };
+        if !radius_ok(r) {
+            continue;
+        }
+        let (mut count, mut sse) = (0usize, 0.0f64);
+        for p in points {
+            let e = (p[0] - c[0]).hypot(p[1] - c[1]) - r;
+            if e.abs() <= thr {
+                count += 1;
+                sse += e * e;
+            }
+        }
+        let better = match best {
+            None => true,
+            Some((bc, bs, _, _)) => count > bc || (count == bc && sse < bs),
+        };
+        if better {
+            best = Some((count, sse, c, r));
+        }
+    }
+    let (count, _, c, r) = best?;
+    if count < 5 {
+        return None;
+    }
+    let mut inliers = inliers_of(points, c, r, thr);
+    let mut fit = algebraic_on(points, &inliers)?;
+    let mut converged = true;
+    for _ in 0..2 {
+        let pts: Vec<[f64; 2]> = inliers.iter().map(|&i| points[i]).collect();
+        if params.refine_iterations > 0 {
+            let (refined, ok) = refine_circle_geometric(&pts, None, &fit, params.refine_iterations);
+            fit = refined;
+            converged = ok;
+        }
+        let again = inliers_of(points, fit.center, fit.radius, thr);
+        if again == inliers || again.len() < 5 {
+            break;
+        }
+        inliers = again;
+        fit = algebraic_on(points, &inliers)?;
+    }
+    if !radius_ok(fit.radius) {
+        return None;
+    }
+    let pts: Vec<[f64; 2]> = inliers.iter().map(|&i| points[i]).collect();
+    fit.n = pts.len();
+    fit.rms = super::circle::weighted_rms(&pts, None, fit.center, fit.radius);
+    let coverage = arc_coverage(&pts, fit.center);
+    Some(RobustCircle {
+        fit,
+        arc_coverage: coverage,
+        inlier_share: pts.len() as f64 / n as f64,
+        partial_arc: coverage < params.min_arc_coverage,
+        converged,
+    })
+}
+
+fn algebraic_on(points: &[[f64; 2]], idx: &[usize]) -> Option<CircleFit> {
+    let pts: Vec<[f64; 2]> = idx.iter().map(|&i| points[i]).collect();
+    fit_circle_weighted(&pts, None)
+}

@@ -1,0 +1,276 @@
+//! End-to-end tests of the forest room: the inventory on a generated plot with known truth,
+//! and on the real public clouds (skipped with a message when they are absent).
+
+use std::path::PathBuf;
+
+use super::synthetic::{PlotSpec, SyntheticPlot, synthetic_plot};
+use super::*;
+use crate::io::pointcloud::read_point_cloud;
+use crate::io::tables::FieldTree;
+use crate::progress::{NoProgress, Progress};
+
+fn plot() -> SyntheticPlot {
+    synthetic_plot(&PlotSpec::default())
+}
+
+/// The generated trees as field data in the cloud's original coordinates.
+fn field_of(plot: &SyntheticPlot) -> Vec<FieldTree> {
+    plot.trees
+        .iter()
+        .enumerate()
+        .map(|(i, t)| FieldTree {
+            tree_id: Some(format!("T{i}")),
+            x: plot.cloud.offset.x + t.base.x as f64,
+            y: plot.cloud.offset.y + t.base.y as f64,
+            dbh_cm: t.dbh_cm as f64,
+        })
+        .collect()
+}
+
+#[test]
+fn wood_leaf_labels_match_the_generated_truth() {
+    let plot = plot();
+    let include: Vec<bool> = plot.is_ground.iter().map(|g| !g).collect();
+    let wood = segment_wood_leaf(
+        &plot.cloud.positions,
+        None,
+        Some(&include),
+        &SegmentParams::default(),
+        &NoProgress,
+    )
+    .expect("segmentation");
+    let (mut tp, mut fp, mut fneg) = (0usize, 0usize, 0usize);
+    for i in 0..plot.cloud.len() {
+        if plot.is_ground[i] {
+            assert_eq!(wood.labels[i], LEAF);
+            assert_eq!(wood.trunk_probability[i], 0.0);
+            continue;
+        }
+        let p = wood.trunk_probability[i];
+        assert!((0.0..=1.0).contains(&p));
+        assert_eq!(p >= 0.5, wood.labels[i] == TRUNK, "P {p} vs label at {i}");
+        match (wood.labels[i] == TRUNK, plot.is_trunk[i]) {
+            (true, true) => tp += 1,
+            (true, false) => fp += 1,
+            (false, true) => fneg += 1,
+            _ => {}
+        }
+    }
+    let recall = tp as f64 / (tp + fneg) as f64;
+    let precision = tp as f64 / (tp + fp) as f64;
+    println!("trunk recall {recall:.3}, precision {precision:.3}");
+    assert!(recall >= 0.90, "trunk recall {recall}");
+    assert!(precision >= 0.85, "trunk precision {precision}");
+    // Deterministic: the same cloud gives the same labels.
+    let again = segment_wood_leaf(
+        &plot.cloud.positions,
+        None,
+        Some(&include),
+        &SegmentParams::default(),
+        &NoProgress,
+    )
+    .expect("segmentation");
+    assert_eq!(again.labels, wood.labels);
+}
+
+#[test]
+fn inventory_of_a_generated_plot_finds_every_stem_with_accurate_dbh_and_ground() {
+    let plot = plot();
+    let inv = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress).expect("inventory");
+    let field = field_of(&plot);
+    let cmp = compare_with_field(&inv.trees, &field, 1.0);
+    for line in accuracy_lines(&cmp) {
+        println!("{line}");
+    }
+    for r in &inv.trees {
+        println!(
+            "tree {} dbh {:.2} cm n {} rms {:.1} mm arc {:.2} {}",
+            r.tree_id, r.dbh_lidar_cm, r.n_points, r.rms_mm, r.arc_coverage, r.quality
+        );
+    }
+    assert!(cmp.recall >= 0.95, "recall {}", cmp.recall);
+    assert!(cmp.precision >= 0.95, "precision {}", cmp.precision);
+    let rmse = cmp.rmse_cm.expect("matches");
+    assert!(rmse <= 1.0, "DBH RMSE {rmse} cm");
+    // Ground height under each matched stem.
+    for m in &cmp.matches {
+        let row = inv
+            .trees
+            .iter()
+            .find(|r| r.tree_id == m.tree_id)
+            .expect("row");
+        let truth = plot
+            .trees
+            .iter()
+            .min_by(|a, b| {
+                let d = |t: &synthetic::TruthTree| {
+                    (plot.cloud.offset.x + t.base.x as f64 - row.x)
+                        .hypot(plot.cloud.offset.y + t.base.y as f64 - row.y)
+                };
+                d(a).total_cmp(&d(b))
+            })
+            .expect("truth");
+        let err = (row.ground_z - (plot.cloud.offset.z + truth.base.z as f64)).abs();
+        println!("tree {} ground error {:.1} mm", row.tree_id, err * 1000.0);
+        assert!(err <= 0.03, "ground error {err} m at tree {}", row.tree_id);
+        assert!(row.dbh_gs_cm.is_none());
+    }
+    assert_eq!(inv.labels.len(), plot.cloud.len());
+    assert_eq!(inv.trunk_probability.len(), plot.cloud.len());
+}
+
+#[test]
+fn leaning_stems_are_cut_across_their_own_axis() {
+    let plot = plot();
+    let inv = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress).expect("inventory");
+    let leaning: Vec<_> = plot
+        .trees
+        .iter()
+        .filter(|t| t.axis.z.acos().to_degrees() > 4.0)
+        .collect();
+    assert!(!leaning.is_empty());
+    for t in leaning {
+        let stem = inv
+            .stems
+            .iter()
+            .min_by(|a, b| {
+                let d = |s: &Stem| s.base.truncate().distance(t.base.truncate());
+                d(a).total_cmp(&d(b))
+            })
+            .expect("a stem");
+        let angle = stem.axis.dot(t.axis).clamp(-1.0, 1.0).acos().to_degrees();
+        assert!(
+            angle < 2.5,
+            "axis off by {angle}° for a stem leaning {}°",
+            t.axis.z.acos().to_degrees()
+        );
+    }
+}
+
+#[test]
+fn cancelling_stops_the_inventory() {
+    struct Cancelled;
+    impl Progress for Cancelled {
+        fn set(&self, _: f64) {}
+        fn is_cancelled(&self) -> bool {
+            true
+        }
+    }
+    let plot = plot();
+    let r = inventory(&plot.cloud, &InventoryParams::default(), &Cancelled);
+    assert!(matches!(r, Err(ForestError::Cancelled)), "{r:?}");
+}
+
+fn real(file: &str) -> Option<PathBuf> {
+    let Some(dir) = crate::io::real_data_dir() else {
+        println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+        return None;
+    };
+    let path = dir.join(file);
+    if !path.is_file() {
+        println!("skipping: {} not found", path.display());
+        return None;
+    }
+    Some(path)
+}
+
+#[test]
+fn pine_plot_gives_a_dbh_with_quality_figures_for_every_stem() {
+    let Some(path) = real("TreeLS_extdata/pine_plot.laz") else {
+        return;
+    };
+    let cloud = read_point_cloud(&path, &NoProgress).expect("read");
+    let inv = inventory(&cloud, &InventoryParams::default(), &NoProgress).expect("inventory");
+    println!("{}", trees_csv(&inv.trees));
+    assert!(inv.trees.len() >= 14, "{} stems found", inv.trees.len());
+    for (r, d) in inv.trees.iter().zip(&inv.dbh) {
+        assert!((6.0..40.0).contains(&r.dbh_lidar_cm), "{r:?}");
+        assert!(d.circle.converged, "{r:?}");
+        assert!(
+            r.n_points >= 10 && r.rms_mm < 15.0 && r.arc_coverage > 0.25,
+            "{r:?}"
+        );
+        // Inside the 10 x 10 m plot, on the ground (z 49–50 m).
+        assert!(
+            (-0.5..10.5).contains(&r.x) && (-0.5..10.5).contains(&r.y),
+            "{r:?}"
+        );
+        assert!((48.8..50.5).contains(&r.ground_z), "{r:?}");
+    }
+    let good = inv.trees.iter().filter(|r| r.quality == "good").count();
+    assert!(
+        good * 10 >= inv.trees.len() * 7,
+        "{good} good of {}",
+        inv.trees.len()
+    );
+}
+
+#[test]
+fn single_pine_gives_one_tree_of_about_25_cm() {
+    let Some(path) = real("TreeLS_extdata/pine.laz") else {
+        return;
+    };
+    let cloud = read_point_cloud(&path, &NoProgress).expect("read");
+    let inv = inventory(&cloud, &InventoryParams::default(), &NoProgress).expect("inventory");
+    assert_eq!(inv.trees.len(), 1, "{:?}", inv.trees);
+    let dbh = inv.trees[0].dbh_lidar_cm;
+    assert!((23.5..26.5).contains(&dbh), "DBH {dbh} cm");
+}
+
+#[test]
+fn lidr_trunk_slice_gives_one_trunk_circle() {
+    let Some(path) = real("lidR_extdata/dbh.laz") else {
+        return;
+    };
+    let cloud = read_point_cloud(&path, &NoProgress).expect("read");
+    let (lo, hi) = cloud.bounds().expect("points");
+    // A 10 cm slice at 4.1–4.2 m: already cut, no ground; fit the circle directly.
+    assert!(hi.z - lo.z < 0.15, "z range {} .. {}", lo.z, hi.z);
+    let pts: Vec<[f64; 2]> = cloud
+        .positions
+        .iter()
+        .map(|p| [p.x as f64, p.y as f64])
+        .collect();
+    let fit = fit_circle_robust(&pts, &CircleParams::default()).expect("a circle");
+    let dbh_cm = fit.fit.radius * 200.0;
+    println!("dbh.laz: {dbh_cm:.1} cm, {fit:?}");
+    assert!((26.0..32.0).contains(&dbh_cm), "diameter {dbh_cm} cm");
+    assert!(fit.converged && fit.fit.rms < 0.01 && fit.arc_coverage > 0.5);
+}
+
+#[test]
+fn colour_joins_the_features_when_the_cloud_has_it() {
+    let plot = plot();
+    let include: Vec<bool> = plot.is_ground.iter().map(|g| !g).collect();
+    // Brown bark, green leaves, with some spread.
+    let colors: Vec<[u8; 3]> = plot
+        .is_trunk
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let j = (i % 17) as u8 * 2;
+            if *t {
+                [95 + j, 65 + j, 40]
+            } else {
+                [60, 130 + j, 50 + j]
+            }
+        })
+        .collect();
+    let score = |colors: Option<&[[u8; 3]]>| {
+        let w = segment_wood_leaf(
+            &plot.cloud.positions,
+            colors,
+            Some(&include),
+            &SegmentParams::default(),
+            &NoProgress,
+        )
+        .expect("segmentation");
+        let ok = (0..plot.cloud.len())
+            .filter(|&i| include[i] && (w.labels[i] == TRUNK) == plot.is_trunk[i])
+            .count();
+        ok as f64 / include.iter().filter(|m| **m).count() as f64
+    };
+    let (geometric, coloured) = (score(None), score(Some(&colors)));
+    println!("accuracy geometry only {geometric:.3}, with colour {coloured:.3}");
+    assert!(coloured >= geometric, "{coloured} < {geometric}");
+}

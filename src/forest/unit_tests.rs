@@ -1,0 +1,166 @@
+//! Unit tests of the small parts: circle fits, k-means, outputs and the field comparison.
+
+use super::circle::{arc_coverage, refine_circle_geometric};
+use super::kmeans::{kmeans, standardise};
+use super::ransac::SplitMix;
+use super::*;
+use crate::io::tables::FieldTree;
+use crate::progress::NoProgress;
+
+fn ring(c: [f64; 2], r: f64, from_deg: f64, to_deg: f64, n: usize, noise: f64) -> Vec<[f64; 2]> {
+    let mut rng = SplitMix::new(3);
+    (0..n)
+        .map(|i| {
+            let a = (from_deg + (to_deg - from_deg) * i as f64 / n as f64).to_radians();
+            let rr = r + noise * (rng.unit() - 0.5) * 2.0;
+            [c[0] + rr * a.cos(), c[1] + rr * a.sin()]
+        })
+        .collect()
+}
+
+#[test]
+fn weighted_algebraic_fit_recovers_an_exact_circle() {
+    let pts = ring([3.0, -2.0], 0.15, 0.0, 360.0, 50, 0.0);
+    let fit = fit_circle_weighted(&pts, None).expect("fit");
+    assert!((fit.center[0] - 3.0).abs() < 1e-9 && (fit.center[1] + 2.0).abs() < 1e-9);
+    assert!((fit.radius - 0.15).abs() < 1e-9 && fit.rms < 1e-9 && fit.n == 50);
+    // Zero weights leave points out; a far outlier with weight 0 changes nothing.
+    let mut with_outlier = pts.clone();
+    with_outlier.push([10.0, 10.0]);
+    let mut w = vec![1.0; 50];
+    w.push(0.0);
+    let fit2 = fit_circle_weighted(&with_outlier, Some(&w)).expect("fit");
+    assert!((fit2.radius - 0.15).abs() < 1e-9 && fit2.n == 50);
+}
+
+#[test]
+fn degenerate_inputs_give_no_circle() {
+    assert!(fit_circle_weighted(&[[0.0, 0.0], [1.0, 1.0]], None).is_none());
+    let line: Vec<[f64; 2]> = (0..10).map(|i| [i as f64, 2.0 * i as f64]).collect();
+    assert!(fit_circle_weighted(&line, None).is_none());
+    assert!(fit_circle_weighted(&line, Some(&[1.0; 3])).is_none());
+    assert!(fit_circle_weighted(&[[0.0, f64::NAN], [1.0, 0.0], [0.0, 1.0]], None).is_none());
+    assert!(fit_circle_robust(&line, &CircleParams::default()).is_none());
+}
+
+#[test]
+fn gauss_newton_removes_the_algebraic_bias_on_a_noisy_partial_arc() {
+    let pts = ring([0.0, 0.0], 0.1, 0.0, 90.0, 200, 0.01);
+    let alg = fit_circle_weighted(&pts, None).expect("fit");
+    let (geo, converged) = refine_circle_geometric(&pts, None, &alg, 50);
+    assert!(converged);
+    assert!(geo.rms <= alg.rms + 1e-12);
+    assert!((geo.radius - 0.1).abs() <= (alg.radius - 0.1).abs() + 1e-9);
+    assert!((geo.radius - 0.1).abs() < 0.01, "{geo:?}");
+}
+
+#[test]
+fn ransac_ignores_gross_outliers_and_reports_quality() {
+    let mut pts = ring([1.0, 1.0], 0.2, 0.0, 360.0, 120, 0.004);
+    let mut rng = SplitMix::new(9);
+    for _ in 0..80 {
+        pts.push([1.0 + rng.unit() - 0.5, 1.0 + rng.unit() - 0.5]);
+    }
+    let fit = fit_circle_robust(&pts, &CircleParams::default()).expect("fit");
+    assert!((fit.fit.radius - 0.2).abs() < 0.003, "{fit:?}");
+    assert!(fit.arc_coverage > 0.95 && !fit.partial_arc && fit.converged);
+    assert!(fit.inlier_share > 0.55 && fit.inlier_share < 0.75);
+    assert_eq!(Some(fit), fit_circle_robust(&pts, &CircleParams::default()));
+    // A half circle is a partial arc.
+    let half = ring([0.0, 0.0], 0.2, 0.0, 120.0, 60, 0.002);
+    let fit = fit_circle_robust(&half, &CircleParams::default()).expect("fit");
+    assert!(fit.partial_arc && (fit.arc_coverage - 12.0 / 36.0).abs() < 0.05);
+    assert!((arc_coverage(&half, [0.0, 0.0]) - fit.arc_coverage).abs() < 0.03);
+}
+
+#[test]
+fn two_means_separates_two_blobs_deterministically() {
+    let mut rng = SplitMix::new(1);
+    let mut rows = Vec::new();
+    for i in 0..2000 {
+        let c = if i % 2 == 0 { 0.0 } else { 5.0 };
+        rows.extend([
+            c + rng.unit() as f32,
+            c + rng.unit() as f32,
+            rng.unit() as f32,
+        ]);
+    }
+    standardise(&mut rows, 3);
+    let a = kmeans(&rows, 3, 2, 50, 11, &NoProgress).expect("kmeans");
+    let b = kmeans(&rows, 3, 2, 50, 11, &NoProgress).expect("kmeans");
+    assert_eq!(a, b);
+    assert!(a.assignment.chunks(2).all(|p| p[0] != p[1]));
+    assert!(kmeans(&rows[..3], 3, 2, 5, 0, &NoProgress).is_err());
+}
+
+fn row(id: u32, x: f64, y: f64, dbh: f64) -> TreeRow {
+    TreeRow {
+        tree_id: id,
+        x,
+        y,
+        ground_z: 100.0,
+        dbh_lidar_cm: dbh,
+        dbh_gs_cm: None,
+        n_points: 42,
+        rms_mm: 3.5,
+        arc_coverage: 0.75,
+        quality: "good".into(),
+    }
+}
+
+#[test]
+fn trees_csv_has_the_fixed_header_and_an_empty_gaussian_dbh() {
+    let csv = trees_csv(&[row(1, 500000.1234, 4000000.5, 23.456)]);
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next(),
+        Some("tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality")
+    );
+    assert_eq!(
+        lines.next(),
+        Some("1,500000.123,4000000.500,100.000,23.46,,42,3.50,0.750,good")
+    );
+    let gj = trees_geojson(&[row(1, 5.0, 6.0, 20.0)]);
+    assert_eq!(gj["type"], "FeatureCollection");
+    assert_eq!(gj["features"][0]["geometry"]["coordinates"][0], 5.0);
+    assert_eq!(gj["features"][0]["properties"]["quality"], "good");
+    assert!(gj["features"][0]["properties"]["dbh_gs_cm"].is_null());
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_trees_csv(&dir.path().join("t.csv"), &[]).expect("write csv");
+    write_trees_geojson(&dir.path().join("t.geojson"), &[]).expect("write geojson");
+}
+
+#[test]
+fn field_comparison_matches_one_to_one_and_computes_the_figures() {
+    let rows = vec![
+        row(1, 0.0, 0.0, 21.0),
+        row(2, 5.0, 0.0, 29.0),
+        row(3, 9.0, 9.0, 15.0),
+    ];
+    let field = |x, y, d| FieldTree {
+        tree_id: None,
+        x,
+        y,
+        dbh_cm: d,
+    };
+    // Two field trees near row 1: only the closer one matches it.
+    let trees = vec![
+        field(0.2, 0.0, 20.0),
+        field(0.5, 0.0, 22.0),
+        field(5.0, 0.3, 30.0),
+    ];
+    let c = compare_with_field(&rows, &trees, 1.0);
+    assert_eq!(c.n_matched, 2);
+    assert!((c.recall - 2.0 / 3.0).abs() < 1e-12 && (c.precision - 2.0 / 3.0).abs() < 1e-12);
+    assert!((c.rmse_cm.expect("rmse") - 1.0).abs() < 1e-12);
+    assert!(c.bias_cm.expect("bias").abs() < 1e-12);
+    assert!((c.r2.expect("r2") - (1.0 - 2.0 / 50.0)).abs() < 1e-12);
+    assert!((c.mean_relative_error.expect("mre") - (0.05 + 1.0 / 30.0) / 2.0).abs() < 1e-12);
+    assert_eq!(accuracy_lines(&c).len(), 3);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("field_dbh.csv");
+    std::fs::write(&path, "x,y,dbh_cm\n0.2,0,20\n5,0.3,30\n").expect("write");
+    let c = accuracy::compare_with_field_file(&rows, &path).expect("compare");
+    assert_eq!((c.n_matched, c.n_field), (2, 2));
+    assert!(serde_json::to_string(&c).is_ok());
+}

@@ -1,0 +1,332 @@
+//! `sylva synth`: a deterministic synthetic forest plot with everything the pipeline needs and
+//! everything it should recover.
+//!
+//! One seed drives a scene (terrain, stones, shrubs, trees of [`presets`]), a handheld SLAM
+//! LiDAR scan of it ([`lidar`]), a UAV image set rendered from the same scene with a COLMAP
+//! model in a random SfM frame ([`camera`], [`colmap_export`]), and the truth ([`truth`]):
+//! the SfM→LiDAR similarity, stem positions and tape DBH, control point pairs, per-point
+//! wood/leaf/ground labels and the held-out test views. The same parameters give
+//! byte-identical files on the same platform: parallel work is split into items with their
+//! own random streams and collected in order.
+//!
+//! Output layout under `out/`: `lidar.laz`, `labels.bin`, `colmap/images/`,
+//! `colmap/sparse/0/` (text, or binary), `control_points.csv`, `field_dbh.csv`, `truth.json`.
+
+pub mod bvh;
+pub mod camera;
+pub mod colmap_export;
+pub mod layout;
+pub mod lidar;
+pub mod params;
+pub mod presets;
+pub mod rng;
+pub mod scene;
+pub mod shapes;
+pub mod terrain;
+pub mod trees;
+pub mod truth;
+
+#[cfg(test)]
+mod tests;
+
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use glam::DVec3;
+use image::ImageEncoder;
+use rayon::prelude::*;
+
+use crate::io::IoError;
+use crate::io::colmap::{ColmapModel, write_binary, write_text};
+use crate::io::las::write_las;
+use crate::io::pointcloud::{CloudFormat, PointCloud};
+use crate::progress::{Progress, SubProgress};
+
+pub use params::{PhaseTiming, SynthError, SynthParams, SynthSummary};
+pub use presets::Preset;
+
+use camera::{Intrinsics, Lighting, View};
+use colmap_export::{Candidate, ExportParams, Similarity};
+use layout::{LayoutParams, Plot};
+
+/// In-memory products, for tests.
+#[cfg_attr(not(test), allow(dead_code))]
+pub(crate) struct Artifacts {
+    pub plot: Plot,
+    pub views: Vec<View>,
+    pub intrinsics: Intrinsics,
+    pub model: ColmapModel,
+}
+
+/// Generates the plot into `out` (created if needed). See the module doc for the layout.
+pub fn generate(
+    params: &SynthParams,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<SynthSummary, SynthError> {
+    run(params, out, progress).map(|(s, _)| s)
+}
+
+pub(crate) fn run(
+    params: &SynthParams,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<(SynthSummary, Artifacts), SynthError> {
+    params::check(params)?;
+    let cfg = params.preset.config();
+    let n_images = params.images.unwrap_or(cfg.images);
+    let (width, height) = (
+        params.width.unwrap_or(cfg.width),
+        params.height.unwrap_or(cfg.height),
+    );
+    let offset = DVec3::from_array(params.geo_offset);
+    let mkdir =
+        |p: &Path| std::fs::create_dir_all(p).map_err(|e| SynthError::Io(IoError::io(p, e)));
+    let images_dir = out.join("colmap").join("images");
+    let sparse_dir = out.join("colmap").join("sparse").join("0");
+    mkdir(&images_dir)?;
+    mkdir(&sparse_dir)?;
+    let cancelled = || {
+        if progress.is_cancelled() {
+            Err(SynthError::Cancelled)
+        } else {
+            Ok(())
+        }
+    };
+    let mut timings = Vec::new();
+    let mut clock = Instant::now();
+    let mut lap = |name: &'static str, timings: &mut Vec<PhaseTiming>| {
+        timings.push(PhaseTiming {
+            phase: name,
+            seconds: clock.elapsed().as_secs_f64(),
+        });
+        clock = Instant::now();
+    };
+
+    // 1. Scene.
+    progress.log("synth: building the scene");
+    let plot = layout::build_plot(&LayoutParams {
+        config: cfg,
+        seed: params.seed,
+        trees: params.trees,
+        leafless: params.leafless,
+    });
+    let closure = layout::canopy_closure(&plot);
+    lap("scene", &mut timings);
+    cancelled()?;
+
+    // 2. LiDAR.
+    progress.log("synth: scanning");
+    let lidar_params = lidar::LidarParams {
+        points: params.lidar_points.unwrap_or(cfg.lidar_points),
+        noise_m: params.noise_cm / 100.0,
+        max_range_m: params.max_range_m as f32,
+        dropout: 0.01,
+        rgb: params.lidar_rgb,
+    };
+    let scan = lidar::scan(
+        &plot,
+        &lidar_params,
+        params.seed,
+        &SubProgress::new(progress, 0.0, 0.4),
+    )?;
+    lap("lidar", &mut timings);
+    let n_points = scan.positions.len();
+    let mut label_counts = [0usize; 4];
+    scan.labels
+        .iter()
+        .for_each(|&l| label_counts[(l as usize).min(3)] += 1);
+    truth::write_labels(&out.join("labels.bin"), &scan.labels)?;
+    let cloud = PointCloud {
+        offset,
+        positions: scan.positions,
+        colors: scan.colors,
+        intensity: Some(scan.intensity),
+        format: CloudFormat::Laz,
+    };
+    write_las(&out.join("lidar.laz"), &cloud, true)?;
+    drop(cloud);
+    lap("laz", &mut timings);
+    cancelled()?;
+
+    // 3. Images.
+    progress.log("synth: rendering images");
+    let ext = if params.png { "png" } else { "jpg" };
+    let views = camera::plan_flight(&plot, cfg.flight, n_images, params.seed, ext);
+    let intr = Intrinsics::new(width, height, params.pinhole);
+    let light = Lighting::from_seed(params.seed);
+    let target_points = params.points3d.unwrap_or(cfg.points3d);
+    let per_image = (2 * target_points).div_ceil(views.len().max(1)).max(8);
+    let done = AtomicUsize::new(0);
+    let img_progress = SubProgress::new(progress, 0.4, 0.5);
+    let cands: Vec<Vec<Candidate>> = views
+        .par_iter()
+        .enumerate()
+        .map(|(k, v)| {
+            if progress.is_cancelled() {
+                return Err(SynthError::Cancelled);
+            }
+            let pixels = camera::render(&plot.scene, &light, &intr, v, params.samples_per_pixel);
+            let path = images_dir.join(&v.name);
+            encode(&path, &pixels, width, height, params.png)?;
+            let c = colmap_export::candidates(
+                &plot.scene,
+                &intr,
+                v,
+                k,
+                per_image,
+                &pixels,
+                params.seed,
+            );
+            let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+            img_progress.set(n as f64 / views.len() as f64);
+            Ok(c)
+        })
+        .collect::<Result<_, _>>()?;
+    lap("images", &mut timings);
+
+    // 4. SfM model.
+    progress.log("synth: building the COLMAP model");
+    let world_to_sfm = Similarity::random(&mut rng::Stream::new(params.seed, rng::domain::SFM, 0));
+    let cands: Vec<Candidate> = cands.into_iter().flatten().collect();
+    let export = ExportParams {
+        points3d: target_points,
+        noise_m: params.sfm_noise_cm / 100.0,
+        seed: params.seed,
+    };
+    let model =
+        colmap_export::build_model(&plot.scene, &intr, &views, &cands, &world_to_sfm, &export);
+    if params.binary {
+        write_binary(&model, &sparse_dir)?;
+    } else {
+        write_text(&model, &sparse_dir)?;
+    }
+    lap("sfm", &mut timings);
+    cancelled()?;
+
+    // 5. Truth.
+    // sfm → LiDAR file coordinates: the inverse of (scene → SfM), then + offset.
+    let inv = world_to_sfm.inverse();
+    let sfm_to_world = Similarity {
+        translation: (DVec3::from_array(inv.translation) + offset).to_array(),
+        ..inv
+    };
+    let file_to_sfm = sfm_to_world.inverse();
+    let trees = truth::tree_records(&plot, offset);
+    let pairs = truth::control_points(
+        &plot,
+        offset,
+        &world_to_sfm,
+        params.sfm_noise_cm / 100.0,
+        params.seed,
+    );
+    truth::write_field_dbh(&out.join("field_dbh.csv"), &trees)?;
+    truth::write_control_points(&out.join("control_points.csv"), &pairs)?;
+    let names: Vec<String> = views.iter().map(|v| v.name.clone()).collect();
+    let n_pairs = pairs.len();
+    let record = truth::Truth {
+        generator: "sylva synth",
+        format_version: 1,
+        preset: params.preset.name(),
+        seed: params.seed,
+        geo_offset: params.geo_offset,
+        sfm_to_world,
+        world_to_sfm: file_to_sfm,
+        trees,
+        stones: plot
+            .stones
+            .iter()
+            .map(|s| (s.top + offset).to_array())
+            .collect(),
+        control_points: pairs,
+        test_images: truth::test_images(&names),
+        labels: truth::LabelsRecord {
+            file: "labels.bin",
+            encoding: "one u8 per LiDAR point, in lidar.laz order",
+            classes: truth::LABEL_NAMES,
+            counts: label_counts,
+        },
+        plot_radius_m: plot.radius_m,
+        plot_center: offset.to_array(),
+        canopy_closure: closure,
+        lidar: serde_json::json!({
+            "file": "lidar.laz",
+            "points": n_points,
+            "rays_cast": scan.rays_cast,
+            "noise_cm": params.noise_cm,
+            "max_range_m": params.max_range_m,
+            "trajectory_length_m": scan.trajectory_length_m,
+            "laps": scan.laps,
+            "scanner": "16 beams at -15..15 deg, spin axis tilted 45 deg, mount turning at 0.5 Hz, 1.35 m above ground, walked at 0.8 m/s; firings subsampled uniformly in time",
+        }),
+        camera: serde_json::json!({
+            "model": intr.model.name(),
+            "params": intr.params(),
+            "width": width,
+            "height": height,
+            "images": n_images,
+            "flight": cfg.flight,
+            "sun_direction": light.sun_dir.to_array(),
+            "sfm_noise_cm": params.sfm_noise_cm,
+        }),
+    };
+    truth::write_truth(&out.join("truth.json"), &record)?;
+    lap("truth", &mut timings);
+    progress.set(1.0);
+
+    let summary = SynthSummary {
+        preset: params.preset.name(),
+        seed: params.seed,
+        trees: plot.trees.len(),
+        stones: plot.stones.len(),
+        shrubs: plot.shrubs,
+        primitives: plot.scene.prims.len(),
+        lidar_points: n_points,
+        lidar_rays: scan.rays_cast,
+        images: views.len(),
+        width,
+        height,
+        points3d: model.points.len(),
+        control_points: n_pairs,
+        canopy_closure: closure,
+        timings,
+    };
+    Ok((
+        summary,
+        Artifacts {
+            plot,
+            views,
+            intrinsics: intr,
+            model,
+        },
+    ))
+}
+
+/// Writes one image as JPEG (quality 92) or PNG.
+fn encode(path: &Path, rgb: &[u8], w: u32, h: u32, png: bool) -> Result<(), SynthError> {
+    let file = File::create(path).map_err(|e| SynthError::Io(IoError::io(path, e)))?;
+    let mut out = BufWriter::new(file);
+    let res = if png {
+        image::codecs::png::PngEncoder::new(&mut out).write_image(
+            rgb,
+            w,
+            h,
+            image::ExtendedColorType::Rgb8,
+        )
+    } else {
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 92).write_image(
+            rgb,
+            w,
+            h,
+            image::ExtendedColorType::Rgb8,
+        )
+    };
+    res.map_err(|source| SynthError::Image {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    std::io::Write::flush(&mut out).map_err(|e| SynthError::Io(IoError::io(path, e)))
+}

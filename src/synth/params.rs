@@ -1,0 +1,170 @@
+//! The parameters, result and errors of [`super::generate`]: one documented struct whose
+//! every field names its unit and default.
+
+use std::path::PathBuf;
+
+use serde::Serialize;
+
+use super::presets::Preset;
+use crate::io::IoError;
+
+/// Parameters of one synthetic plot. Every `None` takes the preset's value.
+#[derive(Debug, Clone, Serialize)]
+pub struct SynthParams {
+    pub preset: Preset,
+    /// Seed of every random draw.
+    pub seed: u64,
+    /// LiDAR range noise sigma, centimetres (default 1.0: a handheld SLAM unit's ~1 cm).
+    pub noise_cm: f64,
+    /// Number of images (tiny 30, plot and stand 100).
+    pub images: Option<usize>,
+    /// Image width and height, pixels (tiny 160×120, plot and stand 640×360).
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    /// Write the COLMAP model in binary (default text).
+    pub binary: bool,
+    /// Trees without leaves (like the paper's plot 2 magnolia).
+    pub leafless: bool,
+    /// PNG images instead of JPEG (quality 92).
+    pub png: bool,
+    /// LiDAR points delivered (tiny 200 000, plot 3 000 000, stand 5 200 000).
+    pub lidar_points: Option<usize>,
+    /// Target number of points3D (tiny 1 500, plot 15 000, stand 20 000).
+    pub points3d: Option<usize>,
+    /// Number of trees (preset: tiny 1–3, plot 1, stand 17).
+    pub trees: Option<usize>,
+    /// PINHOLE cameras instead of SIMPLE_RADIAL with k = -0.04 (default false).
+    pub pinhole: bool,
+    /// Samples per pixel: 1, 2 or 4 (default 1).
+    pub samples_per_pixel: u32,
+    /// Noise of SfM points, camera centres and control point picking, centimetres (default
+    /// 1.0); camera rotations get 0.02° per centimetre.
+    pub sfm_noise_cm: f64,
+    /// LiDAR maximum range, metres (default 80, below a VLP-16's 100 m for dark bark).
+    pub max_range_m: f64,
+    /// Store LiDAR colour from the surface albedo (default true).
+    pub lidar_rgb: bool,
+    /// Offset from scene to LiDAR file coordinates, metres (default 500000, 4000000, 50: a
+    /// UTM-like easting/northing that exercises f64 handling).
+    pub geo_offset: [f64; 3],
+}
+
+impl SynthParams {
+    /// The preset's defaults with seed 0.
+    pub fn new(preset: Preset) -> SynthParams {
+        SynthParams {
+            preset,
+            seed: 0,
+            noise_cm: 1.0,
+            images: None,
+            width: None,
+            height: None,
+            binary: false,
+            leafless: false,
+            png: false,
+            lidar_points: None,
+            points3d: None,
+            trees: None,
+            pinhole: false,
+            samples_per_pixel: 1,
+            sfm_noise_cm: 1.0,
+            max_range_m: 80.0,
+            lidar_rgb: true,
+            geo_offset: [500_000.0, 4_000_000.0, 50.0],
+        }
+    }
+}
+
+impl Default for SynthParams {
+    fn default() -> Self {
+        SynthParams::new(Preset::Tiny)
+    }
+}
+
+/// Errors of [`generate`].
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    #[error("invalid synth parameters: {0}")]
+    InvalidParams(String),
+    #[error(transparent)]
+    Io(#[from] IoError),
+    #[error("{path}: cannot encode image: {source}")]
+    Image {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+    #[error("cannot serialise truth.json: {0}")]
+    Json(#[source] serde_json::Error),
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// Seconds spent in one phase.
+#[derive(Debug, Clone, Serialize)]
+pub struct PhaseTiming {
+    pub phase: &'static str,
+    pub seconds: f64,
+}
+
+/// What [`generate`] produced.
+#[derive(Debug, Clone, Serialize)]
+pub struct SynthSummary {
+    pub preset: &'static str,
+    pub seed: u64,
+    pub trees: usize,
+    pub stones: usize,
+    pub shrubs: usize,
+    pub primitives: usize,
+    pub lidar_points: usize,
+    pub lidar_rays: u64,
+    pub images: usize,
+    pub width: u32,
+    pub height: u32,
+    pub points3d: usize,
+    pub control_points: usize,
+    pub canopy_closure: f64,
+    pub timings: Vec<PhaseTiming>,
+}
+
+/// Refuses parameters outside their documented ranges.
+pub(crate) fn check(params: &SynthParams) -> Result<(), SynthError> {
+    let bad = |m: &str| Err(SynthError::InvalidParams(m.to_string()));
+    if !(params.noise_cm.is_finite() && params.noise_cm >= 0.0 && params.noise_cm <= 100.0) {
+        return bad("noise_cm must be in [0, 100]");
+    }
+    if !(params.sfm_noise_cm.is_finite()
+        && params.sfm_noise_cm >= 0.0
+        && params.sfm_noise_cm <= 100.0)
+    {
+        return bad("sfm_noise_cm must be in [0, 100]");
+    }
+    if params.images.is_some_and(|n| !(3..=5000).contains(&n)) {
+        return bad("images must be between 3 and 5000");
+    }
+    if params.width.is_some_and(|w| !(16..=8192).contains(&w))
+        || params.height.is_some_and(|h| !(16..=8192).contains(&h))
+    {
+        return bad("width and height must be between 16 and 8192 pixels");
+    }
+    if params
+        .lidar_points
+        .is_some_and(|n| !(1_000..=200_000_000).contains(&n))
+    {
+        return bad("lidar_points must be between 1000 and 200 million");
+    }
+    if params.trees.is_some_and(|n| !(1..=500).contains(&n)) {
+        return bad("trees must be between 1 and 500");
+    }
+    if !(params.max_range_m.is_finite() && params.max_range_m > 1.0) {
+        return bad("max_range_m must exceed 1 m");
+    }
+    if !params
+        .geo_offset
+        .iter()
+        .all(|v| v.is_finite() && v.abs() < 1e8)
+    {
+        return bad("geo_offset must be finite and below 1e8 m");
+    }
+    Ok(())
+}

@@ -1,0 +1,172 @@
+//! The files: determinism, formats, round trips, parameter checks.
+
+use super::*;
+
+#[test]
+fn same_seed_gives_identical_bytes_and_other_seeds_differ() {
+    let (a, b, c) = (
+        tempfile::tempdir().expect("tmp"),
+        tempfile::tempdir().expect("tmp"),
+        tempfile::tempdir().expect("tmp"),
+    );
+    let p = SynthParams {
+        lidar_points: Some(50_000),
+        ..tiny(11)
+    };
+    generate(&p, a.path(), &NoProgress).expect("first run");
+    // The second run on a single thread: scheduling must not change a byte.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
+    pool.install(|| generate(&p, b.path(), &NoProgress))
+        .expect("second run");
+    let (fa, fb) = (files(a.path()), files(b.path()));
+    assert_eq!(fa, fb);
+    assert!(fa.len() >= 30 + 3 + 5, "{fa:?}");
+    for f in &fa {
+        let (x, y) = (
+            std::fs::read(a.path().join(f)).expect("read"),
+            std::fs::read(b.path().join(f)).expect("read"),
+        );
+        assert!(
+            x == y,
+            "{} differs between runs with the same seed",
+            f.display()
+        );
+    }
+    generate(&SynthParams { seed: 12, ..p }, c.path(), &NoProgress).expect("third run");
+    for f in [
+        "lidar.laz",
+        "truth.json",
+        "labels.bin",
+        "colmap/images/img_0001.jpg",
+    ] {
+        let (x, y) = (
+            std::fs::read(a.path().join(f)).expect("read"),
+            std::fs::read(c.path().join(f)).expect("read"),
+        );
+        assert_ne!(x, y, "{f} identical for different seeds");
+    }
+}
+
+#[test]
+fn colmap_model_round_trips_through_the_reader_text_and_binary() {
+    for binary in [false, true] {
+        let dir = tempfile::tempdir().expect("tmp");
+        // The binary run also switches to PINHOLE cameras.
+        let p = SynthParams {
+            binary,
+            pinhole: binary,
+            ..small(5)
+        };
+        let (summary, art) = run(&p, dir.path(), &NoProgress).expect("generate");
+        let sparse = dir.path().join("colmap/sparse/0");
+        assert_eq!(sparse.join("cameras.bin").is_file(), binary);
+        let model_name = art.model.cameras.get(&1).map(|c| c.model.name());
+        assert_eq!(
+            model_name,
+            Some(if binary { "PINHOLE" } else { "SIMPLE_RADIAL" })
+        );
+        let read = read_model(&sparse, &NoProgress).expect("read_model");
+        assert!(
+            read == art.model,
+            "model read back differs (binary = {binary})"
+        );
+        assert_eq!(read.points.len(), summary.points3d);
+        assert!(
+            read.points.len() > 300,
+            "only {} points3D",
+            read.points.len()
+        );
+        check_tracks(&read);
+        for img in read.images.values() {
+            assert!(dir.path().join("colmap/images").join(&img.name).is_file());
+        }
+    }
+}
+
+#[test]
+fn laz_keeps_the_offset_and_matches_labels() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let p = small(2);
+    let summary = generate(&p, dir.path(), &NoProgress).expect("generate");
+    let cloud = read_point_cloud(&dir.path().join("lidar.laz"), &NoProgress).expect("laz");
+    let labels = std::fs::read(dir.path().join("labels.bin")).expect("labels");
+    assert_eq!(cloud.len(), labels.len());
+    assert_eq!(cloud.len(), summary.lidar_points);
+    assert_eq!(cloud.len(), 20_000);
+    let (lo, hi) = cloud.bounds().expect("bounds");
+    assert!(
+        lo.x > 499_900.0 && hi.x < 500_100.0 && lo.y > 3_999_900.0 && hi.y < 4_000_100.0,
+        "{lo} {hi}"
+    );
+    assert!(cloud.colors.is_some() && cloud.intensity.is_some());
+    let mut counts = [0usize; 4];
+    for &l in &labels {
+        assert!(l <= 3);
+        counts[l as usize] += 1;
+    }
+    assert!(counts.iter().all(|&c| c > 0), "label counts {counts:?}");
+    let t = truth(dir.path());
+    assert_eq!(t["labels"]["counts"], serde_json::json!(counts));
+    // Ground points lie on the terrain; a stem base is close to ground points.
+    let base = DVec3::new(
+        t["trees"][0]["x"].as_f64().unwrap_or(0.0),
+        t["trees"][0]["y"].as_f64().unwrap_or(0.0),
+        t["trees"][0]["z"].as_f64().unwrap_or(0.0),
+    );
+    let near = (0..cloud.len())
+        .filter(|&i| labels[i] == 0 && (cloud.world(i) - base).length() < 1.0)
+        .count();
+    assert!(
+        near > 10,
+        "{near} ground points within 1 m of the first stem base"
+    );
+}
+
+#[test]
+fn invalid_parameters_are_refused() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let bad = SynthParams {
+        noise_cm: -1.0,
+        ..tiny(0)
+    };
+    assert!(matches!(
+        generate(&bad, dir.path(), &NoProgress),
+        Err(SynthError::InvalidParams(_))
+    ));
+    let bad = SynthParams {
+        images: Some(1),
+        ..tiny(0)
+    };
+    assert!(matches!(
+        generate(&bad, dir.path(), &NoProgress),
+        Err(SynthError::InvalidParams(_))
+    ));
+    assert_eq!(Preset::from_name("Stand"), Some(Preset::Stand));
+    assert_eq!(Preset::from_name("forest"), None);
+}
+
+#[test]
+fn leafless_trees_have_wood_but_no_leaves() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let p = SynthParams {
+        leafless: true,
+        images: Some(3),
+        ..small(6)
+    };
+    let summary = generate(&p, dir.path(), &NoProgress).expect("generate");
+    let labels = std::fs::read(dir.path().join("labels.bin")).expect("labels");
+    assert_eq!(labels.len(), summary.lidar_points);
+    assert!(!labels.contains(&2), "leafless plot has leaf points");
+    assert!(labels.iter().filter(|&&l| l == 1).count() > 500);
+    let t = truth(dir.path());
+    assert!(
+        t["trees"]
+            .as_array()
+            .expect("trees")
+            .iter()
+            .all(|tr| tr["kind"] == "leafless")
+    );
+}
