@@ -8,8 +8,8 @@ use std::time::Instant;
 use glam::Vec3;
 use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
 use rayon::prelude::*;
-use sylva_geom_dev::geom::*;
-use sylva_geom_dev::progress::NoProgress;
+use sylva::geom::*;
+use sylva::progress::NoProgress;
 
 /// A plot of about `n` points: 45% ground, 25% stems, 30% crowns, one tree per 64 m².
 /// Density grows with n like a tiled plot: the side grows as sqrt(n).

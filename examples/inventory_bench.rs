@@ -6,11 +6,11 @@
 
 use std::time::Instant;
 
-use sylva_forest_dev::forest::synthetic::{PlotSpec, synthetic_plot, tile_plot};
-use sylva_forest_dev::forest::{InventoryParams, compare_with_field, inventory};
-use sylva_forest_dev::io::pointcloud::{PointCloud, read_point_cloud};
-use sylva_forest_dev::io::tables::FieldTree;
-use sylva_forest_dev::progress::NoProgress;
+use sylva::forest::synthetic::{PlotSpec, synthetic_plot, tile_plot};
+use sylva::forest::{InventoryParams, compare_with_field, inventory};
+use sylva::io::pointcloud::{PointCloud, read_point_cloud};
+use sylva::io::tables::FieldTree;
+use sylva::progress::NoProgress;
 
 fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
     let t = Instant::now();

@@ -8,9 +8,9 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use sylva_synth_dev::io::pointcloud::read_point_cloud;
-use sylva_synth_dev::progress::NoProgress;
-use sylva_synth_dev::synth::{Preset, SynthParams, generate};
+use sylva::io::pointcloud::read_point_cloud;
+use sylva::progress::NoProgress;
+use sylva::synth::{Preset, SynthParams, generate};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();

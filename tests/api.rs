@@ -243,7 +243,7 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there() {
     assert_eq!(job["stage"], "register");
     // The fixture's photos do not show its LiDAR scene: registration refuses clearly.
     let detail = job["error"]["detail"].as_str().expect("detail");
-    assert!(detail.contains("supply control points"), "{detail}");
+    assert!(detail.contains("control points are required"), "{detail}");
     assert_eq!(job["error"]["status"], 422);
     assert_eq!(stage(&job, "ingest")["state"], "done");
     assert_eq!(stage(&job, "register")["state"], "failed");

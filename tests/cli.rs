@@ -54,7 +54,7 @@ fn run_stops_with_a_clear_error_when_registration_is_impossible() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     // The fixture's photos do not show its LiDAR scene: registration must refuse, not guess.
     assert!(stderr.contains("stage register failed"), "{stderr}");
-    assert!(stderr.contains("supply control points"), "{stderr}");
+    assert!(stderr.contains("control points are required"), "{stderr}");
     let results: Value =
         serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
             .expect("json");

@@ -32,7 +32,8 @@ pub struct CoarseParams {
     pub scale_margin: f64,
     /// Cells across the LiDAR cloud's larger side in the coarse raster (default 24).
     pub coarse_cells: usize,
-    /// Fraction of the valid raster cells that must overlap for a hypothesis (default 0.3).
+    /// Fraction of the smaller cloud's valid raster cells that must overlap the other's for
+    /// a hypothesis to count (default 0.6).
     pub min_overlap: f64,
 }
 
@@ -43,7 +44,7 @@ impl Default for CoarseParams {
             scale_step: 1.04,
             scale_margin: 1.35,
             coarse_cells: 24,
-            min_overlap: 0.3,
+            min_overlap: 0.6,
         }
     }
 }
@@ -236,7 +237,9 @@ struct Scene<'a> {
     x0: f64,
     y0: f64,
     cell: f64,
-    min_cells: usize,
+    /// Valid cells of the LiDAR rasters.
+    valid: usize,
+    min_overlap: f64,
 }
 
 impl Scene<'_> {
@@ -274,6 +277,10 @@ impl Scene<'_> {
         let (anx, any) = (anx as usize, any as usize);
         let a = rasterise(moved.iter().copied(), lo.x, lo.y, self.cell, anx, any);
         let b = &self.lidar;
+        // Overlap is measured against the smaller footprint: a handheld scan often reaches
+        // far beyond the photographed area, or the photos beyond the walk.
+        let valid_a = a.chm.iter().filter(|v| !v.is_nan()).count();
+        let min_cells = (valid_a.min(self.valid) as f64 * self.min_overlap) as usize;
         let mut best: Option<Hypothesis> = None;
         let (range_x, range_y) = match around {
             Some((t, r)) => {
@@ -295,10 +302,10 @@ impl Scene<'_> {
         };
         for oy in range_y {
             for ox in range_x.clone() {
-                let Some(s1) = ncc(va(&a.chm), vb(&b.chm), ox, oy, self.min_cells) else {
+                let Some(s1) = ncc(va(&a.chm), vb(&b.chm), ox, oy, min_cells) else {
                     continue;
                 };
-                let s2 = ncc(va(&a.dtm), vb(&b.dtm), ox, oy, self.min_cells).unwrap_or(0.0);
+                let s2 = ncc(va(&a.dtm), vb(&b.dtm), ox, oy, min_cells).unwrap_or(0.0);
                 let score = s1 + 0.5 * s2;
                 if best.is_none_or(|h| score > h.score) {
                     best = Some(Hypothesis {
@@ -392,7 +399,8 @@ pub fn align(
             x0: lo.x,
             y0: lo.y,
             cell,
-            min_cells: (valid as f64 * params.min_overlap) as usize,
+            valid,
+            min_overlap: params.min_overlap,
         }
     };
 

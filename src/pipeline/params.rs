@@ -72,9 +72,16 @@ pub struct RegisterParams {
     /// The LiDAR cloud is thinned to this voxel size (metres) as the ICP target (default
     /// 0.05 m: well below SfM point noise, and fast).
     pub target_voxel_m: f64,
-    /// Without control points, the automatic coarse alignment must reach this confidence in
-    /// [0, 1], or the stage refuses and asks for control points (default 0.5).
+    /// Try the automatic coarse alignment when no control points are given (default false:
+    /// it is experimental and does not yet reach the accuracy of control points; without it
+    /// a job with no control points stops with a clear request for them).
+    pub automatic: bool,
+    /// The automatic coarse alignment must reach this confidence in [0, 1], or the stage
+    /// refuses and asks for control points (default 0.5).
     pub min_confidence: f64,
+    /// After an automatic coarse alignment, ICP must pair at least this share of the SfM
+    /// points with LiDAR points, or the stage refuses (default 0.5).
+    pub min_fitness: f64,
 }
 
 impl Default for RegisterParams {
@@ -88,7 +95,9 @@ impl Default for RegisterParams {
             estimate_scale: true,
             point_to_plane: false,
             target_voxel_m: 0.05,
+            automatic: false,
             min_confidence: 0.5,
+            min_fitness: 0.5,
         }
     }
 }

@@ -134,6 +134,14 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             ));
             (fit.transform, "control_points", pairs, 1.0)
         }
+        None if !p.automatic => {
+            return Err(StageError::Input(
+                "control points are required: supply at least 4 pairs (CSV \
+                 sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), or set \
+                 params.register.automatic = true to try the experimental automatic alignment"
+                    .into(),
+            ));
+        }
         None => {
             let rays = camera_rays(&model);
             let c = geom::coarse::align(
@@ -203,6 +211,15 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         &params,
         &SubProgress::new(ctx.progress, 0.6, 0.3),
     )?;
+    if method == "automatic" && fine.fitness < p.min_fitness {
+        return Err(StageError::Input(format!(
+            "automatic registration rejected: after ICP only {:.0}% of the SfM points lie on \
+             the LiDAR cloud (< {:.0}%); the photos and the scan may not overlap; supply \
+             control points (at least 4 pairs)",
+            fine.fitness * 100.0,
+            p.min_fitness * 100.0
+        )));
+    }
     let local = coarse.then(&fine.transform());
     ctx.progress.log(&format!(
         "ICP: fitness {:.2}, inlier RMSE {:.3} m, scale correction {:.4}, {} iterations",

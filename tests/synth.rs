@@ -1,0 +1,197 @@
+//! `sylva synth` through the real binary, and its files read back by independent readers:
+//! laspy (Python, in a venv made here) for the LAZ, COLMAP itself for the model where the
+//! Debian package is installed.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
+
+const BIN: &str = env!("CARGO_BIN_EXE_sylva");
+
+fn synth(out: &Path, extra: &[&str]) {
+    let output = Command::new(BIN)
+        .args(["synth", "--preset", "tiny", "--seed", "5", "--out"])
+        .arg(out)
+        .args(extra)
+        .output()
+        .expect("run sylva synth");
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+#[test]
+fn synth_cli_writes_what_a_field_team_brings_home_plus_the_truth() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("plot");
+    synth(&out, &["--binary", "--noise-cm", "0.5"]);
+    for f in [
+        "lidar.laz",
+        "control_points.csv",
+        "field_dbh.csv",
+        "truth.json",
+        "labels.bin",
+        "colmap/sparse/0/cameras.bin",
+        "colmap/sparse/0/images.bin",
+        "colmap/sparse/0/points3D.bin",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let truth: Value =
+        serde_json::from_slice(&std::fs::read(out.join("truth.json")).expect("truth"))
+            .expect("json");
+    for key in ["sfm_to_world", "trees", "test_images"] {
+        assert!(truth.get(key).is_some(), "truth.json lacks {key}");
+    }
+    assert_eq!(
+        truth["sfm_to_world"]["rotation"].as_array().map(Vec::len),
+        Some(3)
+    );
+    let field = std::fs::read_to_string(out.join("field_dbh.csv")).expect("field");
+    assert!(field.starts_with("tree_id,x,y,dbh_cm\n"), "{field}");
+    let trees = truth["trees"].as_array().expect("trees").len();
+    assert!((1..=3).contains(&trees));
+    assert_eq!(field.lines().count(), trees + 1);
+    let cps = std::fs::read_to_string(out.join("control_points.csv")).expect("cps");
+    assert!(cps.lines().count() > 6, "at least 6 control point pairs");
+    let images = std::fs::read_dir(out.join("colmap/images"))
+        .expect("images")
+        .count();
+    assert!(images >= 20, "{images} images");
+    let cloud = sylva::io::pointcloud::read_point_cloud(
+        &out.join("lidar.laz"),
+        &sylva::progress::NoProgress,
+    )
+    .expect("laz");
+    let labels = std::fs::read(out.join("labels.bin")).expect("labels");
+    assert_eq!(cloud.len(), labels.len());
+    assert!(
+        cloud.offset.x > 499_000.0 && cloud.offset.y > 3_999_000.0,
+        "{:?}",
+        cloud.offset
+    );
+    // The same seed gives the same bytes, through the CLI too.
+    let again = dir.path().join("again");
+    synth(&again, &["--binary", "--noise-cm", "0.5"]);
+    for f in [
+        "lidar.laz",
+        "truth.json",
+        "labels.bin",
+        "colmap/sparse/0/points3D.bin",
+    ] {
+        assert_eq!(
+            std::fs::read(out.join(f)).ok(),
+            std::fs::read(again.join(f)).ok(),
+            "{f} differs"
+        );
+    }
+}
+
+/// A Python venv with laspy + lazrs under target/, or None (with the reason printed).
+fn laspy_python() -> Option<PathBuf> {
+    let venv = Path::new(env!("CARGO_TARGET_TMPDIR")).join("laspy-venv");
+    let python = venv.join("bin/python");
+    let ready = |p: &Path| {
+        Command::new(p)
+            .args(["-c", "import laspy, lazrs"])
+            .status()
+            .is_ok_and(|s| s.success())
+    };
+    if python.is_file() && ready(&python) {
+        return Some(python);
+    }
+    let made = Command::new("python3")
+        .args(["-m", "venv"])
+        .arg(&venv)
+        .status();
+    if !made.is_ok_and(|s| s.success()) {
+        println!("skipping: cannot create a Python venv (python3 -m venv)");
+        return None;
+    }
+    let pip = Command::new(venv.join("bin/pip"))
+        .args(["install", "-q", "laspy==2.6.1", "lazrs==0.7.0"])
+        .status();
+    if !pip.is_ok_and(|s| s.success()) || !ready(&python) {
+        println!("skipping: cannot install laspy and lazrs from PyPI");
+        return None;
+    }
+    Some(python)
+}
+
+#[test]
+fn the_laz_reads_in_laspy_with_the_same_points() {
+    let Some(python) = laspy_python() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("plot");
+    synth(&out, &[]);
+    let script = r#"
+import sys, laspy, json
+las = laspy.read(sys.argv[1])
+print(json.dumps({"n": len(las.points), "min": [float(las.x.min()), float(las.y.min()), float(las.z.min())],
+                  "max": [float(las.x.max()), float(las.y.max()), float(las.z.max())], "version": str(las.header.version)}))
+"#;
+    let run = Command::new(&python)
+        .arg("-c")
+        .arg(script)
+        .arg(out.join("lidar.laz"))
+        .output()
+        .expect("python");
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let v: Value = serde_json::from_slice(&run.stdout).expect("json");
+    let cloud = sylva::io::pointcloud::read_point_cloud(
+        &out.join("lidar.laz"),
+        &sylva::progress::NoProgress,
+    )
+    .expect("laz");
+    assert_eq!(v["n"].as_u64(), Some(cloud.len() as u64));
+    let (lo, hi) = cloud.bounds().expect("bounds");
+    for (k, (a, b)) in [(lo.x, hi.x), (lo.y, hi.y), (lo.z, hi.z)]
+        .iter()
+        .enumerate()
+    {
+        let (pa, pb) = (
+            v["min"][k].as_f64().expect("min"),
+            v["max"][k].as_f64().expect("max"),
+        );
+        assert!(
+            (pa - a).abs() < 1e-3 && (pb - b).abs() < 1e-3,
+            "axis {k}: laspy {pa}..{pb}, sylva {a}..{b}"
+        );
+    }
+}
+
+#[test]
+fn the_model_loads_in_colmap_where_installed() {
+    let has_colmap = Command::new("colmap")
+        .arg("help")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !has_colmap {
+        println!("skipping: the colmap program is not installed (Debian package colmap)");
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("plot");
+    synth(&out, &[]);
+    let run = Command::new("colmap")
+        .args(["model_analyzer", "--path"])
+        .arg(out.join("colmap/sparse/0"))
+        .output()
+        .expect("colmap");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&run.stdout),
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(run.status.success(), "{text}");
+    assert!(text.contains("Registered images"), "{text}");
+}
