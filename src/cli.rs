@@ -216,6 +216,16 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
         gpu,
         lease: a.worker.lease(),
     };
+    // Recovery runs before the address is announced, so whoever waits for it sees a settled
+    // queue.
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let workers = if a.worker.workers > 0 {
+        let pool = WorkerPool::new(db, blobs, a.worker.clone(), wake);
+        pool.recover().await;
+        Some(tokio::spawn(pool.run(stop_rx)))
+    } else {
+        None
+    };
     let listener = tokio::net::TcpListener::bind(a.api.listen)
         .await
         .with_context(|| format!("cannot listen on {}", a.api.listen))?;
@@ -224,11 +234,6 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
     let _ = std::io::stdout().flush();
     tracing::info!(%addr, auth = !a.api.token.is_empty(), "API listening");
 
-    let (stop_tx, stop_rx) = watch::channel(false);
-    let workers = (a.worker.workers > 0).then(|| {
-        let pool = WorkerPool::new(db, blobs, a.worker.clone(), wake);
-        tokio::spawn(pool.run(stop_rx))
-    });
     axum::serve(listener, api::router(state))
         .with_graceful_shutdown(shutdown_signal())
         .await?;
@@ -247,6 +252,7 @@ async fn worker(a: WorkerOnlyArgs) -> anyhow::Result<()> {
     let (db, blobs) = open_store(&a.store).await?;
     let (stop_tx, stop_rx) = watch::channel(false);
     let pool = WorkerPool::new(db, blobs, a.worker.clone(), Arc::new(Notify::new()));
+    pool.recover().await;
     println!("sylva worker started ({} slot(s))", a.worker.workers);
     let _ = std::io::stdout().flush();
     let handle = tokio::spawn(pool.run(stop_rx));

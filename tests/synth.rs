@@ -195,3 +195,57 @@ fn the_model_loads_in_colmap_where_installed() {
     assert!(run.status.success(), "{text}");
     assert!(text.contains("Registered images"), "{text}");
 }
+
+#[test]
+fn inventory_of_a_synthetic_plot_matches_its_field_measurements() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("plot");
+    synth(&out, &[]);
+    let csv = dir.path().join("trees.csv");
+    let geojson = dir.path().join("trees.geojson");
+    let run = Command::new(BIN)
+        .arg("inventory")
+        .arg(out.join("lidar.laz"))
+        .arg("--out")
+        .arg(&csv)
+        .arg("--geojson")
+        .arg(&geojson)
+        .arg("--field")
+        .arg(out.join("field_dbh.csv"))
+        .output()
+        .expect("run inventory");
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let text = std::fs::read_to_string(&csv).expect("trees.csv");
+    assert!(
+        text.starts_with(
+            "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality\n"
+        ),
+        "{text}"
+    );
+    let truth: Value =
+        serde_json::from_slice(&std::fs::read(out.join("truth.json")).expect("truth"))
+            .expect("json");
+    let trees = truth["trees"].as_array().expect("trees");
+    assert_eq!(text.lines().count(), trees.len() + 1, "{text}");
+    assert!(
+        stdout.contains("recall 100.0%, precision 100.0%"),
+        "{stdout}"
+    );
+    // DBH within 1 cm of the tape for every tree (LiDAR noise 1 cm).
+    let rmse: f64 = stdout
+        .lines()
+        .find_map(|l| l.strip_prefix("DBH: RMSE "))
+        .and_then(|l| l.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .expect("RMSE line");
+    assert!(rmse <= 1.0, "DBH RMSE {rmse} cm");
+    let g: Value =
+        serde_json::from_slice(&std::fs::read(&geojson).expect("geojson")).expect("json");
+    assert_eq!(g["type"], "FeatureCollection");
+    assert_eq!(g["features"].as_array().map(Vec::len), Some(trees.len()));
+}

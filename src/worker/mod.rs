@@ -122,13 +122,18 @@ impl WorkerPool {
         &self.host
     }
 
-    /// Runs `args.workers` worker loops until `shutdown` turns true.
-    pub async fn run(self, shutdown: watch::Receiver<bool>) {
+    /// Start-up recovery: jobs held by dead worker processes of this host become claimable
+    /// at once. Call before [`WorkerPool::run`].
+    pub async fn recover(&self) {
         match self.db.recover(&self.host, self.args.lease() * 4).await {
             Ok(n) if n > 0 => tracing::warn!(jobs = n, "recovered jobs of a crashed process"),
             Ok(_) => {}
             Err(e) => tracing::error!(error = %e, "start-up recovery failed"),
         }
+    }
+
+    /// Runs `args.workers` worker loops until `shutdown` turns true.
+    pub async fn run(self, shutdown: watch::Receiver<bool>) {
         let mut handles = Vec::new();
         for slot in 0..self.args.workers {
             let me = self.clone();
