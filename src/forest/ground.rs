@@ -65,19 +65,9 @@ pub struct Dtm {
 }
 
 impl Dtm {
-    fn at(&self, i: usize, j: usize) -> f32 {
-        self.heights[j.min(self.ny - 1) * self.nx + i.min(self.nx - 1)]
-    }
-
     /// Ground height under (x, y) by bilinear interpolation; clamped at the raster's edge.
     pub fn height_at(&self, x: f32, y: f32) -> f32 {
-        let fx = ((x - self.origin[0]) / self.cell).clamp(0.0, (self.nx - 1) as f32);
-        let fy = ((y - self.origin[1]) / self.cell).clamp(0.0, (self.ny - 1) as f32);
-        let (i, j) = (fx.floor() as usize, fy.floor() as usize);
-        let (tx, ty) = (fx - i as f32, fy - j as f32);
-        let a = self.at(i, j) * (1.0 - tx) + self.at(i + 1, j) * tx;
-        let b = self.at(i, j + 1) * (1.0 - tx) + self.at(i + 1, j + 1) * tx;
-        a * (1.0 - ty) + b * ty
+        self.bilinear_with(&self.heights, x, y)
     }
 
     /// Height of every point above the ground model, metres.

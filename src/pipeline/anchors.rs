@@ -18,13 +18,6 @@ use crate::progress::{NoProgress, SubProgress};
 /// Grey given to LiDAR points of a cloud without colour, so SfM colours survive the fusion.
 const NO_COLOUR: [u8; 3] = [128, 128, 128];
 
-fn geom_err(e: geom::GeomError) -> StageError {
-    match e {
-        geom::GeomError::Cancelled => StageError::Cancelled,
-        other => StageError::Input(format!("anchors: {other}")),
-    }
-}
-
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let p = &ctx.params.anchors;
     let ingest = ctx.output_of(Stage::Ingest, Stage::Anchors)?;
@@ -73,8 +66,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             voxel_size: p.voxel_size_m as f32,
         },
         &SubProgress::new(ctx.progress, 0.2, 0.2),
-    )
-    .map_err(geom_err)?;
+    )?;
     let n_voxels = voxels.positions.len();
     // 2. Statistical outlier filter.
     let filter = geom::statistical_outlier_filter(
@@ -84,8 +76,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             alpha: p.outlier_alpha,
         },
         &SubProgress::new(ctx.progress, 0.4, 0.3),
-    )
-    .map_err(geom_err)?;
+    )?;
     let keep = |i: usize| filter.keep[i];
     let anchors: Vec<Vec3> = (0..n_voxels)
         .filter(|&i| keep(i))
@@ -110,8 +101,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             orientation: NormalOrientation::Propagate { up: Vec3::Z },
         },
         &SubProgress::new(ctx.progress, 0.7, 0.25),
-    )
-    .map_err(geom_err)?
+    )?
     .normals;
     let field = |name: &str, f: fn(&Vec3) -> f32| ScalarField {
         name: name.into(),

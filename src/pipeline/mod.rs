@@ -126,6 +126,17 @@ pub enum StageError {
     MissingPredecessor { stage: Stage, needs: Stage },
 }
 
+impl From<crate::geom::GeomError> for StageError {
+    /// Geometry fails on the data it was given (too few points, degenerate shapes): an input
+    /// fault, except cancellation.
+    fn from(e: crate::geom::GeomError) -> Self {
+        match e {
+            crate::geom::GeomError::Cancelled => StageError::Cancelled,
+            other => StageError::Input(other.to_string()),
+        }
+    }
+}
+
 impl StageError {
     /// True when the failure is the user's input (a 422-like fault), not the service's.
     pub fn is_input_fault(&self) -> bool {

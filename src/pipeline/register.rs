@@ -19,13 +19,6 @@ use crate::io::pointcloud::{self, PointCloud};
 use crate::io::{IoError, tables};
 use crate::progress::{Progress, SubProgress};
 
-fn geom_err(e: geom::GeomError) -> StageError {
-    match e {
-        geom::GeomError::Cancelled => StageError::Cancelled,
-        other => StageError::Input(format!("registration: {other}")),
-    }
-}
-
 /// A similarity as the report writes it: scale, row-major rotation, translation.
 pub fn similarity_json(s: &Similarity) -> serde_json::Value {
     let r = s.rotation.transpose().to_cols_array_2d(); // rows of the rotation
@@ -185,8 +178,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             voxel_size: p.target_voxel_m as f32,
         },
         &SubProgress::new(ctx.progress, 0.5, 0.1),
-    )
-    .map_err(geom_err)?
+    )?
     .positions;
     let source: Vec<Vec3> = sfm.iter().map(|x| coarse.apply(*x).as_vec3()).collect();
     let params = IcpParams {
@@ -262,7 +254,7 @@ pub fn icp_two_phase(
     params: &IcpParams,
     progress: &dyn Progress,
 ) -> Result<geom::IcpResult, StageError> {
-    let index = geom::PointIndex::new(target).map_err(geom_err)?;
+    let index = geom::PointIndex::new(target)?;
     let normals = if params.method == IcpMethod::PointToPlane {
         Some(
             geom::estimate_normals_with_index(
@@ -273,8 +265,7 @@ pub fn icp_two_phase(
                     orientation: geom::NormalOrientation::None,
                 },
                 &SubProgress::new(progress, 0.0, 0.3),
-            )
-            .map_err(geom_err)?
+            )?
             .normals,
         )
     } else {
@@ -292,8 +283,7 @@ pub fn icp_two_phase(
         &Similarity::IDENTITY,
         &rigid,
         &SubProgress::new(progress, 0.3, 0.35),
-    )
-    .map_err(geom_err)?;
+    )?;
     if !params.estimate_scale {
         return Ok(first);
     }
@@ -310,7 +300,7 @@ pub fn icp_two_phase(
         &second,
         &SubProgress::new(progress, 0.65, 0.35),
     )
-    .map_err(geom_err)
+    .map_err(StageError::from)
 }
 
 fn file_name(p: &Path) -> String {
