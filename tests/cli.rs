@@ -110,3 +110,70 @@ fn every_flag_is_documented_and_mirrored_by_an_environment_variable() {
         }
     }
 }
+
+#[test]
+fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let plot = dir.path().join("plot");
+    let synth = Command::new(BIN)
+        .args(["synth", "--preset", "tiny", "--seed", "2", "--out"])
+        .arg(&plot)
+        .output()
+        .expect("synth");
+    assert!(
+        synth.status.success(),
+        "{}",
+        String::from_utf8_lossy(&synth.stderr)
+    );
+    let out = dir.path().join("out");
+    let run = Command::new(BIN)
+        .args(["run", "--until", "segment", "--lidar"])
+        .arg(plot.join("lidar.laz"))
+        .arg("--colmap")
+        .arg(plot.join("colmap"))
+        .arg("--control-points")
+        .arg(plot.join("control_points.csv"))
+        .arg("--field-dbh")
+        .arg(plot.join("field_dbh.csv"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("run");
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let results: Value =
+        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
+            .expect("json");
+    let seg = &results["segment"];
+    let truth: Value =
+        serde_json::from_slice(&std::fs::read(plot.join("truth.json")).expect("truth"))
+            .expect("json");
+    let n_true = truth["trees"].as_array().map_or(0, Vec::len);
+    assert!(n_true > 0);
+    // Every generated stem is found and matched to its field record within 1 m.
+    assert_eq!(seg["trees"].as_u64(), Some(n_true as u64), "{seg}");
+    assert_eq!(
+        seg["field"]["n_matched"].as_u64(),
+        Some(n_true as u64),
+        "{seg}"
+    );
+    let rmse = seg["field"]["rmse_cm"].as_f64().expect("rmse");
+    assert!(rmse < 1.5, "DBH RMSE {rmse} cm");
+    let csv = std::fs::read_to_string(out.join("segment/trees.csv")).expect("trees.csv");
+    assert_eq!(
+        csv.lines().next(),
+        Some("tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality")
+    );
+    assert_eq!(csv.lines().count(), n_true + 1);
+    // The anchors carry labels for the trainer, and some of them are trunk.
+    let header = std::fs::read(out.join("segment/anchors.ply")).expect("anchors");
+    let head = String::from_utf8_lossy(&header[..header.len().min(1024)]).to_string();
+    assert!(head.contains("property float trunk_prob"), "{head}");
+    assert!(seg["anchors"]["trunk"].as_u64().unwrap_or(0) > 100, "{seg}");
+    for f in ["labelled.ply", "dtm.json", "stems.json", "trees.geojson"] {
+        assert!(out.join("segment").join(f).is_file(), "{f}");
+    }
+}

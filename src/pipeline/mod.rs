@@ -12,6 +12,7 @@ pub mod ingest;
 pub mod inspect;
 pub mod params;
 pub mod register;
+pub mod segment;
 
 use std::fs;
 use std::io::Read;
@@ -206,6 +207,7 @@ pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Val
         Stage::Ingest => ingest::run(ctx),
         Stage::Register => register::run(ctx),
         Stage::Anchors => anchors::run(ctx),
+        Stage::Segment => segment::run(ctx),
         other => Err(StageError::NotAvailable(other)),
     }
 }

@@ -18,7 +18,9 @@ pub struct PipelineParams {
     pub ingest: IngestParams,
     pub register: RegisterParams,
     pub anchors: AnchorParams,
-    pub segment: SegmentParams,
+    /// Stage `segment`: ground, wood/leaf labels, stems and their LiDAR diameters
+    /// (METHOD.md Stages 3 and 5; the parameters of `sylva inventory`).
+    pub segment: crate::forest::InventoryParams,
     pub train: TrainParams,
     pub dbh: DbhParams,
     pub export: ExportParams,
@@ -120,28 +122,6 @@ impl Default for AnchorParams {
             voxel_size_m: 0.02,
             outlier_k: 16,
             outlier_alpha: 2.5,
-        }
-    }
-}
-
-/// Stage `segment`: wood/leaf labels from eigen features and 2-means (paper 3.4).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-#[serde(default, deny_unknown_fields)]
-pub struct SegmentParams {
-    /// Neighbours for the covariance eigen features (paper 3.4: k = 20).
-    pub k: u32,
-    /// Weight of RGB in the feature vector (paper 3.4: w = 0.5).
-    pub color_weight: f64,
-    /// Components smaller than this take their neighbours' label (paper 3.4: tau_c = 50).
-    pub min_component: u32,
-}
-
-impl Default for SegmentParams {
-    fn default() -> Self {
-        Self {
-            k: 20,
-            color_weight: 0.5,
-            min_component: 50,
         }
     }
 }

@@ -1,0 +1,167 @@
+//! Stage `segment`: the forest analysis of the LiDAR cloud (METHOD.md Stage 3 and the LiDAR
+//! half of Stage 5) — ground and DTM, wood/leaf labels with a trunk probability per point,
+//! stems and their LiDAR diameters — and the labels carried over to the anchors for the
+//! trainer. The same [`crate::forest::inventory`] serves `sylva inventory`.
+//!
+//! The anchors take the label and trunk probability of their nearest LiDAR point: the anchor
+//! set is a 2 cm voxel thinning of the same surfaces, so a nearest-point transfer keeps the
+//! segmentation of the full-density cloud, whose eigen features are better defined than on a
+//! thinned one.
+//!
+//! Outputs (LiDAR local frame, offset in the PLY headers): `labelled.ply` (fields `label`
+//! 0 leaf / 1 trunk, `ground` 0/1, `trunk_prob`, `height_m` above the DTM), `anchors.ply`
+//! (anchor colour, normals, `label`, `trunk_prob`), `dtm.json`, `stems.json`, and the
+//! LiDAR-only inventory `trees.csv` / `trees.geojson` (original coordinates; stage `dbh`
+//! writes the final one with the Gaussian diameters beside these).
+
+use serde_json::json;
+
+use super::{Stage, StageContext, StageError};
+use crate::forest::{self, ForestError};
+use crate::geom::PointIndex;
+use crate::io::ply::{self, ScalarField};
+use crate::io::pointcloud;
+use crate::progress::SubProgress;
+
+impl From<ForestError> for StageError {
+    fn from(e: ForestError) -> Self {
+        match e {
+            ForestError::Cancelled => StageError::Cancelled,
+            ForestError::Io(e) => StageError::Io(e),
+            other => StageError::Input(other.to_string()),
+        }
+    }
+}
+
+/// A stem as `stems.json` lists it (local coordinates, metres; the point list is left out).
+#[derive(serde::Serialize)]
+struct StemRecord<'a> {
+    id: u32,
+    base: [f32; 3],
+    axis: [f32; 3],
+    lean_deg: f32,
+    dbh: &'a forest::StemDbh,
+}
+
+pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
+    let params = &ctx.params.segment;
+    let ingest = ctx.output_of(Stage::Ingest, Stage::Segment)?;
+    let anchors_dir = ctx.output_of(Stage::Anchors, Stage::Segment)?;
+    let cloud = pointcloud::read_point_cloud(
+        &ingest.join("cloud.ply"),
+        &SubProgress::new(ctx.progress, 0.0, 0.05),
+    )?;
+    let inv = forest::inventory(&cloud, params, &SubProgress::new(ctx.progress, 0.05, 0.8))?;
+
+    let heights = inv.dtm.heights_above(&cloud.positions);
+    let field = |name: &str, values: Vec<f32>| ScalarField {
+        name: name.into(),
+        values,
+    };
+    ply::write_ply(
+        &ctx.out_dir.join("labelled.ply"),
+        &cloud,
+        &[
+            field("label", inv.labels.iter().map(|&l| l as f32).collect()),
+            field(
+                "ground",
+                inv.is_ground.iter().map(|&g| f32::from(g)).collect(),
+            ),
+            field("trunk_prob", inv.trunk_probability.clone()),
+            field("height_m", heights),
+        ],
+    )?;
+    ctx.progress.set(0.9);
+
+    // Labels for the anchors from their nearest LiDAR point.
+    let (anchors, mut anchor_fields) = ply::read_ply_with_fields(
+        &anchors_dir.join("anchors.ply"),
+        &SubProgress::new(ctx.progress, 0.9, 0.02),
+    )?;
+    let index = PointIndex::new(&cloud.positions)?;
+    // Anchors are in the same local frame as the cloud, up to a different offset.
+    let shift = (anchors.offset - cloud.offset).as_vec3();
+    let queries: Vec<glam::Vec3> = anchors.positions.iter().map(|p| *p + shift).collect();
+    let nearest = index.nearest_batch(&queries, &SubProgress::new(ctx.progress, 0.92, 0.05))?;
+    let (mut label, mut prob) = (Vec::new(), Vec::new());
+    for nb in &nearest {
+        let i = nb.map_or(0, |n| n.index as usize);
+        let ground = inv.is_ground.get(i).copied().unwrap_or(true);
+        label.push(if ground {
+            0.0
+        } else {
+            f32::from(inv.labels[i])
+        });
+        prob.push(if ground {
+            0.0
+        } else {
+            inv.trunk_probability[i]
+        });
+    }
+    let trunk_anchors = label.iter().filter(|&&l| l > 0.5).count();
+    anchor_fields.retain(|f| f.name != "label" && f.name != "trunk_prob");
+    anchor_fields.push(field("label", label));
+    anchor_fields.push(field("trunk_prob", prob));
+    ply::write_ply(&ctx.out_dir.join("anchors.ply"), &anchors, &anchor_fields)?;
+
+    // The ground model, the stems and the LiDAR-only inventory.
+    let write_json = |name: &str, value: &serde_json::Value| -> Result<(), StageError> {
+        let path = ctx.out_dir.join(name);
+        let text = serde_json::to_vec_pretty(value).unwrap_or_default();
+        super::write_synced(&path, &text).map_err(|e| super::io_err(&path, e))
+    };
+    let dtm = json!({
+        "offset": [cloud.offset.x, cloud.offset.y, cloud.offset.z],
+        "dtm": inv.dtm,
+    });
+    write_json("dtm.json", &dtm)?;
+    let stems: Vec<StemRecord<'_>> = inv
+        .stems
+        .iter()
+        .zip(&inv.dbh)
+        .map(|(s, d)| StemRecord {
+            id: s.id,
+            base: s.base.to_array(),
+            axis: s.axis.to_array(),
+            lean_deg: s.lean_deg,
+            dbh: d,
+        })
+        .collect();
+    write_json(
+        "stems.json",
+        &json!({
+            "offset": [cloud.offset.x, cloud.offset.y, cloud.offset.z],
+            "stems": stems,
+        }),
+    )?;
+    forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), &inv.trees)?;
+    forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &inv.trees)?;
+    let comparison = match &ctx.inputs.field_dbh {
+        Some(path) => {
+            let cmp = forest::compare_with_field_file(&inv.trees, path)?;
+            for line in forest::accuracy_lines(&cmp) {
+                ctx.progress.log(&line);
+            }
+            Some(cmp)
+        }
+        None => None,
+    };
+    ctx.progress.set(1.0);
+
+    let n = cloud.len();
+    let ground = inv.is_ground.iter().filter(|&&g| g).count();
+    let trunk = inv
+        .labels
+        .iter()
+        .zip(&inv.is_ground)
+        .filter(|(l, g)| **l == forest::TRUNK && !**g)
+        .count();
+    Ok(json!({
+        "points": { "total": n, "ground": ground, "trunk": trunk, "leaf": n - ground - trunk },
+        "anchors": { "total": anchors.len(), "trunk": trunk_anchors },
+        "stems": inv.stems.len(),
+        "trees": inv.trees.len(),
+        "seconds": inv.seconds,
+        "field": comparison,
+    }))
+}
