@@ -15,6 +15,7 @@ pub mod io;
 pub mod jobs;
 pub mod pipeline;
 pub mod progress;
+pub mod splat;
 pub mod store;
 pub mod synth;
 pub mod worker;

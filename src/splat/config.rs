@@ -1,0 +1,211 @@
+//! The training configuration: one struct, every knob documented with its unit and the source of
+//! its default.
+//!
+//! Defaults follow the reference 3DGS trainer (Kerbl et al. 2023, `arguments/__init__.py` of the
+//! INRIA code) and METHOD.md Stage 4. The struct (de)serialises with serde; missing fields take
+//! their defaults, so a JSON file only needs the values it changes.
+
+use serde::{Deserialize, Serialize};
+
+/// Number of steps the reference schedule is written for (Kerbl et al. 2023: 30 000 iterations).
+pub const REFERENCE_STEPS: u32 = 30_000;
+
+/// Everything the trainer needs to know besides the data.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TrainConfig {
+    /// Optimisation steps, one view each. Default 30 000 (reference; METHOD.md Stage 4).
+    pub steps: u32,
+
+    /// Position learning rate at step 0, in units of the scene extent (multiplied by it).
+    /// Default 1.6e-4 (reference `position_lr_init`).
+    pub lr_position_init: f32,
+    /// Position learning rate at the last step, × scene extent; the rate decays exponentially
+    /// (log-linear) from `lr_position_init` over `steps` (reference `expon_lr_func`).
+    /// Default 1.6e-6 (reference `position_lr_final`).
+    pub lr_position_final: f32,
+    /// Learning rate of the SH DC coefficients. Default 2.5e-3 (reference `feature_lr`).
+    pub lr_sh_dc: f32,
+    /// Learning rate of the SH coefficients of degree ≥ 1. Default 2.5e-3 / 20 = 1.25e-4
+    /// (reference: `feature_lr / 20.0` for `f_rest`).
+    pub lr_sh_rest: f32,
+    /// Learning rate of the opacity logits. Default 0.025 (reference `opacity_lr`; METHOD.md
+    /// allows 0.025–0.05).
+    pub lr_opacity: f32,
+    /// Learning rate of the log-scales. Default 5e-3 (reference `scaling_lr`).
+    pub lr_scale: f32,
+    /// Learning rate of the (unnormalised) rotation quaternions. Default 1e-3
+    /// (reference `rotation_lr`).
+    pub lr_rotation: f32,
+
+    /// Weight λ of the D-SSIM term, L = (1 − λ) L1 + λ (1 − SSIM), [0, 1].
+    /// Default 0.2 (reference `lambda_dssim`; SPLATTING.md "Loss").
+    pub lambda_ssim: f32,
+
+    /// First step at which densification runs (exclusive, as the reference). Default 500
+    /// (reference `densify_from_iter`).
+    pub densify_from: u32,
+    /// Step after which neither densification nor opacity reset run. Default 15 000
+    /// (reference `densify_until_iter`).
+    pub densify_until: u32,
+    /// Steps between densifications. Default 100 (reference `densification_interval`).
+    pub densify_interval: u32,
+    /// Threshold on the mean view-space positional gradient (NDC units, see SPLATTING.md
+    /// "Backward") above which a Gaussian is cloned or split. Default 0.0002
+    /// (reference `densify_grad_threshold`).
+    pub densify_grad_threshold: f32,
+    /// Gaussians whose largest axis is ≤ `percent_dense` × scene extent are cloned, larger ones
+    /// split; fraction of the extent. Default 0.01 (reference `percent_dense`).
+    pub percent_dense: f32,
+    /// Steps between opacity resets (opacity ← min(opacity, 0.01)). Default 3000
+    /// (reference `opacity_reset_interval`).
+    pub opacity_reset_interval: u32,
+    /// Gaussians with opacity below this are pruned at each densification, [0, 1].
+    /// Default 0.005 (reference `densify_and_prune(..., 0.005, ...)`).
+    pub prune_opacity: f32,
+    /// After the first opacity reset, Gaussians whose largest screen radius since the last
+    /// densification exceeds this are pruned; pixels. Default 20 (reference `size_threshold`).
+    pub prune_screen_radius_px: f32,
+    /// After the first opacity reset, Gaussians whose largest axis exceeds this fraction of the
+    /// scene extent are pruned. Default 0.1 (reference `prune`: `0.1 * extent`).
+    pub prune_world_size: f32,
+    /// Optional cap on the number of Gaussians; densification stops growing the model at the
+    /// cap, taking the highest gradients first. Default none (reference has no cap).
+    pub max_gaussians: Option<usize>,
+
+    /// The active SH degree grows by one every this many steps. Default 1000 (reference
+    /// `oneupSHdegree` every 1000 iterations; METHOD.md Stage 4).
+    pub sh_degree_interval: u32,
+    /// Highest SH degree, 0..=3. Default 3 (reference `sh_degree`).
+    pub max_sh_degree: u32,
+
+    /// Background colour composited behind the Gaussians, linear RGB in [0, 1].
+    /// Default black (reference `white_background = False`).
+    pub background: [f32; 3],
+    /// Every `test_every`-th image (sorted by name, index % test_every == 0) is held out for
+    /// evaluation; 0 holds out nothing. Default 8 (reference `llffhold`; METHOD.md evaluation).
+    pub test_every: usize,
+    /// Long side of the training images in pixels after downscaling (area averaging); none keeps
+    /// the native resolution. Default none (the reference rescales only above 1600 px).
+    pub resolution: Option<u32>,
+    /// Seed of the random numbers used by densification (split sampling). Default 0.
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            steps: REFERENCE_STEPS,
+            lr_position_init: 1.6e-4,
+            lr_position_final: 1.6e-6,
+            lr_sh_dc: 2.5e-3,
+            lr_sh_rest: 2.5e-3 / 20.0,
+            lr_opacity: 0.025,
+            lr_scale: 5e-3,
+            lr_rotation: 1e-3,
+            lambda_ssim: 0.2,
+            densify_from: 500,
+            densify_until: 15_000,
+            densify_interval: 100,
+            densify_grad_threshold: 2e-4,
+            percent_dense: 0.01,
+            opacity_reset_interval: 3000,
+            prune_opacity: 0.005,
+            prune_screen_radius_px: 20.0,
+            prune_world_size: 0.1,
+            max_gaussians: None,
+            sh_degree_interval: 1000,
+            max_sh_degree: 3,
+            background: [0.0; 3],
+            test_every: 8,
+            resolution: None,
+            seed: 0,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// This configuration trained for `steps` steps instead.
+    ///
+    /// When `steps` is below [`REFERENCE_STEPS`], every step count of the schedule
+    /// (densification start, end and interval, opacity-reset interval, SH-degree interval) is
+    /// multiplied by `steps / 30 000` and rounded, with intervals kept ≥ 1 — so a short run goes
+    /// through the same phases in the same proportions (e.g. 3000 steps: densify from 50 to 1500
+    /// every 10, reset every 300, SH degree up every 100). Thresholds and learning rates are
+    /// unchanged; the position rate still decays over the (new) `steps`. At 30 000 steps or more
+    /// only `steps` changes and the schedule stays the reference one.
+    pub fn scaled_to(&self, steps: u32) -> TrainConfig {
+        let mut c = self.clone();
+        c.steps = steps;
+        if steps >= REFERENCE_STEPS {
+            return c;
+        }
+        let f = steps as f64 / REFERENCE_STEPS as f64;
+        let scale = |s: u32| (s as f64 * f).round() as u32;
+        c.densify_from = scale(self.densify_from);
+        c.densify_until = scale(self.densify_until);
+        c.densify_interval = scale(self.densify_interval).max(1);
+        c.opacity_reset_interval = scale(self.opacity_reset_interval).max(1);
+        c.sh_degree_interval = scale(self.sh_degree_interval).max(1);
+        c
+    }
+
+    /// Active SH degree at `step` (1-based): one more every `sh_degree_interval` steps, capped
+    /// at `max_sh_degree` (reference: degree up at iterations 1000, 2000, 3000).
+    pub fn sh_degree_at(&self, step: u32) -> u32 {
+        let up = step / self.sh_degree_interval.max(1);
+        up.min(self.max_sh_degree.min(crate::splat::model::MAX_SH_DEGREE))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_match_the_reference_trainer() {
+        let c = TrainConfig::default();
+        assert_eq!(c.steps, 30_000);
+        assert!((c.lr_sh_rest - 1.25e-4).abs() < 1e-9);
+        assert_eq!(
+            (c.densify_from, c.densify_until, c.densify_interval),
+            (500, 15_000, 100)
+        );
+        assert_eq!(c.test_every, 8);
+    }
+
+    #[test]
+    fn missing_json_fields_take_defaults() {
+        let c: TrainConfig = serde_json::from_str(r#"{"steps": 7000, "max_gaussians": 1000}"#)
+            .expect("valid config");
+        assert_eq!(c.steps, 7000);
+        assert_eq!(c.max_gaussians, Some(1000));
+        assert_eq!(c.densify_until, 15_000);
+        let back: TrainConfig =
+            serde_json::from_str(&serde_json::to_string(&c).expect("serialise")).expect("parse");
+        assert_eq!(back, c);
+    }
+
+    #[test]
+    fn short_runs_scale_the_schedule_proportionally() {
+        let c = TrainConfig::default().scaled_to(3000);
+        assert_eq!(
+            (c.densify_from, c.densify_until, c.densify_interval),
+            (50, 1500, 10)
+        );
+        assert_eq!((c.opacity_reset_interval, c.sh_degree_interval), (300, 100));
+        let tiny = TrainConfig::default().scaled_to(10);
+        assert!(tiny.densify_interval >= 1 && tiny.sh_degree_interval >= 1);
+        let long = TrainConfig::default().scaled_to(60_000);
+        assert_eq!(long.densify_until, 15_000);
+    }
+
+    #[test]
+    fn sh_degree_grows_every_interval_up_to_three() {
+        let c = TrainConfig::default();
+        assert_eq!(c.sh_degree_at(0), 0);
+        assert_eq!(c.sh_degree_at(999), 0);
+        assert_eq!(c.sh_degree_at(1000), 1);
+        assert_eq!(c.sh_degree_at(29_999), 3);
+    }
+}

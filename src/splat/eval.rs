@@ -1,0 +1,266 @@
+//! Evaluation of renders against held-out images: PSNR, SSIM, a per-view report, side-by-side
+//! PNGs, and the training-loss log as CSV.
+//!
+//! SSIM is the loss's (SPLATTING.md "Loss"): 11×11 Gaussian window, σ = 1.5, normalised to sum 1,
+//! C1 = 0.01², C2 = 0.03², zero padding at the border ("same" convolution of the reference
+//! `ssim()`), averaged over pixels and the three channels. Images are RGB f32 in [0, 1],
+//! row-major.
+
+use std::io::{self, Write};
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::splat::packed_image::PackedImage;
+
+/// Side of the SSIM window, pixels (reference `ssim(window_size=11)`).
+pub const SSIM_WINDOW: usize = 11;
+/// Standard deviation of the SSIM window, pixels (reference `gaussian(window_size, 1.5)`).
+pub const SSIM_SIGMA: f32 = 1.5;
+/// PSNR reported for identical images, dB (instead of infinity, which JSON cannot hold).
+pub const PSNR_IDENTICAL: f32 = 100.0;
+
+/// Why an evaluation could not be made or saved.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("render has {render} pixels but the ground truth {truth}; expected {width}×{height}")]
+    SizeMismatch {
+        render: usize,
+        truth: usize,
+        width: u32,
+        height: u32,
+    },
+    #[error("writing {path}: {source}")]
+    Image {
+        path: String,
+        source: image::ImageError,
+    },
+    #[error("writing the report: {0}")]
+    Io(#[from] io::Error),
+}
+
+fn check(a: &[[f32; 3]], b: &[[f32; 3]], width: u32, height: u32) -> Result<(), EvalError> {
+    let n = width as usize * height as usize;
+    if a.len() != n || b.len() != n {
+        return Err(EvalError::SizeMismatch {
+            render: a.len(),
+            truth: b.len(),
+            width,
+            height,
+        });
+    }
+    Ok(())
+}
+
+/// PSNR in dB for values in [0, 1]: 10 log10(1 / MSE), MSE over pixels and channels;
+/// [`PSNR_IDENTICAL`] for identical images.
+pub fn psnr(
+    render: &[[f32; 3]],
+    truth: &[[f32; 3]],
+    width: u32,
+    height: u32,
+) -> Result<f32, EvalError> {
+    check(render, truth, width, height)?;
+    let se: f64 = render
+        .iter()
+        .zip(truth)
+        .flat_map(|(a, b)| (0..3).map(move |c| ((a[c] - b[c]) as f64).powi(2)))
+        .sum();
+    let mse = se / (3 * render.len().max(1)) as f64;
+    Ok(if mse <= 1e-10 {
+        PSNR_IDENTICAL
+    } else {
+        (-10.0 * mse.log10()) as f32
+    })
+}
+
+/// Normalised 1-D Gaussian window of the SSIM.
+fn window() -> [f32; SSIM_WINDOW] {
+    let half = (SSIM_WINDOW / 2) as f32;
+    let w: [f32; SSIM_WINDOW] = std::array::from_fn(|i| {
+        (-((i as f32 - half).powi(2)) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
+    });
+    let s: f32 = w.iter().sum();
+    w.map(|v| v / s)
+}
+
+/// "Same" separable convolution with zero padding.
+fn blur(x: &[f32], width: usize, height: usize, w: &[f32; SSIM_WINDOW]) -> Vec<f32> {
+    let r = (SSIM_WINDOW / 2) as isize;
+    let mut tmp = vec![0.0; x.len()];
+    for y in 0..height {
+        for i in 0..width {
+            tmp[y * width + i] = (-r..=r)
+                .filter_map(|d| {
+                    let j = i as isize + d;
+                    (0..width as isize)
+                        .contains(&j)
+                        .then(|| w[(d + r) as usize] * x[y * width + j as usize])
+                })
+                .sum();
+        }
+    }
+    let mut out = vec![0.0; x.len()];
+    for y in 0..height {
+        for i in 0..width {
+            out[y * width + i] = (-r..=r)
+                .filter_map(|d| {
+                    let j = y as isize + d;
+                    (0..height as isize)
+                        .contains(&j)
+                        .then(|| w[(d + r) as usize] * tmp[j as usize * width + i])
+                })
+                .sum();
+        }
+    }
+    out
+}
+
+/// Mean SSIM over pixels and channels (the loss's definition; see the module docs).
+pub fn ssim(
+    render: &[[f32; 3]],
+    truth: &[[f32; 3]],
+    width: u32,
+    height: u32,
+) -> Result<f32, EvalError> {
+    check(render, truth, width, height)?;
+    const C1: f32 = 0.01 * 0.01;
+    const C2: f32 = 0.03 * 0.03;
+    let (w, h) = (width as usize, height as usize);
+    let win = window();
+    let mut total = 0.0f64;
+    for c in 0..3 {
+        let x: Vec<f32> = render.iter().map(|p| p[c]).collect();
+        let y: Vec<f32> = truth.iter().map(|p| p[c]).collect();
+        let prod = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(u, v)| u * v).collect::<Vec<f32>>();
+        let (mx, my) = (blur(&x, w, h, &win), blur(&y, w, h, &win));
+        let (sxx, syy, sxy) = (
+            blur(&prod(&x, &x), w, h, &win),
+            blur(&prod(&y, &y), w, h, &win),
+            blur(&prod(&x, &y), w, h, &win),
+        );
+        for k in 0..x.len() {
+            let (vx, vy, cxy) = (
+                sxx[k] - mx[k] * mx[k],
+                syy[k] - my[k] * my[k],
+                sxy[k] - mx[k] * my[k],
+            );
+            let num = (2.0 * mx[k] * my[k] + C1) * (2.0 * cxy + C2);
+            let den = (mx[k] * mx[k] + my[k] * my[k] + C1) * (vx + vy + C2);
+            total += (num / den) as f64;
+        }
+    }
+    Ok((total / (3 * render.len().max(1)) as f64) as f32)
+}
+
+/// Metrics of one held-out view.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewMetrics {
+    /// Image name (COLMAP).
+    pub name: String,
+    /// dB.
+    pub psnr: f32,
+    /// [−1, 1], 1 = identical.
+    pub ssim: f32,
+}
+
+impl ViewMetrics {
+    /// Metrics of a render against its 8-bit ground truth (converted to [0, 1]).
+    pub fn measure(
+        name: &str,
+        render: &[[f32; 3]],
+        truth: &PackedImage,
+    ) -> Result<Self, EvalError> {
+        let t = truth.to_rgb_f32();
+        Ok(ViewMetrics {
+            name: name.to_string(),
+            psnr: psnr(render, &t, truth.width, truth.height)?,
+            ssim: ssim(render, &t, truth.width, truth.height)?,
+        })
+    }
+}
+
+/// Averages over the held-out views and the views themselves (METHOD.md evaluation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalReport {
+    /// Mean PSNR over views, dB (mean of per-view PSNR, as the reference `metrics.py`).
+    pub psnr: f32,
+    /// Mean SSIM over views.
+    pub ssim: f32,
+    pub views: Vec<ViewMetrics>,
+}
+
+impl EvalReport {
+    /// Report of `views`; averages are 0 when there are none.
+    pub fn from_views(views: Vec<ViewMetrics>) -> Self {
+        let n = views.len().max(1) as f32;
+        EvalReport {
+            psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
+            ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
+            views,
+        }
+    }
+}
+
+fn to_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+/// Saves render (left) and ground truth (right) side by side as an RGB PNG.
+pub fn save_side_by_side(
+    path: &Path,
+    render: &[[f32; 3]],
+    truth: &[[f32; 3]],
+    width: u32,
+    height: u32,
+) -> Result<(), EvalError> {
+    check(render, truth, width, height)?;
+    let img = image::RgbImage::from_fn(2 * width, height, |x, y| {
+        let (src, x) = if x < width {
+            (render, x)
+        } else {
+            (truth, x - width)
+        };
+        image::Rgb(src[(y * width + x) as usize].map(to_u8))
+    });
+    img.save_with_format(path, image::ImageFormat::Png)
+        .map_err(|source| EvalError::Image {
+            path: path.display().to_string(),
+            source,
+        })
+}
+
+/// One line of the training log.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LossRecord {
+    /// Step, 1-based.
+    pub step: u32,
+    /// Total loss.
+    pub loss: f32,
+    /// L1 term (mean absolute error, [0, 1]).
+    pub l1: f32,
+    /// Mean SSIM of the step's view.
+    pub ssim: f32,
+    /// Gaussians in the model.
+    pub n_gaussians: usize,
+    /// Wall time since training started, seconds.
+    pub seconds: f64,
+}
+
+/// Writes the log as CSV with header `step,loss,l1,ssim,n_gaussians,seconds`.
+pub fn write_loss_csv<W: Write>(out: W, records: &[LossRecord]) -> io::Result<()> {
+    let mut out = io::BufWriter::new(out);
+    writeln!(out, "step,loss,l1,ssim,n_gaussians,seconds")?;
+    for r in records {
+        writeln!(
+            out,
+            "{},{},{},{},{},{:.3}",
+            r.step, r.loss, r.l1, r.ssim, r.n_gaussians, r.seconds
+        )?;
+    }
+    out.flush()
+}
+
+#[cfg(test)]
+#[path = "eval_tests.rs"]
+mod tests;

@@ -1,0 +1,137 @@
+//! Tests of the metrics and report files.
+
+use super::*;
+use crate::splat::rng::SplitMix64;
+
+fn noise(n: usize, seed: u64) -> Vec<[f32; 3]> {
+    let mut r = SplitMix64::new(seed);
+    (0..n)
+        .map(|_| std::array::from_fn(|_| r.uniform() as f32))
+        .collect()
+}
+
+/// SSIM with the 2-D window applied directly (no separability), zero padding.
+fn ssim_direct(a: &[[f32; 3]], b: &[[f32; 3]], w: usize, h: usize) -> f64 {
+    let g = window();
+    let mut total = 0.0;
+    for c in 0..3 {
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                let (mut mx, mut my, mut sxx, mut syy, mut sxy) = (0.0f64, 0.0, 0.0, 0.0, 0.0);
+                for dy in -5..=5isize {
+                    for dx in -5..=5isize {
+                        let (i, j) = (x + dx, y + dy);
+                        if i < 0 || j < 0 || i >= w as isize || j >= h as isize {
+                            continue;
+                        }
+                        let k = (g[(dx + 5) as usize] * g[(dy + 5) as usize]) as f64;
+                        let (p, q) = (
+                            a[j as usize * w + i as usize][c] as f64,
+                            b[j as usize * w + i as usize][c] as f64,
+                        );
+                        (mx, my, sxx, syy, sxy) = (
+                            mx + k * p,
+                            my + k * q,
+                            sxx + k * p * p,
+                            syy + k * q * q,
+                            sxy + k * p * q,
+                        );
+                    }
+                }
+                let (c1, c2) = (1e-4, 9e-4);
+                total += (2.0 * mx * my + c1) * (2.0 * (sxy - mx * my) + c2)
+                    / ((mx * mx + my * my + c1) * (sxx - mx * mx + syy - my * my + c2));
+            }
+        }
+    }
+    total / (3 * w * h) as f64
+}
+
+#[test]
+fn psnr_of_a_uniform_error_of_a_tenth_is_twenty_db() {
+    let a = vec![[0.5f32; 3]; 12];
+    let b = vec![[0.6f32; 3]; 12];
+    assert!((psnr(&a, &b, 4, 3).expect("sizes match") - 20.0).abs() < 1e-3);
+    assert_eq!(psnr(&a, &a, 4, 3).expect("sizes match"), PSNR_IDENTICAL);
+    assert!(matches!(
+        psnr(&a, &b, 5, 3),
+        Err(EvalError::SizeMismatch { .. })
+    ));
+}
+
+#[test]
+fn ssim_matches_a_direct_two_dimensional_window_with_zero_padding() {
+    let (w, h) = (23, 17);
+    let a = noise(w * h, 1);
+    let b: Vec<[f32; 3]> = a
+        .iter()
+        .zip(noise(w * h, 2))
+        .map(|(p, q)| std::array::from_fn(|c| 0.7 * p[c] + 0.3 * q[c]))
+        .collect();
+    let fast = ssim(&a, &b, w as u32, h as u32).expect("sizes match") as f64;
+    let slow = ssim_direct(&a, &b, w, h);
+    assert!(
+        (fast - slow).abs() < 1e-4,
+        "separable {fast} vs direct {slow}"
+    );
+    assert!(fast < 0.95);
+    assert!((ssim(&a, &a, w as u32, h as u32).expect("sizes match") - 1.0).abs() < 1e-5);
+}
+
+#[test]
+fn report_averages_views_and_serialises() {
+    let truth = crate::splat::packed_image::PackedImage::filled(4, 4, [128, 128, 128, 255]);
+    let render = vec![[128.0 / 255.0 + 0.01; 3]; 16];
+    let v = ViewMetrics::measure("a.jpg", &render, &truth).expect("sizes match");
+    assert!((v.psnr - 40.0).abs() < 0.01);
+    let r = EvalReport::from_views(vec![
+        v.clone(),
+        ViewMetrics {
+            name: "b.jpg".into(),
+            psnr: 20.0,
+            ssim: 0.5,
+        },
+    ]);
+    assert!((r.psnr - 30.0).abs() < 0.01);
+    let json = serde_json::to_string(&r).expect("serialise");
+    assert!(json.contains("\"views\"") && json.contains("\"b.jpg\""));
+    assert_eq!(serde_json::from_str::<EvalReport>(&json).expect("parse"), r);
+}
+
+#[test]
+fn side_by_side_png_has_render_left_and_truth_right() {
+    let dir = std::env::temp_dir().join(format!("splat-train-eval-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let path = dir.join("view.png");
+    save_side_by_side(&path, &[[1.0, 0.0, 0.0]; 6], &[[0.0, 0.0, 1.0]; 6], 3, 2)
+        .expect("write png");
+    let img = image::open(&path).expect("read back").to_rgb8();
+    assert_eq!(img.dimensions(), (6, 2));
+    assert_eq!(img.get_pixel(0, 0).0, [255, 0, 0]);
+    assert_eq!(img.get_pixel(5, 1).0, [0, 0, 255]);
+    std::fs::remove_dir_all(&dir).expect("clean up");
+}
+
+#[test]
+fn loss_csv_has_a_header_and_one_line_per_record() {
+    let r = LossRecord {
+        step: 7,
+        loss: 0.25,
+        l1: 0.2,
+        ssim: 0.6,
+        n_gaussians: 1234,
+        seconds: 1.5,
+    };
+    let mut out = Vec::new();
+    write_loss_csv(&mut out, &[r, r]).expect("write to memory");
+    let text = String::from_utf8(out).expect("utf-8");
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(
+        lines,
+        [
+            "step,loss,l1,ssim,n_gaussians,seconds",
+            "7,0.25,0.2,0.6,1234,1.500",
+            "7,0.25,0.2,0.6,1234,1.500"
+        ]
+    );
+}

@@ -1,0 +1,254 @@
+//! Initial Gaussians: from SfM points (vanilla 3DGS) or from LiDAR anchors (METHOD.md Stage 4).
+//!
+//! Both give one isotropic Gaussian per point with identity rotation, opacity 0.1 and a DC-only
+//! colour. They differ in the scale (mean squared distance to 3 neighbours vs. distance to the
+//! nearest anchor) and the colour: anchors take the median colour of their projections into the
+//! training images where they are visible (the "photometric prior"), with visibility decided
+//! against a coarse depth buffer of the anchors themselves.
+
+use rayon::prelude::*;
+use crate::splat::model::{Gaussian, Gaussians, SH_C0, SH_FLOATS};
+
+use crate::splat::cameras::View;
+use crate::splat::packed_image::unpack;
+use crate::splat::rng::SplitMix64;
+
+/// Initial opacity, (0, 1). Reference `inverse_sigmoid(0.1 * ones)`; METHOD.md Stage 4.
+pub const INIT_OPACITY: f32 = 0.1;
+/// Floor of the squared neighbour distance, m². Reference `distCUDA2(...).clamp_min(1e-7)`.
+pub const MIN_DIST2: f64 = 1e-7;
+/// Cameras closer than this along the view axis see nothing, metres (SPLATTING.md NEAR).
+const NEAR: f32 = 0.01;
+
+/// Why no model could be built.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum InitError {
+    #[error("{points} points but {colours} colours; give one colour per point")]
+    ColourCountMismatch { points: usize, colours: usize },
+    #[error("no points to initialise from")]
+    Empty,
+}
+
+/// One Gaussian with a DC colour from 8-bit RGB (reference `RGB2SH`: (c − 0.5) / C0).
+fn seed_gaussian(mean: [f32; 3], log_scale: f32, rgb: [u8; 3], trunk_prob: f32) -> Gaussian {
+    let mut sh = [0.0; SH_FLOATS];
+    for c in 0..3 {
+        sh[c] = (rgb[c] as f32 / 255.0 - 0.5) / SH_C0;
+    }
+    Gaussian {
+        mean,
+        log_scale: [log_scale; 3],
+        rotation: [1.0, 0.0, 0.0, 0.0],
+        opacity_logit: (INIT_OPACITY / (1.0 - INIT_OPACITY)).ln(),
+        sh,
+        trunk_prob,
+    }
+}
+
+/// Vanilla 3DGS initialisation from SfM points: log-scale = log sqrt(mean squared distance to the
+/// 3 nearest other points, floored at [`MIN_DIST2`]); trunk probability 0.
+pub fn from_sfm_points(points: &[[f32; 3]], colours: &[[u8; 3]]) -> Result<Gaussians, InitError> {
+    if points.len() != colours.len() {
+        return Err(InitError::ColourCountMismatch {
+            points: points.len(),
+            colours: colours.len(),
+        });
+    }
+    if points.is_empty() {
+        return Err(InitError::Empty);
+    }
+    let knn = self_knn_dist2(points, 3);
+    let mut g = Gaussians::default();
+    for ((p, c), d) in points.iter().zip(colours).zip(&knn) {
+        let mean_d2 = if d.is_empty() {
+            MIN_DIST2
+        } else {
+            d.iter().sum::<f64>() / d.len() as f64
+        };
+        g.push(seed_gaussian(
+            *p,
+            (0.5 * mean_d2.max(MIN_DIST2).ln()) as f32,
+            *c,
+            0.0,
+        ));
+    }
+    Ok(g)
+}
+
+/// A LiDAR anchor: position (metres), its own colour (fallback) and trunk probability P_i.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Anchor {
+    pub position: [f32; 3],
+    pub colour: [u8; 3],
+    pub trunk_prob: f32,
+}
+
+/// Parameters of the anchor initialisation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AnchorInit {
+    /// eps of s = log sqrt(d² + eps), m². Default 1e-7 (the reference's distance floor; METHOD.md
+    /// leaves eps open).
+    pub eps: f64,
+    /// Cell size of the coarse per-image depth buffer, pixels. Default 8 (about the spacing of
+    /// voxel-downsampled anchors in a 1–2 MP image; ours).
+    pub depth_cell_px: u32,
+    /// An anchor is visible when its depth is within this relative margin of its cell's nearest
+    /// anchor. Default 0.03 (ours).
+    pub depth_tolerance: f32,
+    /// Colour samples kept per anchor (reservoir sampling); the median is taken over them.
+    /// Default 16 (ours; bounds memory at millions of anchors).
+    pub max_samples: usize,
+    /// Seed of the reservoir sampling. Default 0.
+    pub seed: u64,
+}
+
+impl Default for AnchorInit {
+    fn default() -> Self {
+        AnchorInit {
+            eps: MIN_DIST2,
+            depth_cell_px: 8,
+            depth_tolerance: 0.03,
+            max_samples: 16,
+            seed: 0,
+        }
+    }
+}
+
+/// Anchor initialisation (paper 3.3.3): s = log sqrt(d² + eps) with d to the nearest other
+/// anchor; colour = per-channel median of the anchor's visible projections into `views`,
+/// falling back to its own colour; trunk probability from the anchor.
+pub fn from_anchors(
+    anchors: &[Anchor],
+    views: &[View],
+    params: &AnchorInit,
+) -> Result<Gaussians, InitError> {
+    if anchors.is_empty() {
+        return Err(InitError::Empty);
+    }
+    let positions: Vec<[f32; 3]> = anchors.iter().map(|a| a.position).collect();
+    let nearest = self_knn_dist2(&positions, 1);
+    let colours = photometric_colours(anchors, views, params);
+    let mut g = Gaussians::default();
+    for ((a, d), c) in anchors.iter().zip(&nearest).zip(colours) {
+        let d2 = d.first().copied().unwrap_or(0.0);
+        g.push(seed_gaussian(
+            a.position,
+            (0.5 * (d2 + params.eps).max(f64::MIN_POSITIVE).ln()) as f32,
+            c,
+            a.trunk_prob,
+        ));
+    }
+    Ok(g)
+}
+
+/// Per anchor, the median colour of its projections into the views where it is visible, or its
+/// own colour where it is visible in none.
+pub fn photometric_colours(
+    anchors: &[Anchor],
+    views: &[View],
+    params: &AnchorInit,
+) -> Vec<[u8; 3]> {
+    let mut samples: Vec<Vec<[u8; 3]>> = vec![Vec::new(); anchors.len()];
+    let mut seen = vec![0u64; anchors.len()];
+    let mut rng = SplitMix64::new(params.seed);
+    let keep = params.max_samples.max(1);
+    for view in views {
+        for (i, c) in visible_colours(anchors, view, params) {
+            seen[i] += 1;
+            if samples[i].len() < keep {
+                samples[i].push(c);
+            } else {
+                let j = rng.below(seen[i]) as usize;
+                if j < keep {
+                    samples[i][j] = c;
+                }
+            }
+        }
+    }
+    samples
+        .into_iter()
+        .zip(anchors)
+        .map(|(s, a)| median_colour(s).unwrap_or(a.colour))
+        .collect()
+}
+
+/// (anchor index, pixel colour) for every anchor visible in `view`.
+fn visible_colours(anchors: &[Anchor], view: &View, params: &AnchorInit) -> Vec<(usize, [u8; 3])> {
+    let cam = &view.camera;
+    let (w, h) = (
+        view.image.width.min(cam.width),
+        view.image.height.min(cam.height),
+    );
+    let cell = params.depth_cell_px.max(1);
+    let (gw, gh) = (w.div_ceil(cell) as usize, h.div_ceil(cell) as usize);
+    // (pixel x, pixel y, depth) of anchors in front of the camera and inside the image.
+    let projected: Vec<Option<(u32, u32, f32)>> = anchors
+        .par_iter()
+        .map(|a| {
+            let p = cam.to_camera(a.position);
+            if p[2] < NEAR {
+                return None;
+            }
+            let x = cam.fx * p[0] / p[2] + cam.cx;
+            let y = cam.fy * p[1] / p[2] + cam.cy;
+            let inside = x >= 0.0 && y >= 0.0 && x < w as f32 && y < h as f32;
+            inside.then_some((x as u32, y as u32, p[2]))
+        })
+        .collect();
+    let mut depth = vec![f32::INFINITY; gw * gh];
+    for &(x, y, z) in projected.iter().flatten() {
+        let c = &mut depth[(y / cell) as usize * gw + (x / cell) as usize];
+        *c = c.min(z);
+    }
+    let tol = 1.0 + params.depth_tolerance.max(0.0);
+    projected
+        .iter()
+        .enumerate()
+        .filter_map(|(i, pr)| {
+            let (x, y, z) = (*pr)?;
+            if z > depth[(y / cell) as usize * gw + (x / cell) as usize] * tol {
+                return None;
+            }
+            let px = unpack(view.image.pixels[(y * view.image.width + x) as usize]);
+            (px[3] > 0).then_some((i, [px[0], px[1], px[2]]))
+        })
+        .collect()
+}
+
+/// Per-channel median (upper middle for an even count); `None` for no samples.
+fn median_colour(mut s: Vec<[u8; 3]>) -> Option<[u8; 3]> {
+    if s.is_empty() {
+        return None;
+    }
+    let mid = s.len() / 2;
+    Some(std::array::from_fn(|c| {
+        s.sort_unstable_by_key(|p| p[c]);
+        s[mid][c]
+    }))
+}
+
+/// For every point, the squared distances (m²) to its `k` nearest other points, in input order
+/// (fewer than `k` when there are not that many; none when the points cannot be indexed).
+fn self_knn_dist2(points: &[[f32; 3]], k: usize) -> Vec<Vec<f64>> {
+    let positions: Vec<glam::Vec3> = points.iter().map(|p| glam::Vec3::from_array(*p)).collect();
+    let Ok(index) = crate::geom::PointIndex::new(&positions) else {
+        return vec![Vec::new(); points.len()];
+    };
+    positions
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            index
+                .knn(*p, k + 1)
+                .into_iter()
+                .filter(|n| n.index as usize != i)
+                .take(k)
+                .map(|n| f64::from(n.dist2))
+                .collect()
+        })
+        .collect()
+}
+
+#[cfg(test)]
+#[path = "init_tests.rs"]
+mod tests;

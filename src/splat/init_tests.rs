@@ -1,0 +1,112 @@
+//! Tests of SfM and anchor initialisation.
+
+use super::*;
+use crate::splat::packed_image::PackedImage;
+use crate::splat::camera::Camera;
+use crate::splat::model::sigmoid;
+
+#[test]
+fn sfm_scale_is_the_root_mean_square_of_three_neighbour_distances() {
+    let pts = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [2.0, 0.0, 0.0],
+        [3.0, 0.0, 0.0],
+        [3.0, 0.0, 0.0],
+    ];
+    let cols = [[255, 0, 128]; 5];
+    let g = from_sfm_points(&pts, &cols).expect("valid input");
+    // Point 0: distances 1, 2, 3 → sqrt(14 / 3).
+    assert!((g.log_scales[0][0] - (14.0f32 / 3.0).sqrt().ln()).abs() < 1e-6);
+    assert_eq!(g.log_scales[0][0], g.log_scales[0][2]);
+    assert_eq!(g.rotations[0], [1.0, 0.0, 0.0, 0.0]);
+    assert!((sigmoid(g.opacity_logits[0]) - 0.1).abs() < 1e-6);
+    // DC decodes back to the colour: 0.5 + C0 · dc.
+    assert!((0.5 + SH_C0 * g.sh[0][0] - 1.0).abs() < 1e-6);
+    assert!((0.5 + SH_C0 * g.sh[0][1]).abs() < 1e-6);
+    assert!(g.sh[0][3..].iter().all(|&v| v == 0.0));
+    assert!(g.is_consistent() && g.trunk_prob.iter().all(|&p| p == 0.0));
+}
+
+#[test]
+fn sfm_scale_has_a_floor_for_coincident_points() {
+    let g = from_sfm_points(&[[1.0; 3]; 4], &[[0; 3]; 4]).expect("valid input");
+    assert!((g.log_scales[0][0] as f64 - 0.5 * MIN_DIST2.ln()).abs() < 1e-5);
+    assert_eq!(
+        from_sfm_points(&[[0.0; 3]], &[]),
+        Err(InitError::ColourCountMismatch {
+            points: 1,
+            colours: 0
+        })
+    );
+}
+
+/// A 64×64 view looking down +z from the origin, filled with one grey level.
+fn view(grey: u8) -> View {
+    let camera = Camera::look_at(
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0],
+        [0.0, -1.0, 0.0],
+        64,
+        64,
+        64.0,
+    );
+    View {
+        name: format!("v{grey}"),
+        camera,
+        image: PackedImage::filled(64, 64, [grey, grey, grey, 255]),
+    }
+}
+
+#[test]
+fn anchors_take_the_median_colour_of_the_views_that_see_them() {
+    let anchors = [
+        // Seen by every view.
+        Anchor {
+            position: [0.0, 0.0, 2.0],
+            colour: [1, 2, 3],
+            trunk_prob: 0.8,
+        },
+        // Right behind the first one: occluded, keeps its own colour.
+        Anchor {
+            position: [0.0, 0.0, 4.0],
+            colour: [4, 5, 6],
+            trunk_prob: 0.2,
+        },
+        // Behind the cameras: keeps its own colour.
+        Anchor {
+            position: [0.3, 0.0, -2.0],
+            colour: [7, 8, 9],
+            trunk_prob: 0.0,
+        },
+    ];
+    let views = [view(10), view(200), view(30)];
+    let params = AnchorInit::default();
+    let colours = photometric_colours(&anchors, &views, &params);
+    assert_eq!(colours, vec![[30, 30, 30], [4, 5, 6], [7, 8, 9]]);
+
+    let g = from_anchors(&anchors, &views, &params).expect("anchors given");
+    assert_eq!(g.trunk_prob, vec![0.8, 0.2, 0.0]);
+    // Nearest other anchor of the first is 2 m away.
+    assert!((g.log_scales[0][0] as f64 - 0.5 * (4.0 + params.eps).ln()).abs() < 1e-6);
+    assert!((0.5 + SH_C0 * g.sh[0][0] - 30.0 / 255.0).abs() < 1e-6);
+}
+
+#[test]
+fn anchor_samples_are_bounded_by_reservoir_sampling() {
+    let anchors = [Anchor {
+        position: [0.0, 0.0, 2.0],
+        colour: [0; 3],
+        trunk_prob: 0.0,
+    }];
+    let views: Vec<View> = (0..40).map(|i| view(100 + i as u8)).collect();
+    let params = AnchorInit {
+        max_samples: 5,
+        ..AnchorInit::default()
+    };
+    let c = photometric_colours(&anchors, &views, &params)[0][0];
+    assert!(
+        (100..140).contains(&c),
+        "median of a sample of 100..140 is in range: {c}"
+    );
+}

@@ -1,0 +1,20 @@
+//! Gaussian splatting: the model, cameras and images, initialisation, the optimiser and the
+//! densification strategy, evaluation and export (METHOD.md Stage 4; conventions in
+//! docs/splatting.md). The CPU reference of the rasteriser lives in [`cpu`] and the GPU kernels
+//! in [`gpu`]; [`trainer`] ties them into the training loop that stage `train` and
+//! `sylva train` run.
+
+pub mod adam;
+pub mod camera;
+pub mod camera_models;
+pub mod cameras;
+pub mod config;
+pub mod eval;
+pub mod export;
+pub mod export_splat;
+pub mod init;
+pub mod model;
+pub mod packed_image;
+pub mod plot;
+pub mod rng;
+pub mod strategy;

@@ -1,0 +1,300 @@
+//! Densification strategies: how the set of Gaussians changes during training.
+//!
+//! The training loop knows nothing about cloning or pruning; it calls a [`Strategy`] at fixed
+//! hooks (after each backward pass, after each optimiser step), as gsplat's `Strategy` objects.
+//! [`DefaultStrategy`] is the reference adaptive density control of Kerbl et al. 2023
+//! (`densify_and_prune`, `reset_opacity`); another strategy (e.g. MCMC relocation) implements the
+//! same trait without touching the loop.
+//!
+//! Step numbers are 1-based, as the reference's `iteration`: hook calls for step `s` happen
+//! during the `s`-th optimisation step.
+
+use crate::splat::model::{Gaussian, Gaussians, sigmoid};
+
+use crate::splat::adam::{AdamState, LearningRates};
+use crate::splat::config::TrainConfig;
+use crate::splat::rng::SplitMix64;
+
+/// Per-view screen-space statistics from one backward pass.
+#[derive(Debug, Clone, Copy)]
+pub struct ViewStats<'a> {
+    /// dL/d(projected mean), pixels, one per Gaussian (SPLATTING.md "Backward").
+    pub mean2d_grads: &'a [[f32; 2]],
+    /// Screen radius in pixels, one per Gaussian; 0 where the Gaussian was culled.
+    pub radii: &'a [f32],
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+}
+
+/// What a refinement did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RefineReport {
+    /// Gaussians before.
+    pub before: usize,
+    /// Gaussians after.
+    pub after: usize,
+    /// Copies added by cloning.
+    pub cloned: usize,
+    /// Parents replaced by two children each.
+    pub split: usize,
+    /// Gaussians removed by pruning (counting new children pruned at once).
+    pub pruned: usize,
+    /// True when opacities were reset.
+    pub opacity_reset: bool,
+}
+
+/// Hooks the training loop calls; every method has a do-nothing default.
+pub trait Strategy {
+    /// After the backward pass of step `step`, with that view's screen-space statistics.
+    fn after_backward(&mut self, _step: u32, _stats: &ViewStats<'_>) {}
+    /// After the optimiser step of step `step` (e.g. to add noise to positions).
+    fn after_optimizer_step(
+        &mut self,
+        _step: u32,
+        _gaussians: &mut Gaussians,
+        _lr: &LearningRates,
+    ) {
+    }
+    /// After the optimiser step: may add, remove or edit Gaussians; must keep `adam` aligned
+    /// with `gaussians`. `scene_extent` in metres.
+    fn refine(
+        &mut self,
+        step: u32,
+        gaussians: &mut Gaussians,
+        adam: &mut AdamState,
+        scene_extent: f32,
+    ) -> RefineReport;
+}
+
+/// Reference adaptive density control (Kerbl et al. 2023, section 5; METHOD.md Stage 4).
+#[derive(Debug, Clone)]
+pub struct DefaultStrategy {
+    cfg: TrainConfig,
+    rng: SplitMix64,
+    /// Sum over views of the NDC-scaled view-space gradient norm, per Gaussian.
+    grad_sum: Vec<f32>,
+    /// Views in which each Gaussian was visible since the last densification.
+    visible_count: Vec<u32>,
+    /// Largest screen radius (pixels) since the last densification.
+    max_radius: Vec<f32>,
+}
+
+impl DefaultStrategy {
+    /// A strategy with the schedule and thresholds of `cfg`, seeded with `cfg.seed`.
+    pub fn new(cfg: &TrainConfig) -> Self {
+        DefaultStrategy {
+            cfg: cfg.clone(),
+            rng: SplitMix64::new(cfg.seed),
+            grad_sum: Vec::new(),
+            visible_count: Vec::new(),
+            max_radius: Vec::new(),
+        }
+    }
+
+    fn reset_stats(&mut self, n: usize) {
+        self.grad_sum = vec![0.0; n];
+        self.visible_count = vec![0; n];
+        self.max_radius = vec![0.0; n];
+    }
+
+    /// Mean view-space gradient of Gaussian `i` since the last densification (0 if never seen).
+    pub fn mean_grad(&self, i: usize) -> f32 {
+        match self.visible_count.get(i) {
+            Some(&c) if c > 0 => self.grad_sum[i] / c as f32,
+            _ => 0.0,
+        }
+    }
+
+    fn densify_and_prune(
+        &mut self,
+        step: u32,
+        g: &mut Gaussians,
+        adam: &mut AdamState,
+        extent: f32,
+    ) -> RefineReport {
+        let n = g.len();
+        if self.grad_sum.len() != n {
+            self.reset_stats(n);
+        }
+        let large = self.cfg.percent_dense * extent;
+        let max_scale = |g: &Gaussians, i: usize| {
+            g.log_scales[i]
+                .iter()
+                .copied()
+                .fold(f32::MIN, f32::max)
+                .exp()
+        };
+        let mut candidates: Vec<usize> = (0..n)
+            .filter(|&i| self.mean_grad(i) >= self.cfg.densify_grad_threshold)
+            .collect();
+        if let Some(cap) = self.cfg.max_gaussians {
+            // Each clone or split adds one Gaussian net; keep the highest gradients.
+            let budget = cap.saturating_sub(n);
+            if candidates.len() > budget {
+                candidates.sort_by(|&a, &b| self.mean_grad(b).total_cmp(&self.mean_grad(a)));
+                candidates.truncate(budget);
+                candidates.sort_unstable();
+            }
+        }
+        let mut is_split_parent = vec![false; n];
+        let mut clones = Vec::new();
+        let mut children = Vec::new();
+        for &i in &candidates {
+            let parent = g.get(i);
+            if max_scale(g, i) <= large {
+                clones.push(parent);
+            } else {
+                is_split_parent[i] = true;
+                children.extend(self.split_children(&parent));
+            }
+        }
+        // New order: surviving originals, clones, split children (as the reference appends).
+        let mut entries: Vec<(Option<usize>, Gaussian)> = (0..n)
+            .filter(|&i| !is_split_parent[i])
+            .map(|i| (Some(i), g.get(i)))
+            .collect();
+        entries.extend(clones.iter().chain(&children).map(|c| (None, *c)));
+
+        let after_first_reset = step > self.cfg.opacity_reset_interval;
+        let max_world = self.cfg.prune_world_size * extent;
+        let keep: Vec<bool> = entries
+            .iter()
+            .map(|(src, e)| {
+                if sigmoid(e.opacity_logit) < self.cfg.prune_opacity {
+                    return false;
+                }
+                if after_first_reset {
+                    let radius = src.map_or(0.0, |i| self.max_radius[i]);
+                    let world = e.log_scale.iter().copied().fold(f32::MIN, f32::max).exp();
+                    return radius <= self.cfg.prune_screen_radius_px && world <= max_world;
+                }
+                true
+            })
+            .collect();
+        let mut out = Gaussians {
+            sh_degree: g.sh_degree,
+            ..Default::default()
+        };
+        let mut sources = Vec::with_capacity(entries.len());
+        for ((src, e), _) in entries.iter().zip(&keep).filter(|(_, k)| **k) {
+            out.push(*e);
+            sources.push(*src);
+        }
+        adam.remap(&sources);
+        let report = RefineReport {
+            before: n,
+            after: out.len(),
+            cloned: clones.len(),
+            split: children.len() / 2,
+            pruned: entries.len() - out.len(),
+            opacity_reset: false,
+        };
+        *g = out;
+        self.reset_stats(g.len());
+        report
+    }
+
+    /// Two children sampled from the parent's Gaussian, scale / 1.6 (reference: `/(0.8 N)`, N = 2).
+    fn split_children(&mut self, parent: &Gaussian) -> [Gaussian; 2] {
+        let rot = quat_to_matrix(parent.rotation);
+        let shrink = 1.6f32.ln();
+        std::array::from_fn(|_| {
+            let z: [f32; 3] =
+                std::array::from_fn(|k| self.rng.normal() as f32 * parent.log_scale[k].exp());
+            let mut child = *parent;
+            for (row, m) in rot.iter().zip(child.mean.iter_mut()) {
+                *m += row[0] * z[0] + row[1] * z[1] + row[2] * z[2];
+            }
+            child.log_scale = parent.log_scale.map(|s| s - shrink);
+            child
+        })
+    }
+
+    fn reset_opacity(&mut self, g: &mut Gaussians, adam: &mut AdamState) {
+        let cap = (0.01f32 / 0.99).ln();
+        for o in &mut g.opacity_logits {
+            *o = o.min(cap);
+        }
+        adam.reset_opacity_moments();
+    }
+}
+
+impl Strategy for DefaultStrategy {
+    fn after_backward(&mut self, step: u32, stats: &ViewStats<'_>) {
+        if step >= self.cfg.densify_until {
+            return;
+        }
+        let n = stats.radii.len().min(stats.mean2d_grads.len());
+        if self.grad_sum.len() != n {
+            self.reset_stats(n);
+        }
+        // The reference accumulates the gradient w.r.t. NDC: d/d(ndc) = d/d(px) · size / 2.
+        let (hx, hy) = (0.5 * stats.width as f32, 0.5 * stats.height as f32);
+        for i in 0..n {
+            let r = stats.radii[i];
+            if r > 0.0 {
+                let [gx, gy] = stats.mean2d_grads[i];
+                self.grad_sum[i] += (gx * hx).hypot(gy * hy);
+                self.visible_count[i] += 1;
+                self.max_radius[i] = self.max_radius[i].max(r);
+            }
+        }
+    }
+
+    fn refine(
+        &mut self,
+        step: u32,
+        g: &mut Gaussians,
+        adam: &mut AdamState,
+        extent: f32,
+    ) -> RefineReport {
+        let c = &self.cfg;
+        let mut report = RefineReport {
+            before: g.len(),
+            after: g.len(),
+            ..Default::default()
+        };
+        if step >= c.densify_until {
+            return report;
+        }
+        if step > c.densify_from && step.is_multiple_of(c.densify_interval.max(1)) {
+            report = self.densify_and_prune(step, g, adam, extent);
+        }
+        if step.is_multiple_of(self.cfg.opacity_reset_interval.max(1)) {
+            self.reset_opacity(g, adam);
+            report.opacity_reset = true;
+        }
+        report
+    }
+}
+
+/// Rotation matrix (row-major) of the normalised quaternion (w, x, y, z).
+pub fn quat_to_matrix(q: [f32; 4]) -> [[f32; 3]; 3] {
+    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+        .sqrt()
+        .max(1e-12);
+    let [w, x, y, z] = q.map(|v| v / n);
+    [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ]
+}
+
+#[cfg(test)]
+#[path = "strategy_tests.rs"]
+mod tests;
