@@ -90,7 +90,14 @@ mod tests {
 
     #[test]
     fn look_at_puts_target_on_axis_and_up_upwards() {
-        let cam = Camera::look_at([0.0, -5.0, 2.0], [0.0, 0.0, 2.0], [0.0, 0.0, 1.0], 64, 48, 50.0);
+        let cam = Camera::look_at(
+            [0.0, -5.0, 2.0],
+            [0.0, 0.0, 2.0],
+            [0.0, 0.0, 1.0],
+            64,
+            48,
+            50.0,
+        );
         let p = cam.to_camera([0.0, 0.0, 2.0]);
         assert!(p[0].abs() < 1e-5 && p[1].abs() < 1e-5 && (p[2] - 5.0).abs() < 1e-5);
         // A point above the target appears above the centre (negative image y).

@@ -6,8 +6,8 @@
 //! training images where they are visible (the "photometric prior"), with visibility decided
 //! against a coarse depth buffer of the anchors themselves.
 
-use rayon::prelude::*;
 use crate::splat::model::{Gaussian, Gaussians, SH_C0, SH_FLOATS};
+use rayon::prelude::*;
 
 use crate::splat::cameras::View;
 use crate::splat::packed_image::unpack;

@@ -1,9 +1,9 @@
 //! Tests of SfM and anchor initialisation.
 
 use super::*;
-use crate::splat::packed_image::PackedImage;
 use crate::splat::camera::Camera;
 use crate::splat::model::sigmoid;
+use crate::splat::packed_image::PackedImage;
 
 #[test]
 fn sfm_scale_is_the_root_mean_square_of_three_neighbour_distances() {

@@ -9,6 +9,7 @@ pub mod camera;
 pub mod camera_models;
 pub mod cameras;
 pub mod config;
+pub mod dataset;
 pub mod eval;
 pub mod export;
 pub mod export_splat;

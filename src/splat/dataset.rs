@@ -1,0 +1,146 @@
+//! A training set from a COLMAP project: every registered photo decoded once, undistorted to a
+//! pinhole camera, downscaled, and split into training and held-out views (every 8th by name);
+//! plus the sparse points (for vanilla initialisation) and the scene extent that scales the
+//! position learning rate and the densification thresholds.
+
+use std::path::Path;
+
+use rayon::prelude::*;
+
+use super::cameras::{View, load_view, split_train_test};
+use super::packed_image::PackedImage;
+use crate::io::IoError;
+use crate::io::colmap::{self, ColmapModel};
+use crate::progress::Progress;
+
+/// Why a dataset could not be built; the message names the file and the fault.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    #[error(transparent)]
+    Io(#[from] IoError),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// Training and held-out views with what initialisation needs.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    pub train: Vec<View>,
+    pub test: Vec<View>,
+    /// Sparse points (metres, the model's frame) and their colours.
+    pub points: Vec<[f32; 3]>,
+    pub colours: Vec<[u8; 3]>,
+    /// Radius of the camera centres around their mean × 1.1, metres (the reference's
+    /// `cameras_extent`, which scales the position learning rate and densification).
+    pub extent: f32,
+}
+
+impl Dataset {
+    /// Every view, training first.
+    pub fn all_views(&self) -> impl Iterator<Item = &View> {
+        self.train.iter().chain(&self.test)
+    }
+}
+
+/// Loads the registered model `model` with photos from `images_dir`. `long_side` (pixels)
+/// downscales every photo so its longer side is at most that; `test_every` holds out every
+/// n-th photo by name (0 keeps all for training).
+pub fn load(
+    model: &ColmapModel,
+    images_dir: &Path,
+    long_side: Option<u32>,
+    test_every: usize,
+    progress: &dyn Progress,
+) -> Result<Dataset, DatasetError> {
+    let images: Vec<&colmap::Image> = model.images.values().collect();
+    if images.is_empty() {
+        return Err(DatasetError::Invalid(
+            "the COLMAP model has no registered images".into(),
+        ));
+    }
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let views: Vec<Result<View, DatasetError>> = images
+        .par_iter()
+        .map(|img| {
+            if progress.is_cancelled() {
+                return Err(DatasetError::Cancelled);
+            }
+            let v = load_one(model, img, images_dir, long_side);
+            let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress.set(k as f64 / images.len() as f64);
+            v
+        })
+        .collect();
+    let views: Vec<View> = views.into_iter().collect::<Result<_, _>>()?;
+    let names: Vec<&str> = views.iter().map(|v| v.name.as_str()).collect();
+    let split = split_train_test(&names, test_every);
+    let pick = |idx: &[usize]| idx.iter().map(|&i| views[i].clone()).collect::<Vec<_>>();
+    let (train, test) = (pick(&split.train), pick(&split.test));
+    if train.is_empty() {
+        return Err(DatasetError::Invalid(format!(
+            "no training views: {} photos with every {test_every}th held out",
+            views.len()
+        )));
+    }
+    let centres: Vec<[f32; 3]> = views.iter().map(|v| v.camera.centre()).collect();
+    let n = centres.len() as f32;
+    let mean = centres.iter().fold([0.0f32; 3], |a, c| {
+        [a[0] + c[0] / n, a[1] + c[1] / n, a[2] + c[2] / n]
+    });
+    let radius = centres
+        .iter()
+        .map(|c| {
+            ((c[0] - mean[0]).powi(2) + (c[1] - mean[1]).powi(2) + (c[2] - mean[2]).powi(2)).sqrt()
+        })
+        .fold(0.0f32, f32::max);
+    Ok(Dataset {
+        train,
+        test,
+        points: model
+            .points
+            .iter()
+            .map(|p| p.xyz.as_vec3().to_array())
+            .collect(),
+        colours: model.points.iter().map(|p| p.rgb).collect(),
+        // A single camera has no spread; fall back to 1 m rather than a zero learning rate.
+        extent: if radius > 0.0 { radius * 1.1 } else { 1.0 },
+    })
+}
+
+fn load_one(
+    model: &ColmapModel,
+    img: &colmap::Image,
+    images_dir: &Path,
+    long_side: Option<u32>,
+) -> Result<View, DatasetError> {
+    let cam = model.cameras.get(&img.camera_id).ok_or_else(|| {
+        DatasetError::Invalid(format!(
+            "image {} refers to camera {}, which the model lacks",
+            img.name, img.camera_id
+        ))
+    })?;
+    let path = colmap::image_path(images_dir, &img.name)
+        .ok_or_else(|| DatasetError::Invalid(format!("image {} has an unsafe path", img.name)))?;
+    let decoded = image::open(&path)
+        .map_err(|e| DatasetError::Invalid(format!("{}: cannot decode: {e}", path.display())))?
+        .to_rgba8();
+    let (w, h) = decoded.dimensions();
+    let packed = PackedImage::from_rgba8(w, h, decoded.as_raw()).ok_or_else(|| {
+        DatasetError::Invalid(format!("{}: inconsistent image buffer", path.display()))
+    })?;
+    let dims = |v: u64| u32::try_from(v).unwrap_or(u32::MAX);
+    load_view(
+        &img.name,
+        cam.model.name(),
+        &cam.params,
+        dims(cam.width),
+        dims(cam.height),
+        img.qvec,
+        img.tvec,
+        &packed,
+        long_side,
+    )
+    .map_err(|e| DatasetError::Invalid(format!("{}: {e}", img.name)))
+}
