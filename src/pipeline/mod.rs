@@ -8,6 +8,7 @@
 //! knows about HTTP or SQL.
 
 pub mod anchors;
+pub mod dbh;
 pub mod ingest;
 pub mod inspect;
 pub mod params;
@@ -208,6 +209,7 @@ pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Val
         Stage::Register => register::run(ctx),
         Stage::Anchors => anchors::run(ctx),
         Stage::Segment => segment::run(ctx),
+        Stage::Dbh => dbh::run(ctx),
         other => Err(StageError::NotAvailable(other)),
     }
 }

@@ -179,14 +179,11 @@ impl Default for TrainParams {
     }
 }
 
-/// Stage `dbh`: diameter at breast height from Gaussians and LiDAR (paper 3.6).
+/// Stage `dbh`: diameter at breast height from the Gaussians (paper 3.6). The slice height and
+/// thickness are those of `segment.dbh`, so both diameters come from the same slice.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct DbhParams {
-    /// Breast height above the ground model in metres (paper 3.6: 1.3 m).
-    pub breast_height_m: f64,
-    /// Half thickness of the slice in metres (paper 3.6: 0.1 m, i.e. 1.2-1.4 m).
-    pub slice_half_thickness_m: f64,
     /// Minimum opacity of a Gaussian used in the fit (paper 3.6: 0.1).
     pub min_opacity: f64,
     /// RANSAC inlier distance in metres (METHOD.md: of the order of 1-2 cm).
@@ -196,8 +193,6 @@ pub struct DbhParams {
 impl Default for DbhParams {
     fn default() -> Self {
         Self {
-            breast_height_m: 1.3,
-            slice_half_thickness_m: 0.1,
             min_opacity: 0.1,
             ransac_threshold_m: 0.015,
         }

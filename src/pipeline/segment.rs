@@ -132,6 +132,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         &json!({
             "offset": [cloud.offset.x, cloud.offset.y, cloud.offset.z],
             "stems": stems,
+            "trees": inv.trees,
         }),
     )?;
     forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), &inv.trees)?;
