@@ -93,13 +93,17 @@ fn stands_of_five_seeds_meet_the_accuracy_goals() {
             trunk_precision,
         ));
     }
-    // Stems and DBH meet the goals. Ground height at the stems measures 1.5-4.0 cm
-    // (goal 3 cm), and the paper's wood/leaf 2-means reaches only ~0.45 trunk recall and ~0.16
-    // precision on these stands (goal 0.90 / 0.85): both are printed above and recorded in
-    // the README, not yet asserted at the goal.
-    for (line, recall, precision, rmse, ground_err, _trunk_recall, _trunk_precision) in report {
+    // Stems, DBH and ground meet the goals (stems >= 95 %, RMSE <= 1.0 cm, ground
+    // <= 3 cm; measured: 100 %, 0.15-0.28 cm, 1.1-1.7 cm). Wood/leaf against the generator's
+    // labels, where "wood" includes every branch and twig down to 6 mm radius: measured trunk
+    // recall 0.879-0.883 and precision 0.912-0.933 (goal 0.90 / 0.85; the trade-off is
+    // `SegmentParams::grow_linearity`, 0.45 gives 0.89 / 0.86). Asserted at what is reached,
+    // with a small margin, so a regression shows.
+    for (line, recall, precision, rmse, ground_err, trunk_recall, trunk_precision) in report {
         assert!(recall >= 0.95 && precision >= 0.95, "{line}");
         assert!(rmse <= 1.0, "{line}");
-        assert!(ground_err <= 0.05, "{line}");
+        assert!(ground_err <= 0.03, "{line}");
+        assert!(trunk_recall >= 0.87, "{line}");
+        assert!(trunk_precision >= 0.90, "{line}");
     }
 }

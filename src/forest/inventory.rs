@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::dbh::{DbhParams, measure_dbh};
 use super::ground::{CsfParams, Dtm, classify_ground};
 use super::segment::{SegmentParams, segment_wood_leaf};
+use super::stem_labels::{StemLabelParams, label_stem_points};
 use super::stems::{Stem, StemParams, detect_stems};
 use super::{ForestError, StemDbh};
 use crate::io::pointcloud::PointCloud;
@@ -25,6 +26,8 @@ pub struct InventoryParams {
     pub segment: SegmentParams,
     /// Stem detection in the breast-height band.
     pub stems: StemParams,
+    /// Stem-guided relabelling of the wood/leaf labels (after the stems are found).
+    pub stem_labels: StemLabelParams,
     /// Breast-height slice and circle fitting (METHOD.md Stage 5).
     pub dbh: DbhParams,
 }
@@ -105,7 +108,7 @@ pub fn inventory(
     let t = Instant::now();
     progress.log("wood/leaf segmentation of the non-ground points");
     let include: Vec<bool> = ground.is_ground.iter().map(|g| !g).collect();
-    let wood = segment_wood_leaf(
+    let mut wood = segment_wood_leaf(
         pts,
         cloud.colors.as_deref(),
         Some(&include),
@@ -125,6 +128,15 @@ pub fn inventory(
         &params.stems,
         &SubProgress::new(progress, 0.8, 0.1),
     )?;
+    label_stem_points(
+        pts,
+        &heights,
+        &ground.is_ground,
+        &stems,
+        &mut wood.labels,
+        &mut wood.trunk_probability,
+        &params.stem_labels,
+    );
     seconds.stems = t.elapsed().as_secs_f64();
 
     let t = Instant::now();

@@ -20,6 +20,7 @@ pub mod ransac;
 pub mod segment;
 mod stem_axis;
 mod stem_base;
+pub mod stem_labels;
 pub mod stems;
 pub mod synthetic;
 
@@ -37,6 +38,7 @@ pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory
 pub use output::{trees_csv, trees_geojson, write_trees_csv, write_trees_geojson};
 pub use ransac::{CircleParams, RobustCircle, fit_circle_robust};
 pub use segment::{LEAF, SegmentParams, TRUNK, WoodLeaf, segment_wood_leaf};
+pub use stem_labels::{StemLabelParams, label_stem_points};
 pub use stems::{Stem, StemParams, detect_stems};
 
 use crate::geom::GeomError;

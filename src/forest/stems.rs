@@ -179,7 +179,7 @@ pub fn detect_stems(
     let ground = Buckets::new(points, &ground, 0.5);
     for (k, s) in stems.iter_mut().enumerate() {
         s.id = k as u32 + 1;
-        if let Some(base) = base_on_local_ground(points, &ground, s, params) {
+        if let Some(base) = base_on_local_ground(points, &ground, dtm, s, params) {
             s.base = base;
         }
     }

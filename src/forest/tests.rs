@@ -182,12 +182,18 @@ fn pine_plot_gives_a_dbh_with_quality_figures_for_every_stem() {
     let cloud = read_point_cloud(&path, &NoProgress).expect("read");
     let inv = inventory(&cloud, &InventoryParams::default(), &NoProgress).expect("inventory");
     println!("{}", trees_csv(&inv.trees));
-    assert!(inv.trees.len() >= 14, "{} stems found", inv.trees.len());
+    // About 14 stems of DBH 9-30 cm (TreeLS documentation); the plot's edges cut one or two
+    // more (measured: 16, DBH 8.2-30.1 cm, every fit converged, RMS 4.5-6.7 mm).
+    assert!(
+        (14..=17).contains(&inv.trees.len()),
+        "{} stems found",
+        inv.trees.len()
+    );
     for (r, d) in inv.trees.iter().zip(&inv.dbh) {
-        assert!((6.0..40.0).contains(&r.dbh_lidar_cm), "{r:?}");
+        assert!((7.5..32.0).contains(&r.dbh_lidar_cm), "{r:?}");
         assert!(d.circle.converged, "{r:?}");
         assert!(
-            r.n_points >= 10 && r.rms_mm < 15.0 && r.arc_coverage > 0.25,
+            r.n_points >= 20 && r.rms_mm < 10.0 && r.arc_coverage > 0.3,
             "{r:?}"
         );
         // Inside the 10 x 10 m plot, on the ground (z 49–50 m).
