@@ -5,10 +5,12 @@
 //! `sylva train` run.
 
 pub mod adam;
+pub mod backend;
 pub mod camera;
 pub mod camera_models;
 pub mod cameras;
 pub mod config;
+pub mod cpu;
 pub mod dataset;
 pub mod eval;
 pub mod export;
@@ -19,3 +21,4 @@ pub mod packed_image;
 pub mod plot;
 pub mod rng;
 pub mod strategy;
+pub mod trainer;

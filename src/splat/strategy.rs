@@ -45,8 +45,51 @@ pub struct RefineReport {
     pub opacity_reset: bool,
 }
 
+/// View-space statistics accumulated on the device over the steps since the last read, one
+/// entry per Gaussian (what [`Strategy::after_backward`] would have summed view by view).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct DensifyStats {
+    /// Sum over views of the NDC-scaled view-space gradient norm.
+    pub grad_sum: Vec<f32>,
+    /// Views in which the Gaussian was visible.
+    pub visible_count: Vec<u32>,
+    /// Largest screen radius, pixels.
+    pub max_radius: Vec<f32>,
+}
+
+impl DensifyStats {
+    /// Zero statistics for `n` Gaussians.
+    pub fn zeros(n: usize) -> Self {
+        DensifyStats {
+            grad_sum: vec![0.0; n],
+            visible_count: vec![0; n],
+            max_radius: vec![0.0; n],
+        }
+    }
+
+    /// Adds one view: `grad_stat` is the NDC-scaled gradient norm and `radii` the screen radii
+    /// (0 where culled), one per Gaussian.
+    pub fn add_view(&mut self, grad_stat: &[f32], radii: &[f32]) {
+        for (i, (&g, &r)) in grad_stat.iter().zip(radii).enumerate() {
+            if r > 0.0 && i < self.grad_sum.len() {
+                self.grad_sum[i] += g;
+                self.visible_count[i] += 1;
+                self.max_radius[i] = self.max_radius[i].max(r);
+            }
+        }
+    }
+}
+
 /// Hooks the training loop calls; every method has a do-nothing default.
 pub trait Strategy {
+    /// True when [`Strategy::refine`] may change the model at `step`: only then does the loop
+    /// bring the model and the statistics back from the device.
+    fn wants_refine(&self, _step: u32) -> bool {
+        true
+    }
+    /// Statistics the device accumulated since the last call (instead of per-view
+    /// [`Strategy::after_backward`] calls).
+    fn absorb_stats(&mut self, _stats: &DensifyStats) {}
     /// After the backward pass of step `step`, with that view's screen-space statistics.
     fn after_backward(&mut self, _step: u32, _stats: &ViewStats<'_>) {}
     /// After the optimiser step of step `step` (e.g. to add noise to positions).
@@ -222,6 +265,26 @@ impl DefaultStrategy {
 }
 
 impl Strategy for DefaultStrategy {
+    fn wants_refine(&self, step: u32) -> bool {
+        let c = &self.cfg;
+        step < c.densify_until
+            && ((step > c.densify_from && step.is_multiple_of(c.densify_interval.max(1)))
+                || step.is_multiple_of(c.opacity_reset_interval.max(1)))
+    }
+
+    fn absorb_stats(&mut self, stats: &DensifyStats) {
+        let n = stats.grad_sum.len();
+        if self.grad_sum.len() != n {
+            self.reset_stats(n);
+        }
+        for i in 0..n {
+            self.grad_sum[i] += stats.grad_sum[i];
+            self.visible_count[i] += stats.visible_count.get(i).copied().unwrap_or(0);
+            self.max_radius[i] =
+                self.max_radius[i].max(stats.max_radius.get(i).copied().unwrap_or(0.0));
+        }
+    }
+
     fn after_backward(&mut self, step: u32, stats: &ViewStats<'_>) {
         if step >= self.cfg.densify_until {
             return;

@@ -1,0 +1,192 @@
+//! Where the training steps run. The loop in [`super::trainer`] drives a [`Backend`]: the GPU
+//! one ([`super::gpu`]) for real work, or [`CpuBackend`], the plain-Rust reference (f64 inside),
+//! which trains tiny scenes slowly and serves to test the loop and to check the GPU.
+//!
+//! A backend owns the model and the optimiser state while it trains; the loop asks for them
+//! back only when the strategy refines or training ends, so a GPU backend reads nothing back
+//! on ordinary steps except, now and then, the loss.
+
+use super::adam::{AdamState, LearningRates};
+use super::camera::Camera;
+use super::cameras::View;
+use super::cpu;
+use super::model::Gaussians;
+use super::strategy::DensifyStats;
+
+/// Why training failed.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// No GPU adapter, or the GPU failed; the message says what to install or change.
+    #[error("{0}")]
+    Device(String),
+    /// Inconsistent model or images.
+    #[error("{0}")]
+    Invalid(String),
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// Photometric loss of the latest step: total, L1 and SSIM parts.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct StepLoss {
+    pub loss: f32,
+    pub l1: f32,
+    pub ssim: f32,
+}
+
+/// Milliseconds spent per phase since the backend started (summed over steps).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct PhaseTimes {
+    pub projection_ms: f64,
+    pub sort_ms: f64,
+    pub raster_ms: f64,
+    pub loss_ms: f64,
+    pub backward_ms: f64,
+    pub optimizer_ms: f64,
+}
+
+/// One place the training steps can run.
+pub trait Backend {
+    /// Human-readable device name (e.g. the GPU adapter).
+    fn device_name(&self) -> String;
+    /// Installs `model` and its optimiser state (at start and after every refinement).
+    fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError>;
+    /// One optimisation step on `view`: render, loss, backward, Adam with `lr`; when `stats`
+    /// is true the view-space statistics are accumulated for densification.
+    fn step(
+        &mut self,
+        view: &View,
+        lr: &LearningRates,
+        sh_degree: u32,
+        stats: bool,
+    ) -> Result<(), TrainError>;
+    /// The loss of the latest step (a GPU backend reads it back here).
+    fn last_loss(&mut self) -> Result<StepLoss, TrainError>;
+    /// The accumulated statistics, which are then reset.
+    fn take_stats(&mut self) -> Result<DensifyStats, TrainError>;
+    /// The current model and optimiser state.
+    fn model(&mut self) -> Result<(Gaussians, AdamState), TrainError>;
+    /// Renders the current model from `camera` (RGB in [0, 1], row-major).
+    fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError>;
+    /// Time spent per phase so far.
+    fn phase_times(&self) -> PhaseTimes;
+}
+
+/// The CPU reference as a backend (see the module docs).
+pub struct CpuBackend {
+    model: Gaussians,
+    adam: AdamState,
+    stats: DensifyStats,
+    loss: StepLoss,
+    background: [f32; 3],
+    times: PhaseTimes,
+}
+
+impl CpuBackend {
+    pub fn new(background: [f32; 3]) -> Self {
+        CpuBackend {
+            model: Gaussians::default(),
+            adam: AdamState::new(0),
+            stats: DensifyStats::default(),
+            loss: StepLoss::default(),
+            background,
+            times: PhaseTimes::default(),
+        }
+    }
+}
+
+fn invalid(e: impl std::fmt::Display) -> TrainError {
+    TrainError::Invalid(e.to_string())
+}
+
+fn ms(t: std::time::Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1000.0
+}
+
+impl Backend for CpuBackend {
+    fn device_name(&self) -> String {
+        format!("cpu reference ({} threads)", rayon::current_num_threads())
+    }
+
+    fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError> {
+        if !model.is_consistent() || adam.len() != model.len() {
+            return Err(invalid("model and optimiser state disagree in size"));
+        }
+        self.model = model.clone();
+        self.adam = adam.clone();
+        self.stats = DensifyStats::zeros(model.len());
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        view: &View,
+        lr: &LearningRates,
+        sh_degree: u32,
+        stats: bool,
+    ) -> Result<(), TrainError> {
+        self.model.sh_degree = sh_degree;
+        let t = std::time::Instant::now();
+        let render = cpu::render(&self.model, &view.camera, self.background).map_err(invalid)?;
+        self.times.raster_ms += ms(t);
+        let t = std::time::Instant::now();
+        let target = view.image.to_rgb_f32();
+        let (loss, grad) = cpu::loss_and_grad(
+            &render.image,
+            &target,
+            view.camera.width,
+            view.camera.height,
+        )
+        .map_err(invalid)?;
+        self.times.loss_ms += ms(t);
+        let t = std::time::Instant::now();
+        let (grads, grad_stat) =
+            cpu::render_backward(&self.model, &view.camera, self.background, &render, &grad)
+                .map_err(invalid)?;
+        self.times.backward_ms += ms(t);
+        if stats {
+            let radii: Vec<f32> = render
+                .projected
+                .iter()
+                .map(|p| if p.visible { p.radius as f32 } else { 0.0 })
+                .collect();
+            self.stats.add_view(&grad_stat, &radii);
+        }
+        let t = std::time::Instant::now();
+        self.adam
+            .step(&mut self.model, &grads, lr)
+            .map_err(invalid)?;
+        self.times.optimizer_ms += ms(t);
+        self.loss = StepLoss {
+            loss: loss.loss as f32,
+            l1: loss.l1 as f32,
+            ssim: loss.ssim as f32,
+        };
+        Ok(())
+    }
+
+    fn last_loss(&mut self) -> Result<StepLoss, TrainError> {
+        Ok(self.loss)
+    }
+
+    fn take_stats(&mut self) -> Result<DensifyStats, TrainError> {
+        Ok(std::mem::replace(
+            &mut self.stats,
+            DensifyStats::zeros(self.model.len()),
+        ))
+    }
+
+    fn model(&mut self) -> Result<(Gaussians, AdamState), TrainError> {
+        Ok((self.model.clone(), self.adam.clone()))
+    }
+
+    fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError> {
+        Ok(cpu::render(&self.model, camera, self.background)
+            .map_err(invalid)?
+            .image)
+    }
+
+    fn phase_times(&self) -> PhaseTimes {
+        self.times
+    }
+}

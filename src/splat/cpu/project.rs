@@ -1,0 +1,276 @@
+//! Per-Gaussian projection (SPLATTING.md "Forward", steps 1–8) and its backward.
+//!
+//! Everything is f64; inputs are the f32 model and camera of `splat_core`.
+
+use crate::splat::camera::Camera;
+use crate::splat::cpu::ParamGrad;
+use crate::splat::cpu::linalg::{
+    Mat3, Mat23, dot, mul_t_vec, mul_vec, mul23_33, mul33, normalise_vjp, normalise4, quat_to_mat,
+    quat_to_mat_vjp, transpose,
+};
+use crate::splat::cpu::sh::{eval_sh, eval_sh_backward};
+use crate::splat::model::Gaussians;
+
+/// Near plane, metres: Gaussians with camera-space `z < NEAR` are culled.
+pub const NEAR: f64 = 0.01;
+/// Low-pass (anti-aliasing) variance added to the 2-D covariance, pixels² (Kerbl et al. 2023).
+pub const LOW_PASS: f64 = 0.3;
+/// Factor of the half field of view beyond which the Jacobian clamps `t.x / t.z` (reference: 1.3).
+pub const JACOBIAN_CLAMP: f64 = 1.3;
+
+/// One Gaussian as the rasteriser sees it. All-zero with `visible == false` when culled.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Projected {
+    /// Projected centre, pixels (x right, y down; pixel (i, j) has its centre at (i+0.5, j+0.5)).
+    pub mean2d: [f64; 2],
+    /// Inverse 2-D covariance `[[a, b], [b, c]]` stored as `(a, b, c)`, 1/pixels².
+    pub conic: [f64; 3],
+    /// Camera-space depth `t.z`, metres (sort key).
+    pub depth: f64,
+    /// Screen radius `ceil(3 √λ_max)`, pixels.
+    pub radius: u32,
+    /// Colour after SH, +0.5 and clamp at 0 (unitless, usually in [0, 1]).
+    pub rgb: [f64; 3],
+    /// Opacity `sigmoid(logit)`, in (0, 1).
+    pub opacity: f64,
+    /// False when culled (behind the near plane, degenerate covariance or off-screen).
+    pub visible: bool,
+}
+
+/// Gradient of the loss with respect to one [`Projected`] (what the raster backward produces).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ProjectedGrad {
+    /// dL/dmean2d, per pixel.
+    pub mean2d: [f64; 2],
+    /// dL/d(a, b, c) of the conic, pixels².
+    pub conic: [f64; 3],
+    /// dL/drgb.
+    pub rgb: [f64; 3],
+    /// dL/dopacity (the opacity itself, not the logit).
+    pub opacity: f64,
+}
+
+/// Forward intermediates shared by [`project`] and [`project_backward`].
+struct Fwd {
+    w: Mat3,
+    t: [f64; 3],
+    txc: f64,
+    tyc: f64,
+    clamped: [bool; 2],
+    q: [f64; 4],
+    q_len: f64,
+    rq: Mat3,
+    scale: [f64; 3],
+    sigma: Mat3,
+    tmat: Mat23,
+    conic: [f64; 3],
+    dir: [f64; 3],
+    dir_len: f64,
+    raw_rgb: [f64; 3],
+    opacity: f64,
+    out: Projected,
+}
+
+fn f64x3(v: [f32; 3]) -> [f64; 3] {
+    v.map(f64::from)
+}
+
+fn forward(model: &Gaussians, i: usize, cam: &Camera) -> Option<Fwd> {
+    let (fx, fy) = (f64::from(cam.fx), f64::from(cam.fy));
+    let (width, height) = (f64::from(cam.width), f64::from(cam.height));
+    let w: Mat3 = cam.r.map(f64x3);
+    let mu = f64x3(model.means[i]);
+    let tc = mul_vec(&w, mu);
+    let t = [0, 1, 2].map(|k| tc[k] + f64::from(cam.t[k]));
+    if t[2] < NEAR {
+        return None;
+    }
+    let lim_x = JACOBIAN_CLAMP * (width / 2.0) / fx;
+    let lim_y = JACOBIAN_CLAMP * (height / 2.0) / fy;
+    let (rx, ry) = (t[0] / t[2], t[1] / t[2]);
+    let clamped = [rx.abs() > lim_x, ry.abs() > lim_y];
+    let txc = rx.clamp(-lim_x, lim_x) * t[2];
+    let tyc = ry.clamp(-lim_y, lim_y) * t[2];
+    let tz2 = t[2] * t[2];
+    let j: Mat23 = [
+        [fx / t[2], 0.0, -fx * txc / tz2],
+        [0.0, fy / t[2], -fy * tyc / tz2],
+    ];
+    let (q, q_len) = normalise4(model.rotations[i].map(f64::from));
+    let rq = quat_to_mat(q);
+    let scale = f64x3(model.log_scales[i]).map(f64::exp);
+    let m = [0, 1, 2].map(|r| [0, 1, 2].map(|c| rq[r][c] * scale[c]));
+    let sigma = mul33(&m, &transpose(&m));
+    let tmat = mul23_33(&j, &w);
+    // Σ2D = T Σ Tᵀ + LOW_PASS · I
+    let ts = mul23_33(&tmat, &sigma);
+    let cov = |r: usize, c: usize| (0..3).map(|k| ts[r][k] * tmat[c][k]).sum::<f64>();
+    let (s00, s01, s11) = (cov(0, 0) + LOW_PASS, cov(0, 1), cov(1, 1) + LOW_PASS);
+    let det = s00 * s11 - s01 * s01;
+    if det <= 0.0 || !det.is_finite() {
+        return None;
+    }
+    let conic = [s11 / det, -s01 / det, s00 / det];
+    let mid = 0.5 * (s00 + s11);
+    let lambda_max = mid + (mid * mid - det).max(0.1).sqrt();
+    let radius = (3.0 * lambda_max.sqrt()).ceil();
+    let mean2d = [
+        fx * t[0] / t[2] + f64::from(cam.cx),
+        fy * t[1] / t[2] + f64::from(cam.cy),
+    ];
+    let r = radius;
+    if mean2d[0] + r < 0.0
+        || mean2d[0] - r >= width
+        || mean2d[1] + r < 0.0
+        || mean2d[1] - r >= height
+    {
+        return None;
+    }
+    let centre = f64x3(cam.centre());
+    let v = [0, 1, 2].map(|k| mu[k] - centre[k]);
+    let dir_len = dot(v, v).sqrt();
+    let dir = if dir_len > 0.0 {
+        v.map(|a| a / dir_len)
+    } else {
+        [0.0, 0.0, 1.0]
+    };
+    let raw_rgb = eval_sh(model.sh_degree, &model.sh[i], dir);
+    let opacity = 1.0 / (1.0 + (-f64::from(model.opacity_logits[i])).exp());
+    let out = Projected {
+        mean2d,
+        conic,
+        depth: t[2],
+        radius: radius as u32,
+        rgb: raw_rgb.map(|c| (c + 0.5).max(0.0)),
+        opacity,
+        visible: true,
+    };
+    Some(Fwd {
+        w,
+        t,
+        txc,
+        tyc,
+        clamped,
+        q,
+        q_len,
+        rq,
+        scale,
+        sigma,
+        tmat,
+        conic,
+        dir,
+        dir_len,
+        raw_rgb,
+        opacity,
+        out,
+    })
+}
+
+/// Projects Gaussian `i` of `model` into `cam`. Culled Gaussians return `Projected::default()`
+/// (`visible == false`). Panics if `i` is out of range for any parameter vector.
+pub fn project(model: &Gaussians, i: usize, cam: &Camera) -> Projected {
+    forward(model, i, cam).map(|f| f.out).unwrap_or_default()
+}
+
+/// Projects every Gaussian of a consistent model.
+pub fn project_all(model: &Gaussians, cam: &Camera) -> Vec<Projected> {
+    (0..model.len()).map(|i| project(model, i, cam)).collect()
+}
+
+/// Backward of [`project`] for Gaussian `i`: turns dL/d(mean2d, conic, rgb, opacity) into
+/// dL/d(parameters). Culled Gaussians get zero. Where the Jacobian clamp is active the clamped
+/// `t.x` (or `t.y`) inside J is treated as a constant (SPLATTING.md step 3, as the reference).
+pub fn project_backward(model: &Gaussians, i: usize, cam: &Camera, g: &ProjectedGrad) -> ParamGrad {
+    let Some(f) = forward(model, i, cam) else {
+        return ParamGrad::default();
+    };
+    let mut out = ParamGrad {
+        opacity_logit: g.opacity * f.opacity * (1.0 - f.opacity),
+        ..ParamGrad::default()
+    };
+    // Colour: rgb = max(raw + 0.5, 0).
+    let d_raw = [0, 1, 2].map(|c| {
+        if f.raw_rgb[c] + 0.5 > 0.0 {
+            g.rgb[c]
+        } else {
+            0.0
+        }
+    });
+    let (dsh, ddir) = eval_sh_backward(model.sh_degree, &model.sh[i], f.dir, d_raw);
+    out.sh = dsh;
+    let mut dmu = normalise_vjp(f.dir, f.dir_len, ddir);
+    // Conic Q = Σ2D⁻¹: dL/dΣ2D = −Q G Q, G the symmetric dL/dQ.
+    let [a, b, c] = f.conic;
+    let q2 = [[a, b], [b, c]];
+    let g2 = [
+        [g.conic[0], 0.5 * g.conic[1]],
+        [0.5 * g.conic[1], g.conic[2]],
+    ];
+    let mut qg = [[0.0; 2]; 2];
+    let mut dcov = [[0.0; 2]; 2];
+    for r in 0..2 {
+        for s in 0..2 {
+            qg[r][s] = q2[r][0] * g2[0][s] + q2[r][1] * g2[1][s];
+        }
+    }
+    for r in 0..2 {
+        for s in 0..2 {
+            dcov[r][s] = -(qg[r][0] * q2[0][s] + qg[r][1] * q2[1][s]);
+        }
+    }
+    // Σ2D = T Σ Tᵀ: dT = 2 dΣ2D T Σ, dΣ = Tᵀ dΣ2D T.
+    let ts = mul23_33(&f.tmat, &f.sigma);
+    let mut dt_mat: Mat23 = [[0.0; 3]; 2];
+    for r in 0..2 {
+        for k in 0..3 {
+            dt_mat[r][k] = 2.0 * (dcov[r][0] * ts[0][k] + dcov[r][1] * ts[1][k]);
+        }
+    }
+    let mut dsigma: Mat3 = [[0.0; 3]; 3];
+    for (r, row) in dsigma.iter_mut().enumerate() {
+        for (s, v) in row.iter_mut().enumerate() {
+            *v = (0..2)
+                .map(|p| {
+                    (0..2)
+                        .map(|q| f.tmat[p][r] * dcov[p][q] * f.tmat[q][s])
+                        .sum::<f64>()
+                })
+                .sum();
+        }
+    }
+    // T = J W: dJ = dT Wᵀ.
+    let dj = mul23_33(&dt_mat, &transpose(&f.w));
+    let (fx, fy) = (f64::from(cam.fx), f64::from(cam.fy));
+    let [tx, ty, tz] = f.t;
+    let (tz2, tz3) = (tz * tz, tz * tz * tz);
+    let mut dt = [0.0; 3];
+    dt[2] += -fx / tz2 * dj[0][0] - fy / tz2 * dj[1][1]
+        + 2.0 * fx * f.txc / tz3 * dj[0][2]
+        + 2.0 * fy * f.tyc / tz3 * dj[1][2];
+    if !f.clamped[0] {
+        dt[0] += -fx / tz2 * dj[0][2];
+    }
+    if !f.clamped[1] {
+        dt[1] += -fy / tz2 * dj[1][2];
+    }
+    // Mean in pixels (unclamped).
+    dt[0] += fx / tz * g.mean2d[0];
+    dt[1] += fy / tz * g.mean2d[1];
+    dt[2] += -fx * tx / tz2 * g.mean2d[0] - fy * ty / tz2 * g.mean2d[1];
+    let dmu_t = mul_t_vec(&f.w, dt);
+    for k in 0..3 {
+        dmu[k] += dmu_t[k];
+    }
+    out.mean = dmu;
+    // Σ = M Mᵀ, M = Rq S: dM = 2 dΣ M; dRq = dM S; dscale_j = Σ_i Rq_ij dM_ij.
+    let m = [0, 1, 2].map(|r| [0, 1, 2].map(|c| f.rq[r][c] * f.scale[c]));
+    let dm = mul33(&dsigma, &m).map(|row| row.map(|v| 2.0 * v));
+    let drq = [0, 1, 2].map(|r| [0, 1, 2].map(|c| dm[r][c] * f.scale[c]));
+    for (j, v) in out.log_scale.iter_mut().enumerate() {
+        let ds: f64 = (0..3).map(|r| f.rq[r][j] * dm[r][j]).sum();
+        *v = ds * f.scale[j];
+    }
+    let dq = quat_to_mat_vjp(f.q, &drq);
+    out.rotation = normalise_vjp(f.q, f.q_len, dq);
+    out
+}
