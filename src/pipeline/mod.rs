@@ -14,6 +14,7 @@ pub mod inspect;
 pub mod params;
 pub mod register;
 pub mod segment;
+pub mod train;
 
 use std::fs;
 use std::io::Read;
@@ -120,6 +121,9 @@ pub enum StageError {
     /// Reading or writing files failed.
     #[error(transparent)]
     Io(#[from] IoError),
+    /// The GPU is missing or failed (the service's fault, not the input's).
+    #[error("{0}")]
+    Device(String),
     /// The job was cancelled while the stage ran.
     #[error("cancelled")]
     Cancelled,
@@ -209,6 +213,7 @@ pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Val
         Stage::Register => register::run(ctx),
         Stage::Anchors => anchors::run(ctx),
         Stage::Segment => segment::run(ctx),
+        Stage::Train => train::run(ctx),
         Stage::Dbh => dbh::run(ctx),
         other => Err(StageError::NotAvailable(other)),
     }
@@ -379,18 +384,18 @@ mod tests {
             field_dbh: None,
         };
         let err = execute_stage(
-            Stage::Train,
+            Stage::Export,
             &inputs,
             dir.path(),
             &PipelineParams::default(),
             &crate::progress::NoProgress,
         )
-        .expect_err("train is not built");
+        .expect_err("export is not built");
         assert_eq!(
             err.to_string(),
-            "stage train is not available in this build"
+            "stage export is not available in this build"
         );
-        assert!(!dir.path().join("train").exists());
-        assert!(!dir.path().join("train.partial").exists());
+        assert!(!dir.path().join("export").exists());
+        assert!(!dir.path().join("export.partial").exists());
     }
 }

@@ -142,8 +142,6 @@ pub enum InitSource {
 pub struct TrainParams {
     /// Optimisation steps (Kerbl et al. 2023: 30,000).
     pub steps: u32,
-    /// Weight of (1 - SSIM) in the photometric loss (Kerbl et al. 2023: 0.2).
-    pub lambda_dssim: f64,
     /// Initialisation source (default lidar, the paper's method).
     pub init: InitSource,
     /// Add the semantic trunk term L_geo (default true, the paper's method).
@@ -160,13 +158,28 @@ pub struct TrainParams {
     pub trunk_beta: f64,
     /// Longest image side in pixels used for training; 0 keeps the full resolution.
     pub resolution: u32,
+    /// Upper bound on the number of Gaussians, at initialisation (a seeded random subset of
+    /// the anchors or points) and during densification; 0 = no bound (default).
+    pub max_gaussians: u32,
+    /// Where the steps run: the GPU (default) or the CPU reference, which is exact but only
+    /// fit for tiny scenes.
+    pub backend: TrainBackend,
+    /// Seed of view order, densification sampling and subsets (default 0).
+    pub seed: u64,
+}
+
+/// Where training runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum TrainBackend {
+    Gpu,
+    Cpu,
 }
 
 impl Default for TrainParams {
     fn default() -> Self {
         Self {
             steps: 30_000,
-            lambda_dssim: 0.2,
             init: InitSource::Lidar,
             semantic: true,
             gamma_max: 0.02,
@@ -175,6 +188,9 @@ impl Default for TrainParams {
             trunk_k: 8,
             trunk_beta: 0.5,
             resolution: 1600,
+            max_gaussians: 0,
+            backend: TrainBackend::Gpu,
+            seed: 0,
         }
     }
 }
@@ -210,6 +226,22 @@ pub struct ExportParams {
 impl Default for ExportParams {
     fn default() -> Self {
         Self { compact: true }
+    }
+}
+
+impl TrainParams {
+    /// The trainer's configuration: the reference schedule scaled to `steps`, with these
+    /// parameters' resolution, cap and seed.
+    pub fn config(&self) -> crate::splat::config::TrainConfig {
+        let mut cfg = crate::splat::config::TrainConfig {
+            steps: self.steps,
+            ..Default::default()
+        }
+        .scaled_to(self.steps);
+        cfg.resolution = (self.resolution > 0).then_some(self.resolution);
+        cfg.max_gaussians = (self.max_gaussians > 0).then_some(self.max_gaussians as usize);
+        cfg.seed = self.seed;
+        cfg
     }
 }
 

@@ -112,6 +112,15 @@ pub fn train(
                 seconds: start.elapsed().as_secs_f64(),
             });
             progress.set(f64::from(step) / f64::from(cfg.steps) * 0.95);
+            let every = (cfg.steps / 20).max(LOSS_EVERY);
+            if step % every == 0 || step == cfg.steps {
+                let secs = start.elapsed().as_secs_f64();
+                progress.log(&format!(
+                    "step {step}/{} loss {loss:.4} (L1 {l1:.4}, SSIM {ssim:.3}) {count} Gaussians {:.2} steps/s",
+                    cfg.steps,
+                    f64::from(step) / secs.max(1e-9)
+                ));
+            }
         }
     }
     let seconds = start.elapsed().as_secs_f64();
