@@ -605,6 +605,7 @@ async function renderInventory() {
     : `${page.trees.length} trees`;
   $('#inventory-note').hidden = true;
   $('#trees').hidden = false;
+  $('#inventory-downloads').hidden = false;
 }
 
 const TREE_COLUMNS = {
@@ -806,6 +807,7 @@ async function enterJob(id) {
   $('#loss').replaceChildren();
   $('#views-card').hidden = true;
   $('#trees').hidden = true;
+  $('#inventory-downloads').hidden = true;
   $('#inventory-note').hidden = false;
   $('#inventory-summary').textContent = '';
   $('#stem-panel').hidden = true;
