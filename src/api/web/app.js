@@ -854,6 +854,7 @@ async function jobAction(path, opts, confirmText) {
 
 function route() {
   const m = location.hash.match(/^#\/jobs\/([0-9a-f]{32})/);
+  if ($('#view-job').hidden === Boolean(m)) window.scrollTo(0, 0); // a new view opens at its top
   $('#view-jobs').hidden = Boolean(m);
   $('#view-job').hidden = !m;
   if (m) { leaveList(); if (page.id !== m[1]) enterJob(m[1]); } else { leaveJob(); enterList(); }
