@@ -10,6 +10,7 @@ pub mod problem;
 pub mod service;
 pub mod uploads;
 pub mod views;
+pub mod web;
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -59,6 +60,7 @@ pub struct AppState {
 /// another that every entry is really routed.
 pub const ROUTES: &[(&str, &str)] = &[
     ("GET", "/"),
+    ("GET", "/assets/{name}"),
     ("GET", "/livez"),
     ("GET", "/readyz"),
     ("GET", "/metrics"),
@@ -104,7 +106,8 @@ pub fn router(state: AppState) -> Router {
     let json_limit = a.max_json_bytes as usize;
 
     let public = Router::new()
-        .route("/", get(service::index))
+        .route("/", get(web::index))
+        .route("/assets/{name}", get(web::asset))
         .route("/livez", get(service::livez))
         .route("/readyz", get(service::readyz))
         .route("/metrics", get(service::metrics))

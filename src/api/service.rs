@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 use axum::Json;
 use axum::extract::State;
 use axum::http::{StatusCode, header};
-use axum::response::{Html, IntoResponse, Response};
+use axum::response::{IntoResponse, Response};
 use serde_json::json;
 
 use super::AppState;
@@ -14,10 +14,6 @@ use crate::pipeline::{PipelineParams, Stage};
 
 /// The contract, compiled in so the binary always serves the one it implements.
 pub const OPENAPI_YAML: &str = include_str!("../../openapi.yaml");
-
-pub async fn index() -> Html<&'static str> {
-    Html(include_str!("index.html"))
-}
 
 pub async fn livez() -> Response {
     Json(json!({ "status": "ok" })).into_response()

@@ -1,0 +1,432 @@
+//! The web page in a real browser: Debian's headless Chromium driven over WebDriver
+//! (chromedriver) against a running `sylva serve`. Screenshots go to
+//! `target/tmp/browser/`. Without chromium and chromedriver the tests print why and pass.
+
+mod common;
+#[path = "common/webdriver.rs"]
+mod webdriver;
+
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
+
+use common::*;
+use serde_json::{Value, json};
+use webdriver::{Browser, base64_encode, output_dir};
+
+async fn browser_or_skip(test: &str) -> Option<Browser> {
+    match Browser::start().await {
+        Ok(b) => Some(b),
+        Err(why) => {
+            eprintln!("skipping {test}: {why}");
+            None
+        }
+    }
+}
+
+/// A generated plot (`sylva synth --preset tiny`) with its COLMAP project zipped.
+fn synthetic_plot(dir: &Path) -> std::path::PathBuf {
+    let plot = dir.join("plot");
+    let out = Command::new(BIN)
+        .args(["synth", "--preset", "tiny", "--seed", "1", "--out"])
+        .arg(&plot)
+        .output()
+        .expect("synth");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    zip_dir(&plot.join("colmap"), &plot.join("colmap.zip"));
+    plot
+}
+
+/// Submits the plot in one multipart request and waits for the job to succeed.
+async fn finished_segment_job(base: &str, plot: &Path) -> Value {
+    let c = client();
+    let part = |name: &str| {
+        let bytes = std::fs::read(plot.join(name)).expect("read input");
+        reqwest::multipart::Part::bytes(bytes).file_name(name.to_string())
+    };
+    let form = reqwest::multipart::Form::new()
+        .part("lidar", part("lidar.laz"))
+        .part("colmap", part("colmap.zip"))
+        .part("control_points", part("control_points.csv"))
+        .part("field_dbh", part("field_dbh.csv"))
+        .text("params", r#"{"until":"segment"}"#);
+    let resp = c
+        .post(format!("{base}/v1/jobs"))
+        .multipart(form)
+        .send()
+        .await
+        .expect("submit");
+    assert_eq!(resp.status(), 202, "{:?}", resp.text().await);
+    let job: Value = resp.json().await.expect("json");
+    let id = job["id"].as_str().expect("id").to_string();
+    let (job, _) = wait_job(&c, base, &id, Duration::from_secs(600), is_terminal).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    job
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
+    let Some(b) = browser_or_skip("job page test").await else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let plot = synthetic_plot(dir.path());
+    let srv = serve(&dir.path().join("data"), &[]);
+    let job = finished_segment_job(&srv.base, &plot).await;
+    let id = job["id"].as_str().expect("id");
+    let csv = client()
+        .get(format!("{}/v1/jobs/{id}/trees.csv", srv.base))
+        .send()
+        .await
+        .expect("csv")
+        .text()
+        .await
+        .expect("text");
+    let ids: Vec<String> = csv
+        .lines()
+        .skip(1)
+        .filter_map(|l| l.split(',').next().map(str::to_string))
+        .collect();
+    assert!(!ids.is_empty(), "{csv}");
+    let shots = output_dir();
+
+    b.goto(&format!("{}/#/jobs/{id}", srv.base)).await;
+
+    // The inventory table lists every tree of trees.csv.
+    let n = ids.len();
+    b.wait_for(
+        "the inventory table",
+        &format!("return document.querySelectorAll('#trees tbody tr').length === {n}"),
+        Duration::from_secs(60),
+    )
+    .await;
+    let shown = b
+        .exec(
+            "return [...document.querySelectorAll('#trees tbody tr')].map(r => r.dataset.tree)",
+            json!([]),
+        )
+        .await;
+    assert_eq!(shown, json!(ids));
+    // Sorting by DBH, both ways.
+    let dbh_col = "return [...document.querySelectorAll('#trees tbody tr')].map(r => Number(r.children[4].textContent))";
+    b.click("#trees th[data-col=dbh_lidar_cm]").await;
+    let up: Vec<f64> = serde_json::from_value(b.exec(dbh_col, json!([])).await).expect("numbers");
+    assert!(up.windows(2).all(|w| w[0] <= w[1]), "ascending: {up:?}");
+    b.click("#trees th[data-col=dbh_lidar_cm]").await;
+    let down: Vec<f64> = serde_json::from_value(b.exec(dbh_col, json!([])).await).expect("numbers");
+    assert!(
+        down.windows(2).all(|w| w[0] >= w[1]),
+        "descending: {down:?}"
+    );
+
+    // The stage timeline and the live log.
+    let stages = b
+        .exec(
+            "return [...document.querySelectorAll('#timeline tr')].map(r => [r.dataset.stage, r.children[1].textContent, r.children[3].textContent])",
+            json!([]),
+        )
+        .await;
+    let stages = stages.as_array().expect("rows");
+    assert_eq!(stages.len(), 4, "{stages:?}");
+    for s in stages {
+        assert_eq!(s[1], "done", "{s}");
+        assert!(!s[2].as_str().unwrap_or("").is_empty(), "no duration: {s}");
+    }
+    b.wait_for(
+        "log lines",
+        "return document.querySelectorAll('#log > span').length > 3",
+        Duration::from_secs(30),
+    )
+    .await;
+    let reg = b
+        .exec(
+            "return document.querySelector('#registration').textContent",
+            json!([]),
+        )
+        .await;
+    assert!(
+        reg.as_str().unwrap_or("").contains("control_points"),
+        "{reg}"
+    );
+
+    // The viewer draws the anchors (no splats yet) with one label per stem.
+    b.wait_for(
+        "the viewer",
+        "return window.Sylva.page.viewer && window.Sylva.page.viewer.splats && document.querySelectorAll('.stem-label').length > 0",
+        Duration::from_secs(60),
+    )
+    .await;
+    let labels = b
+        .exec(
+            "return [...document.querySelectorAll('.stem-label')].map(l => l.textContent)",
+            json!([]),
+        )
+        .await;
+    assert_eq!(labels.as_array().map(Vec::len), Some(n), "{labels}");
+    assert!(labels[0].as_str().unwrap_or("").contains(" cm"), "{labels}");
+    let px = b
+        .exec("return window.Sylva.page.viewer.drawnPixels()", json!([]))
+        .await;
+    let drawn = px["drawn"].as_f64().unwrap_or(0.0);
+    let total = px["total"].as_f64().unwrap_or(1.0);
+    assert!(
+        drawn / total > 0.02,
+        "the canvas is mostly background: {px}"
+    );
+    b.screenshot(&shots.join("job.png")).await;
+
+    // A click on a stem label shows its 1.3 m slice with the LiDAR circle and points.
+    b.click(&format!(".stem-label[data-stem=\"{}\"]", ids[0]))
+        .await;
+    b.wait_for(
+        "the stem panel",
+        "return !document.querySelector('#stem-panel').hidden",
+        Duration::from_secs(10),
+    )
+    .await;
+    let slice = b
+        .exec(
+            "const s = document.querySelector('#stem-plot svg'); return { circle: s.querySelectorAll('circle.fit-lidar').length, points: s.querySelectorAll('circle:not([class])').length, title: document.querySelector('#stem-title').textContent }",
+            json!([]),
+        )
+        .await;
+    assert_eq!(slice["circle"], 1, "{slice}");
+    assert!(slice["points"].as_u64().unwrap_or(0) > 10, "{slice}");
+    assert_eq!(slice["title"], format!("Tree {}", ids[0]));
+    b.screenshot_element("#viewer-card", &shots.join("viewer-stem.png"))
+        .await;
+
+    // The CSV download hands over the inventory file.
+    let dl = b
+        .exec(
+            "return new Promise(resolve => {
+               const click = HTMLAnchorElement.prototype.click, make = URL.createObjectURL;
+               let blob = null;
+               URL.createObjectURL = (b) => { blob = b; return make(b); };
+               HTMLAnchorElement.prototype.click = function () {
+                 HTMLAnchorElement.prototype.click = click;
+                 URL.createObjectURL = make;
+                 blob.text().then(text => resolve({ name: this.download, text }));
+               };
+               document.querySelector('#dl-csv').click();
+             })",
+            json!([]),
+        )
+        .await;
+    assert!(dl["name"].as_str().unwrap_or("").ends_with(".csv"), "{dl}");
+    assert_eq!(dl["text"], csv);
+
+    // The jobs list shows the finished job.
+    // A fresh load of the page (a hash change alone would keep the scroll position).
+    b.goto(&format!("{}/", srv.base)).await;
+    b.wait_for(
+        "the jobs list",
+        &format!("const r = document.querySelector('tr[data-job=\"{id}\"] .badge'); return r && r.dataset.state === 'succeeded'"),
+        Duration::from_secs(30),
+    )
+    .await;
+    b.screenshot(&shots.join("jobs.png")).await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn upload_through_the_form_creates_a_job_followed_live_and_retries_a_failed_part() {
+    let Some(b) = browser_or_skip("upload test").await else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let plot = synthetic_plot(dir.path());
+    // Small parts so the LiDAR file goes in several.
+    let srv = serve(&dir.path().join("data"), &["--part-size", "262144"]);
+    b.goto(&format!("{}/", srv.base)).await;
+    b.wait_for(
+        "the empty jobs list",
+        "return document.querySelector('#jobs-note').textContent.startsWith('No jobs')",
+        Duration::from_secs(20),
+    )
+    .await;
+    // The first PUT of a part fails as a dropped connection would.
+    b.exec(
+        "const open = XMLHttpRequest.prototype.open, send = XMLHttpRequest.prototype.send;
+         window.__failed = 0;
+         XMLHttpRequest.prototype.open = function (m, u) { this.__part = m === 'PUT' && u.includes('/parts/'); return open.apply(this, arguments); };
+         XMLHttpRequest.prototype.send = function (body) {
+           if (this.__part && window.__failed < 1) { window.__failed++; setTimeout(() => this.onerror(new ProgressEvent('error')), 20); return; }
+           return send.call(this, body);
+         };",
+        json!([]),
+    )
+    .await;
+    let path = |f: &str| plot.join(f).to_string_lossy().to_string();
+    b.send_keys("#in-lidar", &path("lidar.laz")).await;
+    b.send_keys("#in-colmap", &path("colmap.zip")).await;
+    b.send_keys("#in-control", &path("control_points.csv"))
+        .await;
+    b.exec(
+        "document.querySelector('#in-until').value = 'ingest'",
+        json!([]),
+    )
+    .await;
+    b.click("#upload-submit").await;
+
+    let id = b
+        .wait_for(
+            "the job page",
+            "const m = location.hash.match(/^#\\/jobs\\/([0-9a-f]{32})/); return m && m[1]",
+            Duration::from_secs(120),
+        )
+        .await;
+    let id = id.as_str().expect("id").to_string();
+    // Followed live over server-sent events: no reload happens on the page.
+    b.wait_for(
+        "the job to succeed on the page",
+        "return document.querySelector('#job-state').dataset.state === 'succeeded'",
+        Duration::from_secs(120),
+    )
+    .await;
+    let stats = b.exec("return window.Sylva.uploadStats", json!([])).await;
+    assert!(stats["retries"].as_u64().unwrap_or(0) >= 1, "{stats}");
+    let lidar_parts = std::fs::metadata(plot.join("lidar.laz"))
+        .expect("size")
+        .len()
+        .div_ceil(262_144);
+    assert!(
+        stats["parts"].as_u64().unwrap_or(0) > lidar_parts,
+        "{stats}"
+    );
+    assert_eq!(stats["jobs"], json!([id]));
+    b.screenshot(&output_dir().join("uploaded-job.png")).await;
+
+    let job = get_job(&client(), &srv.base, &id).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    for k in ["lidar", "colmap", "control_points"] {
+        assert!(job["inputs"][k].as_str().is_some(), "{job}");
+    }
+    assert_eq!(job["params"]["until"], "ingest");
+}
+
+/// Writes `n` splats in the antimatter15 layout: a ring of coloured, rotated ellipsoids.
+fn splat_file(n: usize) -> Vec<u8> {
+    let mut out = Vec::with_capacity(32 * n);
+    for i in 0..n {
+        let t = i as f32 / n as f32 * std::f32::consts::TAU;
+        let (x, y, z) = (2.0 * t.cos(), 2.0 * t.sin(), 0.5 + 0.3 * (3.0 * t).sin());
+        for v in [x, y, z, 0.08, 0.04, 0.02] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&[(i * 7 % 256) as u8, 180, (255 - i % 256) as u8, 230]);
+        // Rotation about z by t: (w, x, y, z) = (cos t/2, 0, 0, sin t/2), as u8 = q·128 + 128.
+        let q = [(t / 2.0).cos(), 0.0, 0.0, (t / 2.0).sin()];
+        out.extend(q.map(|c| (c * 128.0 + 128.0).clamp(0.0, 255.0) as u8));
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn splat_files_are_parsed_and_drawn() {
+    let Some(b) = browser_or_skip("splat viewer test").await else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let srv = serve(&dir.path().join("data"), &["--workers", "0"]);
+    b.goto(&format!("{}/", srv.base)).await;
+    b.wait_for(
+        "the page scripts",
+        "return window.SylvaViewer && window.Sylva",
+        Duration::from_secs(20),
+    )
+    .await;
+    let n = 400;
+    let bytes = splat_file(n);
+    let v = b
+        .exec(
+            "const raw = atob(arguments[0]);
+             const buf = new Uint8Array(raw.length);
+             for (let i = 0; i < raw.length; i++) buf[i] = raw.charCodeAt(i);
+             const s = SylvaViewer.parseSplat(buf.buffer);
+             const wrap = document.createElement('div');
+             wrap.className = 'viewer-wrap';
+             wrap.id = 'splat-test';
+             const canvas = document.createElement('canvas');
+             canvas.style.width = '640px'; canvas.style.height = '400px';
+             const labels = document.createElement('div');
+             labels.className = 'labels';
+             wrap.append(canvas, labels);
+             document.body.prepend(wrap);
+             const v = SylvaViewer.create(canvas, labels);
+             v.setSplats(s);
+             v.frame();
+             v.setStems([{ id: 7, base: [0, 0, 0], axis: [0, 0, 1], height: 3, slice: [0, 0, 1.3], radius: 0.2, text: '#7 · 40.0 cm' }]);
+             return { count: s.count, p: Array.from(s.positions.slice(0, 6)), sc: Array.from(s.scales.slice(0, 3)),
+                      c: Array.from(s.colors.slice(4, 8)), q: Array.from(s.rotations.slice(0, 4)), px: v.drawnPixels() };",
+            json!([base64_encode(&bytes)]),
+        )
+        .await;
+    assert_eq!(v["count"], n, "{v}");
+    let p: Vec<f32> = serde_json::from_value(v["p"].clone()).expect("positions");
+    let t1 = std::f32::consts::TAU / n as f32;
+    let want = [
+        2.0,
+        0.0,
+        0.5,
+        2.0 * t1.cos(),
+        2.0 * t1.sin(),
+        0.5 + 0.3 * (3.0 * t1).sin(),
+    ];
+    for (a, b) in p.iter().zip(want) {
+        assert!((a - b).abs() < 1e-5, "{p:?} vs {want:?}");
+    }
+    assert_eq!(
+        v["sc"],
+        json!([0.08f32 as f64, 0.04f32 as f64, 0.02f32 as f64])
+    );
+    assert_eq!(v["c"], json!([7, 180, 254, 230]));
+    // cos 0 = 1 is stored as 255, the largest byte: (255 - 128) / 128.
+    let q: Vec<f64> = serde_json::from_value(v["q"].clone()).expect("rotation");
+    assert_eq!(q, [127.0 / 128.0, 0.0, 0.0, 0.0]);
+    let drawn = v["px"]["drawn"].as_f64().unwrap_or(0.0);
+    assert!(drawn > 500.0, "nothing drawn: {v}");
+    b.screenshot_element("#splat-test", &output_dir().join("splats.png"))
+        .await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_page_asks_once_for_a_token_when_the_server_needs_one() {
+    let Some(b) = browser_or_skip("token test").await else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let srv = serve(
+        &dir.path().join("data"),
+        &["--workers", "0", "--token", "s3cret-token"],
+    );
+    b.goto(&format!("{}/", srv.base)).await;
+    b.wait_for(
+        "the token dialog",
+        "return !document.querySelector('#token-dialog').hidden",
+        Duration::from_secs(20),
+    )
+    .await;
+    b.send_keys("#token-input", "s3cret-token").await;
+    b.click("#token-form button[type=submit]").await;
+    b.wait_for(
+        "the jobs list",
+        "return document.querySelector('#jobs-note').textContent.startsWith('No jobs')",
+        Duration::from_secs(20),
+    )
+    .await;
+    let kept = b
+        .exec("return sessionStorage.getItem('sylva-token')", json!([]))
+        .await;
+    assert_eq!(kept, "s3cret-token");
+    let dialog_hidden = b
+        .exec(
+            "return document.querySelector('#token-dialog').hidden",
+            json!([]),
+        )
+        .await;
+    assert_eq!(dialog_hidden, true);
+}
