@@ -177,3 +177,71 @@ fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
         assert!(out.join("segment").join(f).is_file(), "{f}");
     }
 }
+
+#[test]
+fn run_until_dbh_trains_on_the_cpu_reference_and_writes_both_diameters() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let plot = dir.path().join("plot");
+    let synth = Command::new(BIN)
+        .args(["synth", "--preset", "tiny", "--seed", "3", "--out"])
+        .arg(&plot)
+        .output()
+        .expect("synth");
+    assert!(
+        synth.status.success(),
+        "{}",
+        String::from_utf8_lossy(&synth.stderr)
+    );
+    let params = dir.path().join("params.json");
+    std::fs::write(
+        &params,
+        r#"{"train": {"backend": "cpu", "steps": 60, "resolution": 48, "max_gaussians": 1500}}"#,
+    )
+    .expect("params");
+    let out = dir.path().join("out");
+    let run = Command::new(BIN)
+        .args(["run", "--until", "dbh", "--lidar"])
+        .arg(plot.join("lidar.laz"))
+        .arg("--colmap")
+        .arg(plot.join("colmap"))
+        .arg("--control-points")
+        .arg(plot.join("control_points.csv"))
+        .arg("--field-dbh")
+        .arg(plot.join("field_dbh.csv"))
+        .arg("--params")
+        .arg(&params)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("run");
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let results: Value =
+        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
+            .expect("json");
+    let train = &results["train"];
+    assert_eq!(
+        train["gaussians"]["initial"].as_u64(),
+        Some(1500),
+        "{train}"
+    );
+    assert!(train["render"]["psnr"].as_f64().is_some(), "{train}");
+    assert!(
+        train["device"].as_str().unwrap_or("").contains("cpu"),
+        "{train}"
+    );
+    for f in ["splats.ply", "eval.json", "loss.csv", "loss.png"] {
+        assert!(out.join("train").join(f).is_file(), "{f}");
+    }
+    let loss = std::fs::read_to_string(out.join("train/loss.csv")).expect("loss.csv");
+    assert_eq!(loss.lines().count(), 1 + 6, "{loss}");
+    // Stage dbh fills the inventory with both diameters' columns and scores them.
+    let dbh = &results["dbh"];
+    assert!(dbh["dbh"]["rmse_lidar_cm"].as_f64().is_some(), "{dbh}");
+    let csv = std::fs::read_to_string(out.join("dbh/trees.csv")).expect("trees.csv");
+    let lidar = std::fs::read_to_string(out.join("segment/trees.csv")).expect("trees.csv");
+    assert_eq!(csv.lines().count(), lidar.lines().count());
+}
