@@ -179,7 +179,7 @@ fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
 }
 
 #[test]
-fn run_until_dbh_trains_on_the_cpu_reference_and_writes_both_diameters() {
+fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters() {
     let dir = tempfile::tempdir().expect("tempdir");
     let plot = dir.path().join("plot");
     let synth = Command::new(BIN)
@@ -200,7 +200,7 @@ fn run_until_dbh_trains_on_the_cpu_reference_and_writes_both_diameters() {
     .expect("params");
     let out = dir.path().join("out");
     let run = Command::new(BIN)
-        .args(["run", "--until", "dbh", "--lidar"])
+        .args(["run", "--lidar"])
         .arg(plot.join("lidar.laz"))
         .arg("--colmap")
         .arg(plot.join("colmap"))
@@ -244,4 +244,17 @@ fn run_until_dbh_trains_on_the_cpu_reference_and_writes_both_diameters() {
     let csv = std::fs::read_to_string(out.join("dbh/trees.csv")).expect("trees.csv");
     let lidar = std::fs::read_to_string(out.join("segment/trees.csv")).expect("trees.csv");
     assert_eq!(csv.lines().count(), lidar.lines().count());
+    // Stage export: the splats in both formats, the inventory and the frame.
+    let ply = std::fs::read(out.join("export/splats.ply")).expect("splats.ply");
+    assert!(String::from_utf8_lossy(&ply[..512]).contains("element vertex 1500"));
+    let compact = std::fs::metadata(out.join("export/splats.splat")).expect("splat");
+    assert_eq!(compact.len(), 1500 * 32);
+    let frame: Value =
+        serde_json::from_slice(&std::fs::read(out.join("export/frame.json")).expect("frame"))
+            .expect("json");
+    assert!(
+        frame["offset"].is_array() && frame["sfm_to_lidar"]["scale"].is_number(),
+        "{frame}"
+    );
+    assert!(out.join("export/trees.csv").is_file());
 }

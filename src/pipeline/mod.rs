@@ -9,6 +9,7 @@
 
 pub mod anchors;
 pub mod dbh;
+pub mod export;
 pub mod ingest;
 pub mod inspect;
 pub mod params;
@@ -112,9 +113,6 @@ pub struct StageInputs {
 /// Why a stage did not finish.
 #[derive(Debug, thiserror::Error)]
 pub enum StageError {
-    /// The stage's code is not part of this build yet.
-    #[error("stage {0} is not available in this build")]
-    NotAvailable(Stage),
     /// An input file is unusable: the message names the file and the fault.
     #[error("{0}")]
     Input(String),
@@ -206,7 +204,7 @@ pub struct StageOutcome {
     pub files: Vec<OutputFile>,
 }
 
-/// Runs one stage function. Not-yet-built stages fail with [`StageError::NotAvailable`].
+/// Runs one stage function.
 pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     match stage {
         Stage::Ingest => ingest::run(ctx),
@@ -215,7 +213,7 @@ pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Val
         Stage::Segment => segment::run(ctx),
         Stage::Train => train::run(ctx),
         Stage::Dbh => dbh::run(ctx),
-        other => Err(StageError::NotAvailable(other)),
+        Stage::Export => export::run(ctx),
     }
 }
 
@@ -372,30 +370,5 @@ mod tests {
         }
         let total: f64 = Stage::ALL.iter().map(|s| s.weight()).sum();
         assert!((total - 1.0).abs() < 1e-9);
-    }
-
-    #[test]
-    fn unbuilt_stage_fails_clearly() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let inputs = StageInputs {
-            lidar: dir.path().join("x.las"),
-            colmap: dir.path().join("colmap"),
-            control_points: None,
-            field_dbh: None,
-        };
-        let err = execute_stage(
-            Stage::Export,
-            &inputs,
-            dir.path(),
-            &PipelineParams::default(),
-            &crate::progress::NoProgress,
-        )
-        .expect_err("export is not built");
-        assert_eq!(
-            err.to_string(),
-            "stage export is not available in this build"
-        );
-        assert!(!dir.path().join("export").exists());
-        assert!(!dir.path().join("export.partial").exists());
     }
 }

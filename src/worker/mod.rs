@@ -83,7 +83,7 @@ fn job_progress(stages: &[Stage], stage: Stage, fraction: f64) -> f64 {
 /// A problem+json object for a failed stage.
 fn stage_problem(stage: Stage, e: &StageError) -> serde_json::Value {
     let (slug, title, status) = match e {
-        StageError::NotAvailable(_) => ("stage-unavailable", "Stage not available", 501),
+        StageError::Device(_) => ("device-unavailable", "GPU unavailable", 503),
         _ if e.is_storage_full() => ("insufficient-storage", "Disk full", 507),
         _ if e.is_input_fault() => ("input-unusable", "Input unusable", 422),
         _ => ("stage-failed", "Stage failed", 500),
