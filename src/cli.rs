@@ -45,6 +45,33 @@ pub enum Command {
     /// Train Gaussian splatting on a COLMAP project (vanilla 3DGS from the SfM points, or
     /// resume from a splat PLY); writes splats.ply, eval.json, the loss curve and test renders.
     Train(TrainArgs),
+    /// Benchmarks that print tables (not tests): `sylva bench train`.
+    Bench(BenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// What to measure: train (steps per second, where the step time goes, peak memory).
+    #[arg(env = "SYLVA_BENCH_WHAT", default_value = "train")]
+    pub what: String,
+    /// A COLMAP project to train on; without one a synthetic plot is generated.
+    #[arg(long, env = "SYLVA_BENCH_COLMAP")]
+    pub colmap: Option<PathBuf>,
+    /// Synthetic preset when no --colmap is given (tiny, plot, stand).
+    #[arg(long, env = "SYLVA_BENCH_PRESET", default_value = "tiny")]
+    pub preset: String,
+    /// Steps to time (the first step's shader compilation included).
+    #[arg(long, env = "SYLVA_BENCH_STEPS", default_value_t = 100)]
+    pub steps: u32,
+    /// Longest image side, pixels (comma-separated for several rows).
+    #[arg(long, env = "SYLVA_BENCH_RESOLUTION", default_value = "320")]
+    pub resolution: String,
+    /// Gaussians to train (a seeded subset of the SfM points; 0 = all).
+    #[arg(long, env = "SYLVA_BENCH_GAUSSIANS", default_value_t = 0)]
+    pub gaussians: u32,
+    /// gpu or cpu.
+    #[arg(long, env = "SYLVA_BENCH_BACKEND", default_value = "gpu")]
+    pub backend: String,
 }
 
 #[derive(Debug, Args)]
@@ -191,6 +218,7 @@ pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Synth(a) => synth(a).await,
         Command::Inventory(a) => inventory(a).await,
         Command::Train(a) => train(a).await,
+        Command::Bench(a) => bench(a).await,
     }
 }
 
@@ -588,5 +616,110 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         outcome.steps_per_second,
         outcome.device
     );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Peak resident memory of this process so far, MiB (Linux `VmHWM`; 0 where unknown).
+fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
+async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
+    use crate::pipeline::params::{TrainBackend, TrainParams};
+    if a.what != "train" {
+        anyhow::bail!("unknown benchmark {:?}; available: train", a.what);
+    }
+    let backend = match a.backend.as_str() {
+        "gpu" => TrainBackend::Gpu,
+        "cpu" => TrainBackend::Cpu,
+        other => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
+    };
+    let resolutions: Vec<u32> = a
+        .resolution
+        .split(',')
+        .map(|r| r.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--resolution: {e}"))?;
+    tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+        let tmp = std::env::temp_dir().join(format!("sylva-bench-{}", std::process::id()));
+        let colmap = match &a.colmap {
+            Some(c) => c.clone(),
+            None => {
+                let preset = crate::synth::Preset::from_name(&a.preset)
+                    .ok_or_else(|| anyhow::anyhow!("unknown preset {:?}", a.preset))?;
+                let p = crate::synth::SynthParams::new(preset);
+                eprintln!("generating a synthetic {} plot…", a.preset);
+                crate::synth::generate(&p, &tmp, &crate::progress::NoProgress)?;
+                tmp.join("colmap")
+            }
+        };
+        let project = crate::io::colmap::find_project(&colmap)?;
+        let images = project
+            .images_dir
+            .clone()
+            .ok_or_else(|| anyhow::anyhow!("{}: no images/ folder", colmap.display()))?;
+        let model = crate::io::colmap::read_model(&project.sparse_dir, &crate::progress::NoProgress)?;
+        println!(
+            "| device | resolution (px) | images | Gaussians | steps/s | s/step | projection ms | sort ms | raster ms | loss ms | backward ms | optimiser ms | peak RSS MiB |"
+        );
+        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+        for res in resolutions {
+            let params = TrainParams {
+                steps: a.steps,
+                resolution: res,
+                max_gaussians: a.gaussians,
+                backend,
+                ..TrainParams::default()
+            };
+            let mut cfg = params.config();
+            // Time the steps themselves: no densification, no evaluation views.
+            cfg.densify_until = 0;
+            cfg.test_every = 0;
+            let data = crate::splat::dataset::load(&model, &images, cfg.resolution, 0, &crate::progress::NoProgress)?;
+            let mut init = crate::splat::init::from_sfm_points(&data.points, &data.colours)?;
+            crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed);
+            let n = init.len();
+            let mut backend = crate::pipeline::train::backend_for(&params)?;
+            let mut strategy = crate::splat::trainer::default_strategy(&cfg);
+            let out = crate::splat::trainer::train(
+                backend.as_mut(),
+                &data,
+                init,
+                &cfg,
+                &mut strategy,
+                &crate::progress::NoProgress,
+            )?;
+            let t = out.phase_times;
+            let steps = f64::from(cfg.steps);
+            let first = data.train.first().map(|v| (v.camera.width, v.camera.height)).unwrap_or((0, 0));
+            println!(
+                "| {} | {}×{} | {} | {} | {:.2} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} |",
+                out.device,
+                first.0,
+                first.1,
+                data.train.len(),
+                n,
+                out.steps_per_second,
+                1.0 / out.steps_per_second.max(1e-9),
+                t.projection_ms / steps,
+                t.sort_ms / steps,
+                t.raster_ms / steps,
+                t.loss_ms / steps,
+                t.backward_ms / steps,
+                t.optimizer_ms / steps,
+                peak_rss_mib()
+            );
+        }
+        let _ = std::fs::remove_dir_all(&tmp);
+        Ok(())
+    })
+    .await??;
     Ok(ExitCode::SUCCESS)
 }

@@ -130,8 +130,12 @@ impl TrainConfig {
     /// When `steps` is below [`REFERENCE_STEPS`], every step count of the schedule
     /// (densification start, end and interval, opacity-reset interval, SH-degree interval) is
     /// multiplied by `steps / 30 000` and rounded, with intervals kept ≥ 1 — so a short run goes
-    /// through the same phases in the same proportions (e.g. 3000 steps: densify from 50 to 1500
-    /// every 10, reset every 300, SH degree up every 100). Thresholds and learning rates are
+    /// through the same phases in the same proportions (e.g. 3000 steps: densify from 50 to 1500,
+    /// reset every 300, SH degree up every 100) — except the densification interval, which stays
+    /// the reference 100 steps (at most a tenth of the run): new Gaussians need that long to
+    /// settle before their gradients mean anything, and densifying every few steps grows the
+    /// model geometrically (measured: 1.5 k → 76 k Gaussians in 200 steps). Thresholds and
+    /// learning rates are
     /// unchanged; the position rate still decays over the (new) `steps`. At 30 000 steps or more
     /// only `steps` changes and the schedule stays the reference one.
     pub fn scaled_to(&self, steps: u32) -> TrainConfig {
@@ -144,7 +148,7 @@ impl TrainConfig {
         let scale = |s: u32| (s as f64 * f).round() as u32;
         c.densify_from = scale(self.densify_from);
         c.densify_until = scale(self.densify_until);
-        c.densify_interval = scale(self.densify_interval).max(1);
+        c.densify_interval = self.densify_interval.min(steps / 10).max(1);
         c.opacity_reset_interval = scale(self.opacity_reset_interval).max(1);
         c.sh_degree_interval = scale(self.sh_degree_interval).max(1);
         c
@@ -191,8 +195,9 @@ mod tests {
         let c = TrainConfig::default().scaled_to(3000);
         assert_eq!(
             (c.densify_from, c.densify_until, c.densify_interval),
-            (50, 1500, 10)
+            (50, 1500, 100)
         );
+        assert_eq!(TrainConfig::default().scaled_to(200).densify_interval, 20);
         assert_eq!((c.opacity_reset_interval, c.sh_degree_interval), (300, 100));
         let tiny = TrainConfig::default().scaled_to(10);
         assert!(tiny.densify_interval >= 1 && tiny.sh_degree_interval >= 1);
