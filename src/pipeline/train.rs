@@ -45,7 +45,7 @@ pub fn backend_for(params: &TrainParams) -> Result<Box<dyn Backend>, TrainError>
     let background = [0.0; 3];
     match params.backend {
         TrainBackend::Cpu => Ok(Box::new(CpuBackend::new(background))),
-        TrainBackend::Gpu => match crate::splat::gpu::GpuBackend::new(background)? {},
+        TrainBackend::Gpu => Ok(Box::new(crate::splat::gpu::GpuBackend::new(background)?)),
     }
 }
 

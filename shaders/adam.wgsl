@@ -1,0 +1,41 @@
+// Adam (torch form, as the reference 3DGS): one thread per float of one parameter buffer.
+// m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2; p -= lr * (m / bc1) / (sqrt(v / bc2) + eps),
+// bc = 1 - b^t. The first `n_first` floats of each stride use `lr_first`, the rest `lr_rest`
+// (SH: DC vs higher bands).
+
+struct AdamParams {
+    n_floats: u32,
+    stride: u32,
+    n_first: u32,
+    _pad: u32,
+    lr_first: f32,
+    lr_rest: f32,
+    bc1: f32,
+    bc2: f32,
+    beta1: f32,
+    beta2: f32,
+    eps: f32,
+    _pad2: f32,
+}
+
+@group(0) @binding(0) var<uniform> ap: AdamParams;
+@group(0) @binding(1) var<storage, read_write> param: array<f32>;
+@group(0) @binding(2) var<storage, read> grad: array<f32>;
+@group(0) @binding(3) var<storage, read_write> m1: array<f32>;
+@group(0) @binding(4) var<storage, read_write> m2: array<f32>;
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    let i = (wg.y * nwg.x + wg.x) * 256u + lid;
+    if i >= ap.n_floats {
+        return;
+    }
+    let g = grad[i];
+    let m = ap.beta1 * m1[i] + (1.0 - ap.beta1) * g;
+    let v = ap.beta2 * m2[i] + (1.0 - ap.beta2) * g * g;
+    m1[i] = m;
+    m2[i] = v;
+    let lr = select(ap.lr_rest, ap.lr_first, i % ap.stride < ap.n_first);
+    param[i] -= lr * (m / ap.bc1) / (sqrt(v / ap.bc2) + ap.eps);
+}

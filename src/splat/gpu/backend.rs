@@ -1,0 +1,279 @@
+//! The trainer's GPU backend: the model, its gradients and the Adam moments live on the GPU;
+//! one step is the forward render (one 4-byte read of the intersection count, which sizes the
+//! sort), then the fused loss, the backward passes and Adam recorded into one command buffer.
+//! Training images are uploaded once, packed RGBA8, and stay on the GPU. The loss is read back
+//! only when the loop asks for it; the model, the moments and the densification statistics only
+//! when the strategy refines.
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use super::adam::{AdamRates, GpuAdam, MomentPair};
+use super::buffers::{read_buffer, storage_from, storage_zeroed};
+use super::loss::{LOSS_OUT_BYTES, LossKernel};
+use super::{GpuContext, GpuError, GpuGrads, GpuSplats, Renderer};
+use crate::splat::adam::{AdamState, LearningRates, Moments};
+use crate::splat::backend::{Backend, PhaseTimes, StepLoss, TrainError};
+use crate::splat::camera::Camera;
+use crate::splat::cameras::View;
+use crate::splat::model::Gaussians;
+use crate::splat::strategy::DensifyStats;
+
+impl From<GpuError> for TrainError {
+    fn from(e: GpuError) -> Self {
+        TrainError::Device(e.to_string())
+    }
+}
+
+/// The model and optimiser on the GPU.
+struct OnDevice {
+    splats: GpuSplats,
+    grads: GpuGrads,
+    adam: GpuAdam,
+    /// Trunk probabilities stay on the CPU (not trained); kept to rebuild the model.
+    trunk_prob: Vec<f32>,
+}
+
+/// See the module documentation.
+pub struct GpuBackend {
+    ctx: GpuContext,
+    renderer: Renderer,
+    loss: LossKernel,
+    background: [f32; 3],
+    state: Option<OnDevice>,
+    targets: HashMap<String, wgpu::Buffer>,
+    /// dL/dimage and the loss of the latest step, resized with the image.
+    dl_dimage: Option<(usize, wgpu::Buffer)>,
+    loss_out: wgpu::Buffer,
+    times: PhaseTimes,
+    /// Wait for the GPU after every pass so the phase times are true (slower; for benchmarks).
+    timed: bool,
+}
+
+impl GpuBackend {
+    /// Finds an adapter and compiles the kernels; a clear error without one.
+    pub fn new(background: [f32; 3]) -> Result<Self, TrainError> {
+        let ctx = GpuContext::new()?;
+        let renderer = Renderer::new(&ctx);
+        let loss = LossKernel::new(&ctx.device);
+        let loss_out = storage_zeroed(&ctx, "loss out", LOSS_OUT_BYTES)?;
+        Ok(GpuBackend {
+            ctx,
+            renderer,
+            loss,
+            background,
+            state: None,
+            targets: HashMap::new(),
+            dl_dimage: None,
+            loss_out,
+            times: PhaseTimes::default(),
+            timed: false,
+        })
+    }
+
+    /// Times every pass by waiting for the GPU after it (for `sylva bench train`).
+    pub fn set_timed(&mut self, timed: bool) {
+        self.timed = timed;
+    }
+
+    fn state(&self) -> Result<&OnDevice, TrainError> {
+        self.state
+            .as_ref()
+            .ok_or_else(|| TrainError::Invalid("no model on the GPU yet".into()))
+    }
+
+    fn target(&mut self, view: &View) -> Result<&wgpu::Buffer, TrainError> {
+        if !self.targets.contains_key(&view.name) {
+            let buf = storage_from(&self.ctx, "target image", &view.image.pixels)?;
+            self.targets.insert(view.name.clone(), buf);
+        }
+        self.targets
+            .get(&view.name)
+            .ok_or_else(|| TrainError::Invalid(format!("no target for {}", view.name)))
+    }
+
+    fn wait_ms(&self, t: Instant) -> Result<f64, TrainError> {
+        if self.timed {
+            self.ctx.wait()?;
+        }
+        Ok(t.elapsed().as_secs_f64() * 1000.0)
+    }
+}
+
+fn moments_pair(m: &Moments) -> MomentPair {
+    (m.m.clone(), m.v.clone())
+}
+
+fn to_moments(stride: usize, p: &MomentPair) -> Moments {
+    Moments {
+        stride,
+        m: p.0.clone(),
+        v: p.1.clone(),
+    }
+}
+
+impl Backend for GpuBackend {
+    fn device_name(&self) -> String {
+        self.ctx.description.to_string()
+    }
+
+    fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError> {
+        if adam.len() != model.len() {
+            return Err(TrainError::Invalid(
+                "model and optimiser state disagree in size".into(),
+            ));
+        }
+        let splats = GpuSplats::upload(&self.ctx, model)?;
+        let grads = GpuGrads::new(&self.ctx, splats.count)?;
+        let moments = [
+            moments_pair(&adam.means),
+            moments_pair(&adam.log_scales),
+            moments_pair(&adam.rotations),
+            moments_pair(&adam.opacity_logits),
+            moments_pair(&adam.sh),
+        ];
+        let gpu_adam = GpuAdam::from_moments(&self.ctx, splats.count, adam.step, &moments)?;
+        self.state = Some(OnDevice {
+            splats,
+            grads,
+            adam: gpu_adam,
+            trunk_prob: model.trunk_prob.clone(),
+        });
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        view: &View,
+        lr: &LearningRates,
+        sh_degree: u32,
+        _stats: bool,
+    ) -> Result<(), TrainError> {
+        let (w, h) = (view.camera.width, view.camera.height);
+        let pixels = w as usize * h as usize;
+        if self.dl_dimage.as_ref().is_none_or(|(n, _)| *n != pixels) {
+            let buf = storage_zeroed(&self.ctx, "dL/dimage", pixels as u64 * 12)?;
+            self.dl_dimage = Some((pixels, buf));
+        }
+        // Upload the target first (once per view) so the borrows below stay simple.
+        self.target(view)?;
+        let t = Instant::now();
+        let state = self
+            .state
+            .as_mut()
+            .ok_or_else(|| TrainError::Invalid("no model on the GPU yet".into()))?;
+        state.splats.sh_degree = sh_degree.min(3);
+        let frame = self
+            .renderer
+            .render(&self.ctx, &state.splats, &view.camera, self.background)?;
+        let forward_ms = t.elapsed().as_secs_f64() * 1000.0;
+        let (Some(target), Some((_, dl))) = (self.targets.get(&view.name), self.dl_dimage.as_ref())
+        else {
+            return Err(TrainError::Invalid("internal: missing step buffers".into()));
+        };
+        let t = Instant::now();
+        let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+        self.loss
+            .encode(&self.ctx.device, &mut enc, &frame.image, target, dl, &self.loss_out, w, h)
+            .map_err(|e| TrainError::Invalid(e.to_string()))?;
+        if self.timed {
+            self.ctx.queue.submit([enc.finish()]);
+            self.ctx.wait()?;
+            enc = self.ctx.device.create_command_encoder(&Default::default());
+        }
+        let loss_ms = t.elapsed().as_secs_f64() * 1000.0;
+        let t = Instant::now();
+        self.renderer
+            .encode_backward(&self.ctx, &mut enc, &state.splats, &frame, dl, &state.grads)?;
+        if self.timed {
+            self.ctx.queue.submit([enc.finish()]);
+            self.ctx.wait()?;
+            enc = self.ctx.device.create_command_encoder(&Default::default());
+        }
+        let backward_ms = t.elapsed().as_secs_f64() * 1000.0;
+        let t = Instant::now();
+        let rates = AdamRates {
+            means: lr.position,
+            log_scales: lr.scale,
+            rotations: lr.rotation,
+            opacity: lr.opacity,
+            sh_dc: lr.sh_dc,
+            sh_rest: lr.sh_rest,
+        };
+        state
+            .adam
+            .encode_step(&self.ctx, &mut enc, &state.splats, &state.grads, &rates)?;
+        self.ctx.queue.submit([enc.finish()]);
+        let optimizer_ms = self.wait_ms(t)?;
+        // The forward pass waits for its intersection count; split it as the renderer does
+        // not report sub-passes here.
+        self.times.raster_ms += forward_ms;
+        self.times.loss_ms += loss_ms;
+        self.times.backward_ms += backward_ms;
+        self.times.optimizer_ms += optimizer_ms;
+        Ok(())
+    }
+
+    fn last_loss(&mut self) -> Result<StepLoss, TrainError> {
+        let v: Vec<f32> = read_buffer(&self.ctx, &self.loss_out, 4)?;
+        Ok(StepLoss {
+            loss: v.first().copied().unwrap_or(f32::NAN),
+            l1: v.get(1).copied().unwrap_or(f32::NAN),
+            ssim: v.get(2).copied().unwrap_or(f32::NAN),
+        })
+    }
+
+    fn take_stats(&mut self) -> Result<DensifyStats, TrainError> {
+        let state = self.state()?;
+        let (grad_sum, visible_count) = state.grads.download_stats(&self.ctx)?;
+        let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+        state.grads.reset_stats(&mut enc);
+        self.ctx.queue.submit([enc.finish()]);
+        let n = grad_sum.len();
+        Ok(DensifyStats {
+            grad_sum,
+            visible_count,
+            // Screen radii are not accumulated on the GPU: the screen-size prune is off here.
+            max_radius: vec![0.0; n],
+        })
+    }
+
+    fn model(&mut self) -> Result<(Gaussians, AdamState), TrainError> {
+        let state = self.state()?;
+        let n = state.splats.count as usize;
+        let mut model = Gaussians {
+            means: vec![[0.0; 3]; n],
+            log_scales: vec![[0.0; 3]; n],
+            rotations: vec![[0.0; 4]; n],
+            opacity_logits: vec![0.0; n],
+            sh: vec![[0.0; crate::splat::model::SH_FLOATS]; n],
+            trunk_prob: state.trunk_prob.clone(),
+            sh_degree: state.splats.sh_degree,
+        };
+        state.splats.download_into(&self.ctx, &mut model)?;
+        let m = state.adam.download_moments(&self.ctx)?;
+        let strides = [3, 3, 4, 1, crate::splat::model::SH_FLOATS];
+        let get = |k: usize| to_moments(strides[k], &m[k]);
+        let adam = AdamState {
+            step: state.adam.step,
+            means: get(0),
+            log_scales: get(1),
+            rotations: get(2),
+            opacity_logits: get(3),
+            sh: get(4),
+        };
+        Ok((model, adam))
+    }
+
+    fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError> {
+        let state = self.state()?;
+        let frame = self
+            .renderer
+            .render(&self.ctx, &state.splats, camera, self.background)?;
+        Ok(frame.read_image(&self.ctx)?)
+    }
+
+    fn phase_times(&self) -> PhaseTimes {
+        self.times
+    }
+}

@@ -1,0 +1,166 @@
+//! Small helpers for storage buffers: creation, upload, zeroing and blocking read-back.
+
+use wgpu::util::DeviceExt;
+
+use crate::splat::gpu::context::{GpuContext, GpuError};
+
+/// Usage of every storage buffer in this crate: bound in shaders, written from the CPU, copied
+/// out for read-back, cleared on the GPU.
+pub const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
+
+/// A storage buffer holding `data` (zero-filled 16 bytes when empty: empty bindings are invalid).
+pub fn storage_from<T: bytemuck::Pod>(
+    ctx: &GpuContext,
+    label: &'static str,
+    data: &[T],
+) -> Result<wgpu::Buffer, GpuError> {
+    let bytes: &[u8] = bytemuck::cast_slice(data);
+    ctx.check_binding(label, bytes.len() as u64)?;
+    if bytes.is_empty() {
+        return storage_zeroed(ctx, label, 4);
+    }
+    Ok(ctx
+        .device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytes,
+            usage: STORAGE,
+        }))
+}
+
+/// A zero-filled storage buffer of `bytes` bytes (rounded up to a multiple of 4, at least 16 so
+/// that an empty model still binds `array<vec4<f32>>`).
+pub fn storage_zeroed(
+    ctx: &GpuContext,
+    label: &'static str,
+    bytes: u64,
+) -> Result<wgpu::Buffer, GpuError> {
+    let size = bytes.max(16).div_ceil(4) * 4;
+    ctx.check_binding(label, size)?;
+    Ok(ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size,
+        usage: STORAGE,
+        mapped_at_creation: false,
+    }))
+}
+
+/// A uniform buffer holding one `T`.
+pub fn uniform_from<T: bytemuck::Pod>(
+    ctx: &GpuContext,
+    label: &'static str,
+    v: &T,
+) -> wgpu::Buffer {
+    ctx.device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytemuck::bytes_of(v),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        })
+}
+
+/// Copies the first `count` elements of `buffer` back to the CPU (blocking).
+pub fn read_buffer<T: bytemuck::Pod>(
+    ctx: &GpuContext,
+    buffer: &wgpu::Buffer,
+    count: usize,
+) -> Result<Vec<T>, GpuError> {
+    let bytes = (count * size_of::<T>()) as u64;
+    if bytes == 0 {
+        return Ok(Vec::new());
+    }
+    if bytes > buffer.size() {
+        return Err(GpuError::Invalid(format!(
+            "read of {bytes} bytes from a buffer of {} bytes",
+            buffer.size()
+        )));
+    }
+    let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("staging"),
+        size: bytes.div_ceil(4) * 4,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut enc = ctx.device.create_command_encoder(&Default::default());
+    enc.copy_buffer_to_buffer(buffer, 0, &staging, 0, staging.size());
+    ctx.queue.submit([enc.finish()]);
+    let (tx, rx) = std::sync::mpsc::channel();
+    staging.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    ctx.wait()?;
+    rx.recv()
+        .map_err(|e| GpuError::Readback(e.to_string()))?
+        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    let out = {
+        let view = staging
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        bytemuck::cast_slice::<u8, T>(&view[..bytes as usize]).to_vec()
+    };
+    staging.unmap();
+    Ok(out)
+}
+
+/// Number of workgroups along x and y covering `groups` workgroups (x ≤ 65535, the WebGPU
+/// default `max_compute_workgroups_per_dimension`); kernels linearise `wg.y * nwg.x + wg.x`.
+pub fn grid(groups: u32) -> (u32, u32) {
+    let x = groups.clamp(1, 65535);
+    (x, groups.div_ceil(x).max(1))
+}
+
+/// Binds `buffers` in order to binding 0.. of a fresh bind group for `pipeline`'s group 0.
+pub fn bind(
+    ctx: &GpuContext,
+    pipeline: &wgpu::ComputePipeline,
+    buffers: &[&wgpu::Buffer],
+) -> wgpu::BindGroup {
+    let indexed: Vec<(u32, &wgpu::Buffer)> = buffers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| (i as u32, *b))
+        .collect();
+    bind_indexed(ctx, pipeline, &indexed)
+}
+
+/// Binds each `(binding, buffer)` of `pipeline`'s group 0 (for entry points that use a subset).
+pub fn bind_indexed(
+    ctx: &GpuContext,
+    pipeline: &wgpu::ComputePipeline,
+    buffers: &[(u32, &wgpu::Buffer)],
+) -> wgpu::BindGroup {
+    let layout = pipeline.get_bind_group_layout(0);
+    let entries: Vec<wgpu::BindGroupEntry> = buffers
+        .iter()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: *i,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: None,
+        layout: &layout,
+        entries: &entries,
+    })
+}
+
+/// A compute pipeline with an automatic layout from WGSL `source`, entry point `entry`.
+pub fn pipeline(ctx: &GpuContext, label: &str, source: &str, entry: &str) -> wgpu::ComputePipeline {
+    let module = ctx
+        .device
+        .create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(label),
+            source: wgpu::ShaderSource::Wgsl(source.into()),
+        });
+    ctx.device
+        .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(label),
+            layout: None,
+            module: &module,
+            entry_point: Some(entry),
+            compilation_options: Default::default(),
+            cache: None,
+        })
+}

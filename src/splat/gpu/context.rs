@@ -1,0 +1,134 @@
+//! The GPU device: instance, adapter and device creation with the optional features this crate
+//! can use (float atomics, timestamp queries), plus the crate's error type.
+
+use std::sync::Arc;
+
+/// Everything that can go wrong on the GPU side.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter was found (no Vulkan driver, or `WGPU_BACKEND` points at a missing backend).
+    #[error(
+        "no GPU adapter found: install a Vulkan driver (e.g. mesa-vulkan-drivers) or set WGPU_BACKEND ({0})"
+    )]
+    NoAdapter(String),
+    /// The adapter refused to create a device.
+    #[error("could not create the GPU device: {0}")]
+    Device(String),
+    /// A buffer would exceed what one storage binding may hold on this adapter.
+    #[error(
+        "{what} needs {bytes} bytes but one storage binding may hold at most {limit} bytes on this \
+         adapter; render fewer Gaussians or a smaller image (chunking is not implemented yet)"
+    )]
+    BufferTooLarge {
+        what: &'static str,
+        bytes: u64,
+        limit: u64,
+    },
+    /// Inputs disagree with each other (lengths, counts).
+    #[error("invalid input: {0}")]
+    Invalid(String),
+    /// Mapping a buffer for reading failed, or polling the device failed.
+    #[error("reading back from the GPU failed: {0}")]
+    Readback(String),
+}
+
+/// How per-Gaussian gradients are accumulated across pixels in the raster backward pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AtomicMode {
+    /// Native `atomicAdd` on `atomic<f32>` (feature `SHADER_FLOAT32_ATOMIC`).
+    Float,
+    /// A compare-and-swap loop on the bit pattern in `atomic<u32>` (always available).
+    CompareSwap,
+}
+
+/// Adapter, device and queue, plus what the adapter can do.
+#[derive(Clone)]
+pub struct GpuContext {
+    pub adapter: wgpu::Adapter,
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    /// Float-atomic strategy used by the raster backward pass.
+    pub atomic_mode: AtomicMode,
+    /// The largest storage binding, bytes (`max_storage_buffer_binding_size`; 128 MiB on lavapipe).
+    pub max_binding_bytes: u64,
+    /// Adapter name and backend, for logs.
+    pub description: Arc<str>,
+}
+
+impl GpuContext {
+    /// Creates a context on the high-performance adapter selected by the environment
+    /// (`WGPU_BACKEND`, `WGPU_ADAPTER_NAME`, ...), with float atomics when available.
+    pub fn new() -> Result<Self, GpuError> {
+        Self::with_atomic_mode(None)
+    }
+
+    /// As [`GpuContext::new`], but `force` picks the float-atomic strategy (`CompareSwap` always
+    /// works; `Float` falls back to `CompareSwap` when the adapter lacks the feature).
+    pub fn with_atomic_mode(force: Option<AtomicMode>) -> Result<Self, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let available = adapter.features();
+        let has_float_atomic = available.contains(wgpu::Features::SHADER_FLOAT32_ATOMIC);
+        let atomic_mode = match force {
+            Some(AtomicMode::CompareSwap) => AtomicMode::CompareSwap,
+            _ if has_float_atomic => AtomicMode::Float,
+            _ => AtomicMode::CompareSwap,
+        };
+        let mut features = wgpu::Features::empty();
+        if atomic_mode == AtomicMode::Float {
+            features |= wgpu::Features::SHADER_FLOAT32_ATOMIC;
+        }
+        // Default (WebGPU) limits, raised to the adapter's storage sizes so that large models fit.
+        let al = adapter.limits();
+        let limits = wgpu::Limits {
+            max_storage_buffer_binding_size: al.max_storage_buffer_binding_size,
+            max_buffer_size: al.max_buffer_size,
+            max_storage_buffers_per_shader_stage: al.max_storage_buffers_per_shader_stage.min(16),
+            ..wgpu::Limits::default()
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("splat-gpu"),
+            required_features: features,
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device(e.to_string()))?;
+        let info = adapter.get_info();
+        let description = format!("{} ({:?})", info.name, info.backend).into();
+        Ok(GpuContext {
+            adapter,
+            device,
+            queue,
+            atomic_mode,
+            max_binding_bytes: limits
+                .max_storage_buffer_binding_size
+                .min(limits.max_buffer_size),
+            description,
+        })
+    }
+
+    /// Fails with [`GpuError::BufferTooLarge`] when `bytes` exceed one storage binding.
+    pub fn check_binding(&self, what: &'static str, bytes: u64) -> Result<(), GpuError> {
+        if bytes > self.max_binding_bytes {
+            return Err(GpuError::BufferTooLarge {
+                what,
+                bytes,
+                limit: self.max_binding_bytes,
+            });
+        }
+        Ok(())
+    }
+
+    /// Blocks until all submitted work has finished.
+    pub fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Readback(e.to_string()))
+    }
+}

@@ -1,0 +1,134 @@
+//! The Gaussian model and its gradients on the GPU: one storage buffer per parameter.
+
+use crate::splat::model::{GaussianGrads, Gaussians, SH_FLOATS};
+
+use crate::splat::gpu::buffers::{read_buffer, storage_from, storage_zeroed};
+use crate::splat::gpu::context::{GpuContext, GpuError};
+
+/// A [`Gaussians`] model on the GPU (`trunk_prob` stays on the CPU: it is not trained).
+/// Layout per buffer: flat `f32`, `means` 3, `log_scales` 3, `rotations` 4 (w, x, y, z),
+/// `opacity_logits` 1, `sh` 48 (coefficient-major) floats per Gaussian.
+pub struct GpuSplats {
+    pub means: wgpu::Buffer,
+    pub log_scales: wgpu::Buffer,
+    pub rotations: wgpu::Buffer,
+    pub opacity_logits: wgpu::Buffer,
+    pub sh: wgpu::Buffer,
+    /// Number of Gaussians.
+    pub count: u32,
+    /// Active SH degree (0..=3).
+    pub sh_degree: u32,
+}
+
+fn check_count(n: usize) -> Result<u32, GpuError> {
+    u32::try_from(n)
+        .ok()
+        .filter(|&c| c < u32::MAX / SH_FLOATS as u32)
+        .ok_or_else(|| GpuError::Invalid(format!("{n} Gaussians is too many for one GPU model")))
+}
+
+impl GpuSplats {
+    /// Uploads `model` (fresh buffers; call again after densification changes the count).
+    pub fn upload(ctx: &GpuContext, model: &Gaussians) -> Result<Self, GpuError> {
+        if !model.is_consistent() {
+            return Err(GpuError::Invalid(
+                "the model's parameter vectors differ in length".into(),
+            ));
+        }
+        let count = check_count(model.len())?;
+        Ok(GpuSplats {
+            means: storage_from(ctx, "means", &model.means)?,
+            log_scales: storage_from(ctx, "log_scales", &model.log_scales)?,
+            rotations: storage_from(ctx, "rotations", &model.rotations)?,
+            opacity_logits: storage_from(ctx, "opacity_logits", &model.opacity_logits)?,
+            sh: storage_from(ctx, "sh", &model.sh)?,
+            count,
+            sh_degree: model.sh_degree.min(3),
+        })
+    }
+
+    /// The parameter buffers with their floats per Gaussian, in [`GaussianGrads`] order.
+    pub fn buffers(&self) -> [(&wgpu::Buffer, usize); 5] {
+        [
+            (&self.means, 3),
+            (&self.log_scales, 3),
+            (&self.rotations, 4),
+            (&self.opacity_logits, 1),
+            (&self.sh, SH_FLOATS),
+        ]
+    }
+
+    /// Reads the parameters back into `model` (blocking), keeping its `trunk_prob` (which must
+    /// have the GPU model's length) and setting `sh_degree`.
+    pub fn download_into(&self, ctx: &GpuContext, model: &mut Gaussians) -> Result<(), GpuError> {
+        let n = self.count as usize;
+        if model.trunk_prob.len() != n {
+            return Err(GpuError::Invalid(format!(
+                "download into a model of {} Gaussians from a GPU model of {n}",
+                model.trunk_prob.len()
+            )));
+        }
+        model.means = read_buffer(ctx, &self.means, n)?;
+        model.log_scales = read_buffer(ctx, &self.log_scales, n)?;
+        model.rotations = read_buffer(ctx, &self.rotations, n)?;
+        model.opacity_logits = read_buffer(ctx, &self.opacity_logits, n)?;
+        model.sh = read_buffer(ctx, &self.sh, n)?;
+        model.sh_degree = self.sh_degree;
+        Ok(())
+    }
+}
+
+/// Gradients of every parameter (same layout as [`GpuSplats`]) plus the densification
+/// statistic, accumulated over views until [`GpuGrads::reset_stats`].
+pub struct GpuGrads {
+    pub means: wgpu::Buffer,
+    pub log_scales: wgpu::Buffer,
+    pub rotations: wgpu::Buffer,
+    pub opacity_logits: wgpu::Buffer,
+    pub sh: wgpu::Buffer,
+    /// Densification statistic, 2 floats per Gaussian: Σ over views of
+    /// `|dL/dm ⊙ (0.5 w, 0.5 h)|` (pixel gradient → the reference's NDC gradient), and the
+    /// number of views in which the Gaussian was visible (`radius > 0`).
+    pub densify: wgpu::Buffer,
+    /// Number of Gaussians.
+    pub count: u32,
+}
+
+impl GpuGrads {
+    /// Zero gradients and statistics for `count` Gaussians.
+    pub fn new(ctx: &GpuContext, count: u32) -> Result<Self, GpuError> {
+        let n = count as u64 * 4;
+        Ok(GpuGrads {
+            means: storage_zeroed(ctx, "grad means", 3 * n)?,
+            log_scales: storage_zeroed(ctx, "grad log_scales", 3 * n)?,
+            rotations: storage_zeroed(ctx, "grad rotations", 4 * n)?,
+            opacity_logits: storage_zeroed(ctx, "grad opacity_logits", n)?,
+            sh: storage_zeroed(ctx, "grad sh", SH_FLOATS as u64 * n)?,
+            densify: storage_zeroed(ctx, "densify stats", 2 * n)?,
+            count,
+        })
+    }
+
+    /// Records zeroing of the densification statistics.
+    pub fn reset_stats(&self, enc: &mut wgpu::CommandEncoder) {
+        enc.clear_buffer(&self.densify, 0, None);
+    }
+
+    /// Reads the gradients back (blocking).
+    pub fn download(&self, ctx: &GpuContext) -> Result<GaussianGrads, GpuError> {
+        let n = self.count as usize;
+        Ok(GaussianGrads {
+            means: read_buffer(ctx, &self.means, n)?,
+            log_scales: read_buffer(ctx, &self.log_scales, n)?,
+            rotations: read_buffer(ctx, &self.rotations, n)?,
+            opacity_logits: read_buffer(ctx, &self.opacity_logits, n)?,
+            sh: read_buffer(ctx, &self.sh, n)?,
+        })
+    }
+
+    /// Reads the densification statistics back (blocking): (accumulated gradient norm, views).
+    pub fn download_stats(&self, ctx: &GpuContext) -> Result<(Vec<f32>, Vec<u32>), GpuError> {
+        let pairs: Vec<[f32; 2]> = read_buffer(ctx, &self.densify, self.count as usize)?;
+        Ok(pairs.iter().map(|p| (p[0], p[1] as u32)).unzip())
+    }
+}

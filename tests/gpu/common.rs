@@ -1,0 +1,97 @@
+//! Shared helpers of the GPU tests: a context or a skip, random scenes, comparisons.
+
+#![allow(dead_code)]
+
+use rand::rngs::ChaCha8Rng;
+use rand::{RngExt, SeedableRng};
+use sylva::splat::camera::Camera;
+use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
+use sylva::splat::gpu::{AtomicMode, GpuContext};
+
+/// A GPU context, or `None` (with the reason printed) when this machine has no adapter.
+pub fn context() -> Option<GpuContext> {
+    context_with(None)
+}
+
+/// As [`context`], forcing an atomic strategy.
+pub fn context_with(mode: Option<AtomicMode>) -> Option<GpuContext> {
+    match GpuContext::with_atomic_mode(mode) {
+        Ok(c) => Some(c),
+        Err(e) => {
+            eprintln!("skipping GPU test: {e}");
+            None
+        }
+    }
+}
+
+/// A `width`×`height` camera 4 m from the origin looking at it (z up).
+pub fn camera(width: u32, height: u32, fx: f32) -> Camera {
+    Camera::look_at(
+        [0.4, -4.0, 0.3],
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0],
+        width,
+        height,
+        fx,
+    )
+}
+
+/// `n` random anisotropic, rotated Gaussians within ±`spread` m of the origin (all in front of
+/// the camera; a large spread puts some off-screen), SH of `degree` with view-dependent bands.
+pub fn scene(seed: u64, n: usize, degree: u32, spread: f32) -> Gaussians {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut g = Gaussians {
+        sh_degree: degree,
+        ..Default::default()
+    };
+    for _ in 0..n {
+        let mut sh = [0.0f32; SH_FLOATS];
+        for (k, v) in sh.iter_mut().enumerate() {
+            *v = if k < 3 {
+                rng.random_range(-1.0..1.0)
+            } else {
+                rng.random_range(-0.3..0.3)
+            };
+        }
+        g.push(Gaussian {
+            mean: [0, 1, 2].map(|_| rng.random_range(-spread..spread)),
+            log_scale: [0, 1, 2].map(|_| rng.random_range(-3.0f32..-1.0)),
+            rotation: [0, 1, 2, 3].map(|_| rng.random_range(-1.0f32..1.0)),
+            opacity_logit: rng.random_range(-1.5..3.0),
+            sh,
+            trunk_prob: 0.0,
+        });
+    }
+    g
+}
+
+/// Random dL/dimage in [-1, 1].
+pub fn random_dl(pixels: usize, seed: u64) -> Vec<[f32; 3]> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..pixels)
+        .map(|_| [0, 1, 2].map(|_| rng.random_range(-1.0f32..1.0)))
+        .collect()
+}
+
+/// Agreement of `got` with `want`: relative L2 error of the whole vector, and the fraction of
+/// entries off by more than `rtol · |want| + atol_frac · max|want|`.
+pub fn compare(got: &[f32], want: &[f32], rtol: f32, atol_frac: f32) -> (f32, f32) {
+    assert_eq!(got.len(), want.len());
+    let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let mut num = 0.0f64;
+    let mut den = 0.0f64;
+    let mut bad = 0usize;
+    for (&g, &w) in got.iter().zip(want) {
+        num += ((g - w) as f64).powi(2);
+        den += (w as f64).powi(2);
+        if (g - w).abs() > rtol * w.abs() + atol_frac * scale {
+            bad += 1;
+        }
+    }
+    let rel = if den > 0.0 {
+        (num / den).sqrt()
+    } else {
+        num.sqrt()
+    };
+    (rel as f32, bad as f32 / got.len().max(1) as f32)
+}

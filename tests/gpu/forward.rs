@@ -1,0 +1,42 @@
+//! GPU forward render against the CPU reference (splat-cpu).
+
+use crate::common;
+
+use sylva::splat::gpu::{GpuSplats, Renderer};
+
+#[test]
+fn forward_matches_cpu_reference() {
+    let Some(ctx) = common::context() else { return };
+    let renderer = Renderer::new(&ctx);
+    let cases = [
+        (1u64, 1usize, 0u32, 32u32, 24u32, [0.0f32; 3]),
+        (2, 50, 1, 64, 48, [0.1, 0.2, 0.3]),
+        (3, 300, 3, 64, 64, [0.0; 3]),
+        (4, 500, 2, 61, 37, [1.0, 1.0, 1.0]),
+    ];
+    for (seed, n, deg, w, h, bg) in cases {
+        let model = common::scene(seed, n, deg, 1.2);
+        let cam = common::camera(w, h, 0.8 * w as f32);
+        let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
+        let splats = GpuSplats::upload(&ctx, &model).expect("upload");
+        let frame = renderer
+            .render(&ctx, &splats, &cam, bg)
+            .expect("gpu render");
+        let img = frame.read_image(&ctx).expect("read");
+        let t = frame.read_final_t(&ctx).expect("read");
+        let got: Vec<f32> = img.iter().flatten().copied().collect();
+        let want: Vec<f32> = cpu.image.iter().flatten().copied().collect();
+        let max = got
+            .iter()
+            .zip(&want)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        let (rel, bad) = common::compare(&got, &want, 1e-3, 1e-4);
+        let (trel, tbad) = common::compare(&t, &cpu.final_t, 1e-3, 1e-4);
+        eprintln!(
+            "seed {seed}: n {n}, {w}x{h}, isect {}: image max {max:.2e} rel {rel:.2e} bad {bad:.4}; T rel {trel:.2e} bad {tbad:.4}",
+            frame.intersections
+        );
+        assert!(rel < 1e-4 && bad < 0.002, "image disagrees");
+        assert!(trel < 1e-4 && tbad < 0.002, "final T disagrees");
+    }
+}

@@ -1,0 +1,10 @@
+//! The GPU kernels against the CPU reference, on whatever adapter the environment gives
+//! (lavapipe in CI: WGPU_BACKEND=vulkan). Without an adapter every test prints why it skips.
+
+mod adam;
+mod backward;
+mod common;
+mod context;
+mod forward;
+mod sort_scan;
+mod timing;
