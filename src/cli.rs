@@ -687,6 +687,7 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed);
             let n = init.len();
             let mut backend = crate::pipeline::train::backend_for(&params)?;
+            backend.set_timed(true);
             let mut strategy = crate::splat::trainer::default_strategy(&cfg);
             let out = crate::splat::trainer::train(
                 backend.as_mut(),

@@ -70,6 +70,9 @@ pub trait Backend {
     fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError>;
     /// Time spent per phase so far.
     fn phase_times(&self) -> PhaseTimes;
+    /// Wait for the device after every phase so that [`Backend::phase_times`] are exact
+    /// (slower; for benchmarks). Backends that run synchronously ignore it.
+    fn set_timed(&mut self, _timed: bool) {}
 }
 
 /// The CPU reference as a backend (see the module docs).

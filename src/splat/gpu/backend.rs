@@ -71,11 +71,6 @@ impl GpuBackend {
         })
     }
 
-    /// Times every pass by waiting for the GPU after it (for `sylva bench train`).
-    pub fn set_timed(&mut self, timed: bool) {
-        self.timed = timed;
-    }
-
     fn state(&self) -> Result<&OnDevice, TrainError> {
         self.state
             .as_ref()
@@ -163,9 +158,9 @@ impl Backend for GpuBackend {
             .as_mut()
             .ok_or_else(|| TrainError::Invalid("no model on the GPU yet".into()))?;
         state.splats.sh_degree = sh_degree.min(3);
-        let frame = self
-            .renderer
-            .render(&self.ctx, &state.splats, &view.camera, self.background)?;
+        let frame =
+            self.renderer
+                .render(&self.ctx, &state.splats, &view.camera, self.background)?;
         let forward_ms = t.elapsed().as_secs_f64() * 1000.0;
         let (Some(target), Some((_, dl))) = (self.targets.get(&view.name), self.dl_dimage.as_ref())
         else {
@@ -174,7 +169,16 @@ impl Backend for GpuBackend {
         let t = Instant::now();
         let mut enc = self.ctx.device.create_command_encoder(&Default::default());
         self.loss
-            .encode(&self.ctx.device, &mut enc, &frame.image, target, dl, &self.loss_out, w, h)
+            .encode(
+                &self.ctx.device,
+                &mut enc,
+                &frame.image,
+                target,
+                dl,
+                &self.loss_out,
+                w,
+                h,
+            )
             .map_err(|e| TrainError::Invalid(e.to_string()))?;
         if self.timed {
             self.ctx.queue.submit([enc.finish()]);
@@ -183,8 +187,14 @@ impl Backend for GpuBackend {
         }
         let loss_ms = t.elapsed().as_secs_f64() * 1000.0;
         let t = Instant::now();
-        self.renderer
-            .encode_backward(&self.ctx, &mut enc, &state.splats, &frame, dl, &state.grads)?;
+        self.renderer.encode_backward(
+            &self.ctx,
+            &mut enc,
+            &state.splats,
+            &frame,
+            dl,
+            &state.grads,
+        )?;
         if self.timed {
             self.ctx.queue.submit([enc.finish()]);
             self.ctx.wait()?;
@@ -275,5 +285,9 @@ impl Backend for GpuBackend {
 
     fn phase_times(&self) -> PhaseTimes {
         self.times
+    }
+
+    fn set_timed(&mut self, timed: bool) {
+        self.timed = timed;
     }
 }

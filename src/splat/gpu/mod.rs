@@ -16,10 +16,10 @@
 
 pub mod adam;
 pub mod backend;
-pub mod loss;
 pub mod buffers;
 pub mod context;
 pub mod frame;
+pub mod loss;
 pub mod params;
 pub mod project;
 pub mod project_bwd;
@@ -31,9 +31,9 @@ pub mod sort;
 pub mod splats;
 pub mod timing;
 
+pub use backend::GpuBackend;
 pub use context::{AtomicMode, GpuContext, GpuError};
 pub use frame::Frame;
 pub use renderer::Renderer;
 pub use splats::{GpuGrads, GpuSplats};
 pub use timing::PassTimings;
-pub use backend::GpuBackend;

@@ -13,10 +13,22 @@ const PASSES: [(&str, &str); 5] = [
         "loss blur stats",
         include_str!("../../../../shaders/loss/blur_stats.wgsl"),
     ),
-    ("loss ssim map", include_str!("../../../../shaders/loss/ssim_map.wgsl")),
-    ("loss blur grad", include_str!("../../../../shaders/loss/blur_grad.wgsl")),
-    ("loss grad", include_str!("../../../../shaders/loss/grad.wgsl")),
-    ("loss finalize", include_str!("../../../../shaders/loss/finalize.wgsl")),
+    (
+        "loss ssim map",
+        include_str!("../../../../shaders/loss/ssim_map.wgsl"),
+    ),
+    (
+        "loss blur grad",
+        include_str!("../../../../shaders/loss/blur_grad.wgsl"),
+    ),
+    (
+        "loss grad",
+        include_str!("../../../../shaders/loss/grad.wgsl"),
+    ),
+    (
+        "loss finalize",
+        include_str!("../../../../shaders/loss/finalize.wgsl"),
+    ),
 ];
 /// Workgroup edge of the per-pixel passes.
 const TILE: u32 = 16;
