@@ -47,6 +47,28 @@ pub enum Command {
     Train(TrainArgs),
     /// Benchmarks that print tables (not tests): `sylva bench train`.
     Bench(BenchArgs),
+    /// A generated plot through the whole service: start the server (SQLite + local files),
+    /// upload the plot through the API, follow the job, print the inventory and its accuracy,
+    /// and keep serving the web page until Ctrl-C.
+    Demo(DemoArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    #[command(flatten)]
+    pub store: StoreArgs,
+    /// Address to serve on.
+    #[arg(long, env = "SYLVA_DEMO_LISTEN", default_value = "127.0.0.1:8080")]
+    pub listen: std::net::SocketAddr,
+    /// Seed of the generated plot (preset tiny).
+    #[arg(long, env = "SYLVA_DEMO_SEED", default_value_t = 1)]
+    pub seed: u64,
+    /// Training steps (default: 3000 on a GPU, 300 on the CPU reference).
+    #[arg(long, env = "SYLVA_DEMO_STEPS")]
+    pub steps: Option<u32>,
+    /// Exit once the job has finished instead of serving on (for scripts and tests).
+    #[arg(long, env = "SYLVA_DEMO_EXIT")]
+    pub exit: bool,
 }
 
 #[derive(Debug, Args)]
@@ -205,9 +227,80 @@ pub struct RunArgs {
     /// Job parameters as a JSON file (the `params` object of the API; see `GET /v1/options`).
     #[arg(long, env = "SYLVA_PARAMS")]
     pub params: Option<PathBuf>,
+    /// Gaussians initialised from the LiDAR anchors (lidar, the paper's method) or the SfM
+    /// points (sfm, vanilla 3DGS); overrides the params file.
+    #[arg(long, env = "SYLVA_INIT")]
+    pub init: Option<String>,
+    /// The semantic trunk term: on (the paper's method) or off; overrides the params file.
+    #[arg(long, env = "SYLVA_SEMANTIC")]
+    pub semantic: Option<String>,
+    /// Training steps; overrides the params file.
+    #[arg(long, env = "SYLVA_STEPS")]
+    pub steps: Option<u32>,
+    /// Longest image side for training, pixels; overrides the params file.
+    #[arg(long, env = "SYLVA_RESOLUTION")]
+    pub resolution: Option<u32>,
+    /// Where training runs: gpu or cpu; overrides the params file.
+    #[arg(long, env = "SYLVA_BACKEND")]
+    pub backend: Option<String>,
     /// Log filter in tracing's syntax.
     #[arg(long, env = "SYLVA_LOG", default_value = "warn")]
     pub log: String,
+}
+
+/// Applies `sylva run`'s training flags to `params`.
+fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result<()> {
+    use crate::pipeline::params::{InitSource, TrainBackend};
+    let t = &mut params.train;
+    match a.init.as_deref() {
+        None => {}
+        Some("lidar") => t.init = InitSource::Lidar,
+        Some("sfm") => t.init = InitSource::Sfm,
+        Some(other) => anyhow::bail!("--init must be lidar or sfm, not {other:?}"),
+    }
+    match a.semantic.as_deref() {
+        None => {}
+        Some("on") => t.semantic = true,
+        Some("off") => t.semantic = false,
+        Some(other) => anyhow::bail!("--semantic must be on or off, not {other:?}"),
+    }
+    match a.backend.as_deref() {
+        None => {}
+        Some("gpu") => t.backend = TrainBackend::Gpu,
+        Some("cpu") => t.backend = TrainBackend::Cpu,
+        Some(other) => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
+    }
+    if let Some(s) = a.steps {
+        t.steps = s;
+    }
+    if let Some(r) = a.resolution {
+        t.resolution = r;
+    }
+    Ok(())
+}
+
+/// Adds the summary keys of results.json: `registration`, `render` = {psnr, ssim, views} and,
+/// with field data, `dbh` = {rmse_gs_cm, rmse_lidar_cm, bias_gs_cm, r2_gs, recall, matched}.
+fn summarise(results: &mut serde_json::Map<String, serde_json::Value>) {
+    let pick = |stage: &str, key: &str| {
+        results
+            .get(stage)
+            .and_then(|r| r.get(key))
+            .filter(|v| !v.is_null())
+            .cloned()
+    };
+    let registration = results.get("register").cloned();
+    let render = pick("train", "render");
+    let dbh = pick("dbh", "dbh");
+    for (k, v) in [
+        ("registration", registration),
+        ("render", render),
+        ("dbh", dbh),
+    ] {
+        if let Some(v) = v {
+            results.insert(k.to_string(), v);
+        }
+    }
 }
 
 pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
@@ -219,6 +312,7 @@ pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Inventory(a) => inventory(a).await,
         Command::Train(a) => train(a).await,
         Command::Bench(a) => bench(a).await,
+        Command::Demo(a) => demo(a).await,
     }
 }
 
@@ -383,6 +477,7 @@ async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     if a.until.is_some() {
         params.until = a.until;
     }
+    apply_train_flags(&a, &mut params)?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let colmap = if a.colmap.is_file() {
@@ -445,6 +540,7 @@ async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
                 progress.set(1.0);
                 eprintln!("  done in {:.1} s", started.elapsed().as_secs_f64());
                 results.insert(stage.name().to_string(), outcome.report);
+                summarise(&mut results);
                 write_results(&a.out, &results)?;
             }
             Err(e) => {
@@ -723,4 +819,183 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     })
     .await??;
     Ok(ExitCode::SUCCESS)
+}
+
+async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
+    // 1. A generated plot with known truth.
+    let plot = a.store.data.join("demo-plot");
+    if !plot.join("truth.json").is_file() {
+        eprintln!("generating a synthetic plot in {} …", plot.display());
+        let (dir, seed) = (plot.clone(), a.seed);
+        tokio::task::spawn_blocking(move || {
+            let mut p = crate::synth::SynthParams::new(crate::synth::Preset::Tiny);
+            p.seed = seed;
+            crate::synth::generate(&p, &dir, &crate::progress::NoProgress)
+        })
+        .await??;
+    }
+    let colmap_tar = plot.join("colmap.tar");
+    {
+        let file = std::fs::File::create(&colmap_tar)?;
+        let mut tar = tar::Builder::new(file);
+        tar.append_dir_all(".", plot.join("colmap"))?;
+        tar.finish()?;
+    }
+    // 2. The server, in this process, on the embedded default.
+    let data = a.store.data.to_string_lossy().to_string();
+    let listen = a.listen.to_string();
+    let cli = Cli::try_parse_from(["sylva", "serve", "--data", &data, "--listen", &listen])?;
+    let Command::Serve(serve_args) = cli.command else {
+        anyhow::bail!("internal: serve arguments");
+    };
+    let server = tokio::spawn(serve(serve_args));
+    let base = format!("http://{}", a.listen);
+    let http = reqwest::Client::new();
+    let mut ready = false;
+    for _ in 0..100 {
+        if http
+            .get(format!("{base}/livez"))
+            .send()
+            .await
+            .is_ok_and(|r| r.status().is_success())
+        {
+            ready = true;
+            break;
+        }
+        if server.is_finished() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    if !ready {
+        anyhow::bail!("the server did not start on {base} (is the port taken? use --listen)");
+    }
+    // 3. The job: GPU when there is one, else the CPU reference on a small budget.
+    let gpu = crate::gpu::probe().await;
+    let params = match &gpu {
+        // A software adapter (lavapipe) gets a budget it finishes in a minute or two.
+        Some(g) if g.device_type == "cpu" => {
+            eprintln!("training on {} (a software GPU: small budget)", g.name);
+            serde_json::json!({"train": {"steps": a.steps.unwrap_or(1000), "resolution": 80}})
+        }
+        Some(g) => {
+            eprintln!("training on {}", g.name);
+            serde_json::json!({"train": {"steps": a.steps.unwrap_or(3000), "resolution": 160}})
+        }
+        None => {
+            eprintln!("no GPU adapter: training on the CPU reference with a small budget");
+            serde_json::json!({"train": {"backend": "cpu", "steps": a.steps.unwrap_or(300),
+                "resolution": 80, "max_gaussians": 3000}})
+        }
+    };
+    let part = |path: PathBuf| -> anyhow::Result<reqwest::multipart::Part> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default();
+        Ok(reqwest::multipart::Part::bytes(std::fs::read(&path)?).file_name(name))
+    };
+    let form = reqwest::multipart::Form::new()
+        .part("lidar", part(plot.join("lidar.laz"))?)
+        .part("colmap", part(colmap_tar.clone())?)
+        .part("control_points", part(plot.join("control_points.csv"))?)
+        .part("field_dbh", part(plot.join("field_dbh.csv"))?)
+        .text("params", params.to_string());
+    let resp = http
+        .post(format!("{base}/v1/jobs"))
+        .multipart(form)
+        .send()
+        .await?;
+    if !resp.status().is_success() {
+        anyhow::bail!("job refused: {}", resp.text().await.unwrap_or_default());
+    }
+    let job: serde_json::Value = resp.json().await?;
+    let id = job["id"].as_str().unwrap_or_default().to_string();
+    eprintln!("job {id}: {base}/#/jobs/{id}");
+    // 4. Follow it.
+    let mut last = String::new();
+    let job = loop {
+        let j: serde_json::Value = http
+            .get(format!("{base}/v1/jobs/{id}"))
+            .send()
+            .await?
+            .json()
+            .await?;
+        let line = format!(
+            "{} {} {:.0}%",
+            j["state"].as_str().unwrap_or("?"),
+            j["stage"].as_str().unwrap_or(""),
+            j["progress"].as_f64().unwrap_or(0.0) * 100.0
+        );
+        if line != last {
+            eprintln!("  {line}");
+            last = line;
+        }
+        if matches!(
+            j["state"].as_str(),
+            Some("succeeded" | "failed" | "canceled")
+        ) {
+            break j;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    };
+    if job["state"] != "succeeded" {
+        eprintln!("the job did not succeed: {}", job["error"]);
+    } else {
+        // 5. The inventory and its quality.
+        let csv = http
+            .get(format!("{base}/v1/jobs/{id}/trees.csv"))
+            .send()
+            .await?
+            .text()
+            .await?;
+        println!("\ntree inventory (trees.csv):\n{csv}");
+        let results: serde_json::Value = http
+            .get(format!("{base}/v1/jobs/{id}/results"))
+            .send()
+            .await?
+            .json()
+            .await?;
+        let st = &results["stages"];
+        let f = |v: &serde_json::Value| v.as_f64().map_or("n/a".to_string(), |x| format!("{x:.2}"));
+        println!("| quality | value |\n|---|---|");
+        println!(
+            "| registration RMSE (m) | {} |",
+            f(&st["register"]["rmse_m"])
+        );
+        println!(
+            "| held-out PSNR (dB) | {} |",
+            f(&st["train"]["render"]["psnr"])
+        );
+        println!("| held-out SSIM | {} |", f(&st["train"]["render"]["ssim"]));
+        println!(
+            "| mean-colour PSNR (dB) | {} |",
+            f(&st["train"]["baseline_psnr"])
+        );
+        println!(
+            "| DBH RMSE, Gaussians (cm) | {} |",
+            f(&st["dbh"]["dbh"]["rmse_gs_cm"])
+        );
+        println!(
+            "| DBH RMSE, LiDAR (cm) | {} |",
+            f(&st["dbh"]["dbh"]["rmse_lidar_cm"])
+        );
+        println!("| trees matched | {} |", st["dbh"]["dbh"]["matched"]);
+    }
+    let ok = job["state"] == "succeeded";
+    if a.exit {
+        server.abort();
+        return Ok(if ok {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::FAILURE
+        });
+    }
+    println!("\nthe web page: {base}/  (Ctrl-C to stop)");
+    server.await??;
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
 }

@@ -3,9 +3,9 @@
 use crate::common;
 
 use rand::{RngExt, SeedableRng};
-use sylva::splat::model::SH_FLOATS;
 use sylva::splat::gpu::adam::{AdamRates, GpuAdam, adam_cpu};
 use sylva::splat::gpu::{GpuGrads, GpuSplats};
+use sylva::splat::model::SH_FLOATS;
 
 #[test]
 fn gpu_adam_matches_cpu_twin() {

@@ -2,9 +2,9 @@
 
 use crate::common;
 
-use sylva::splat::model::GaussianGrads;
 use sylva::splat::gpu::buffers::storage_from;
 use sylva::splat::gpu::{AtomicMode, GpuContext, GpuGrads, GpuSplats, Renderer};
+use sylva::splat::model::GaussianGrads;
 
 /// Scene extent per seed: seed 9 spreads Gaussians past the image edges (Jacobian clamp, culling).
 fn spread(seed: u64) -> f32 {

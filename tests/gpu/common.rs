@@ -5,8 +5,8 @@
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
 use sylva::splat::camera::Camera;
-use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
 use sylva::splat::gpu::{AtomicMode, GpuContext};
+use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
 
 /// A GPU context, or `None` (with the reason printed) when this machine has no adapter.
 pub fn context() -> Option<GpuContext> {
