@@ -148,9 +148,10 @@ pub struct TrainParams {
     pub semantic: bool,
     /// Final weight of L_geo (paper: 0.02; 0.01-0.03 is stable).
     pub gamma_max: f64,
-    /// Step where the L_geo ramp starts (paper: 3000).
+    /// Step where the L_geo ramp starts (paper: 3000 of 30,000; moved in proportion when
+    /// `steps` is smaller, METHOD.md).
     pub gamma_start: u32,
-    /// Step where the L_geo ramp reaches gamma_max (paper: 7000).
+    /// Step where the L_geo ramp reaches gamma_max (paper: 7000 of 30,000; scaled likewise).
     pub gamma_end: u32,
     /// Trunk anchors averaged for the target scale (METHOD.md: K = 8).
     pub trunk_k: u32,
@@ -233,8 +234,18 @@ impl TrainParams {
     /// The trainer's configuration: the reference schedule scaled to `steps`, with these
     /// parameters' resolution, cap and seed.
     pub fn config(&self) -> crate::splat::config::TrainConfig {
+        let semantic = crate::splat::semantic::SemanticConfig {
+            enabled: self.semantic,
+            gamma_max: self.gamma_max as f32,
+            gamma_start: self.gamma_start,
+            gamma_end: self.gamma_end,
+            k: self.trunk_k,
+            beta: self.trunk_beta as f32,
+            ..Default::default()
+        };
         let mut cfg = crate::splat::config::TrainConfig {
             steps: self.steps,
+            semantic,
             ..Default::default()
         }
         .scaled_to(self.steps);

@@ -17,6 +17,7 @@ use crate::splat::dataset::{self, Dataset, DatasetError};
 use crate::splat::init::{self, Anchor, AnchorInit};
 use crate::splat::model::Gaussians;
 use crate::splat::rng::SplitMix64;
+use crate::splat::semantic::SemanticAnchors;
 use crate::splat::trainer;
 
 impl From<TrainError> for StageError {
@@ -68,42 +69,82 @@ pub fn cap_gaussians(g: &mut Gaussians, max: u32, seed: u64) {
     g.retain_mask(&keep);
 }
 
-/// Initial Gaussians for `params.init`: LiDAR anchors labelled by stage `segment`, or the SfM
-/// points of the dataset.
+/// The labelled anchors of stage `segment` (LiDAR local frame): position, colour, trunk
+/// probability, and whether the anchor is labelled trunk.
+fn read_anchors(ctx: &StageContext<'_>) -> Result<(Vec<Anchor>, Vec<bool>), StageError> {
+    let segment = ctx.output_of(Stage::Segment, Stage::Train)?;
+    let (cloud, fields) = ply::read_ply_with_fields(&segment.join("anchors.ply"), &NoProgress)?;
+    let field = |name: &str| {
+        fields
+            .iter()
+            .find(|f| f.name == name)
+            .map(|f| f.values.clone())
+    };
+    let prob = field("trunk_prob").unwrap_or_else(|| vec![0.0; cloud.len()]);
+    // Label 1 is trunk (stage `segment`); without labels, the probability decides.
+    let is_trunk: Vec<bool> = match field("label") {
+        Some(l) => l.iter().map(|&v| v == 1.0).collect(),
+        None => prob.iter().map(|&p| p >= 0.5).collect(),
+    };
+    let colours = cloud
+        .colors
+        .clone()
+        .unwrap_or_else(|| vec![[128; 3]; cloud.len()]);
+    let anchors = (0..cloud.len())
+        .map(|i| Anchor {
+            position: cloud.positions[i].to_array(),
+            colour: colours[i],
+            trunk_prob: prob.get(i).copied().unwrap_or(0.0),
+        })
+        .collect();
+    Ok((anchors, is_trunk))
+}
+
+/// Initial Gaussians for `params.init`: the LiDAR anchors labelled by stage `segment`, or the
+/// SfM points of the dataset. SfM Gaussians take the trunk probability of their nearest anchor
+/// when anchors are given (so the semantic term can act on them too).
 fn initial_gaussians(
-    ctx: &StageContext<'_>,
     data: &Dataset,
     params: &TrainParams,
+    anchors: Option<&[Anchor]>,
 ) -> Result<Gaussians, StageError> {
-    let mut g = match params.init {
-        InitSource::Sfm => init::from_sfm_points(&data.points, &data.colours)
-            .map_err(|e| StageError::Input(format!("SfM initialisation: {e}")))?,
-        InitSource::Lidar => {
-            let segment = ctx.output_of(Stage::Segment, Stage::Train)?;
-            let (cloud, fields) =
-                ply::read_ply_with_fields(&segment.join("anchors.ply"), &NoProgress)?;
-            let prob = fields
-                .iter()
-                .find(|f| f.name == "trunk_prob")
-                .map(|f| f.values.clone())
-                .unwrap_or_else(|| vec![0.0; cloud.len()]);
-            let colours = cloud
-                .colors
-                .clone()
-                .unwrap_or_else(|| vec![[128; 3]; cloud.len()]);
-            let anchors: Vec<Anchor> = (0..cloud.len())
-                .map(|i| Anchor {
-                    position: cloud.positions[i].to_array(),
-                    colour: colours[i],
-                    trunk_prob: prob.get(i).copied().unwrap_or(0.0),
-                })
-                .collect();
-            init::from_anchors(&anchors, &data.train, &AnchorInit::default())
+    let mut g = match (params.init, anchors) {
+        (InitSource::Lidar, Some(anchors)) => {
+            init::from_anchors(anchors, &data.train, &AnchorInit::default())
                 .map_err(|e| StageError::Input(format!("anchor initialisation: {e}")))?
+        }
+        (InitSource::Lidar, None) => {
+            return Err(StageError::Input(
+                "LiDAR initialisation needs the anchors of stage segment".into(),
+            ));
+        }
+        (InitSource::Sfm, _) => {
+            let mut g = init::from_sfm_points(&data.points, &data.colours)
+                .map_err(|e| StageError::Input(format!("SfM initialisation: {e}")))?;
+            if let Some(anchors) = anchors {
+                inherit_trunk_prob(&mut g, anchors);
+            }
+            g
         }
     };
     cap_gaussians(&mut g, params.max_gaussians, params.seed);
     Ok(g)
+}
+
+/// Sets every Gaussian's trunk probability to that of its nearest anchor.
+fn inherit_trunk_prob(g: &mut Gaussians, anchors: &[Anchor]) {
+    let pts: Vec<glam::Vec3> = anchors
+        .iter()
+        .map(|a| glam::Vec3::from_array(a.position))
+        .collect();
+    let Ok(index) = crate::geom::PointIndex::new(&pts) else {
+        return;
+    };
+    for (m, p) in g.means.iter().zip(g.trunk_prob.iter_mut()) {
+        if let Some(n) = index.nearest(glam::Vec3::from_array(*m)) {
+            *p = anchors[n.index as usize].trunk_prob;
+        }
+    }
 }
 
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
@@ -125,8 +166,47 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         cfg.test_every,
         &SubProgress::new(ctx.progress, 0.0, 0.05),
     )?;
-    let init = initial_gaussians(ctx, &data, params)?;
+    // The anchors: the initialisation of the paper's method and the targets of L_geo.
+    let wants_anchors = params.init == InitSource::Lidar || params.semantic;
+    let (anchors, is_trunk) = if wants_anchors {
+        let (a, t) = read_anchors(ctx)?;
+        (Some(a), t)
+    } else {
+        (None, Vec::new())
+    };
+    let init = initial_gaussians(&data, params, anchors.as_deref())?;
     let n_init = init.len();
+    let mut cfg = cfg;
+    cfg.semantic.temperature_m = ctx.params.anchors.voxel_size_m as f32;
+    cfg.semantic
+        .validate()
+        .map_err(|e| StageError::Input(format!("params.train: {e}")))?;
+    let mut semantic_note = serde_json::Value::Null;
+    if let (true, Some(anchors)) = (params.semantic, anchors.as_ref()) {
+        let points: Vec<[f32; 3]> = anchors.iter().map(|a| a.position).collect();
+        match SemanticAnchors::new(&points, &is_trunk) {
+            Ok(set) => {
+                backend.set_semantic(&set, &cfg.semantic)?;
+                semantic_note = json!({
+                    "trunk_anchors": set.trunk.len(),
+                    "leaf_anchors": set.leaf.len(),
+                    "n_pos_m": set.n_pos,
+                    "gamma_max": cfg.semantic.gamma_max,
+                    "gamma_start": cfg.semantic.gamma_start,
+                    "gamma_end": cfg.semantic.gamma_end,
+                    "temperature_m": cfg.semantic.temperature_m,
+                    "k": cfg.semantic.k,
+                    "beta": cfg.semantic.beta,
+                });
+            }
+            Err(e) => {
+                // No trunk anchors: nothing to pull towards. Train without the term and say so.
+                ctx.progress.log(&format!("semantic term off: {e}"));
+                cfg.semantic.enabled = false;
+            }
+        }
+    }
+    let semantic_applied = cfg.semantic.enabled && cfg.steps > cfg.semantic.gamma_start;
     let mut strategy = trainer::default_strategy(&cfg);
     let outcome = trainer::train(
         backend.as_mut(),
@@ -149,8 +229,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     Ok(json!({
         "device": outcome.device,
         "init": params.init,
-        // The semantic trunk term L_geo is not applied by this build's trainer yet.
-        "semantic_applied": false,
+        "semantic_applied": semantic_applied,
+        "semantic": semantic_note,
+        "final_geo_loss": outcome.losses.last().map(|r| r.geo),
         "steps": cfg.steps,
         "resolution": data.train.first().map(|v| [v.camera.width, v.camera.height]),
         "views": { "train": data.train.len(), "test": data.test.len() },

@@ -11,6 +11,7 @@ use super::camera::Camera;
 use super::cameras::View;
 use super::cpu;
 use super::model::Gaussians;
+use super::semantic::{self, SemanticAnchors, SemanticConfig};
 use super::strategy::DensifyStats;
 
 /// Why training failed.
@@ -26,12 +27,14 @@ pub enum TrainError {
     Cancelled,
 }
 
-/// Photometric loss of the latest step: total, L1 and SSIM parts.
+/// Loss of the latest step: the photometric total with its L1 and SSIM parts, and the
+/// semantic term L_geo before its weight gamma (0 while the term is off).
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct StepLoss {
     pub loss: f32,
     pub l1: f32,
     pub ssim: f32,
+    pub geo: f32,
 }
 
 /// Milliseconds spent per phase since the backend started (summed over steps).
@@ -60,6 +63,15 @@ pub trait Backend {
         sh_degree: u32,
         stats: bool,
     ) -> Result<(), TrainError>;
+    /// Installs the labelled anchors of the semantic term L_geo (METHOD.md Stage 4). The term
+    /// stays off until [`Backend::set_geo_weight`] gives it a positive weight.
+    fn set_semantic(
+        &mut self,
+        anchors: &SemanticAnchors,
+        cfg: &SemanticConfig,
+    ) -> Result<(), TrainError>;
+    /// The weight gamma of L_geo for the following steps (0 turns it off).
+    fn set_geo_weight(&mut self, gamma: f32);
     /// The loss of the latest step (a GPU backend reads it back here).
     fn last_loss(&mut self) -> Result<StepLoss, TrainError>;
     /// The accumulated statistics, which are then reset.
@@ -83,6 +95,8 @@ pub struct CpuBackend {
     loss: StepLoss,
     background: [f32; 3],
     times: PhaseTimes,
+    semantic: Option<(SemanticAnchors, SemanticConfig)>,
+    gamma: f32,
 }
 
 impl CpuBackend {
@@ -94,6 +108,8 @@ impl CpuBackend {
             loss: StepLoss::default(),
             background,
             times: PhaseTimes::default(),
+            semantic: None,
+            gamma: 0.0,
         }
     }
 }
@@ -143,9 +159,22 @@ impl Backend for CpuBackend {
         .map_err(invalid)?;
         self.times.loss_ms += ms(t);
         let t = std::time::Instant::now();
-        let (grads, grad_stat) =
+        let (mut grads, grad_stat) =
             cpu::render_backward(&self.model, &view.camera, self.background, &render, &grad)
                 .map_err(invalid)?;
+        let mut geo = 0.0;
+        if let Some((anchors, cfg)) = self.semantic.as_ref().filter(|_| self.gamma > 0.0) {
+            let targets = semantic::geo_targets(&self.model, anchors, cfg);
+            let (l, d_mu, d_s) = semantic::geo_loss_and_grad(&self.model, &targets, anchors.n_pos);
+            let gamma = f64::from(self.gamma);
+            for i in 0..self.model.len() {
+                for a in 0..3 {
+                    grads.means[i][a] += (gamma * d_mu[i][a]) as f32;
+                    grads.log_scales[i][a] += (gamma * d_s[i][a]) as f32;
+                }
+            }
+            geo = l as f32;
+        }
         self.times.backward_ms += ms(t);
         if stats {
             let radii: Vec<f32> = render
@@ -164,8 +193,23 @@ impl Backend for CpuBackend {
             loss: loss.loss as f32,
             l1: loss.l1 as f32,
             ssim: loss.ssim as f32,
+            geo,
         };
         Ok(())
+    }
+
+    fn set_semantic(
+        &mut self,
+        anchors: &SemanticAnchors,
+        cfg: &SemanticConfig,
+    ) -> Result<(), TrainError> {
+        cfg.validate().map_err(TrainError::Invalid)?;
+        self.semantic = Some((anchors.clone(), cfg.clone()));
+        Ok(())
+    }
+
+    fn set_geo_weight(&mut self, gamma: f32) {
+        self.gamma = gamma;
     }
 
     fn last_loss(&mut self) -> Result<StepLoss, TrainError> {

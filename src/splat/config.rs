@@ -90,6 +90,9 @@ pub struct TrainConfig {
     pub resolution: Option<u32>,
     /// Seed of the random numbers used by densification (split sampling). Default 0.
     pub seed: u64,
+    /// The semantic trunk term L_geo (METHOD.md Stage 4); off by default (vanilla 3DGS). Its
+    /// anchors are installed on the backend by the caller ([`crate::splat::backend::Backend::set_semantic`]).
+    pub semantic: crate::splat::semantic::SemanticConfig,
 }
 
 impl Default for TrainConfig {
@@ -120,6 +123,7 @@ impl Default for TrainConfig {
             test_every: 8,
             resolution: None,
             seed: 0,
+            semantic: Default::default(),
         }
     }
 }
@@ -154,6 +158,7 @@ impl TrainConfig {
         // every 100 steps).
         c.opacity_reset_interval = self.opacity_reset_interval;
         c.sh_degree_interval = scale(self.sh_degree_interval).max(1);
+        c.semantic = self.semantic.scaled_to(steps);
         c
     }
 

@@ -241,21 +241,23 @@ pub struct LossRecord {
     pub l1: f32,
     /// Mean SSIM of the step's view.
     pub ssim: f32,
+    /// The semantic term L_geo before its weight gamma (0 while off).
+    pub geo: f32,
     /// Gaussians in the model.
     pub n_gaussians: usize,
     /// Wall time since training started, seconds.
     pub seconds: f64,
 }
 
-/// Writes the log as CSV with header `step,loss,l1,ssim,n_gaussians,seconds`.
+/// Writes the log as CSV with header `step,loss,l1,ssim,n_gaussians,seconds,geo`.
 pub fn write_loss_csv<W: Write>(out: W, records: &[LossRecord]) -> io::Result<()> {
     let mut out = io::BufWriter::new(out);
-    writeln!(out, "step,loss,l1,ssim,n_gaussians,seconds")?;
+    writeln!(out, "step,loss,l1,ssim,n_gaussians,seconds,geo")?;
     for r in records {
         writeln!(
             out,
-            "{},{},{},{},{},{:.3}",
-            r.step, r.loss, r.l1, r.ssim, r.n_gaussians, r.seconds
+            "{},{},{},{},{},{:.3},{}",
+            r.step, r.loss, r.l1, r.ssim, r.n_gaussians, r.seconds, r.geo
         )?;
     }
     out.flush()

@@ -119,6 +119,7 @@ fn loss_csv_has_a_header_and_one_line_per_record() {
         loss: 0.25,
         l1: 0.2,
         ssim: 0.6,
+        geo: 0.125,
         n_gaussians: 1234,
         seconds: 1.5,
     };
@@ -129,9 +130,9 @@ fn loss_csv_has_a_header_and_one_line_per_record() {
     assert_eq!(
         lines,
         [
-            "step,loss,l1,ssim,n_gaussians,seconds",
-            "7,0.25,0.2,0.6,1234,1.500",
-            "7,0.25,0.2,0.6,1234,1.500"
+            "step,loss,l1,ssim,n_gaussians,seconds,geo",
+            "7,0.25,0.2,0.6,1234,1.500,0.125",
+            "7,0.25,0.2,0.6,1234,1.500,0.125"
         ]
     );
 }

@@ -21,5 +21,6 @@ pub mod model;
 pub mod packed_image;
 pub mod plot;
 pub mod rng;
+pub mod semantic;
 pub mod strategy;
 pub mod trainer;

@@ -156,6 +156,7 @@ mod tests {
                 loss: 0.5 * (-(s as f32) / 10.0).exp() + 0.05,
                 l1: 0.0,
                 ssim: 0.0,
+                geo: 0.0,
                 n_gaussians: 100,
                 seconds: s as f64,
             })

@@ -6,5 +6,6 @@ mod backward;
 mod common;
 mod context;
 mod forward;
+mod semantic;
 mod sort_scan;
 mod timing;

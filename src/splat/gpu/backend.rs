@@ -17,7 +17,10 @@ use crate::splat::backend::{Backend, PhaseTimes, StepLoss, TrainError};
 use crate::splat::camera::Camera;
 use crate::splat::cameras::View;
 use crate::splat::model::Gaussians;
+use crate::splat::semantic::{SemanticAnchors, SemanticConfig};
 use crate::splat::strategy::DensifyStats;
+
+use super::semantic::GpuSemantic;
 
 impl From<GpuError> for TrainError {
     fn from(e: GpuError) -> Self {
@@ -48,6 +51,9 @@ pub struct GpuBackend {
     times: PhaseTimes,
     /// Wait for the GPU after every pass so the phase times are true (slower; for benchmarks).
     timed: bool,
+    /// The semantic term's anchors and scratch, once installed, and its current weight.
+    semantic: Option<GpuSemantic>,
+    gamma: f32,
 }
 
 impl GpuBackend {
@@ -68,6 +74,8 @@ impl GpuBackend {
             loss_out,
             times: PhaseTimes::default(),
             timed: false,
+            semantic: None,
+            gamma: 0.0,
         })
     }
 
@@ -128,6 +136,9 @@ impl Backend for GpuBackend {
             moments_pair(&adam.sh),
         ];
         let gpu_adam = GpuAdam::from_moments(&self.ctx, splats.count, adam.step, &moments)?;
+        if let Some(sem) = self.semantic.as_mut() {
+            sem.set_model(&self.ctx, &model.trunk_prob)?;
+        }
         self.state = Some(OnDevice {
             splats,
             grads,
@@ -200,6 +211,16 @@ impl Backend for GpuBackend {
             self.ctx.wait()?;
             enc = self.ctx.device.create_command_encoder(&Default::default());
         }
+        if let Some(sem) = self.semantic.as_ref().filter(|_| self.gamma > 0.0) {
+            sem.encode(
+                &self.ctx,
+                &mut enc,
+                &state.splats,
+                &state.grads,
+                &self.loss_out,
+                self.gamma,
+            )?;
+        }
         let backward_ms = t.elapsed().as_secs_f64() * 1000.0;
         let t = Instant::now();
         let rates = AdamRates {
@@ -230,7 +251,25 @@ impl Backend for GpuBackend {
             loss: v.first().copied().unwrap_or(f32::NAN),
             l1: v.get(1).copied().unwrap_or(f32::NAN),
             ssim: v.get(2).copied().unwrap_or(f32::NAN),
+            geo: v.get(3).copied().unwrap_or(0.0),
         })
+    }
+
+    fn set_semantic(
+        &mut self,
+        anchors: &SemanticAnchors,
+        cfg: &SemanticConfig,
+    ) -> Result<(), TrainError> {
+        let mut sem = GpuSemantic::new(&self.ctx, anchors, cfg)?;
+        if let Some(state) = self.state.as_ref() {
+            sem.set_model(&self.ctx, &state.trunk_prob)?;
+        }
+        self.semantic = Some(sem);
+        Ok(())
+    }
+
+    fn set_geo_weight(&mut self, gamma: f32) {
+        self.gamma = gamma;
     }
 
     fn take_stats(&mut self) -> Result<DensifyStats, TrainError> {

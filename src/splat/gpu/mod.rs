@@ -27,6 +27,7 @@ pub mod raster_bwd;
 pub mod raster_fwd;
 pub mod renderer;
 pub mod scan;
+pub mod semantic;
 pub mod sort;
 pub mod splats;
 pub mod timing;

@@ -195,10 +195,8 @@ fn constants_agree_with_cpu_reference() {
     for (g, c) in ssim_window().iter().zip(cpu) {
         assert!((f64::from(*g) - c).abs() < 1e-7);
     }
-    assert_eq!(
-        f64::from(SSIM_LAMBDA),
-        (crate::splat::cpu::loss::SSIM_LAMBDA as f32).into()
-    );
+    let cpu_lambda = crate::splat::cpu::loss::SSIM_LAMBDA as f32;
+    assert_eq!(SSIM_LAMBDA, cpu_lambda);
 }
 
 #[test]

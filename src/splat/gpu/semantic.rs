@@ -1,0 +1,237 @@
+//! L_geo on the GPU (`shaders/semantic.wgsl`): the anchors sit in two uniform grids (trunk and
+//! leaf) uploaded once — anchors do not move during training, only the Gaussians do, so every
+//! step searches the grids afresh from the current means. Three passes per step, recorded after
+//! the photometric backward pass and before Adam: query (neighbours, weights, targets), reduce
+//! (W and L_geo, which lands in the fourth float of the loss read-back) and apply (adds
+//! gamma × the gradient to the mean and log-scale gradients). The CPU twin is
+//! [`crate::splat::semantic`].
+
+use crate::splat::gpu::buffers::{
+    pipeline, read_buffer, storage_from, storage_zeroed, uniform_from,
+};
+use crate::splat::gpu::context::{GpuContext, GpuError};
+use crate::splat::gpu::project::{dispatch, groups_for};
+use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
+use crate::splat::semantic::{AnchorGrid, SemanticAnchors, SemanticConfig};
+
+const SOURCE: &str = include_str!("../../../shaders/semantic.wgsl");
+
+/// How far past the nearest trunk anchor the leaf search goes, in temperatures: beyond 30 T
+/// the trunk score q = sigmoid((d_l − d_t)/T) is 1 to f32 precision.
+const LEAF_CUTOFF_TEMPERATURES: f32 = 30.0;
+
+/// The text of one pass: everything before the first `#ifdef`, then the pass's own block.
+pub fn pass_source(name: &str) -> Result<String, GpuError> {
+    // Directives stand at the start of a line (comments may mention them).
+    let head = SOURCE.split("\n#ifdef ").next().unwrap_or_default();
+    let marker = format!("\n#ifdef {name}\n");
+    let start = SOURCE
+        .find(&marker)
+        .ok_or_else(|| GpuError::Invalid(format!("semantic.wgsl has no {name} pass")))?
+        + marker.len();
+    let len = SOURCE[start..]
+        .find("\n#endif")
+        .ok_or_else(|| GpuError::Invalid(format!("semantic.wgsl: {name} pass not closed")))?;
+    Ok(format!("{head}\n{}", &SOURCE[start..start + len]))
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct GeoParams {
+    n: u32,
+    k: u32,
+    leaf_cell_base: u32,
+    n_leaf: u32,
+    t_origin: [f32; 3],
+    t_cell: f32,
+    t_dims: [u32; 3],
+    _p0: u32,
+    l_origin: [f32; 3],
+    l_cell: f32,
+    l_dims: [u32; 3],
+    _p1: u32,
+    temperature: f32,
+    beta: f32,
+    eps: f32,
+    threshold: f32,
+    inv_npos2: f32,
+    gamma: f32,
+    leaf_cutoff: f32,
+    _p2: f32,
+}
+
+/// The anchors, their grids and the per-model scratch of L_geo on the GPU.
+pub struct GpuSemantic {
+    query: wgpu::ComputePipeline,
+    reduce: wgpu::ComputePipeline,
+    apply: wgpu::ComputePipeline,
+    starts: wgpu::Buffer,
+    anchors: wgpu::Buffer,
+    params: GeoParams,
+    /// Trunk probabilities and the 2 vec4 per Gaussian of the query, for `count` Gaussians.
+    trunk_prob: Option<wgpu::Buffer>,
+    geo: Option<wgpu::Buffer>,
+    count: u32,
+    /// (W, Σ w·term, L_geo, 0) of the latest step.
+    sums: wgpu::Buffer,
+}
+
+impl GpuSemantic {
+    /// Builds the grids over `anchors` and uploads them.
+    pub fn new(
+        ctx: &GpuContext,
+        anchors: &SemanticAnchors,
+        cfg: &SemanticConfig,
+    ) -> Result<Self, GpuError> {
+        cfg.validate().map_err(GpuError::Invalid)?;
+        let trunk = AnchorGrid::build(&anchors.trunk);
+        let leaf = AnchorGrid::build(&anchors.leaf);
+        let mut starts = trunk.cell_start.clone();
+        let leaf_cell_base = starts.len() as u32;
+        starts.extend_from_slice(&leaf.cell_start);
+        let points: Vec<[f32; 4]> = trunk
+            .points
+            .iter()
+            .chain(&leaf.points)
+            .map(|p| [p[0], p[1], p[2], 0.0])
+            .collect();
+        let params = GeoParams {
+            n: 0,
+            k: cfg.k.min(trunk.points.len() as u32).max(1),
+            leaf_cell_base,
+            n_leaf: leaf.points.len() as u32,
+            t_origin: trunk.origin,
+            t_cell: trunk.cell,
+            t_dims: trunk.dims,
+            _p0: 0,
+            l_origin: leaf.origin,
+            l_cell: leaf.cell,
+            l_dims: leaf.dims,
+            _p1: 0,
+            temperature: cfg.temperature_m,
+            beta: cfg.beta,
+            eps: cfg.eps_m,
+            threshold: cfg.weight_threshold,
+            inv_npos2: 1.0 / (anchors.n_pos * anchors.n_pos),
+            gamma: 0.0,
+            leaf_cutoff: LEAF_CUTOFF_TEMPERATURES * cfg.temperature_m,
+            _p2: 0.0,
+        };
+        Ok(GpuSemantic {
+            query: pipeline(ctx, "semantic query", &pass_source("QUERY")?, "query"),
+            reduce: pipeline(ctx, "semantic reduce", &pass_source("REDUCE")?, "reduce"),
+            apply: pipeline(ctx, "semantic apply", &pass_source("APPLY")?, "apply"),
+            starts: storage_from(ctx, "semantic cell starts", &starts)?,
+            anchors: storage_from(ctx, "semantic anchors", &points)?,
+            params,
+            trunk_prob: None,
+            geo: None,
+            count: 0,
+            sums: storage_zeroed(ctx, "semantic sums", 16)?,
+        })
+    }
+
+    /// Installs the trunk probabilities of a (new or refined) model.
+    pub fn set_model(&mut self, ctx: &GpuContext, trunk_prob: &[f32]) -> Result<(), GpuError> {
+        let n = trunk_prob.len() as u32;
+        self.trunk_prob = Some(storage_from(ctx, "trunk prob", trunk_prob)?);
+        self.geo = Some(storage_zeroed(ctx, "semantic targets", n as u64 * 32)?);
+        self.count = n;
+        Ok(())
+    }
+
+    /// Records the three passes: L_geo's gradient × `gamma` is added to `grads`, L_geo itself
+    /// is written to `loss_out[3]` (16-byte loss read-back buffer).
+    pub fn encode(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        splats: &GpuSplats,
+        grads: &GpuGrads,
+        loss_out: &wgpu::Buffer,
+        gamma: f32,
+    ) -> Result<(), GpuError> {
+        let (Some(prob), Some(geo)) = (&self.trunk_prob, &self.geo) else {
+            return Err(GpuError::Invalid(
+                "semantic term: no model installed".into(),
+            ));
+        };
+        if splats.count != self.count || grads.count != self.count {
+            return Err(GpuError::Invalid(format!(
+                "semantic term for {} Gaussians, model {}",
+                self.count, splats.count
+            )));
+        }
+        let params = GeoParams {
+            n: self.count,
+            gamma,
+            ..self.params
+        };
+        let u = uniform_from(ctx, "semantic params", &params);
+        let groups = groups_for(self.count);
+        dispatch(
+            ctx,
+            enc,
+            &self.query,
+            &[
+                &u,
+                &splats.means,
+                &splats.opacity_logits,
+                prob,
+                &self.starts,
+                &self.anchors,
+                geo,
+            ],
+            groups,
+        );
+        dispatch(
+            ctx,
+            enc,
+            &self.reduce,
+            &[
+                &u,
+                &splats.log_scales,
+                geo,
+                &self.sums,
+                &splats.means,
+                loss_out,
+            ],
+            (1, 1),
+        );
+        dispatch(
+            ctx,
+            enc,
+            &self.apply,
+            &[
+                &u,
+                &splats.means,
+                &splats.log_scales,
+                geo,
+                &self.sums,
+                &grads.means,
+                &grads.log_scales,
+            ],
+            groups,
+        );
+        Ok(())
+    }
+
+    /// Reads the latest query back (blocking; for tests): per Gaussian (a_nn xyz, s_target,
+    /// w, 0, 0, 0), and (W, Σ w·term, L_geo, 0).
+    pub fn read_back(&self, ctx: &GpuContext) -> Result<(Vec<[f32; 8]>, [f32; 4]), GpuError> {
+        let geo = self
+            .geo
+            .as_ref()
+            .ok_or_else(|| GpuError::Invalid("semantic term: no model installed".into()))?;
+        let flat: Vec<f32> = read_buffer(ctx, geo, self.count as usize * 8)?;
+        let rows = flat
+            .chunks_exact(8)
+            .map(|c| std::array::from_fn(|j| c[j]))
+            .collect();
+        let s: Vec<f32> = read_buffer(ctx, &self.sums, 4)?;
+        Ok((
+            rows,
+            std::array::from_fn(|j| s.get(j).copied().unwrap_or(0.0)),
+        ))
+    }
+}
