@@ -26,7 +26,11 @@ async fn job_lifecycle_through_ingest() {
     )
     .await;
     let id = job["id"].as_str().expect("id").to_string();
-    assert_eq!(job["state"], "queued");
+    // Queued, unless a polling worker claimed it before the answer was read.
+    assert!(
+        job["state"] == "queued" || job["state"] == "running",
+        "{job}"
+    );
     assert_eq!(
         job["params"]["anchors"]["outlier_k"], 16,
         "defaults are filled in"

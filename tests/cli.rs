@@ -235,6 +235,12 @@ fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters
         "{train}"
     );
     assert!(train["render"]["psnr"].as_f64().is_some(), "{train}");
+    // The paper's method by default: the semantic term with the labelled anchors.
+    assert_eq!(train["semantic_applied"], true, "{train}");
+    assert!(
+        train["semantic"]["trunk_anchors"].as_u64().unwrap_or(0) > 0,
+        "{train}"
+    );
     assert!(
         train["device"].as_str().unwrap_or("").contains("cpu"),
         "{train}"

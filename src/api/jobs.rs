@@ -131,15 +131,17 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
             state.args.max_queued_jobs as i64,
         )
         .await?;
-    let id = match created {
-        Created::New(id) => {
-            state.wake.notify_waiters();
-            tracing::info!(job = %id, "job queued");
-            id
-        }
-        Created::Existing(id) => id,
+    let (id, new) = match created {
+        Created::New(id) => (id, true),
+        Created::Existing(id) => (id, false),
     };
+    // Read the job before waking the workers, so the answer shows it as created (queued)
+    // rather than whatever a worker did in between (a polling worker may still be quicker).
     let job = load(&state, &id).await?;
+    if new {
+        state.wake.notify_waiters();
+        tracing::info!(job = %id, "job queued");
+    }
     let mut resp = (StatusCode::ACCEPTED, Json(views::job(&job))).into_response();
     if let Ok(loc) = HeaderValue::from_str(&format!("/v1/jobs/{id}")) {
         resp.headers_mut().insert(header::LOCATION, loc);

@@ -94,6 +94,9 @@ impl Browser {
         }
         let caps = json!({ "capabilities": { "alwaysMatch": {
             "browserName": "chrome",
+            // WebGL runs in software here and the machine may be busy: generous script and
+            // page-load limits (milliseconds) instead of the 30 s defaults.
+            "timeouts": { "script": 180_000, "pageLoad": 180_000 },
             "goog:chromeOptions": {
                 "binary": chromium,
                 "args": [
