@@ -16,7 +16,8 @@
 @group(0) @binding(9) var<storage, read_write> g_rotations: array<f32>;
 @group(0) @binding(10) var<storage, read_write> g_opacity: array<f32>;
 @group(0) @binding(11) var<storage, read_write> g_sh: array<f32>;
-// densify[2 i] += |dL/dm| scaled to NDC, densify[2 i + 1] += 1 per view where visible.
+// densify[3 i] += |dL/dm| scaled to NDC, densify[3 i + 1] += 1 per view where visible,
+// densify[3 i + 2] = the largest screen radius (pixels) over those views.
 @group(0) @binding(12) var<storage, read_write> densify: array<f32>;
 
 // d Y_k / d(x, y, z) for k = 1..15, treating the components as independent.
@@ -86,8 +87,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let v_opacity = grads2d[9u * i + 8u];
 
     // Densification statistic (reference: NDC gradient = pixel gradient x (w/2, h/2)).
-    densify[2u * i] += length(v_m * 0.5 * p.lim.zw);
-    densify[2u * i + 1u] += 1.0;
+    densify[3u * i] += length(v_m * 0.5 * p.lim.zw);
+    densify[3u * i + 1u] += 1.0;
+    densify[3u * i + 2u] = max(densify[3u * i + 2u], f32(radius));
 
     // Opacity: sigmoid derivative.
     let o = proj[3u * i + 1u].w;

@@ -15,6 +15,7 @@ struct Outcome {
     grads: GaussianGrads,
     stat: Vec<f32>,
     visible: Vec<u32>,
+    radius: Vec<f32>,
 }
 
 fn gpu_backward(ctx: &GpuContext, seed: u64, n: usize, deg: u32, w: u32, h: u32) -> Outcome {
@@ -30,11 +31,12 @@ fn gpu_backward(ctx: &GpuContext, seed: u64, n: usize, deg: u32, w: u32, h: u32)
     renderer
         .backward(ctx, &splats, &frame, &dl_buf, &grads)
         .expect("backward");
-    let (stat, visible) = grads.download_stats(ctx).expect("stats");
+    let s = grads.download_stats(ctx).expect("stats");
     Outcome {
         grads: grads.download(ctx).expect("download"),
-        stat,
-        visible,
+        stat: s.grad_sum,
+        visible: s.visible_count,
+        radius: s.max_radius,
     }
 }
 
@@ -88,6 +90,8 @@ fn backward_matches_cpu_reference() {
         check("densify stat", &got.stat, &want_stat);
         for (i, p) in cpu.projected.iter().enumerate() {
             assert_eq!(got.visible[i], u32::from(p.visible), "visibility of {i}");
+            let want_r = if p.visible { p.radius as f32 } else { 0.0 };
+            assert_eq!(got.radius[i], want_r, "screen radius of {i}");
         }
     }
 }

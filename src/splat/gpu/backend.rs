@@ -274,16 +274,14 @@ impl Backend for GpuBackend {
 
     fn take_stats(&mut self) -> Result<DensifyStats, TrainError> {
         let state = self.state()?;
-        let (grad_sum, visible_count) = state.grads.download_stats(&self.ctx)?;
+        let s = state.grads.download_stats(&self.ctx)?;
         let mut enc = self.ctx.device.create_command_encoder(&Default::default());
         state.grads.reset_stats(&mut enc);
         self.ctx.queue.submit([enc.finish()]);
-        let n = grad_sum.len();
         Ok(DensifyStats {
-            grad_sum,
-            visible_count,
-            // Screen radii are not accumulated on the GPU: the screen-size prune is off here.
-            max_radius: vec![0.0; n],
+            grad_sum: s.grad_sum,
+            visible_count: s.visible_count,
+            max_radius: s.max_radius,
         })
     }
 

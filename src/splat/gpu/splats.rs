@@ -86,9 +86,10 @@ pub struct GpuGrads {
     pub rotations: wgpu::Buffer,
     pub opacity_logits: wgpu::Buffer,
     pub sh: wgpu::Buffer,
-    /// Densification statistic, 2 floats per Gaussian: Σ over views of
-    /// `|dL/dm ⊙ (0.5 w, 0.5 h)|` (pixel gradient → the reference's NDC gradient), and the
-    /// number of views in which the Gaussian was visible (`radius > 0`).
+    /// Densification statistics, 3 floats per Gaussian: Σ over views of
+    /// `|dL/dm ⊙ (0.5 w, 0.5 h)|` (pixel gradient → the reference's NDC gradient), the
+    /// number of views in which the Gaussian was visible (`radius > 0`), and the largest
+    /// screen radius in pixels over those views.
     pub densify: wgpu::Buffer,
     /// Number of Gaussians.
     pub count: u32,
@@ -104,7 +105,7 @@ impl GpuGrads {
             rotations: storage_zeroed(ctx, "grad rotations", 4 * n)?,
             opacity_logits: storage_zeroed(ctx, "grad opacity_logits", n)?,
             sh: storage_zeroed(ctx, "grad sh", SH_FLOATS as u64 * n)?,
-            densify: storage_zeroed(ctx, "densify stats", 2 * n)?,
+            densify: storage_zeroed(ctx, "densify stats", 3 * n)?,
             count,
         })
     }
@@ -126,9 +127,25 @@ impl GpuGrads {
         })
     }
 
-    /// Reads the densification statistics back (blocking): (accumulated gradient norm, views).
-    pub fn download_stats(&self, ctx: &GpuContext) -> Result<(Vec<f32>, Vec<u32>), GpuError> {
-        let pairs: Vec<[f32; 2]> = read_buffer(ctx, &self.densify, self.count as usize)?;
-        Ok(pairs.iter().map(|p| (p[0], p[1] as u32)).unzip())
+    /// Reads the densification statistics back (blocking): accumulated gradient norm, views
+    /// where visible, and the largest screen radius in pixels.
+    pub fn download_stats(&self, ctx: &GpuContext) -> Result<DeviceStats, GpuError> {
+        let rows: Vec<[f32; 3]> = read_buffer(ctx, &self.densify, self.count as usize)?;
+        Ok(DeviceStats {
+            grad_sum: rows.iter().map(|r| r[0]).collect(),
+            visible_count: rows.iter().map(|r| r[1] as u32).collect(),
+            max_radius: rows.iter().map(|r| r[2]).collect(),
+        })
     }
+}
+
+/// The densification statistics as the GPU accumulated them (per Gaussian).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct DeviceStats {
+    /// Σ over views of the NDC positional gradient norm.
+    pub grad_sum: Vec<f32>,
+    /// Views in which the Gaussian was visible.
+    pub visible_count: Vec<u32>,
+    /// Largest screen radius over those views, pixels.
+    pub max_radius: Vec<f32>,
 }
