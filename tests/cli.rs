@@ -272,3 +272,31 @@ fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters
     );
     assert!(out.join("export/trees.csv").is_file());
 }
+
+#[test]
+fn demo_runs_a_generated_plot_through_the_api_and_prints_the_inventory() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("free port");
+    let out = Command::new(BIN)
+        .args(["demo", "--exit", "--steps", "20", "--listen"])
+        .arg(format!("127.0.0.1:{port}"))
+        .arg("--data")
+        .arg(dir.path())
+        .output()
+        .expect("demo");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("| held-out PSNR (dB) |"), "{stdout}");
+    assert!(stdout.contains("| trees matched | 3 |"), "{stdout}");
+    // The plot and the job stay in the data folder for the web page.
+    assert!(dir.path().join("demo-plot/truth.json").is_file());
+    assert!(dir.path().join("sylva.db").is_file());
+}
