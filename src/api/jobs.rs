@@ -15,7 +15,7 @@ use sha2::{Digest, Sha256};
 use super::problem::ApiError;
 use super::uploads::{self, new_id, valid_id};
 use super::{AppState, count_upload_bytes, views};
-use crate::jobs::sqlite::Created;
+use crate::jobs::Created;
 use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
 use crate::pipeline::{PipelineParams, Stage};
 
