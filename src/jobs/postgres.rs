@@ -23,8 +23,10 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use sqlx::postgres::{PgConnectOptions, PgListener, PgPool, PgPoolOptions, PgRow};
-use sqlx::{Postgres, Row, Transaction};
+use sqlx::postgres::{
+    PgConnectOptions, PgConnection, PgListener, PgPool, PgPoolOptions, PgRow,
+};
+use sqlx::{Connection, Postgres, Row, Transaction};
 use tokio::sync::Notify;
 
 use super::*;
@@ -86,6 +88,9 @@ impl PgJobs {
     /// an advisory lock while it migrates).
     pub async fn open(url: &str, max_connections: u32) -> Result<Self, DbError> {
         let options: PgConnectOptions = url.parse()?;
+        // One direct connection first: an unreachable server or a refused login then reports
+        // its own error at once, not a pool timeout after ACQUIRE_TIMEOUT.
+        PgConnection::connect_with(&options).await?.close().await?;
         let pool = PgPoolOptions::new()
             .max_connections(max_connections.max(2))
             .acquire_timeout(ACQUIRE_TIMEOUT)

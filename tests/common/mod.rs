@@ -275,14 +275,29 @@ impl Db {
         args
     }
 
+    /// Fails unless the process says it opened this kind of database.
+    fn check_backend(&self, p: Proc) -> Proc {
+        let name = match self {
+            Db::Sqlite => "\"sqlite\"",
+            Db::Postgres(_) => "\"postgres\"",
+        };
+        let text = p.stderr_text();
+        assert!(
+            text.lines()
+                .any(|l| l.contains("job database open") && l.contains(name)),
+            "expected a {name} job database: {text}"
+        );
+        p
+    }
+
     /// `sylva serve` on this database.
     pub fn serve(&self, data: &Path, extra: &[&str]) -> Proc {
-        serve(data, &self.with_flags(extra))
+        self.check_backend(serve(data, &self.with_flags(extra)))
     }
 
     /// `sylva worker` on this database.
     pub fn worker(&self, data: &Path, extra: &[&str]) -> Proc {
-        worker(data, &self.with_flags(extra))
+        self.check_backend(worker(data, &self.with_flags(extra)))
     }
 }
 
