@@ -173,14 +173,12 @@ async fn three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill(db: D
     let api = db.serve(&data, &["--workers", "0"]);
     let (c, base) = (client(), api.base.clone());
     let inputs = upload_inputs(&c, &base, &fx).await;
-    let body = move |k: usize| {
-        json!({ "inputs": inputs, "params": { "until": "ingest", "ingest": { "decode_images": k % 2 == 0 } } })
-    };
+    let body = move |k: usize| json!({ "inputs": inputs, "params": { "until": "ingest", "ingest": { "decode_images": k.is_multiple_of(2) } } });
 
     // Worker A takes the first job and stalls in its stage until it is killed.
     let mut a = db.worker(
         &data,
-        &["--lease-secs", "2", "--debug-stage-pause-ms", "60000"],
+        &["--lease-secs", "3", "--debug-stage-pause-ms", "60000"],
     );
     let a_pid = a.child.id();
     let first = create_job(&c, &base, &body(0)).await;
@@ -232,11 +230,17 @@ async fn three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill(db: D
             assert_eq!(job["attempt"], 2, "re-claimed once after the kill: {job}");
             assert_eq!(who.len(), 2, "{who:?}");
             assert!(of_process(&who[0], a_pid), "A claimed it first: {who:?}");
-            assert!(!of_process(&who[1], a_pid), "another worker finished it: {who:?}");
+            assert!(
+                !of_process(&who[1], a_pid),
+                "another worker finished it: {who:?}"
+            );
         } else {
             assert_eq!(job["attempt"], 1, "processed exactly once: {job}");
             assert_eq!(who.len(), 1, "claimed once: {who:?}");
-            assert!(!of_process(&who[0], a_pid), "A was stalled in its first job: {who:?}");
+            assert!(
+                !of_process(&who[0], a_pid),
+                "A was stalled in its first job: {who:?}"
+            );
         }
     }
     // Both survivors took part, and nothing went wrong in any process.

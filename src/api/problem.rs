@@ -140,9 +140,7 @@ impl From<DbError> for ApiError {
                 format!("{n} jobs are waiting; submit again later"),
             )
             .with_header(header::RETRY_AFTER, "60"),
-            other if other.is_storage_full() => {
-                ApiError::storage_full("the server's disk is full")
-            }
+            other if other.is_storage_full() => ApiError::storage_full("the server's disk is full"),
             other => ApiError::internal(other.to_string()),
         }
     }

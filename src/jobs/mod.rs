@@ -271,7 +271,10 @@ impl RetryPlan {
     /// Checks `from` against the job's stages: a named stage must be one the job runs and
     /// must not lie past the first unfinished stage; without one, the job resumes at its first
     /// unfinished stage.
-    pub(crate) fn new(stages: &[(String, i64, String)], from: Option<Stage>) -> Result<Self, DbError> {
+    pub(crate) fn new(
+        stages: &[(String, i64, String)],
+        from: Option<Stage>,
+    ) -> Result<Self, DbError> {
         let first_unfinished = stages
             .iter()
             .find(|(_, _, state)| state != StageState::Done.as_str())

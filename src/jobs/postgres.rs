@@ -23,9 +23,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use sqlx::postgres::{
-    PgConnectOptions, PgConnection, PgListener, PgPool, PgPoolOptions, PgRow,
-};
+use sqlx::postgres::{PgConnectOptions, PgConnection, PgListener, PgPool, PgPoolOptions, PgRow};
 use sqlx::{Connection, Postgres, Row, Transaction};
 use tokio::sync::Notify;
 
@@ -161,11 +159,11 @@ impl PgJobs {
     where
         E: sqlx::PgExecutor<'c>,
     {
-        Ok(sqlx::query_scalar(
-            "SELECT (EXTRACT(EPOCH FROM clock_timestamp()) * 1000)::bigint",
+        Ok(
+            sqlx::query_scalar("SELECT (EXTRACT(EPOCH FROM clock_timestamp()) * 1000)::bigint")
+                .fetch_one(conn)
+                .await?,
         )
-        .fetch_one(conn)
-        .await?)
     }
 
     /// Announces claimable work to listening workers when `tx` commits.
@@ -180,6 +178,7 @@ impl PgJobs {
 
     // ---------------------------------------------------------------- uploads
 
+    /// Records a new upload (no parts yet).
     pub async fn create_upload(&self, u: &UploadRecord) -> Result<(), DbError> {
         sqlx::query(
             "INSERT INTO uploads (id, kind, filename, size, sha256, part_size, state, created_at, expires_at) \
@@ -198,6 +197,7 @@ impl PgJobs {
         Ok(())
     }
 
+    /// An upload with the parts received so far.
     pub async fn get_upload(&self, id: &str) -> Result<Option<UploadRecord>, DbError> {
         let Some(r) = sqlx::query("SELECT * FROM uploads WHERE id = $1")
             .bind(id)
@@ -401,6 +401,7 @@ impl PgJobs {
         Ok(job)
     }
 
+    /// A job with its stages and artifacts.
     pub async fn get_job(&self, id: &str) -> Result<Option<JobRecord>, DbError> {
         let sql = format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1");
         let row = sqlx::query(sqlx::AssertSqlSafe(sql))
@@ -437,6 +438,7 @@ impl PgJobs {
         Ok(out)
     }
 
+    /// A job's artifacts in stage order.
     pub async fn artifacts(&self, job_id: &str) -> Result<Vec<ArtifactRecord>, DbError> {
         let rows = sqlx::query(
             "SELECT a.* FROM artifacts a JOIN job_stages s ON s.job_id = a.job_id AND s.name = a.stage \
@@ -492,6 +494,7 @@ impl PgJobs {
         )))
     }
 
+    /// Log lines after sequence number `since`, at most `limit`.
     pub async fn log(&self, job_id: &str, since: i64, limit: i64) -> Result<Vec<LogLine>, DbError> {
         let rows = sqlx::query(
             "SELECT seq, ts, level, stage, message FROM job_log WHERE job_id = $1 AND seq > $2 ORDER BY seq LIMIT $3",
@@ -577,15 +580,14 @@ impl PgJobs {
                 state.as_str()
             )));
         }
-        let stages = sqlx::query(
-            "SELECT name, idx, state FROM job_stages WHERE job_id = $1 ORDER BY idx",
-        )
-        .bind(id)
-        .fetch_all(&mut *tx)
-        .await?
-        .iter()
-        .map(|r| Ok((r.try_get("name")?, r.try_get("idx")?, r.try_get("state")?)))
-        .collect::<Result<Vec<(String, i64, String)>, sqlx::Error>>()?;
+        let stages =
+            sqlx::query("SELECT name, idx, state FROM job_stages WHERE job_id = $1 ORDER BY idx")
+                .bind(id)
+                .fetch_all(&mut *tx)
+                .await?
+                .iter()
+                .map(|r| Ok((r.try_get("name")?, r.try_get("idx")?, r.try_get("state")?)))
+                .collect::<Result<Vec<(String, i64, String)>, sqlx::Error>>()?;
         let RetryPlan {
             from_idx,
             reset,
@@ -765,6 +767,7 @@ impl PgJobs {
         held.map(|_| ()).ok_or(DbError::Fenced)
     }
 
+    /// Marks a stage running; `Fenced` if this run lost the job.
     pub async fn start_stage(
         &self,
         job_id: &str,
@@ -891,6 +894,7 @@ impl PgJobs {
 
     // ---------------------------------------------------------------- workers and metrics
 
+    /// Records (or refreshes) a live worker slot; `last_seen` is the database's clock.
     pub async fn register_worker(&self, id: &str, host: &str, pid: u32) -> Result<(), DbError> {
         let now = Self::clock(&self.pool).await?;
         sqlx::query(
@@ -906,6 +910,7 @@ impl PgJobs {
         Ok(())
     }
 
+    /// Forgets a worker slot that stopped cleanly.
     pub async fn unregister_worker(&self, id: &str) -> Result<(), DbError> {
         sqlx::query("DELETE FROM workers WHERE id = $1")
             .bind(id)

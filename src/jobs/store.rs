@@ -100,7 +100,9 @@ impl JobStore {
     /// applies its migrations.
     pub async fn open(db: &Database, max_connections: u32) -> Result<Self, DbError> {
         let backend = match db {
-            Database::Sqlite(path) => Backend::Sqlite(SqliteJobs::open(path, max_connections).await?),
+            Database::Sqlite(path) => {
+                Backend::Sqlite(SqliteJobs::open(path, max_connections).await?)
+            }
             Database::Postgres(url) => Backend::Postgres(PgJobs::open(url, max_connections).await?),
         };
         Ok(Self { backend })

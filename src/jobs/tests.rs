@@ -232,17 +232,41 @@ on_both_backends!(heartbeat_sees_cancel_and_progress_never_decreases);
 async fn the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses(db: JobStore) {
     with_jobs(&db, 0).await;
     let first = db
-        .create_job("k1", &inputs(), &params(), &Stage::ALL, Some("key"), "h1", 2)
+        .create_job(
+            "k1",
+            &inputs(),
+            &params(),
+            &Stage::ALL,
+            Some("key"),
+            "h1",
+            2,
+        )
         .await
         .expect("create");
     assert!(matches!(first, Created::New(ref id) if id == "k1"));
     let again = db
-        .create_job("k2", &inputs(), &params(), &Stage::ALL, Some("key"), "h1", 2)
+        .create_job(
+            "k2",
+            &inputs(),
+            &params(),
+            &Stage::ALL,
+            Some("key"),
+            "h1",
+            2,
+        )
         .await
         .expect("same request");
     assert!(matches!(again, Created::Existing(ref id) if id == "k1"));
     let other = db
-        .create_job("k3", &inputs(), &params(), &Stage::ALL, Some("key"), "h2", 2)
+        .create_job(
+            "k3",
+            &inputs(),
+            &params(),
+            &Stage::ALL,
+            Some("key"),
+            "h2",
+            2,
+        )
         .await;
     assert!(matches!(other, Err(DbError::Invalid(_))), "{other:?}");
     db.create_job("k4", &inputs(), &params(), &Stage::ALL, None, "h", 2)
@@ -259,7 +283,10 @@ async fn the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses(db
     let r = db
         .create_job("k6", &missing, &params(), &Stage::ALL, None, "h", 10)
         .await;
-    assert!(matches!(r, Err(DbError::Invalid(ref m)) if m.contains("does not exist")), "{r:?}");
+    assert!(
+        matches!(r, Err(DbError::Invalid(ref m)) if m.contains("does not exist")),
+        "{r:?}"
+    );
     let listed = db.list_jobs(None, None, 10).await.expect("list");
     assert_eq!(
         listed.iter().map(|j| j.id.as_str()).collect::<Vec<_>>(),
@@ -274,8 +301,16 @@ async fn the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses(db
     assert_eq!(page[0].id, "k1");
     // (serde_json's default float parsing may move the last digit of an f32 widened to f64,
     // on either backend; compare values that survive exactly.)
-    assert_eq!(page[0].params["anchors"], params()["anchors"], "params come back");
-    assert_eq!(page[0].params["train"], params()["train"], "params come back");
+    assert_eq!(
+        page[0].params["anchors"],
+        params()["anchors"],
+        "params come back"
+    );
+    assert_eq!(
+        page[0].params["train"],
+        params()["train"],
+        "params come back"
+    );
     assert_eq!(page[0].inputs, inputs());
 }
 on_both_backends!(the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses);
@@ -320,9 +355,16 @@ async fn retry_resumes_at_the_first_unfinished_stage(db: JobStore) {
     db.start_stage(&job, &a.token, Stage::Ingest, 1)
         .await
         .expect("start");
-    db.finish_stage(&job, &a.token, Stage::Ingest, &serde_json::json!({}), &[], 0.1)
-        .await
-        .expect("done");
+    db.finish_stage(
+        &job,
+        &a.token,
+        Stage::Ingest,
+        &serde_json::json!({}),
+        &[],
+        0.1,
+    )
+    .await
+    .expect("done");
     assert!(matches!(
         db.retry(&job, None).await,
         Err(DbError::Conflict(_))
@@ -423,13 +465,22 @@ async fn workers_are_counted_and_dead_ones_recovered(db: JobStore) {
     let job = with_jobs(&db, 1).await.remove(0);
     // A pid that cannot exist on Linux (above pid_max's ceiling of 2^22).
     let dead_pid = 4_194_305;
-    db.register_worker("dead", "host-a", dead_pid).await.expect("register");
+    db.register_worker("dead", "host-a", dead_pid)
+        .await
+        .expect("register");
     db.register_worker("alive", "host-a", std::process::id())
         .await
         .expect("register");
-    assert_eq!(db.live_workers(Duration::from_secs(60)).await.expect("n"), 2);
+    assert_eq!(
+        db.live_workers(Duration::from_secs(60)).await.expect("n"),
+        2
+    );
     let lease = Duration::from_secs(600);
-    let c = db.claim("dead", lease, 3).await.expect("claim").expect("job");
+    let c = db
+        .claim("dead", lease, 3)
+        .await
+        .expect("claim")
+        .expect("job");
     assert_eq!(c.job_id, job);
     assert!(db.claim("alive", lease, 3).await.expect("claim").is_none());
     let recovered = db
@@ -437,11 +488,21 @@ async fn workers_are_counted_and_dead_ones_recovered(db: JobStore) {
         .await
         .expect("recover");
     assert_eq!(recovered, 1);
-    let again = db.claim("alive", lease, 3).await.expect("claim").expect("job");
+    let again = db
+        .claim("alive", lease, 3)
+        .await
+        .expect("claim")
+        .expect("job");
     assert_eq!(again.attempt, 2);
-    assert_eq!(db.live_workers(Duration::from_secs(60)).await.expect("n"), 1);
+    assert_eq!(
+        db.live_workers(Duration::from_secs(60)).await.expect("n"),
+        1
+    );
     db.unregister_worker("alive").await.expect("unregister");
-    assert_eq!(db.live_workers(Duration::from_secs(60)).await.expect("n"), 0);
+    assert_eq!(
+        db.live_workers(Duration::from_secs(60)).await.expect("n"),
+        0
+    );
     db.ping().await.expect("ping");
 }
 on_both_backends!(workers_are_counted_and_dead_ones_recovered);
@@ -472,9 +533,14 @@ fn database_urls_pick_the_backend() {
         Database::parse("mysql://db/sylva"),
         Err(DbError::Invalid(_))
     ));
-    assert!(matches!(Database::parse("sqlite:"), Err(DbError::Invalid(_))));
+    assert!(matches!(
+        Database::parse("sqlite:"),
+        Err(DbError::Invalid(_))
+    ));
     assert_eq!(
-        Database::parse("postgres://db/sylva").expect("pg").redacted(),
+        Database::parse("postgres://db/sylva")
+            .expect("pg")
+            .redacted(),
         "postgres://db/sylva"
     );
 }

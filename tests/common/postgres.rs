@@ -11,6 +11,8 @@
 //! Where PostgreSQL is not installed (no `initdb` under /usr/lib/postgresql/*/bin nor on the
 //! PATH), [`database`] prints why and returns `None`, and the caller skips its PostgreSQL
 //! case. Where it is installed but does not start, the test fails with the server's log.
+//! `SYLVA_TEST_POSTGRES_BIN` overrides the search: a folder holding `initdb`, `pg_ctl` and
+//! `psql`, or `none` to skip the PostgreSQL cases.
 //!
 //! This file is shared: tests/common includes it for the integration tests, and the library's
 //! unit tests include it by path.
@@ -87,9 +89,30 @@ pub fn database() -> Option<TestDatabase> {
     })
 }
 
-/// The folder holding `initdb`, `pg_ctl` and `psql`: the newest /usr/lib/postgresql/N/bin
-/// (Debian's layout), else wherever `initdb` is on the PATH.
-fn find_bin() -> Option<PathBuf> {
+/// Environment variable naming the folder of the PostgreSQL tools, or `none`.
+const BIN_VAR: &str = "SYLVA_TEST_POSTGRES_BIN";
+
+/// The folder holding `initdb`, `pg_ctl` and `psql`: `$SYLVA_TEST_POSTGRES_BIN`, else the
+/// newest /usr/lib/postgresql/N/bin (Debian's layout), else wherever they are on the PATH.
+fn find_bin() -> Result<PathBuf, String> {
+    const MISSING: &str = "PostgreSQL is not installed (no initdb under \
+                           /usr/lib/postgresql/*/bin or on the PATH); `apt-get install \
+                           postgresql` to run it";
+    match std::env::var_os(BIN_VAR) {
+        Some(v) if v == "none" => Err(format!("{BIN_VAR}=none")),
+        Some(v) => {
+            let dir = PathBuf::from(v);
+            if dir.join("initdb").is_file() {
+                Ok(dir)
+            } else {
+                Err(format!("{BIN_VAR}={} holds no initdb", dir.display()))
+            }
+        }
+        None => search_bin().ok_or_else(|| MISSING.to_string()),
+    }
+}
+
+fn search_bin() -> Option<PathBuf> {
     let mut versions: Vec<(u32, PathBuf)> = std::fs::read_dir("/usr/lib/postgresql")
         .into_iter()
         .flatten()
@@ -159,13 +182,7 @@ fn run(cmd: &mut Command, what: &str) -> Result<(), String> {
 
 impl Cluster {
     fn start() -> Result<Cluster, Unavailable> {
-        let bin = find_bin().ok_or_else(|| {
-            Unavailable::Absent(
-                "PostgreSQL is not installed (no initdb under /usr/lib/postgresql/*/bin or on \
-                 the PATH); `apt-get install postgresql` to run it"
-                    .to_string(),
-            )
-        })?;
+        let bin = find_bin().map_err(Unavailable::Absent)?;
         let as_service_user = is_root();
         if as_service_user && user_ids(SERVICE_USER).is_none() {
             return Err(Unavailable::Absent(format!(
@@ -177,11 +194,7 @@ impl Cluster {
             .tempdir()
             .map_err(|e| Unavailable::Broken(format!("temporary folder: {e}")))?
             .keep();
-        let cluster = Cluster {
-            bin,
-            port: 0,
-            root,
-        };
+        let cluster = Cluster { bin, port: 0, root };
         cluster.init(as_service_user).map_err(Unavailable::Broken)?;
         cluster.spawn_watchdog(as_service_user);
         let mut last = String::new();
@@ -189,10 +202,7 @@ impl Cluster {
             let port = free_port().map_err(Unavailable::Broken)?;
             match cluster.pg_ctl_start(as_service_user, port) {
                 Ok(()) => {
-                    return Ok(Cluster {
-                        port,
-                        ..cluster
-                    });
+                    return Ok(Cluster { port, ..cluster });
                 }
                 Err(e) => last = e,
             }
@@ -218,8 +228,8 @@ impl Cluster {
 
     fn init(&self, as_service_user: bool) -> Result<(), String> {
         if as_service_user {
-            let (uid, gid) = user_ids(SERVICE_USER)
-                .ok_or_else(|| format!("no `{SERVICE_USER}` user"))?;
+            let (uid, gid) =
+                user_ids(SERVICE_USER).ok_or_else(|| format!("no `{SERVICE_USER}` user"))?;
             std::os::unix::fs::chown(&self.root, Some(uid), Some(gid))
                 .map_err(|e| format!("chown {}: {e}", self.root.display()))?;
         }
@@ -308,7 +318,14 @@ impl Cluster {
         run(
             Command::new(self.bin.join("psql"))
                 .args(["-X", "-q", "-v", "ON_ERROR_STOP=1", "-h", "127.0.0.1"])
-                .args(["-p", &self.port.to_string(), "-U", SUPERUSER, "-d", "postgres"])
+                .args([
+                    "-p",
+                    &self.port.to_string(),
+                    "-U",
+                    SUPERUSER,
+                    "-d",
+                    "postgres",
+                ])
                 .args(["-c", sql]),
             "psql",
         )
