@@ -71,7 +71,8 @@ pub struct WorkerArgs {
     #[arg(long, env = "SYLVA_MAX_ATTEMPTS", default_value_t = 3)]
     pub max_attempts: u32,
 
-    /// How often an idle worker looks for work, in milliseconds.
+    /// How often an idle worker looks for work, in milliseconds. On PostgreSQL a newly
+    /// queued job also wakes idle workers at once (LISTEN/NOTIFY); this poll is the fallback.
     #[arg(long, env = "SYLVA_POLL_MS", default_value_t = 500)]
     pub poll_ms: u64,
 
