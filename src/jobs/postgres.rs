@@ -16,9 +16,9 @@
 //! Leases are measured on the database server's clock, not the worker's: workers on several
 //! machines then agree on when a lease runs out even if their own clocks drift apart.
 //!
-//! New and re-queued jobs are announced with `pg_notify` on [`QUEUE_CHANNEL`]; idle workers
-//! listen on it (see [`PgJobs::listen_for_work`]) and still poll, so a lost notification
-//! only delays a claim by one poll interval.
+//! New and re-queued jobs are announced with `pg_notify` on [`QUEUE_CHANNEL`] (see
+//! [`PgJobs::announce`]); idle workers listen on it (see [`PgJobs::listen_for_work`]) and
+//! still poll, so a lost notification only delays a claim by one poll interval.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -164,6 +164,19 @@ impl PgJobs {
                 .fetch_one(conn)
                 .await?,
         )
+    }
+
+    /// Tells the idle workers of every process that `job_id` can be claimed. The API calls
+    /// this once a new or retried job is ready to run (after it has answered with the job's
+    /// state and removed the folders of reset stages), not inside the transaction that
+    /// queued it.
+    pub async fn announce(&self, job_id: &str) -> Result<(), DbError> {
+        sqlx::query("SELECT pg_notify($1, $2)")
+            .bind(QUEUE_CHANNEL)
+            .bind(job_id)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
     }
 
     /// Announces claimable work to listening workers when `tx` commits.
@@ -372,7 +385,6 @@ impl PgJobs {
                 .execute(&mut *tx)
                 .await?;
         }
-        Self::notify(&mut tx, id).await?;
         tx.commit().await?;
         Ok(Created::New(id.to_string()))
     }
@@ -617,7 +629,6 @@ impl PgJobs {
         .bind(id)
         .execute(&mut *tx)
         .await?;
-        Self::notify(&mut tx, id).await?;
         tx.commit().await?;
         Ok(reset)
     }

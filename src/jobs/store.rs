@@ -121,6 +121,16 @@ impl JobStore {
         }
     }
 
+    /// Tells idle workers in every process that `job_id` can be claimed (PostgreSQL's
+    /// NOTIFY). Nothing to do on SQLite: its workers share the caller's process (woken
+    /// through its `Notify`) or poll.
+    pub async fn announce(&self, job_id: &str) -> Result<(), DbError> {
+        match &self.backend {
+            Backend::Sqlite(_) => Ok(()),
+            Backend::Postgres(pg) => pg.announce(job_id).await,
+        }
+    }
+
     /// Wakes `wake`'s waiters whenever any process queues a job, where the database can say
     /// so (PostgreSQL's LISTEN/NOTIFY); the returned task runs until aborted or the database
     /// closes. SQLite has no such channel: `None`, and workers rely on their poll and on

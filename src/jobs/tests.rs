@@ -545,24 +545,47 @@ fn database_urls_pick_the_backend() {
     );
 }
 
-#[tokio::test]
-async fn notifications_wake_idle_workers_on_postgres() {
+/// A waiter on `wake`, registered before this returns.
+async fn waiter(wake: &std::sync::Arc<tokio::sync::Notify>) -> tokio::task::JoinHandle<()> {
+    let wake = wake.clone();
+    let task = tokio::spawn(async move { wake.notified().await });
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    task
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn announcements_wake_idle_workers_on_postgres_and_cost_nothing_on_sqlite() {
+    let (_keep, lite) = open_sqlite().await;
+    lite.announce("j0").await.expect("no-op");
+    assert!(lite.listen_for_work(Default::default()).is_none());
+
     let Some((_keep, db)) = open_postgres().await else {
         return;
     };
-    let wake = std::sync::Arc::new(tokio::sync::Notify::new());
-    let listener = db.listen_for_work(wake.clone()).expect("postgres listens");
-    // Give the listener time to subscribe; then a new job must wake a waiter well before
-    // any poll would.
-    let waiter = {
-        let wake = wake.clone();
-        tokio::spawn(async move { wake.notified().await })
+    // A second process's store: its listener hears what the first one announces.
+    let other = match &_keep {
+        Scratch::Postgres(pg) => JobStore::open(&Database::Postgres(pg.url.clone()), 2)
+            .await
+            .expect("second store"),
+        Scratch::Sqlite(_) => unreachable!("open_postgres gives a PostgreSQL database"),
     };
+    let wake = std::sync::Arc::new(tokio::sync::Notify::new());
+    let listener = other
+        .listen_for_work(wake.clone())
+        .expect("postgres listens");
+    // Give the listener time to subscribe.
     tokio::time::sleep(Duration::from_millis(500)).await;
-    with_jobs(&db, 1).await;
-    tokio::time::timeout(Duration::from_secs(5), waiter)
+    let ids = with_jobs(&db, 1).await;
+    let quiet = waiter(&wake).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(
+        !quiet.is_finished(),
+        "creating a job announces nothing by itself"
+    );
+    db.announce(&ids[0]).await.expect("announce");
+    tokio::time::timeout(Duration::from_secs(5), quiet)
         .await
-        .expect("woken by NOTIFY")
+        .expect("woken by NOTIFY well before any poll")
         .expect("waiter");
     listener.abort();
 }
