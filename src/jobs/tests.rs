@@ -559,16 +559,13 @@ async fn announcements_wake_idle_workers_on_postgres_and_cost_nothing_on_sqlite(
     lite.announce("j0").await.expect("no-op");
     assert!(lite.listen_for_work(Default::default()).is_none());
 
-    let Some((_keep, db)) = open_postgres().await else {
+    let Some(pg) = test_postgres::database() else {
         return;
     };
-    // A second process's store: its listener hears what the first one announces.
-    let other = match &_keep {
-        Scratch::Postgres(pg) => JobStore::open(&Database::Postgres(pg.url.clone()), 2)
-            .await
-            .expect("second store"),
-        Scratch::Sqlite(_) => unreachable!("open_postgres gives a PostgreSQL database"),
-    };
+    // Two stores, as two processes would hold: the listener of one hears the other.
+    let location = Database::Postgres(pg.url.clone());
+    let db = JobStore::open(&location, 4).await.expect("first store");
+    let other = JobStore::open(&location, 2).await.expect("second store");
     let wake = std::sync::Arc::new(tokio::sync::Notify::new());
     let listener = other
         .listen_for_work(wake.clone())
