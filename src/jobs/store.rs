@@ -2,8 +2,8 @@
 //!
 //! An enum rather than a trait object: there are exactly two backends, both known here, and
 //! an enum keeps the methods `async fn` without boxing every future. Each public method of
-//! the backends is forwarded by the `forward!` macro below, so the two can only drift apart by failing to
-//! compile.
+//! the backends is forwarded by the `forward!` macro below, so the two can only drift apart
+//! by failing to compile.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
