@@ -32,7 +32,8 @@ pub struct Cli {
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Serve the HTTP API with in-process workers (SQLite + local files under --data).
+    /// Serve the HTTP API with in-process workers (SQLite, or PostgreSQL with --database;
+    /// files under --data).
     Serve(ServeArgs),
     /// Run workers only, against the same database, so a second process can take jobs over.
     Worker(WorkerOnlyArgs),
@@ -327,9 +328,11 @@ pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
 async fn open_store(args: &StoreArgs) -> anyhow::Result<(JobStore, BlobStore)> {
     std::fs::create_dir_all(&args.data)
         .with_context(|| format!("cannot create the data directory {}", args.data.display()))?;
-    let db = JobStore::open(&args.database_path(), 16)
+    let location = args.database()?;
+    let db = JobStore::open(&location, 16)
         .await
-        .with_context(|| format!("cannot open {}", args.database_path().display()))?;
+        .with_context(|| format!("cannot open the job database {location}"))?;
+    tracing::info!(backend = db.backend_name(), database = %location, "job database open");
     let blobs = BlobStore::open(&args.data)?;
     Ok((db, blobs))
 }
@@ -469,6 +472,7 @@ fn write_results(
 async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     let store = StoreArgs {
         data: PathBuf::new(),
+        database: None,
         log: a.log.clone(),
         log_json: false,
     };

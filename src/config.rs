@@ -8,6 +8,7 @@ use std::time::Duration;
 use clap::Args;
 
 use crate::io::archive::ExtractLimits;
+use crate::jobs::{Database, DbError};
 
 const MIB: u64 = 1 << 20;
 const GIB: u64 = 1 << 30;
@@ -15,10 +16,16 @@ const GIB: u64 = 1 << 30;
 /// Settings shared by every process that touches the job database.
 #[derive(Debug, Clone, Args)]
 pub struct StoreArgs {
-    /// Data directory: the SQLite database (`sylva.db`, WAL mode) and every blob (uploads,
-    /// job outputs) live under it.
+    /// Data directory: every blob (uploads, job outputs) lives under it, and so does the
+    /// SQLite database (`sylva.db`, WAL mode) unless --database names another.
     #[arg(long, env = "SYLVA_DATA", default_value = "sylva-data")]
     pub data: PathBuf,
+
+    /// Job database: `postgres://user:password@host:port/database` for PostgreSQL (many API
+    /// replicas and workers on many machines sharing one queue), or an SQLite file as
+    /// `sqlite:PATH` or a plain path. Default: SQLite in `sylva.db` under --data.
+    #[arg(long, env = "SYLVA_DATABASE", hide_env_values = true)]
+    pub database: Option<String>,
 
     /// Log filter in tracing's syntax, e.g. `info` or `sylva=debug,tower_http=info`.
     #[arg(long, env = "SYLVA_LOG", default_value = "info")]
@@ -30,8 +37,17 @@ pub struct StoreArgs {
 }
 
 impl StoreArgs {
+    /// The default SQLite file: `sylva.db` under --data.
     pub fn database_path(&self) -> PathBuf {
         self.data.join("sylva.db")
+    }
+
+    /// The job database --database names, or the default SQLite file.
+    pub fn database(&self) -> Result<Database, DbError> {
+        match self.database.as_deref() {
+            Some(text) if !text.trim().is_empty() => Database::parse(text),
+            _ => Ok(Database::Sqlite(self.database_path())),
+        }
     }
 }
 
@@ -55,7 +71,8 @@ pub struct WorkerArgs {
     #[arg(long, env = "SYLVA_MAX_ATTEMPTS", default_value_t = 3)]
     pub max_attempts: u32,
 
-    /// How often an idle worker looks for work, in milliseconds.
+    /// How often an idle worker looks for work, in milliseconds. On PostgreSQL a newly
+    /// queued job also wakes idle workers at once (LISTEN/NOTIFY); this poll is the fallback.
     #[arg(long, env = "SYLVA_POLL_MS", default_value_t = 500)]
     pub poll_ms: u64,
 

@@ -1,4 +1,5 @@
-//! The API against a real server process, a real HTTP client and a real SQLite file.
+//! The API against a real server process, a real HTTP client and a real job database: the
+//! tests that exercise the queue and the upload records run on SQLite and on PostgreSQL.
 
 mod common;
 
@@ -10,11 +11,11 @@ use serde_json::{Value, json};
 
 const LONG: Duration = Duration::from_secs(120);
 
-#[tokio::test(flavor = "multi_thread")]
-async fn job_lifecycle_through_ingest() {
+on_both_databases!(job_lifecycle_through_ingest);
+async fn job_lifecycle_through_ingest(db: Db) {
     let fx = fixture();
     let data = fx.dir.path().join("data");
-    let srv = serve(&data, &["--part-size", "4096"]);
+    let srv = db.serve(&data, &["--part-size", "4096"]);
     let (c, base) = (client(), srv.base.clone());
     let mut inputs = upload_inputs(&c, &base, &fx).await;
     inputs["control_points"] = json!(upload(&c, &base, "control_points", &fx.control_points).await);
@@ -234,10 +235,10 @@ async fn job_lifecycle_through_ingest() {
     assert!(!data.join("jobs").join(&id).exists());
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there() {
+on_both_databases!(a_failed_stage_fails_the_job_clearly_and_retry_resumes_there);
+async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
     let fx = fixture();
-    let srv = serve(&fx.dir.path().join("data"), &[]);
+    let srv = db.serve(&fx.dir.path().join("data"), &[]);
     let (c, base) = (client(), srv.base.clone());
     let inputs = upload_inputs(&c, &base, &fx).await;
     let job = create_job(&c, &base, &json!({ "inputs": inputs })).await;
@@ -323,10 +324,10 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there() {
     expect_problem(r, StatusCode::CONFLICT).await;
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn upload_interrupted_and_resumed_with_repeated_part() {
+on_both_databases!(upload_interrupted_and_resumed_with_repeated_part);
+async fn upload_interrupted_and_resumed_with_repeated_part(db: Db) {
     let fx = fixture();
-    let srv = serve(&fx.dir.path().join("data"), &["--part-size", "1024"]);
+    let srv = db.serve(&fx.dir.path().join("data"), &["--part-size", "1024"]);
     let (c, base) = (client(), srv.base.clone());
     let bytes = std::fs::read(&fx.lidar).expect("read");
     assert!(bytes.len() > 5 * 1024);
@@ -462,10 +463,10 @@ async fn upload_interrupted_and_resumed_with_repeated_part() {
     expect_problem(r, StatusCode::CONFLICT).await;
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn wrong_checksum_and_unusable_content_are_422() {
+on_both_databases!(wrong_checksum_and_unusable_content_are_422);
+async fn wrong_checksum_and_unusable_content_are_422(db: Db) {
     let fx = fixture();
-    let srv = serve(&fx.dir.path().join("data"), &[]);
+    let srv = db.serve(&fx.dir.path().join("data"), &[]);
     let (c, base) = (client(), srv.base.clone());
     let bytes = std::fs::read(&fx.lidar).expect("read");
     let put_all = |id: String, body: Vec<u8>| {
@@ -552,10 +553,10 @@ async fn wrong_checksum_and_unusable_content_are_422() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn same_idempotency_key_gives_one_job() {
+on_both_databases!(same_idempotency_key_gives_one_job);
+async fn same_idempotency_key_gives_one_job(db: Db) {
     let fx = fixture();
-    let srv = serve(&fx.dir.path().join("data"), &["--workers", "0"]);
+    let srv = db.serve(&fx.dir.path().join("data"), &["--workers", "0"]);
     let (c, base) = (client(), srv.base.clone());
     let inputs = upload_inputs(&c, &base, &fx).await;
     let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
@@ -911,11 +912,11 @@ async fn hostile_archives_are_refused() {
     }
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn cancel_stops_running_and_queued_jobs() {
+on_both_databases!(cancel_stops_running_and_queued_jobs);
+async fn cancel_stops_running_and_queued_jobs(db: Db) {
     let fx = fixture();
     let data = fx.dir.path().join("data");
-    let srv = serve(&data, &["--debug-stage-pause-ms", "60000"]);
+    let srv = db.serve(&data, &["--debug-stage-pause-ms", "60000"]);
     let (c, base) = (client(), srv.base.clone());
     let inputs = upload_inputs(&c, &base, &fx).await;
     let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
@@ -969,10 +970,10 @@ async fn cancel_stops_running_and_queued_jobs() {
     expect_problem(r, StatusCode::CONFLICT).await;
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn one_request_multipart_submission_runs() {
+on_both_databases!(one_request_multipart_submission_runs);
+async fn one_request_multipart_submission_runs(db: Db) {
     let fx = fixture();
-    let srv = serve(&fx.dir.path().join("data"), &[]);
+    let srv = db.serve(&fx.dir.path().join("data"), &[]);
     let (c, base) = (client(), srv.base.clone());
     let part = |path: &std::path::Path| {
         reqwest::multipart::Part::bytes(std::fs::read(path).expect("read")).file_name(
@@ -1010,10 +1011,10 @@ async fn one_request_multipart_submission_runs() {
     expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn an_expired_upload_is_gone() {
+on_both_databases!(an_expired_upload_is_gone);
+async fn an_expired_upload_is_gone(db: Db) {
     let dir = tempfile::tempdir().expect("tempdir");
-    let srv = serve(
+    let srv = db.serve(
         &dir.path().join("data"),
         &["--upload-ttl-secs", "1", "--workers", "0"],
     );

@@ -1,4 +1,5 @@
-//! Workers as separate processes sharing one SQLite file: crash take-over and concurrency.
+//! Workers as separate processes sharing one job database (an SQLite file, or PostgreSQL):
+//! crash take-over and concurrency. Each test runs on both databases.
 
 mod common;
 
@@ -7,14 +8,14 @@ use std::time::Duration;
 use common::*;
 use serde_json::json;
 
-#[tokio::test(flavor = "multi_thread")]
-async fn killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2() {
+on_both_databases!(killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2);
+async fn killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2(db: Db) {
     let fx = fixture();
     let data = fx.dir.path().join("data");
-    let api = serve(&data, &["--workers", "0"]);
+    let api = db.serve(&data, &["--workers", "0"]);
     let (c, base) = (client(), api.base.clone());
     let inputs = upload_inputs(&c, &base, &fx).await;
-    let mut a = worker(
+    let mut a = db.worker(
         &data,
         &["--lease-secs", "2", "--debug-stage-pause-ms", "60000"],
     );
@@ -32,7 +33,7 @@ async fn killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2() {
     assert_eq!(running["attempt"], 1);
 
     // A second worker is already running; the first dies mid-stage without a word.
-    let _b = worker(&data, &["--lease-secs", "2", "--poll-ms", "50"]);
+    let _b = db.worker(&data, &["--lease-secs", "2", "--poll-ms", "50"]);
     a.kill();
     let killed_at = std::time::Instant::now();
     let (job, progress) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
@@ -52,14 +53,14 @@ async fn killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2() {
     assert_eq!(stage(&job, "ingest")["state"], "done");
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once() {
+on_both_databases!(a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once);
+async fn a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once(db: Db) {
     let fx = fixture();
     let data = fx.dir.path().join("data");
-    let api = serve(&data, &["--workers", "0"]);
+    let api = db.serve(&data, &["--workers", "0"]);
     let (c, base) = (client(), api.base.clone());
     let inputs = upload_inputs(&c, &base, &fx).await;
-    let mut a = worker(
+    let mut a = db.worker(
         &data,
         &["--lease-secs", "60", "--debug-stage-pause-ms", "60000"],
     );
@@ -78,23 +79,23 @@ async fn a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once() {
     // The restarted worker sees that the process holding the job is gone (same host) and
     // does not wait for the 60 s lease.
     let restarted = std::time::Instant::now();
-    let _b = worker(&data, &["--lease-secs", "60"]);
+    let _b = db.worker(&data, &["--lease-secs", "60"]);
     let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(30), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     assert_eq!(job["attempt"], 2);
     assert!(restarted.elapsed() < Duration::from_secs(30));
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn eight_clients_create_jobs_while_two_workers_claim_without_lock_errors() {
+on_both_databases!(eight_clients_create_jobs_while_two_workers_claim_without_lock_errors);
+async fn eight_clients_create_jobs_while_two_workers_claim_without_lock_errors(db: Db) {
     let fx = fixture();
     let data = fx.dir.path().join("data");
-    let api = serve(&data, &["--workers", "0"]);
+    let api = db.serve(&data, &["--workers", "0"]);
     let base = api.base.clone();
     let c = client();
     let inputs = upload_inputs(&c, &base, &fx).await;
-    let w1 = worker(&data, &["--poll-ms", "50"]);
-    let w2 = worker(&data, &["--poll-ms", "50"]);
+    let w1 = db.worker(&data, &["--poll-ms", "50"]);
+    let w2 = db.worker(&data, &["--poll-ms", "50"]);
     let mut tasks = Vec::new();
     for client_no in 0..8 {
         let (base, inputs) = (base.clone(), inputs.clone());
@@ -146,4 +147,120 @@ async fn eight_clients_create_jobs_while_two_workers_claim_without_lock_errors()
         claimed_by.insert(w.expect("claim line"));
     }
     assert!(claimed_by.len() >= 2, "{claimed_by:?}");
+}
+
+/// The workers that claimed a job, in order, from its log (`claimed by worker W`, then
+/// `resumed at stage S by worker W (attempt N)`).
+async fn claimants(c: &reqwest::Client, base: &str, id: &str) -> Vec<String> {
+    log_text(c, base, id)
+        .await
+        .lines()
+        .filter(|l| l.starts_with("claimed ") || l.starts_with("resumed "))
+        .filter_map(|l| l.split_once("by worker "))
+        .map(|(_, w)| w.split_whitespace().next().unwrap_or("").to_string())
+        .collect()
+}
+
+/// Whether a worker id (`host-pid-slot-tag`) belongs to process `pid`.
+fn of_process(worker: &str, pid: u32) -> bool {
+    worker.contains(&format!("-{pid}-"))
+}
+
+on_both_databases!(three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill);
+async fn three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill(db: Db) {
+    let fx = fixture();
+    let data = fx.dir.path().join("data");
+    let api = db.serve(&data, &["--workers", "0"]);
+    let (c, base) = (client(), api.base.clone());
+    let inputs = upload_inputs(&c, &base, &fx).await;
+    let body = move |k: usize| json!({ "inputs": inputs, "params": { "until": "ingest", "ingest": { "decode_images": k.is_multiple_of(2) } } });
+
+    // Worker A takes the first job and stalls in its stage until it is killed.
+    let mut a = db.worker(
+        &data,
+        &["--lease-secs", "3", "--debug-stage-pause-ms", "60000"],
+    );
+    let a_pid = a.child.id();
+    let first = create_job(&c, &base, &body(0)).await;
+    let first = first["id"].as_str().expect("id").to_string();
+    wait_job(&c, &base, &first, Duration::from_secs(60), |j| {
+        stage(j, "ingest")["state"] == "running"
+    })
+    .await;
+
+    // B and C join, and 29 more jobs arrive from three clients at once.
+    let b = db.worker(&data, &["--poll-ms", "200"]);
+    let w_c = db.worker(&data, &["--poll-ms", "200"]);
+    let mut tasks = Vec::new();
+    for client_no in 0..3 {
+        let (base, body) = (base.clone(), body.clone());
+        tasks.push(tokio::spawn(async move {
+            let c = client();
+            let mut ids = Vec::new();
+            for k in (1..30).filter(|k| k % 3 == client_no) {
+                let job = create_job(&c, &base, &body(k)).await;
+                ids.push(job["id"].as_str().expect("id").to_string());
+            }
+            ids
+        }));
+    }
+    let mut ids = vec![first.clone()];
+    for t in tasks {
+        ids.extend(t.await.expect("client task"));
+    }
+    assert_eq!(ids.len(), 30);
+
+    // A dies mid-job without a word (SIGKILL).
+    assert!(
+        get_job(&c, &base, &first).await["state"] == "running",
+        "A still holds the first job"
+    );
+    a.kill();
+
+    for id in &ids {
+        let (job, progress) = wait_job(&c, &base, id, Duration::from_secs(300), is_terminal).await;
+        assert_eq!(job["state"], "succeeded", "{job}");
+        assert_eq!(stage(&job, "ingest")["state"], "done", "{job}");
+        assert!(
+            progress.windows(2).all(|w| w[1] >= w[0]),
+            "progress decreased: {progress:?}"
+        );
+        let who = claimants(&c, &base, id).await;
+        if *id == first {
+            assert_eq!(job["attempt"], 2, "re-claimed once after the kill: {job}");
+            assert_eq!(who.len(), 2, "{who:?}");
+            assert!(of_process(&who[0], a_pid), "A claimed it first: {who:?}");
+            assert!(
+                !of_process(&who[1], a_pid),
+                "another worker finished it: {who:?}"
+            );
+        } else {
+            assert_eq!(job["attempt"], 1, "processed exactly once: {job}");
+            assert_eq!(who.len(), 1, "claimed once: {who:?}");
+            assert!(
+                !of_process(&who[0], a_pid),
+                "A was stalled in its first job: {who:?}"
+            );
+        }
+    }
+    // Both survivors took part, and nothing went wrong in any process.
+    let (b_pid, c_pid) = (b.child.id(), w_c.child.id());
+    let mut by = std::collections::HashSet::new();
+    for id in &ids {
+        for w in claimants(&c, &base, id).await {
+            by.insert(if of_process(&w, b_pid) {
+                "B"
+            } else if of_process(&w, c_pid) {
+                "C"
+            } else {
+                "A"
+            });
+        }
+    }
+    assert_eq!(by.len(), 3, "{by:?}");
+    for p in [&api, &b, &w_c] {
+        let text = p.stderr_text();
+        assert!(!text.contains("ERROR"), "{text}");
+        assert!(!text.contains("claim failed"), "{text}");
+    }
 }

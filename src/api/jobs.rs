@@ -15,7 +15,7 @@ use sha2::{Digest, Sha256};
 use super::problem::ApiError;
 use super::uploads::{self, new_id, valid_id};
 use super::{AppState, count_upload_bytes, views};
-use crate::jobs::sqlite::Created;
+use crate::jobs::Created;
 use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
 use crate::pipeline::{PipelineParams, Stage};
 
@@ -139,7 +139,7 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
     // rather than whatever a worker did in between (a polling worker may still be quicker).
     let job = load(&state, &id).await?;
     if new {
-        state.wake.notify_waiters();
+        wake_workers(&state, &id).await;
         tracing::info!(job = %id, "job queued");
     }
     let mut resp = (StatusCode::ACCEPTED, Json(views::job(&job))).into_response();
@@ -389,9 +389,18 @@ pub async fn retry(
             ),
         )
         .await;
-    state.wake.notify_waiters();
+    wake_workers(&state, &id).await;
     let job = load(&state, &id).await?;
     Ok((StatusCode::ACCEPTED, Json(views::job(&job))).into_response())
+}
+
+/// Wakes idle workers for a job that can now be claimed: this process's own, and through
+/// the database those of other processes. A lost announcement only costs a poll interval.
+async fn wake_workers(state: &AppState, id: &str) {
+    state.wake.notify_waiters();
+    if let Err(e) = state.db.announce(id).await {
+        tracing::warn!(job = %id, error = %e, "could not announce the job to other workers");
+    }
 }
 
 pub async fn results(

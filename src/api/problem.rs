@@ -140,14 +140,8 @@ impl From<DbError> for ApiError {
                 format!("{n} jobs are waiting; submit again later"),
             )
             .with_header(header::RETRY_AFTER, "60"),
-            other => {
-                let text = other.to_string();
-                if text.contains("database or disk is full") {
-                    ApiError::storage_full("the server's disk is full")
-                } else {
-                    ApiError::internal(text)
-                }
-            }
+            other if other.is_storage_full() => ApiError::storage_full("the server's disk is full"),
+            other => ApiError::internal(other.to_string()),
         }
     }
 }

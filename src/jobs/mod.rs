@@ -7,12 +7,22 @@
 //! so nothing it might still write lands (fencing). Each finished stage leaves a checkpoint
 //! row (`job_stages.state = 'done'`), so a re-claimed or retried job resumes at the first
 //! unfinished stage.
+//!
+//! The queue lives in SQLite (one machine, the default) or PostgreSQL (many API replicas
+//! and workers, `--database postgres://...`). [`JobStore`] hides which: callers hold one type,
+//! and both backends keep the same semantics, checked by the same tests.
 
+pub mod postgres;
 pub mod sqlite;
+mod store;
+
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-pub use sqlite::JobStore;
+use crate::pipeline::Stage;
+
+pub use store::{Database, JobStore};
 
 /// Milliseconds since the Unix epoch, UTC.
 pub fn now_ms() -> i64 {
@@ -238,6 +248,98 @@ pub enum RunEnd {
     },
 }
 
+/// The outcome of creating a job.
+#[derive(Debug)]
+pub enum Created {
+    New(String),
+    /// The Idempotency-Key was seen before with the same request: the job it created.
+    Existing(String),
+}
+
+/// What a retry resets, worked out from the job's stage rows (name, index, state) in order.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct RetryPlan {
+    /// Stages with this index or a higher one run again.
+    pub from_idx: i64,
+    /// Names of the stages that are reset.
+    pub reset: Vec<String>,
+    /// Job progress [0, 1] of the stages kept (their weights).
+    pub done_weight: f64,
+}
+
+impl RetryPlan {
+    /// Checks `from` against the job's stages: a named stage must be one the job runs and
+    /// must not lie past the first unfinished stage; without one, the job resumes at its first
+    /// unfinished stage.
+    pub(crate) fn new(
+        stages: &[(String, i64, String)],
+        from: Option<Stage>,
+    ) -> Result<Self, DbError> {
+        let first_unfinished = stages
+            .iter()
+            .find(|(_, _, state)| state != StageState::Done.as_str())
+            .map(|(name, idx, _)| (name.clone(), *idx));
+        let from_idx = match (from, &first_unfinished) {
+            (Some(s), _) if !stages.iter().any(|(n, _, _)| n == s.name()) => {
+                return Err(DbError::Invalid(format!(
+                    "from_stage {s}: this job does not run that stage"
+                )));
+            }
+            (Some(s), Some((name, idx))) if (s.index() as i64) > *idx => {
+                return Err(DbError::Invalid(format!(
+                    "from_stage {s}: stage {name} has not finished, so the job must resume there"
+                )));
+            }
+            (Some(s), _) => s.index() as i64,
+            (None, Some((_, idx))) => *idx,
+            (None, None) => {
+                return Err(DbError::Conflict(
+                    "every stage has finished; name from_stage to run stages again".into(),
+                ));
+            }
+        };
+        let reset = stages
+            .iter()
+            .filter(|(_, i, _)| *i >= from_idx)
+            .map(|(n, _, _)| n.clone())
+            .collect();
+        let done_weight = stages
+            .iter()
+            .filter(|(_, i, _)| *i < from_idx)
+            .filter_map(|(n, _, _)| Stage::from_name(n).map(|s| s.weight()))
+            .sum();
+        Ok(Self {
+            from_idx,
+            reset,
+            done_weight,
+        })
+    }
+}
+
+/// The problem+json a job fails with when its workers died `max_attempts` times.
+pub(crate) fn worker_lost_problem(max_attempts: i64) -> serde_json::Value {
+    serde_json::json!({
+        "type": "urn:sylva:problem:worker-lost",
+        "title": "Worker lost",
+        "status": 500,
+        "detail": format!("the job's worker stopped responding {max_attempts} times; giving up"),
+    })
+}
+
+/// A lease's length in milliseconds, as the database stores times.
+pub(crate) fn lease_ms(lease: Duration) -> i64 {
+    i64::try_from(lease.as_millis()).unwrap_or(i64::MAX / 4)
+}
+
+/// Whether a process id exists on this host (Linux: /proc; elsewhere assume alive).
+pub(crate) fn process_alive(pid: i64) -> bool {
+    if cfg!(target_os = "linux") {
+        std::path::Path::new(&format!("/proc/{pid}")).exists()
+    } else {
+        true
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum DbError {
     #[error("database: {0}")]
@@ -256,3 +358,20 @@ pub enum DbError {
     #[error("queue full: {0} jobs waiting")]
     QueueFull(i64),
 }
+
+impl DbError {
+    /// Whether the database refused a write because its disk is full (SQLite's message, or
+    /// PostgreSQL's SQLSTATE 53100 `disk_full`).
+    pub fn is_storage_full(&self) -> bool {
+        match self {
+            DbError::Sqlx(sqlx::Error::Database(e)) => {
+                e.code().as_deref() == Some("53100")
+                    || e.message().contains("database or disk is full")
+            }
+            other => other.to_string().contains("database or disk is full"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,6 +1,8 @@
 //! The job queue and upload records on SQLite (WAL, busy timeout, `BEGIN IMMEDIATE` for
 //! every transaction that reads before it writes, so concurrent API writes and claims wait
 //! for each other instead of failing with "database is locked").
+//!
+//! This is the default backend: one file under the data directory, nothing else to run.
 
 use std::path::Path;
 use std::time::Duration;
@@ -19,7 +21,7 @@ const BUSY_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// The job queue, upload records and job log in one SQLite file.
 #[derive(Clone)]
-pub struct JobStore {
+pub struct SqliteJobs {
     pool: SqlitePool,
 }
 
@@ -56,15 +58,7 @@ fn job_from_row(r: &SqliteRow) -> Result<JobRecord, DbError> {
 const JOB_COLUMNS: &str = "seq, id, state, stage, progress, attempt, inputs, params, error, \
                            created_at, updated_at, started_at, finished_at";
 
-/// The outcome of creating a job.
-#[derive(Debug)]
-pub enum Created {
-    New(String),
-    /// The Idempotency-Key was seen before with the same request: the job it created.
-    Existing(String),
-}
-
-impl JobStore {
+impl SqliteJobs {
     /// Opens (creating if needed) the database file and applies migrations.
     pub async fn open(path: &Path, max_connections: u32) -> Result<Self, DbError> {
         let options = SqliteConnectOptions::new()
@@ -484,40 +478,15 @@ impl JobStore {
                 .bind(id)
                 .fetch_all(&mut *tx)
                 .await?;
-        let mut first_unfinished: Option<(String, i64)> = None;
-        let mut all = Vec::new();
-        for r in &rows {
-            let (name, idx, st): (String, i64, String) =
-                (r.try_get("name")?, r.try_get("idx")?, r.try_get("state")?);
-            if st != "done" && first_unfinished.is_none() {
-                first_unfinished = Some((name.clone(), idx));
-            }
-            all.push((name, idx));
-        }
-        let from_idx = match (from, &first_unfinished) {
-            (Some(s), _) if !all.iter().any(|(n, _)| n == s.name()) => {
-                return Err(DbError::Invalid(format!(
-                    "from_stage {s}: this job does not run that stage"
-                )));
-            }
-            (Some(s), Some((name, idx))) if (s.index() as i64) > *idx => {
-                return Err(DbError::Invalid(format!(
-                    "from_stage {s}: stage {name} has not finished, so the job must resume there"
-                )));
-            }
-            (Some(s), _) => s.index() as i64,
-            (None, Some((_, idx))) => *idx,
-            (None, None) => {
-                return Err(DbError::Conflict(
-                    "every stage has finished; name from_stage to run stages again".into(),
-                ));
-            }
-        };
-        let reset: Vec<String> = all
+        let stages = rows
             .iter()
-            .filter(|(_, i)| *i >= from_idx)
-            .map(|(n, _)| n.clone())
-            .collect();
+            .map(|r| Ok((r.try_get("name")?, r.try_get("idx")?, r.try_get("state")?)))
+            .collect::<Result<Vec<(String, i64, String)>, sqlx::Error>>()?;
+        let RetryPlan {
+            from_idx,
+            reset,
+            done_weight,
+        } = RetryPlan::new(&stages, from)?;
         sqlx::query(
             "UPDATE job_stages SET state = 'pending', progress = 0, started_at = NULL, finished_at = NULL, metrics = NULL \
              WHERE job_id = ? AND idx >= ?",
@@ -534,14 +503,6 @@ impl JobStore {
         .bind(from_idx)
         .execute(&mut *tx)
         .await?;
-        let done_weight: f64 = rows
-            .iter()
-            .filter_map(|r| {
-                let name: String = r.try_get("name").ok()?;
-                let idx: i64 = r.try_get("idx").ok()?;
-                (idx < from_idx).then(|| Stage::from_name(&name).map(|s| s.weight()))?
-            })
-            .sum();
         let now = now_ms();
         sqlx::query(
             "UPDATE jobs SET state = 'queued', stage = NULL, progress = ?, attempt = 0, error = NULL, worker_id = NULL, \
@@ -600,12 +561,7 @@ impl JobStore {
         .bind(now)
         .execute(&mut *tx)
         .await?;
-        let problem = serde_json::json!({
-            "type": "urn:sylva:problem:worker-lost",
-            "title": "Worker lost",
-            "status": 500,
-            "detail": format!("the job's worker stopped responding {max_attempts} times; giving up"),
-        });
+        let problem = worker_lost_problem(max_attempts);
         sqlx::query(
             "UPDATE jobs SET state = 'failed', error = ?2, finished_at = ?1, updated_at = ?1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
              WHERE state = 'running' AND lease_until < ?1 AND attempt >= ?3",
@@ -624,7 +580,7 @@ impl JobStore {
         )
         .bind(worker_id)
         .bind(&token)
-        .bind(now + lease.as_millis() as i64)
+        .bind(now + lease_ms(lease))
         .bind(now)
         .fetch_optional(&mut *tx)
         .await?;
@@ -670,7 +626,7 @@ impl JobStore {
             "UPDATE jobs SET lease_until = ?1, updated_at = CASE WHEN ?2 > progress THEN ?3 ELSE updated_at END, \
              progress = MAX(progress, ?2) WHERE id = ?4 AND lease_token = ?5 RETURNING state",
         )
-        .bind(now + lease.as_millis() as i64)
+        .bind(now + lease_ms(lease))
         .bind(progress)
         .bind(now)
         .bind(job_id)
@@ -929,181 +885,5 @@ impl JobStore {
             .map(|r| Ok((r.try_get("name")?, r.try_get("d")?)))
             .collect::<Result<_, sqlx::Error>>()
             .map_err(DbError::from)
-    }
-}
-
-/// Whether a process id exists on this host (Linux: /proc; elsewhere assume alive).
-fn process_alive(pid: i64) -> bool {
-    if cfg!(target_os = "linux") {
-        Path::new(&format!("/proc/{pid}")).exists()
-    } else {
-        true
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::pipeline::PipelineParams;
-
-    async fn store_with_job() -> (tempfile::TempDir, JobStore, String) {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let db = JobStore::open(&dir.path().join("t.db"), 4)
-            .await
-            .expect("open");
-        let now = now_ms();
-        for (id, kind) in [("l", UploadKind::Lidar), ("c", UploadKind::Colmap)] {
-            db.create_upload(&UploadRecord {
-                id: id.into(),
-                kind,
-                filename: "f".into(),
-                size: 1,
-                sha256: None,
-                part_size: 1,
-                complete: false,
-                inspection: None,
-                created_at: now,
-                expires_at: now,
-                completed_at: None,
-                parts: vec![],
-            })
-            .await
-            .expect("upload");
-            db.put_part(id, 0, 1, "x").await.expect("part");
-            db.complete_upload(id, "x", &serde_json::json!({}))
-                .await
-                .expect("complete");
-        }
-        let inputs = JobInputs {
-            lidar: "l".into(),
-            colmap: "c".into(),
-            control_points: None,
-            field_dbh: None,
-        };
-        let params = serde_json::to_value(PipelineParams::default()).expect("params");
-        db.create_job("j", &inputs, &params, &Stage::ALL, None, "h", 10)
-            .await
-            .expect("job");
-        (dir, db, "j".into())
-    }
-
-    #[tokio::test]
-    async fn a_worker_that_lost_its_lease_cannot_write() {
-        let (_d, db, job) = store_with_job().await;
-        let short = Duration::from_millis(50);
-        let a = db
-            .claim("A", short, 5)
-            .await
-            .expect("claim")
-            .expect("a job");
-        assert_eq!(a.attempt, 1);
-        assert!(
-            db.claim("B", short, 5).await.expect("claim").is_none(),
-            "leased"
-        );
-        tokio::time::sleep(Duration::from_millis(80)).await;
-        let b = db
-            .claim("B", short, 5)
-            .await
-            .expect("claim")
-            .expect("expired lease");
-        assert_eq!(b.attempt, 2);
-        // A is fenced out of every write.
-        let r = db
-            .finish_stage(
-                &job,
-                &a.token,
-                Stage::Ingest,
-                &serde_json::json!({}),
-                &[],
-                0.1,
-            )
-            .await;
-        assert!(matches!(r, Err(DbError::Fenced)), "{r:?}");
-        assert!(matches!(
-            db.start_stage(&job, &a.token, Stage::Ingest, 1).await,
-            Err(DbError::Fenced)
-        ));
-        assert!(matches!(
-            db.finish_job(&job, &a.token, &RunEnd::Succeeded).await,
-            Err(DbError::Fenced)
-        ));
-        assert_eq!(
-            db.heartbeat(&job, &a.token, short, 0.5, None)
-                .await
-                .expect("hb"),
-            Heartbeat::Lost
-        );
-        // B writes its checkpoint; a later claim resumes after it.
-        db.start_stage(&job, &b.token, Stage::Ingest, 2)
-            .await
-            .expect("start");
-        db.finish_stage(
-            &job,
-            &b.token,
-            Stage::Ingest,
-            &serde_json::json!({"n": 1}),
-            &[],
-            0.05,
-        )
-        .await
-        .expect("checkpoint");
-        tokio::time::sleep(Duration::from_millis(80)).await;
-        let c = db
-            .claim("C", short, 5)
-            .await
-            .expect("claim")
-            .expect("expired");
-        assert_eq!(c.done, vec!["ingest".to_string()]);
-        assert!(c.progress >= 0.05);
-    }
-
-    #[tokio::test]
-    async fn a_job_whose_workers_keep_dying_fails_after_max_attempts() {
-        let (_d, db, job) = store_with_job().await;
-        let short = Duration::from_millis(20);
-        for _ in 0..2 {
-            assert!(db.claim("W", short, 2).await.expect("claim").is_some());
-            tokio::time::sleep(Duration::from_millis(40)).await;
-        }
-        assert!(db.claim("W", short, 2).await.expect("claim").is_none());
-        let j = db.get_job(&job).await.expect("get").expect("job");
-        assert_eq!(j.state, JobState::Failed);
-        assert!(
-            j.error
-                .is_some_and(|e| e.to_string().contains("worker-lost"))
-        );
-    }
-
-    #[tokio::test]
-    async fn heartbeat_sees_cancel_and_progress_never_decreases() {
-        let (_d, db, job) = store_with_job().await;
-        let lease = Duration::from_secs(30);
-        let a = db.claim("A", lease, 3).await.expect("claim").expect("job");
-        assert_eq!(
-            db.heartbeat(&job, &a.token, lease, 0.4, None)
-                .await
-                .expect("hb"),
-            Heartbeat::Ok
-        );
-        db.heartbeat(&job, &a.token, lease, 0.2, None)
-            .await
-            .expect("hb");
-        assert_eq!(
-            db.get_job(&job).await.expect("get").expect("job").progress,
-            0.4
-        );
-        assert_eq!(db.cancel(&job).await.expect("cancel"), JobState::Canceling);
-        assert_eq!(
-            db.heartbeat(&job, &a.token, lease, 0.5, None)
-                .await
-                .expect("hb"),
-            Heartbeat::CancelRequested
-        );
-        db.finish_job(&job, &a.token, &RunEnd::Canceled { stage: None })
-            .await
-            .expect("end");
-        assert!(matches!(db.cancel(&job).await, Err(DbError::Conflict(_))));
-        assert_eq!(db.integrity_check().await.expect("check"), "ok");
     }
 }

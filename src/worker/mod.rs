@@ -132,8 +132,11 @@ impl WorkerPool {
         }
     }
 
-    /// Runs `args.workers` worker loops until `shutdown` turns true.
+    /// Runs `args.workers` worker loops until `shutdown` turns true. Where the database
+    /// announces new jobs (PostgreSQL), idle loops wake on the announcement; they poll every
+    /// `poll_ms` regardless.
     pub async fn run(self, shutdown: watch::Receiver<bool>) {
+        let listener = self.db.listen_for_work(self.wake.clone());
         let mut handles = Vec::new();
         for slot in 0..self.args.workers {
             let me = self.clone();
@@ -148,6 +151,9 @@ impl WorkerPool {
         }
         for h in handles {
             let _ = h.await;
+        }
+        if let Some(l) = listener {
+            l.abort();
         }
     }
 

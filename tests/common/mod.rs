@@ -1,6 +1,9 @@
 //! Shared test support: generated fixtures (a small LAS cloud, a COLMAP project with real
-//! PNG photos, zipped), and real `sylva` processes on ephemeral ports.
+//! PNG photos, zipped), real `sylva` processes on ephemeral ports, and the job database they
+//! share (SQLite, or a throwaway PostgreSQL: see [`Db`] and [`on_both_databases!`]).
 #![allow(dead_code)]
+
+pub mod postgres;
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
@@ -245,6 +248,81 @@ pub fn worker(data: &Path, extra: &[&str]) -> Proc {
     args.extend_from_slice(extra);
     spawn(&args, data, "sylva worker started")
 }
+
+/// The job database a test's `sylva` processes share.
+pub enum Db {
+    /// SQLite under the data directory (the default; no flag).
+    Sqlite,
+    /// A fresh database on the test PostgreSQL (`--database postgres://...`).
+    Postgres(postgres::TestDatabase),
+}
+
+impl Db {
+    pub fn sqlite() -> Db {
+        Db::Sqlite
+    }
+
+    /// `None` (with the reason printed) where PostgreSQL is not installed.
+    pub fn postgres() -> Option<Db> {
+        postgres::database().map(Db::Postgres)
+    }
+
+    fn with_flags<'a>(&'a self, extra: &[&'a str]) -> Vec<&'a str> {
+        let mut args = extra.to_vec();
+        if let Db::Postgres(pg) = self {
+            args.extend(["--database", pg.url.as_str()]);
+        }
+        args
+    }
+
+    /// Fails unless the process says it opened this kind of database.
+    fn check_backend(&self, p: Proc) -> Proc {
+        let name = match self {
+            Db::Sqlite => "\"sqlite\"",
+            Db::Postgres(_) => "\"postgres\"",
+        };
+        let text = p.stderr_text();
+        assert!(
+            text.lines()
+                .any(|l| l.contains("job database open") && l.contains(name)),
+            "expected a {name} job database: {text}"
+        );
+        p
+    }
+
+    /// `sylva serve` on this database.
+    pub fn serve(&self, data: &Path, extra: &[&str]) -> Proc {
+        self.check_backend(serve(data, &self.with_flags(extra)))
+    }
+
+    /// `sylva worker` on this database.
+    pub fn worker(&self, data: &Path, extra: &[&str]) -> Proc {
+        self.check_backend(worker(data, &self.with_flags(extra)))
+    }
+}
+
+/// Runs the async test body `$name(db: Db)` once per job database, as the tests
+/// `$name::sqlite` and `$name::postgres` (which skips, saying why, without PostgreSQL).
+#[allow(unused_macros)]
+macro_rules! on_both_databases {
+    ($name:ident) => {
+        mod $name {
+            #[tokio::test(flavor = "multi_thread")]
+            async fn sqlite() {
+                super::$name(super::common::Db::sqlite()).await;
+            }
+
+            #[tokio::test(flavor = "multi_thread")]
+            async fn postgres() {
+                if let Some(db) = super::common::Db::postgres() {
+                    super::$name(db).await;
+                }
+            }
+        }
+    };
+}
+#[allow(unused_imports)]
+pub(crate) use on_both_databases;
 
 pub fn client() -> Client {
     Client::builder()

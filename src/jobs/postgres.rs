@@ -1,0 +1,1007 @@
+//! The job queue and upload records on PostgreSQL, for many API replicas and workers on
+//! many machines (`--database postgres://...`).
+//!
+//! The semantics are SQLite's (src/jobs/sqlite.rs), statement for statement; what differs
+//! is how concurrent transactions are kept apart. SQLite runs one writer at a time, so a
+//! read followed by a write is atomic. PostgreSQL runs many at once under READ COMMITTED,
+//! so every transaction that reads before it writes locks what it read:
+//! - a claim picks its job with `FOR UPDATE SKIP LOCKED`: concurrent workers take different
+//!   jobs and never wait for each other;
+//! - a fenced write (`start_stage`, `finish_stage`, `finish_job`) locks the job row while it
+//!   checks the lease token, so a claim cannot slip in between the check and the write;
+//! - cancel, retry, delete and part uploads lock the row whose state they check;
+//! - job creation takes a transaction-scoped advisory lock, so the queue-depth limit and the
+//!   Idempotency-Key check see every job created before them.
+//!
+//! Leases are measured on the database server's clock, not the worker's: workers on several
+//! machines then agree on when a lease runs out even if their own clocks drift apart.
+//!
+//! New and re-queued jobs are announced with `pg_notify` on [`QUEUE_CHANNEL`] (see
+//! [`PgJobs::announce`]); idle workers listen on it (see [`PgJobs::listen_for_work`]) and
+//! still poll, so a lost notification only delays a claim by one poll interval.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use sqlx::postgres::{PgConnectOptions, PgConnection, PgListener, PgPool, PgPoolOptions, PgRow};
+use sqlx::{Connection, Postgres, Row, Transaction};
+use tokio::sync::Notify;
+
+use super::*;
+use crate::pipeline::{OutputFile, Stage};
+
+/// The channel `pg_notify` announces claimable jobs on. The payload (the job id, or the
+/// dead worker whose jobs became claimable) is for people watching; workers just claim.
+pub const QUEUE_CHANNEL: &str = "sylva_jobs";
+
+/// How long a request waits for a free connection from the pool.
+const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Key of the advisory lock that serialises job creation (the queue-depth check and the
+/// Idempotency-Key lookup); "SYLVJOBS" in ASCII.
+const CREATE_LOCK: i64 = 0x5359_4c56_4a4f_4253;
+
+/// Pause before a lost notification listener connects again.
+const LISTEN_RETRY: Duration = Duration::from_secs(2);
+
+/// A log line whose sequence number was taken by a concurrent writer is retried this often.
+const LOG_INSERT_TRIES: usize = 16;
+
+/// The job queue, upload records and job log in a PostgreSQL database.
+#[derive(Clone)]
+pub struct PgJobs {
+    pool: PgPool,
+}
+
+fn job_from_row(r: &PgRow) -> Result<JobRecord, DbError> {
+    let state: String = r.try_get("state")?;
+    let inputs: serde_json::Value = r.try_get("inputs")?;
+    Ok(JobRecord {
+        seq: r.try_get("seq")?,
+        id: r.try_get("id")?,
+        state: JobState::parse(&state)
+            .ok_or_else(|| DbError::Invalid(format!("bad job state {state:?}")))?,
+        stage: r.try_get("stage")?,
+        progress: r.try_get("progress")?,
+        attempt: r.try_get("attempt")?,
+        inputs: serde_json::from_value(inputs)
+            .map_err(|e| DbError::Invalid(format!("bad inputs: {e}")))?,
+        params: r.try_get("params")?,
+        error: r.try_get("error")?,
+        created_at: r.try_get("created_at")?,
+        updated_at: r.try_get("updated_at")?,
+        started_at: r.try_get("started_at")?,
+        finished_at: r.try_get("finished_at")?,
+        stages: Vec::new(),
+        artifacts: Vec::new(),
+    })
+}
+
+const JOB_COLUMNS: &str = "seq, id, state, stage, progress, attempt, inputs, params, error, \
+                           created_at, updated_at, started_at, finished_at";
+
+impl PgJobs {
+    /// Connects to the database at `url` (`postgres://user:password@host:port/database`) and
+    /// applies migrations; concurrent processes wait for each other's migrations (sqlx holds
+    /// an advisory lock while it migrates).
+    pub async fn open(url: &str, max_connections: u32) -> Result<Self, DbError> {
+        let options: PgConnectOptions = url.parse()?;
+        // One direct connection first: an unreachable server or a refused login then reports
+        // its own error at once, not a pool timeout after ACQUIRE_TIMEOUT.
+        PgConnection::connect_with(&options).await?.close().await?;
+        let pool = PgPoolOptions::new()
+            .max_connections(max_connections.max(2))
+            .acquire_timeout(ACQUIRE_TIMEOUT)
+            .connect_with(options)
+            .await?;
+        sqlx::migrate!("./migrations/postgres").run(&pool).await?;
+        Ok(Self { pool })
+    }
+
+    /// A trivial query: is the database answering?
+    pub async fn ping(&self) -> Result<(), DbError> {
+        sqlx::query("SELECT 1").execute(&self.pool).await?;
+        Ok(())
+    }
+
+    /// PostgreSQL checks its own storage, so this checks the queue's invariant instead: a job
+    /// holds a lease exactly while it is running or canceling. "ok" when it holds, else what
+    /// is wrong.
+    pub async fn integrity_check(&self) -> Result<String, DbError> {
+        let bad: i64 = sqlx::query_scalar(
+            "SELECT COUNT(*) FROM jobs \
+             WHERE (state IN ('running', 'canceling')) <> (lease_token IS NOT NULL AND lease_until IS NOT NULL)",
+        )
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(if bad == 0 {
+            "ok".to_string()
+        } else {
+            format!("{bad} job(s) hold a lease in a state that has none, or lack one while running")
+        })
+    }
+
+    /// Forwards queue notifications to `wake` until the pool closes: every job inserted or
+    /// re-queued by any process wakes this process's idle workers (their poll remains the
+    /// fallback). Reconnects after a lost connection.
+    pub fn listen_for_work(&self, wake: Arc<Notify>) -> tokio::task::JoinHandle<()> {
+        let pool = self.pool.clone();
+        tokio::spawn(async move {
+            while !pool.is_closed() {
+                match Self::forward_notifications(&pool, &wake).await {
+                    Ok(()) => return,
+                    Err(e) if pool.is_closed() => {
+                        tracing::debug!(error = %e, "queue listener stopped");
+                        return;
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "queue listener lost; polling until it is back");
+                    }
+                }
+                tokio::time::sleep(LISTEN_RETRY).await;
+            }
+        })
+    }
+
+    async fn forward_notifications(pool: &PgPool, wake: &Notify) -> Result<(), sqlx::Error> {
+        let mut listener = PgListener::connect_with(pool).await?;
+        listener.listen(QUEUE_CHANNEL).await?;
+        loop {
+            // `recv` reconnects (and listens again) by itself after a dropped connection.
+            listener.recv().await?;
+            wake.notify_waiters();
+        }
+    }
+
+    /// The database server's clock in milliseconds since the Unix epoch: the one clock every
+    /// process compares leases and worker liveness against.
+    async fn clock<'c, E>(conn: E) -> Result<i64, DbError>
+    where
+        E: sqlx::PgExecutor<'c>,
+    {
+        Ok(
+            sqlx::query_scalar("SELECT (EXTRACT(EPOCH FROM clock_timestamp()) * 1000)::bigint")
+                .fetch_one(conn)
+                .await?,
+        )
+    }
+
+    /// Tells the idle workers of every process that `job_id` can be claimed. The API calls
+    /// this once a new or retried job is ready to run (after it has answered with the job's
+    /// state and removed the folders of reset stages), not inside the transaction that
+    /// queued it.
+    pub async fn announce(&self, job_id: &str) -> Result<(), DbError> {
+        sqlx::query("SELECT pg_notify($1, $2)")
+            .bind(QUEUE_CHANNEL)
+            .bind(job_id)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Announces claimable work to listening workers when `tx` commits.
+    async fn notify(tx: &mut Transaction<'static, Postgres>, job_id: &str) -> Result<(), DbError> {
+        sqlx::query("SELECT pg_notify($1, $2)")
+            .bind(QUEUE_CHANNEL)
+            .bind(job_id)
+            .execute(&mut **tx)
+            .await?;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- uploads
+
+    /// Records a new upload (no parts yet).
+    pub async fn create_upload(&self, u: &UploadRecord) -> Result<(), DbError> {
+        sqlx::query(
+            "INSERT INTO uploads (id, kind, filename, size, sha256, part_size, state, created_at, expires_at) \
+             VALUES ($1, $2, $3, $4, $5, $6, 'open', $7, $8)",
+        )
+        .bind(&u.id)
+        .bind(u.kind.as_str())
+        .bind(&u.filename)
+        .bind(u.size)
+        .bind(&u.sha256)
+        .bind(u.part_size)
+        .bind(u.created_at)
+        .bind(u.expires_at)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// An upload with the parts received so far.
+    pub async fn get_upload(&self, id: &str) -> Result<Option<UploadRecord>, DbError> {
+        let Some(r) = sqlx::query("SELECT * FROM uploads WHERE id = $1")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+        else {
+            return Ok(None);
+        };
+        let kind: String = r.try_get("kind")?;
+        let state: String = r.try_get("state")?;
+        let parts = sqlx::query("SELECT n, size FROM upload_parts WHERE upload_id = $1 ORDER BY n")
+            .bind(id)
+            .fetch_all(&self.pool)
+            .await?
+            .iter()
+            .map(|p| Ok((p.try_get("n")?, p.try_get("size")?)))
+            .collect::<Result<Vec<_>, sqlx::Error>>()?;
+        Ok(Some(UploadRecord {
+            id: r.try_get("id")?,
+            kind: UploadKind::parse(&kind)
+                .ok_or_else(|| DbError::Invalid(format!("bad upload kind {kind:?}")))?,
+            filename: r.try_get("filename")?,
+            size: r.try_get("size")?,
+            sha256: r.try_get("sha256")?,
+            part_size: r.try_get("part_size")?,
+            complete: state == "complete",
+            inspection: r.try_get("inspection")?,
+            created_at: r.try_get("created_at")?,
+            expires_at: r.try_get("expires_at")?,
+            completed_at: r.try_get("completed_at")?,
+            parts,
+        }))
+    }
+
+    /// Records a received part (replacing an earlier copy); refused once the upload is complete.
+    pub async fn put_part(&self, id: &str, n: i64, size: i64, sha256: &str) -> Result<(), DbError> {
+        let mut tx = self.pool.begin().await?;
+        let state: Option<String> =
+            sqlx::query_scalar("SELECT state FROM uploads WHERE id = $1 FOR UPDATE")
+                .bind(id)
+                .fetch_optional(&mut *tx)
+                .await?;
+        match state.as_deref() {
+            None => return Err(DbError::NotFound),
+            Some("complete") => {
+                return Err(DbError::Conflict("the upload is already complete".into()));
+            }
+            _ => {}
+        }
+        sqlx::query(
+            "INSERT INTO upload_parts (upload_id, n, size, sha256) VALUES ($1, $2, $3, $4) \
+             ON CONFLICT (upload_id, n) DO UPDATE SET size = excluded.size, sha256 = excluded.sha256",
+        )
+        .bind(id)
+        .bind(n)
+        .bind(size)
+        .bind(sha256)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Marks an upload complete with its verified checksum and what inspection found.
+    pub async fn complete_upload(
+        &self,
+        id: &str,
+        sha256: &str,
+        inspection: &serde_json::Value,
+    ) -> Result<(), DbError> {
+        sqlx::query(
+            "UPDATE uploads SET state = 'complete', sha256 = $1, inspection = $2, completed_at = $3 \
+             WHERE id = $4 AND state = 'open'",
+        )
+        .bind(sha256)
+        .bind(inspection)
+        .bind(now_ms())
+        .bind(id)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- jobs
+
+    /// Creates a job with its stage rows. With an idempotency key seen before, returns the
+    /// earlier job if the request was the same, and a conflict otherwise.
+    #[allow(clippy::too_many_arguments)]
+    pub async fn create_job(
+        &self,
+        id: &str,
+        inputs: &JobInputs,
+        params: &serde_json::Value,
+        stages: &[Stage],
+        idempotency_key: Option<&str>,
+        request_hash: &str,
+        max_queued: i64,
+    ) -> Result<Created, DbError> {
+        let mut tx = self.pool.begin().await?;
+        sqlx::query("SELECT pg_advisory_xact_lock($1)")
+            .bind(CREATE_LOCK)
+            .execute(&mut *tx)
+            .await?;
+        if let Some(key) = idempotency_key {
+            let row = sqlx::query("SELECT id, request_hash FROM jobs WHERE idempotency_key = $1")
+                .bind(key)
+                .fetch_optional(&mut *tx)
+                .await?;
+            if let Some(row) = row {
+                let hash: Option<String> = row.try_get("request_hash")?;
+                return if hash.as_deref() == Some(request_hash) {
+                    Ok(Created::Existing(row.try_get("id")?))
+                } else {
+                    Err(DbError::Invalid(
+                        "this Idempotency-Key was already used with a different request".into(),
+                    ))
+                };
+            }
+        }
+        let queued: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE state = 'queued'")
+            .fetch_one(&mut *tx)
+            .await?;
+        if queued >= max_queued {
+            return Err(DbError::QueueFull(queued));
+        }
+        for (kind, upload) in inputs.all() {
+            let row = sqlx::query("SELECT kind, state FROM uploads WHERE id = $1 FOR SHARE")
+                .bind(upload)
+                .fetch_optional(&mut *tx)
+                .await?;
+            let Some(row) = row else {
+                return Err(DbError::Invalid(format!(
+                    "inputs.{}: upload {upload} does not exist",
+                    kind.as_str()
+                )));
+            };
+            let (k, s): (String, String) = (row.try_get("kind")?, row.try_get("state")?);
+            if k != kind.as_str() {
+                return Err(DbError::Invalid(format!(
+                    "inputs.{}: upload {upload} holds `{k}`, not `{}`",
+                    kind.as_str(),
+                    kind.as_str()
+                )));
+            }
+            if s != "complete" {
+                return Err(DbError::Invalid(format!(
+                    "inputs.{}: upload {upload} is not complete",
+                    kind.as_str()
+                )));
+            }
+        }
+        let inputs = serde_json::to_value(inputs)
+            .map_err(|e| DbError::Invalid(format!("bad inputs: {e}")))?;
+        let now = now_ms();
+        sqlx::query(
+            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at) \
+             VALUES ($1, 'queued', 0, 0, $2, $3, $4, $5, $6, $6)",
+        )
+        .bind(id)
+        .bind(&inputs)
+        .bind(params)
+        .bind(idempotency_key)
+        .bind(request_hash)
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        for s in stages {
+            sqlx::query("INSERT INTO job_stages (job_id, idx, name) VALUES ($1, $2, $3)")
+                .bind(id)
+                .bind(s.index() as i64)
+                .bind(s.name())
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(Created::New(id.to_string()))
+    }
+
+    async fn fill(&self, mut job: JobRecord) -> Result<JobRecord, DbError> {
+        let stages = sqlx::query("SELECT * FROM job_stages WHERE job_id = $1 ORDER BY idx")
+            .bind(&job.id)
+            .fetch_all(&self.pool)
+            .await?;
+        job.stages = stages
+            .iter()
+            .map(|r| {
+                let state: String = r.try_get("state")?;
+                Ok(StageRecord {
+                    name: r.try_get("name")?,
+                    state: StageState::parse(&state).unwrap_or(StageState::Pending),
+                    progress: r.try_get("progress")?,
+                    attempt: r.try_get("attempt")?,
+                    started_at: r.try_get("started_at")?,
+                    finished_at: r.try_get("finished_at")?,
+                    metrics: r.try_get("metrics")?,
+                })
+            })
+            .collect::<Result<_, sqlx::Error>>()?;
+        job.artifacts = self.artifacts(&job.id).await?;
+        Ok(job)
+    }
+
+    /// A job with its stages and artifacts.
+    pub async fn get_job(&self, id: &str) -> Result<Option<JobRecord>, DbError> {
+        let sql = format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1");
+        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        match row {
+            Some(r) => Ok(Some(self.fill(job_from_row(&r)?).await?)),
+            None => Ok(None),
+        }
+    }
+
+    /// Jobs newest first; `before_seq` is the cursor (the last seq of the previous page).
+    pub async fn list_jobs(
+        &self,
+        state: Option<JobState>,
+        before_seq: Option<i64>,
+        limit: i64,
+    ) -> Result<Vec<JobRecord>, DbError> {
+        let sql = format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE ($1::text IS NULL OR state = $1) \
+             AND ($2::bigint IS NULL OR seq < $2) ORDER BY seq DESC LIMIT $3"
+        );
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(state.map(|s| s.as_str()))
+            .bind(before_seq)
+            .bind(limit)
+            .fetch_all(&self.pool)
+            .await?;
+        let mut out = Vec::with_capacity(rows.len());
+        for r in &rows {
+            out.push(self.fill(job_from_row(r)?).await?);
+        }
+        Ok(out)
+    }
+
+    /// A job's artifacts in stage order.
+    pub async fn artifacts(&self, job_id: &str) -> Result<Vec<ArtifactRecord>, DbError> {
+        let rows = sqlx::query(
+            "SELECT a.* FROM artifacts a JOIN job_stages s ON s.job_id = a.job_id AND s.name = a.stage \
+             WHERE a.job_id = $1 ORDER BY s.idx, a.name",
+        )
+        .bind(job_id)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(ArtifactRecord {
+                    name: r.try_get("name")?,
+                    stage: r.try_get("stage")?,
+                    kind: r.try_get("kind")?,
+                    size: r.try_get("size")?,
+                    sha256: r.try_get("sha256")?,
+                    content_type: r.try_get("content_type")?,
+                })
+            })
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(DbError::from)
+    }
+
+    /// Appends a line with the next sequence number of the job's log. Two writers that pick
+    /// the same number at once (the worker's stage thread and its heartbeat) do not fail: the
+    /// second finds the number taken and takes the next.
+    pub async fn append_log(
+        &self,
+        job_id: &str,
+        level: &str,
+        stage: Option<&str>,
+        message: &str,
+    ) -> Result<(), DbError> {
+        for _ in 0..LOG_INSERT_TRIES {
+            let res = sqlx::query(
+                "INSERT INTO job_log (job_id, seq, ts, level, stage, message) \
+                 SELECT $1, COALESCE(MAX(seq), 0) + 1, $2, $3, $4, $5 FROM job_log WHERE job_id = $1 \
+                 ON CONFLICT (job_id, seq) DO NOTHING",
+            )
+            .bind(job_id)
+            .bind(now_ms())
+            .bind(level)
+            .bind(stage)
+            .bind(message)
+            .execute(&self.pool)
+            .await?;
+            if res.rows_affected() == 1 {
+                return Ok(());
+            }
+        }
+        Err(DbError::Conflict(format!(
+            "job {job_id}: no free log sequence number after {LOG_INSERT_TRIES} tries"
+        )))
+    }
+
+    /// Log lines after sequence number `since`, at most `limit`.
+    pub async fn log(&self, job_id: &str, since: i64, limit: i64) -> Result<Vec<LogLine>, DbError> {
+        let rows = sqlx::query(
+            "SELECT seq, ts, level, stage, message FROM job_log WHERE job_id = $1 AND seq > $2 ORDER BY seq LIMIT $3",
+        )
+        .bind(job_id)
+        .bind(since)
+        .bind(limit)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(LogLine {
+                    seq: r.try_get("seq")?,
+                    ts: r.try_get("ts")?,
+                    level: r.try_get("level")?,
+                    stage: r.try_get("stage")?,
+                    message: r.try_get("message")?,
+                })
+            })
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(DbError::from)
+    }
+
+    /// The state of a job, locking its row until `tx` ends; `NotFound` without one.
+    async fn lock_job(
+        tx: &mut Transaction<'static, Postgres>,
+        id: &str,
+    ) -> Result<JobState, DbError> {
+        let state: Option<String> =
+            sqlx::query_scalar("SELECT state FROM jobs WHERE id = $1 FOR UPDATE")
+                .bind(id)
+                .fetch_optional(&mut **tx)
+                .await?;
+        state
+            .and_then(|s| JobState::parse(&s))
+            .ok_or(DbError::NotFound)
+    }
+
+    /// Cancels a job: a queued one at once, a running one by asking its worker (canceling).
+    pub async fn cancel(&self, id: &str) -> Result<JobState, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let state = Self::lock_job(&mut tx, id).await?;
+        let now = now_ms();
+        let next = match state {
+            JobState::Queued => {
+                sqlx::query(
+                    "UPDATE jobs SET state = 'canceled', finished_at = $1, updated_at = $1 WHERE id = $2",
+                )
+                .bind(now)
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+                JobState::Canceled
+            }
+            JobState::Running => {
+                sqlx::query("UPDATE jobs SET state = 'canceling', updated_at = $1 WHERE id = $2")
+                    .bind(now)
+                    .bind(id)
+                    .execute(&mut *tx)
+                    .await?;
+                JobState::Canceling
+            }
+            JobState::Canceling => JobState::Canceling,
+            s => {
+                return Err(DbError::Conflict(format!(
+                    "the job is already {}; nothing to cancel",
+                    s.as_str()
+                )));
+            }
+        };
+        tx.commit().await?;
+        Ok(next)
+    }
+
+    /// Queues a finished job again from `from` (or its first unfinished stage). Returns the
+    /// stages that were reset, whose output folders the caller removes.
+    pub async fn retry(&self, id: &str, from: Option<Stage>) -> Result<Vec<String>, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let state = Self::lock_job(&mut tx, id).await?;
+        if !state.is_terminal() {
+            return Err(DbError::Conflict(format!(
+                "the job is {}; only a failed, canceled or succeeded job can be retried",
+                state.as_str()
+            )));
+        }
+        let stages =
+            sqlx::query("SELECT name, idx, state FROM job_stages WHERE job_id = $1 ORDER BY idx")
+                .bind(id)
+                .fetch_all(&mut *tx)
+                .await?
+                .iter()
+                .map(|r| Ok((r.try_get("name")?, r.try_get("idx")?, r.try_get("state")?)))
+                .collect::<Result<Vec<(String, i64, String)>, sqlx::Error>>()?;
+        let RetryPlan {
+            from_idx,
+            reset,
+            done_weight,
+        } = RetryPlan::new(&stages, from)?;
+        sqlx::query(
+            "UPDATE job_stages SET state = 'pending', progress = 0, started_at = NULL, finished_at = NULL, metrics = NULL \
+             WHERE job_id = $1 AND idx >= $2",
+        )
+        .bind(id)
+        .bind(from_idx)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "DELETE FROM artifacts WHERE job_id = $1 AND stage IN (SELECT name FROM job_stages WHERE job_id = $1 AND idx >= $2)",
+        )
+        .bind(id)
+        .bind(from_idx)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "UPDATE jobs SET state = 'queued', stage = NULL, progress = $1, attempt = 0, error = NULL, worker_id = NULL, \
+             lease_until = NULL, lease_token = NULL, finished_at = NULL, updated_at = $2 WHERE id = $3",
+        )
+        .bind(done_weight)
+        .bind(now_ms())
+        .bind(id)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(reset)
+    }
+
+    /// Deletes a finished job's rows (its files are the caller's to remove).
+    pub async fn delete_job(&self, id: &str) -> Result<(), DbError> {
+        let mut tx = self.pool.begin().await?;
+        let state = Self::lock_job(&mut tx, id).await?;
+        if !state.is_terminal() {
+            return Err(DbError::Conflict(format!(
+                "the job is {}; cancel it before deleting it",
+                state.as_str()
+            )));
+        }
+        sqlx::query("DELETE FROM jobs WHERE id = $1")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- queue (workers)
+
+    /// Claims the oldest claimable job: a queued one, or a running one whose lease expired
+    /// (its worker died). In the same transaction, canceling jobs with an expired lease become
+    /// canceled, and jobs that lost their worker `max_attempts` times fail. Rows another
+    /// transaction holds are skipped, never waited for.
+    pub async fn claim(
+        &self,
+        worker_id: &str,
+        lease: Duration,
+        max_attempts: i64,
+    ) -> Result<Option<Claim>, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let now = Self::clock(&mut *tx).await?;
+        sqlx::query(
+            "UPDATE jobs SET state = 'canceled', finished_at = $1, updated_at = $1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
+             WHERE seq IN (SELECT seq FROM jobs WHERE state = 'canceling' AND lease_until < $1 FOR UPDATE SKIP LOCKED)",
+        )
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "UPDATE jobs SET state = 'failed', error = $2, finished_at = $1, updated_at = $1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
+             WHERE seq IN (SELECT seq FROM jobs WHERE state = 'running' AND lease_until < $1 AND attempt >= $3 FOR UPDATE SKIP LOCKED)",
+        )
+        .bind(now)
+        .bind(worker_lost_problem(max_attempts))
+        .bind(max_attempts)
+        .execute(&mut *tx)
+        .await?;
+        let token = uuid::Uuid::new_v4().simple().to_string();
+        let row = sqlx::query(
+            "UPDATE jobs SET state = 'running', worker_id = $1, lease_token = $2, lease_until = $3, attempt = attempt + 1, \
+             updated_at = $4, started_at = COALESCE(started_at, $4) \
+             WHERE seq = (SELECT seq FROM jobs WHERE state = 'queued' OR (state = 'running' AND lease_until < $4) \
+                          ORDER BY seq LIMIT 1 FOR UPDATE SKIP LOCKED) \
+             RETURNING id, attempt, inputs, params, progress",
+        )
+        .bind(worker_id)
+        .bind(&token)
+        .bind(now + lease_ms(lease))
+        .bind(now)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(row) = row else {
+            tx.commit().await?;
+            return Ok(None);
+        };
+        let job_id: String = row.try_get("id")?;
+        let inputs: serde_json::Value = row.try_get("inputs")?;
+        let done: Vec<String> = sqlx::query_scalar(
+            "SELECT name FROM job_stages WHERE job_id = $1 AND state = 'done' ORDER BY idx",
+        )
+        .bind(&job_id)
+        .fetch_all(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Some(Claim {
+            job_id,
+            token,
+            attempt: row.try_get("attempt")?,
+            inputs: serde_json::from_value(inputs)
+                .map_err(|e| DbError::Invalid(format!("bad inputs: {e}")))?,
+            params: row.try_get("params")?,
+            done,
+            progress: row.try_get("progress")?,
+        }))
+    }
+
+    /// Renews the lease and records progress (never lower than before).
+    pub async fn heartbeat(
+        &self,
+        job_id: &str,
+        token: &str,
+        lease: Duration,
+        progress: f64,
+        stage: Option<(&str, f64)>,
+    ) -> Result<Heartbeat, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let now = Self::clock(&mut *tx).await?;
+        let state: Option<String> = sqlx::query_scalar(
+            "UPDATE jobs SET lease_until = $1, updated_at = CASE WHEN $2 > progress THEN $3 ELSE updated_at END, \
+             progress = GREATEST(progress, $2) WHERE id = $4 AND lease_token = $5 RETURNING state",
+        )
+        .bind(now + lease_ms(lease))
+        .bind(progress)
+        .bind(now)
+        .bind(job_id)
+        .bind(token)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(state) = state else {
+            return Ok(Heartbeat::Lost);
+        };
+        if let Some((name, p)) = stage {
+            sqlx::query(
+                "UPDATE job_stages SET progress = GREATEST(progress, $1) WHERE job_id = $2 AND name = $3 AND state = 'running'",
+            )
+            .bind(p)
+            .bind(job_id)
+            .bind(name)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(match state.as_str() {
+            "canceling" => Heartbeat::CancelRequested,
+            "running" => Heartbeat::Ok,
+            _ => Heartbeat::Lost,
+        })
+    }
+
+    /// Checks the fencing token and locks the job row until `tx` ends, so no claim can take
+    /// the job between the check and this run's writes; `Fenced` if this run lost the job.
+    async fn fence(
+        tx: &mut Transaction<'static, Postgres>,
+        job_id: &str,
+        token: &str,
+    ) -> Result<(), DbError> {
+        let held = sqlx::query("SELECT 1 FROM jobs WHERE id = $1 AND lease_token = $2 FOR UPDATE")
+            .bind(job_id)
+            .bind(token)
+            .fetch_optional(&mut **tx)
+            .await?;
+        held.map(|_| ()).ok_or(DbError::Fenced)
+    }
+
+    /// Marks a stage running; `Fenced` if this run lost the job.
+    pub async fn start_stage(
+        &self,
+        job_id: &str,
+        token: &str,
+        stage: Stage,
+        attempt: i64,
+    ) -> Result<(), DbError> {
+        let now = now_ms();
+        let mut tx = self.pool.begin().await?;
+        Self::fence(&mut tx, job_id, token).await?;
+        sqlx::query(
+            "UPDATE job_stages SET state = 'running', progress = 0, attempt = $1, started_at = $2, finished_at = NULL \
+             WHERE job_id = $3 AND name = $4",
+        )
+        .bind(attempt)
+        .bind(now)
+        .bind(job_id)
+        .bind(stage.name())
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("UPDATE jobs SET stage = $1, updated_at = $2 WHERE id = $3")
+            .bind(stage.name())
+            .bind(now)
+            .bind(job_id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// The checkpoint: a finished stage with its report and files, written only while this
+    /// run still holds the lease.
+    pub async fn finish_stage(
+        &self,
+        job_id: &str,
+        token: &str,
+        stage: Stage,
+        metrics: &serde_json::Value,
+        files: &[OutputFile],
+        job_progress: f64,
+    ) -> Result<(), DbError> {
+        let now = now_ms();
+        let mut tx = self.pool.begin().await?;
+        Self::fence(&mut tx, job_id, token).await?;
+        sqlx::query("DELETE FROM artifacts WHERE job_id = $1 AND stage = $2")
+            .bind(job_id)
+            .bind(stage.name())
+            .execute(&mut *tx)
+            .await?;
+        for f in files {
+            sqlx::query(
+                "INSERT INTO artifacts (job_id, name, stage, kind, size, sha256, content_type) \
+                 VALUES ($1, $2, $3, $4, $5, $6, $7)",
+            )
+            .bind(job_id)
+            .bind(&f.name)
+            .bind(stage.name())
+            .bind(&f.kind)
+            .bind(f.size as i64)
+            .bind(&f.sha256)
+            .bind(&f.content_type)
+            .execute(&mut *tx)
+            .await?;
+        }
+        sqlx::query(
+            "UPDATE job_stages SET state = 'done', progress = 1, finished_at = $1, metrics = $2 WHERE job_id = $3 AND name = $4",
+        )
+        .bind(now)
+        .bind(metrics)
+        .bind(job_id)
+        .bind(stage.name())
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "UPDATE jobs SET progress = GREATEST(progress, $1), updated_at = $2 WHERE id = $3",
+        )
+        .bind(job_progress)
+        .bind(now)
+        .bind(job_id)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Ends a run: succeeded, failed (with a problem object) or canceled.
+    pub async fn finish_job(&self, job_id: &str, token: &str, end: &RunEnd) -> Result<(), DbError> {
+        let now = now_ms();
+        let mut tx = self.pool.begin().await?;
+        Self::fence(&mut tx, job_id, token).await?;
+        let (state, error, stage, stage_state) = match end {
+            RunEnd::Succeeded => ("succeeded", None, None, None),
+            RunEnd::Failed { stage, problem } => {
+                ("failed", Some(problem), stage.clone(), Some("failed"))
+            }
+            RunEnd::Canceled { stage } => ("canceled", None, stage.clone(), Some("canceled")),
+        };
+        if let (Some(stage), Some(st)) = (&stage, stage_state) {
+            sqlx::query(
+                "UPDATE job_stages SET state = $1, finished_at = $2 WHERE job_id = $3 AND name = $4 AND state != 'done'",
+            )
+            .bind(st)
+            .bind(now)
+            .bind(job_id)
+            .bind(stage)
+            .execute(&mut *tx)
+            .await?;
+        }
+        let progress_done = if state == "succeeded" { 1.0 } else { 0.0 };
+        sqlx::query(
+            "UPDATE jobs SET state = $1, error = $2, progress = GREATEST(progress, $3), finished_at = $4, updated_at = $4, \
+             worker_id = NULL, lease_until = NULL, lease_token = NULL WHERE id = $5",
+        )
+        .bind(state)
+        .bind(error)
+        .bind(progress_done)
+        .bind(now)
+        .bind(job_id)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- workers and metrics
+
+    /// Records (or refreshes) a live worker slot; `last_seen` is the database's clock.
+    pub async fn register_worker(&self, id: &str, host: &str, pid: u32) -> Result<(), DbError> {
+        let now = Self::clock(&self.pool).await?;
+        sqlx::query(
+            "INSERT INTO workers (id, host, pid, started_at, last_seen) VALUES ($1, $2, $3, $4, $4) \
+             ON CONFLICT (id) DO UPDATE SET last_seen = excluded.last_seen",
+        )
+        .bind(id)
+        .bind(host)
+        .bind(i64::from(pid))
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Forgets a worker slot that stopped cleanly.
+    pub async fn unregister_worker(&self, id: &str) -> Result<(), DbError> {
+        sqlx::query("DELETE FROM workers WHERE id = $1")
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Start-up recovery: forgets workers silent for longer than `stale`, and expires at once
+    /// the leases of jobs held by worker processes of this host that no longer exist (a
+    /// crashed `sylva serve`), so they are re-claimed without waiting for the lease.
+    pub async fn recover(&self, host: &str, stale: Duration) -> Result<u64, DbError> {
+        let now = Self::clock(&self.pool).await?;
+        let rows = sqlx::query("SELECT id, pid FROM workers WHERE host = $1")
+            .bind(host)
+            .fetch_all(&self.pool)
+            .await?;
+        let mut expired = 0;
+        for r in &rows {
+            let (id, pid): (String, i64) = (r.try_get("id")?, r.try_get("pid")?);
+            if !process_alive(pid) {
+                let mut tx = self.pool.begin().await?;
+                let res = sqlx::query(
+                    "UPDATE jobs SET lease_until = 0 WHERE worker_id = $1 AND state IN ('running', 'canceling')",
+                )
+                .bind(&id)
+                .execute(&mut *tx)
+                .await?;
+                if res.rows_affected() > 0 {
+                    Self::notify(&mut tx, &id).await?;
+                }
+                tx.commit().await?;
+                expired += res.rows_affected();
+                self.unregister_worker(&id).await?;
+            }
+        }
+        sqlx::query("DELETE FROM workers WHERE last_seen < $1")
+            .bind(now - lease_ms(stale))
+            .execute(&self.pool)
+            .await?;
+        Ok(expired)
+    }
+
+    /// Workers seen within `window`.
+    pub async fn live_workers(&self, window: Duration) -> Result<i64, DbError> {
+        let now = Self::clock(&self.pool).await?;
+        Ok(
+            sqlx::query_scalar("SELECT COUNT(*) FROM workers WHERE last_seen >= $1")
+                .bind(now - lease_ms(window))
+                .fetch_one(&self.pool)
+                .await?,
+        )
+    }
+
+    /// Number of jobs in each state.
+    pub async fn count_by_state(&self) -> Result<Vec<(JobState, i64)>, DbError> {
+        let rows = sqlx::query("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state")
+            .fetch_all(&self.pool)
+            .await?;
+        let mut out: Vec<(JobState, i64)> = JobState::ALL.iter().map(|s| (*s, 0)).collect();
+        for r in &rows {
+            let s: String = r.try_get("state")?;
+            if let Some(entry) = out.iter_mut().find(|(st, _)| st.as_str() == s) {
+                entry.1 = r.try_get("n")?;
+            }
+        }
+        Ok(out)
+    }
+
+    /// Durations in seconds of finished stages, per stage name.
+    pub async fn stage_durations(&self) -> Result<Vec<(String, f64)>, DbError> {
+        let rows = sqlx::query(
+            "SELECT name, (finished_at - started_at)::float8 / 1000.0 AS d FROM job_stages \
+             WHERE state = 'done' AND started_at IS NOT NULL AND finished_at IS NOT NULL",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get("name")?, r.try_get("d")?)))
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(DbError::from)
+    }
+}

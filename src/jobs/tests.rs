@@ -1,0 +1,588 @@
+//! Queue semantics, checked the same way on both backends: each test body takes a
+//! [`JobStore`] and runs once on an SQLite file and once on a fresh PostgreSQL database
+//! (skipped, with the reason printed, where PostgreSQL is not installed).
+
+use std::time::Duration;
+
+use super::*;
+use crate::pipeline::{PipelineParams, Stage};
+
+#[path = "../../tests/common/postgres.rs"]
+mod test_postgres;
+
+/// The database a test body runs on; held (never read) so the SQLite folder or the
+/// PostgreSQL database lives until the test ends.
+#[allow(dead_code)]
+enum Scratch {
+    Sqlite(tempfile::TempDir),
+    Postgres(test_postgres::TestDatabase),
+}
+
+async fn open_sqlite() -> (Scratch, JobStore) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let db = JobStore::open_sqlite(&dir.path().join("t.db"), 4)
+        .await
+        .expect("open sqlite");
+    (Scratch::Sqlite(dir), db)
+}
+
+async fn open_postgres() -> Option<(Scratch, JobStore)> {
+    let pg = test_postgres::database()?;
+    let db = JobStore::open(&Database::Postgres(pg.url.clone()), 8)
+        .await
+        .expect("open postgres");
+    Some((Scratch::Postgres(pg), db))
+}
+
+/// Runs the async test body `$body(store)` once per backend, as `$name::sqlite` and
+/// `$name::postgres`.
+macro_rules! on_both_backends {
+    ($name:ident) => {
+        mod $name {
+            #[tokio::test(flavor = "multi_thread")]
+            async fn sqlite() {
+                let (_keep, db) = super::open_sqlite().await;
+                super::$name(db).await;
+            }
+
+            #[tokio::test(flavor = "multi_thread")]
+            async fn postgres() {
+                if let Some((_keep, db)) = super::open_postgres().await {
+                    assert_eq!(db.backend_name(), "postgres");
+                    super::$name(db).await;
+                }
+            }
+        }
+    };
+}
+
+fn upload(id: &str, kind: UploadKind) -> UploadRecord {
+    let now = now_ms();
+    UploadRecord {
+        id: id.into(),
+        kind,
+        filename: "f".into(),
+        size: 1,
+        sha256: None,
+        part_size: 1,
+        complete: false,
+        inspection: None,
+        created_at: now,
+        expires_at: now,
+        completed_at: None,
+        parts: vec![],
+    }
+}
+
+fn inputs() -> JobInputs {
+    JobInputs {
+        lidar: "l".into(),
+        colmap: "c".into(),
+        control_points: None,
+        field_dbh: None,
+    }
+}
+
+fn params() -> serde_json::Value {
+    serde_json::to_value(PipelineParams::default()).expect("params")
+}
+
+/// Two complete uploads (`l`, `c`) and `jobs` queued jobs `j0`, `j1`, ... over them.
+async fn with_jobs(db: &JobStore, jobs: usize) -> Vec<String> {
+    for (id, kind) in [("l", UploadKind::Lidar), ("c", UploadKind::Colmap)] {
+        db.create_upload(&upload(id, kind)).await.expect("upload");
+        db.put_part(id, 0, 1, "x").await.expect("part");
+        db.complete_upload(id, "x", &serde_json::json!({"points": 1}))
+            .await
+            .expect("complete");
+    }
+    let mut ids = Vec::new();
+    for k in 0..jobs {
+        let id = format!("j{k}");
+        db.create_job(&id, &inputs(), &params(), &Stage::ALL, None, "h", 1000)
+            .await
+            .expect("job");
+        ids.push(id);
+    }
+    ids
+}
+
+async fn a_worker_that_lost_its_lease_cannot_write(db: JobStore) {
+    let job = with_jobs(&db, 1).await.remove(0);
+    let short = Duration::from_millis(50);
+    let a = db
+        .claim("A", short, 5)
+        .await
+        .expect("claim")
+        .expect("a job");
+    assert_eq!(a.attempt, 1);
+    assert!(
+        db.claim("B", short, 5).await.expect("claim").is_none(),
+        "leased"
+    );
+    tokio::time::sleep(Duration::from_millis(80)).await;
+    let b = db
+        .claim("B", short, 5)
+        .await
+        .expect("claim")
+        .expect("expired lease");
+    assert_eq!(b.attempt, 2);
+    // A is fenced out of every write.
+    let r = db
+        .finish_stage(
+            &job,
+            &a.token,
+            Stage::Ingest,
+            &serde_json::json!({}),
+            &[],
+            0.1,
+        )
+        .await;
+    assert!(matches!(r, Err(DbError::Fenced)), "{r:?}");
+    assert!(matches!(
+        db.start_stage(&job, &a.token, Stage::Ingest, 1).await,
+        Err(DbError::Fenced)
+    ));
+    assert!(matches!(
+        db.finish_job(&job, &a.token, &RunEnd::Succeeded).await,
+        Err(DbError::Fenced)
+    ));
+    assert_eq!(
+        db.heartbeat(&job, &a.token, short, 0.5, None)
+            .await
+            .expect("hb"),
+        Heartbeat::Lost
+    );
+    // B writes its checkpoint; a later claim resumes after it.
+    db.start_stage(&job, &b.token, Stage::Ingest, 2)
+        .await
+        .expect("start");
+    db.finish_stage(
+        &job,
+        &b.token,
+        Stage::Ingest,
+        &serde_json::json!({"n": 1}),
+        &[],
+        0.05,
+    )
+    .await
+    .expect("checkpoint");
+    tokio::time::sleep(Duration::from_millis(80)).await;
+    let c = db
+        .claim("C", short, 5)
+        .await
+        .expect("claim")
+        .expect("expired");
+    assert_eq!(c.done, vec!["ingest".to_string()]);
+    assert!(c.progress >= 0.05);
+    let j = db.get_job(&job).await.expect("get").expect("job");
+    assert_eq!(j.stages[0].metrics, Some(serde_json::json!({"n": 1})));
+}
+on_both_backends!(a_worker_that_lost_its_lease_cannot_write);
+
+async fn a_job_whose_workers_keep_dying_fails_after_max_attempts(db: JobStore) {
+    let job = with_jobs(&db, 1).await.remove(0);
+    let short = Duration::from_millis(20);
+    for _ in 0..2 {
+        assert!(db.claim("W", short, 2).await.expect("claim").is_some());
+        tokio::time::sleep(Duration::from_millis(40)).await;
+    }
+    assert!(db.claim("W", short, 2).await.expect("claim").is_none());
+    let j = db.get_job(&job).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Failed);
+    assert!(
+        j.error
+            .is_some_and(|e| e.to_string().contains("worker-lost"))
+    );
+}
+on_both_backends!(a_job_whose_workers_keep_dying_fails_after_max_attempts);
+
+async fn heartbeat_sees_cancel_and_progress_never_decreases(db: JobStore) {
+    let job = with_jobs(&db, 1).await.remove(0);
+    let lease = Duration::from_secs(30);
+    let a = db.claim("A", lease, 3).await.expect("claim").expect("job");
+    assert_eq!(
+        db.heartbeat(&job, &a.token, lease, 0.4, None)
+            .await
+            .expect("hb"),
+        Heartbeat::Ok
+    );
+    db.heartbeat(&job, &a.token, lease, 0.2, None)
+        .await
+        .expect("hb");
+    assert_eq!(
+        db.get_job(&job).await.expect("get").expect("job").progress,
+        0.4
+    );
+    assert_eq!(db.cancel(&job).await.expect("cancel"), JobState::Canceling);
+    assert_eq!(
+        db.heartbeat(&job, &a.token, lease, 0.5, None)
+            .await
+            .expect("hb"),
+        Heartbeat::CancelRequested
+    );
+    db.finish_job(&job, &a.token, &RunEnd::Canceled { stage: None })
+        .await
+        .expect("end");
+    assert!(matches!(db.cancel(&job).await, Err(DbError::Conflict(_))));
+    assert_eq!(db.integrity_check().await.expect("check"), "ok");
+}
+on_both_backends!(heartbeat_sees_cancel_and_progress_never_decreases);
+
+async fn the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses(db: JobStore) {
+    with_jobs(&db, 0).await;
+    let first = db
+        .create_job(
+            "k1",
+            &inputs(),
+            &params(),
+            &Stage::ALL,
+            Some("key"),
+            "h1",
+            2,
+        )
+        .await
+        .expect("create");
+    assert!(matches!(first, Created::New(ref id) if id == "k1"));
+    let again = db
+        .create_job(
+            "k2",
+            &inputs(),
+            &params(),
+            &Stage::ALL,
+            Some("key"),
+            "h1",
+            2,
+        )
+        .await
+        .expect("same request");
+    assert!(matches!(again, Created::Existing(ref id) if id == "k1"));
+    let other = db
+        .create_job(
+            "k3",
+            &inputs(),
+            &params(),
+            &Stage::ALL,
+            Some("key"),
+            "h2",
+            2,
+        )
+        .await;
+    assert!(matches!(other, Err(DbError::Invalid(_))), "{other:?}");
+    db.create_job("k4", &inputs(), &params(), &Stage::ALL, None, "h", 2)
+        .await
+        .expect("second job");
+    let full = db
+        .create_job("k5", &inputs(), &params(), &Stage::ALL, None, "h", 2)
+        .await;
+    assert!(matches!(full, Err(DbError::QueueFull(2))), "{full:?}");
+    let missing = JobInputs {
+        lidar: "nope".into(),
+        ..inputs()
+    };
+    let r = db
+        .create_job("k6", &missing, &params(), &Stage::ALL, None, "h", 10)
+        .await;
+    assert!(
+        matches!(r, Err(DbError::Invalid(ref m)) if m.contains("does not exist")),
+        "{r:?}"
+    );
+    let listed = db.list_jobs(None, None, 10).await.expect("list");
+    assert_eq!(
+        listed.iter().map(|j| j.id.as_str()).collect::<Vec<_>>(),
+        ["k4", "k1"],
+        "newest first"
+    );
+    let page = db
+        .list_jobs(Some(JobState::Queued), Some(listed[0].seq), 10)
+        .await
+        .expect("page");
+    assert_eq!(page.len(), 1);
+    assert_eq!(page[0].id, "k1");
+    // (serde_json's default float parsing may move the last digit of an f32 widened to f64,
+    // on either backend; compare values that survive exactly.)
+    assert_eq!(
+        page[0].params["anchors"],
+        params()["anchors"],
+        "params come back"
+    );
+    assert_eq!(
+        page[0].params["train"],
+        params()["train"],
+        "params come back"
+    );
+    assert_eq!(page[0].inputs, inputs());
+}
+on_both_backends!(the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses);
+
+async fn a_completed_upload_takes_no_more_parts(db: JobStore) {
+    db.create_upload(&UploadRecord {
+        size: 10,
+        part_size: 4,
+        ..upload("u", UploadKind::Lidar)
+    })
+    .await
+    .expect("create");
+    db.put_part("u", 1, 4, "a").await.expect("part 1");
+    db.put_part("u", 1, 4, "b").await.expect("part 1 again");
+    db.put_part("u", 0, 4, "c").await.expect("part 0");
+    let u = db.get_upload("u").await.expect("get").expect("upload");
+    assert_eq!(u.parts, vec![(0, 4), (1, 4)]);
+    assert_eq!(u.missing_parts(), vec![2]);
+    db.put_part("u", 2, 2, "d").await.expect("part 2");
+    db.complete_upload("u", "sum", &serde_json::json!({"points": 3}))
+        .await
+        .expect("complete");
+    let u = db.get_upload("u").await.expect("get").expect("upload");
+    assert!(u.complete);
+    assert_eq!(u.inspection, Some(serde_json::json!({"points": 3})));
+    assert!(matches!(
+        db.put_part("u", 0, 4, "e").await,
+        Err(DbError::Conflict(_))
+    ));
+    assert!(matches!(
+        db.put_part("nope", 0, 4, "e").await,
+        Err(DbError::NotFound)
+    ));
+    assert!(db.get_upload("nope").await.expect("get").is_none());
+}
+on_both_backends!(a_completed_upload_takes_no_more_parts);
+
+async fn retry_resumes_at_the_first_unfinished_stage(db: JobStore) {
+    let job = with_jobs(&db, 1).await.remove(0);
+    let lease = Duration::from_secs(30);
+    let a = db.claim("A", lease, 3).await.expect("claim").expect("job");
+    db.start_stage(&job, &a.token, Stage::Ingest, 1)
+        .await
+        .expect("start");
+    db.finish_stage(
+        &job,
+        &a.token,
+        Stage::Ingest,
+        &serde_json::json!({}),
+        &[],
+        0.1,
+    )
+    .await
+    .expect("done");
+    assert!(matches!(
+        db.retry(&job, None).await,
+        Err(DbError::Conflict(_))
+    ));
+    db.start_stage(&job, &a.token, Stage::Register, 1)
+        .await
+        .expect("start");
+    let problem = serde_json::json!({"title": "Stage failed", "status": 500});
+    db.finish_job(
+        &job,
+        &a.token,
+        &RunEnd::Failed {
+            stage: Some("register".into()),
+            problem: problem.clone(),
+        },
+    )
+    .await
+    .expect("fail");
+    let j = db.get_job(&job).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Failed);
+    assert_eq!(j.error, Some(problem));
+    assert_eq!(j.stages[1].state, StageState::Failed);
+    assert!(matches!(
+        db.retry(&job, Some(Stage::Anchors)).await,
+        Err(DbError::Invalid(_))
+    ));
+    let reset = db.retry(&job, None).await.expect("retry");
+    assert_eq!(reset.first().map(String::as_str), Some("register"));
+    let j = db.get_job(&job).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Queued);
+    assert_eq!(j.attempt, 0);
+    assert!(j.error.is_none());
+    assert_eq!(j.progress, Stage::Ingest.weight());
+    let b = db.claim("B", lease, 3).await.expect("claim").expect("job");
+    assert_eq!(b.done, vec!["ingest".to_string()]);
+    db.finish_job(&job, &b.token, &RunEnd::Succeeded)
+        .await
+        .expect("end");
+    db.delete_job(&job).await.expect("delete");
+    assert!(db.get_job(&job).await.expect("get").is_none());
+    assert!(matches!(db.delete_job(&job).await, Err(DbError::NotFound)));
+}
+on_both_backends!(retry_resumes_at_the_first_unfinished_stage);
+
+async fn concurrent_claimers_take_each_job_once_and_logs_keep_order(db: JobStore) {
+    let ids = with_jobs(&db, 20).await;
+    let lease = Duration::from_secs(60);
+    let mut tasks = Vec::new();
+    for w in 0..6 {
+        let db = db.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut mine = Vec::new();
+            while let Some(c) = db.claim(&format!("w{w}"), lease, 3).await.expect("claim") {
+                db.append_log(&c.job_id, "info", None, &format!("claimed by w{w}"))
+                    .await
+                    .expect("log");
+                db.finish_job(&c.job_id, &c.token, &RunEnd::Succeeded)
+                    .await
+                    .expect("finish");
+                mine.push(c.job_id);
+            }
+            mine
+        }));
+    }
+    let mut claimed = Vec::new();
+    for t in tasks {
+        claimed.extend(t.await.expect("task"));
+    }
+    claimed.sort();
+    let mut expected = ids.clone();
+    expected.sort();
+    assert_eq!(claimed, expected, "every job claimed exactly once");
+    // Concurrent log writers on one job get consecutive sequence numbers.
+    let mut writers = Vec::new();
+    for k in 0..8 {
+        let db = db.clone();
+        writers.push(tokio::spawn(async move {
+            for n in 0..5 {
+                db.append_log("j0", "info", Some("ingest"), &format!("{k}-{n}"))
+                    .await
+                    .expect("log");
+            }
+        }));
+    }
+    for w in writers {
+        w.await.expect("writer");
+    }
+    let lines = db.log("j0", 0, 1000).await.expect("log");
+    assert_eq!(lines.len(), 41);
+    assert!(lines.iter().enumerate().all(|(i, l)| l.seq == i as i64 + 1));
+    let counts = db.count_by_state().await.expect("counts");
+    assert!(counts.contains(&(JobState::Succeeded, 20)), "{counts:?}");
+    assert_eq!(db.integrity_check().await.expect("check"), "ok");
+}
+on_both_backends!(concurrent_claimers_take_each_job_once_and_logs_keep_order);
+
+async fn workers_are_counted_and_dead_ones_recovered(db: JobStore) {
+    let job = with_jobs(&db, 1).await.remove(0);
+    // A pid that cannot exist on Linux (above pid_max's ceiling of 2^22).
+    let dead_pid = 4_194_305;
+    db.register_worker("dead", "host-a", dead_pid)
+        .await
+        .expect("register");
+    db.register_worker("alive", "host-a", std::process::id())
+        .await
+        .expect("register");
+    assert_eq!(
+        db.live_workers(Duration::from_secs(60)).await.expect("n"),
+        2
+    );
+    let lease = Duration::from_secs(600);
+    let c = db
+        .claim("dead", lease, 3)
+        .await
+        .expect("claim")
+        .expect("job");
+    assert_eq!(c.job_id, job);
+    assert!(db.claim("alive", lease, 3).await.expect("claim").is_none());
+    let recovered = db
+        .recover("host-a", Duration::from_secs(600))
+        .await
+        .expect("recover");
+    assert_eq!(recovered, 1);
+    let again = db
+        .claim("alive", lease, 3)
+        .await
+        .expect("claim")
+        .expect("job");
+    assert_eq!(again.attempt, 2);
+    assert_eq!(
+        db.live_workers(Duration::from_secs(60)).await.expect("n"),
+        1
+    );
+    db.unregister_worker("alive").await.expect("unregister");
+    assert_eq!(
+        db.live_workers(Duration::from_secs(60)).await.expect("n"),
+        0
+    );
+    db.ping().await.expect("ping");
+}
+on_both_backends!(workers_are_counted_and_dead_ones_recovered);
+
+#[test]
+fn database_urls_pick_the_backend() {
+    let pg = Database::parse("postgres://u:secret@db:5432/sylva").expect("pg");
+    assert!(matches!(pg, Database::Postgres(_)));
+    assert_eq!(pg.redacted(), "postgres://u:***@db:5432/sylva");
+    assert!(!pg.to_string().contains("secret"));
+    assert!(matches!(
+        Database::parse("postgresql://db/sylva"),
+        Ok(Database::Postgres(_))
+    ));
+    assert_eq!(
+        Database::parse("sqlite:/var/lib/sylva/q.db").expect("sqlite"),
+        Database::Sqlite("/var/lib/sylva/q.db".into())
+    );
+    assert_eq!(
+        Database::parse("sqlite://q.db").expect("sqlite"),
+        Database::Sqlite("q.db".into())
+    );
+    assert_eq!(
+        Database::parse("data/sylva.db").expect("path"),
+        Database::Sqlite("data/sylva.db".into())
+    );
+    assert!(matches!(
+        Database::parse("mysql://db/sylva"),
+        Err(DbError::Invalid(_))
+    ));
+    assert!(matches!(
+        Database::parse("sqlite:"),
+        Err(DbError::Invalid(_))
+    ));
+    assert_eq!(
+        Database::parse("postgres://db/sylva")
+            .expect("pg")
+            .redacted(),
+        "postgres://db/sylva"
+    );
+}
+
+/// A waiter on `wake`, registered before this returns.
+async fn waiter(wake: &std::sync::Arc<tokio::sync::Notify>) -> tokio::task::JoinHandle<()> {
+    let wake = wake.clone();
+    let task = tokio::spawn(async move { wake.notified().await });
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    task
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn announcements_wake_idle_workers_on_postgres_and_cost_nothing_on_sqlite() {
+    let (_keep, lite) = open_sqlite().await;
+    lite.announce("j0").await.expect("no-op");
+    assert!(lite.listen_for_work(Default::default()).is_none());
+
+    let Some(pg) = test_postgres::database() else {
+        return;
+    };
+    // Two stores, as two processes would hold: the listener of one hears the other.
+    let location = Database::Postgres(pg.url.clone());
+    let db = JobStore::open(&location, 4).await.expect("first store");
+    let other = JobStore::open(&location, 2).await.expect("second store");
+    let wake = std::sync::Arc::new(tokio::sync::Notify::new());
+    let listener = other
+        .listen_for_work(wake.clone())
+        .expect("postgres listens");
+    // Give the listener time to subscribe.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let ids = with_jobs(&db, 1).await;
+    let quiet = waiter(&wake).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(
+        !quiet.is_finished(),
+        "creating a job announces nothing by itself"
+    );
+    db.announce(&ids[0]).await.expect("announce");
+    tokio::time::timeout(Duration::from_secs(5), quiet)
+        .await
+        .expect("woken by NOTIFY well before any poll")
+        .expect("waiter");
+    listener.abort();
+}
