@@ -217,16 +217,32 @@ impl Browser {
 
     /// Saves a PNG of the window (or of one element) to `path`.
     pub async fn screenshot(&self, path: &Path) {
-        let v = self.cmd("GET", "/screenshot", None).await;
+        let v = self.capture("/screenshot").await;
         save_png(&v, path);
     }
 
     pub async fn screenshot_element(&self, css: &str, path: &Path) {
         let e = self.find(css).await;
-        let v = self
-            .cmd("GET", &format!("/element/{e}/screenshot"), None)
-            .await;
+        let v = self.capture(&format!("/element/{e}/screenshot")).await;
         save_png(&v, path);
+    }
+
+    /// A screenshot request, tried up to three times: chromedriver gives the renderer only
+    /// 10 s to answer, which software WebGL on a busy machine can miss.
+    async fn capture(&self, path: &str) -> Value {
+        let p = format!("/session/{}{path}", self.session);
+        let mut last = String::new();
+        for _ in 0..3 {
+            match self.raw("GET", &p, None).await {
+                Ok(v) => return v,
+                Err(e) if e.contains("Timed out receiving message from renderer") => {
+                    last = e;
+                    tokio::time::sleep(Duration::from_secs(2)).await;
+                }
+                Err(e) => panic!("{e}"),
+            }
+        }
+        panic!("{last}")
     }
 }
 
