@@ -81,16 +81,7 @@ pub fn gaussian_dbh(
     let reach = 2.0 * lidar_radius_m + 0.10;
     let mut pts = Vec::new();
     let mut weights = Vec::new();
-    for i in 0..g.len() {
-        let m = Vec3::from_array(g.means[i]);
-        let opacity = sigmoid(g.opacity_logits[i]);
-        if opacity < p.min_opacity || g.trunk_prob[i] < p.min_trunk_prob {
-            continue;
-        }
-        let h = m.z - dtm.height_at(m.x, m.y);
-        if (h - p.breast_height_m).abs() > p.half_thickness_m {
-            continue;
-        }
+    for (m, opacity) in slice_trunk_gaussians(g, dtm, p) {
         // Position relative to the axis at this height, in the horizontal plane.
         let along = (m - base).dot(axis);
         let on_axis = base + axis * along;
@@ -127,6 +118,24 @@ pub fn gaussian_dbh(
     })
 }
 
+/// Centres and opacities of the trunk Gaussians (opacity and trunk probability at or above the
+/// thresholds of `p`) whose centre lies in the breast-height slice above the DTM.
+fn slice_trunk_gaussians<'a>(
+    g: &'a Gaussians,
+    dtm: &'a Dtm,
+    p: &'a GaussianDbhParams,
+) -> impl Iterator<Item = (Vec3, f32)> + 'a {
+    (0..g.len()).filter_map(move |i| {
+        let m = Vec3::from_array(g.means[i]);
+        let opacity = sigmoid(g.opacity_logits[i]);
+        if opacity < p.min_opacity || g.trunk_prob[i] < p.min_trunk_prob {
+            return None;
+        }
+        let h = m.z - dtm.height_at(m.x, m.y);
+        ((h - p.breast_height_m).abs() <= p.half_thickness_m).then_some((m, opacity))
+    })
+}
+
 /// How far the trunk Gaussians of the breast-height slice sit from the LiDAR stem surface: the
 /// opacity-weighted mean of | horizontal distance to the LiDAR circle's centre − its radius |,
 /// metres, over the same candidates as [`gaussian_dbh`] (None without any). Issue 7 asks for
@@ -140,16 +149,7 @@ pub fn radial_deviation(
 ) -> Option<f64> {
     let reach = 2.0 * lidar_radius_m + 0.10;
     let (mut sum, mut wsum) = (0.0f64, 0.0f64);
-    for i in 0..g.len() {
-        let m = Vec3::from_array(g.means[i]);
-        let opacity = sigmoid(g.opacity_logits[i]);
-        if opacity < p.min_opacity || g.trunk_prob[i] < p.min_trunk_prob {
-            continue;
-        }
-        let h = m.z - dtm.height_at(m.x, m.y);
-        if (h - p.breast_height_m).abs() > p.half_thickness_m {
-            continue;
-        }
+    for (m, opacity) in slice_trunk_gaussians(g, dtm, p) {
         let r = (m.x - center.x).hypot(m.y - center.y);
         if r > reach {
             continue;
