@@ -95,7 +95,7 @@ pub struct CpuBackend {
     loss: StepLoss,
     background: [f32; 3],
     times: PhaseTimes,
-    semantic: Option<(SemanticAnchors, SemanticConfig)>,
+    semantic: Option<(semantic::AnchorIndex, f32, SemanticConfig)>,
     gamma: f32,
 }
 
@@ -163,9 +163,9 @@ impl Backend for CpuBackend {
             cpu::render_backward(&self.model, &view.camera, self.background, &render, &grad)
                 .map_err(invalid)?;
         let mut geo = 0.0;
-        if let Some((anchors, cfg)) = self.semantic.as_ref().filter(|_| self.gamma > 0.0) {
-            let targets = semantic::geo_targets(&self.model, anchors, cfg);
-            let (l, d_mu, d_s) = semantic::geo_loss_and_grad(&self.model, &targets, anchors.n_pos);
+        if let Some((index, n_pos, cfg)) = self.semantic.as_ref().filter(|_| self.gamma > 0.0) {
+            let targets = semantic::geo_targets_indexed(&self.model, index, cfg);
+            let (l, d_mu, d_s) = semantic::geo_loss_and_grad(&self.model, &targets, *n_pos);
             let gamma = f64::from(self.gamma);
             for i in 0..self.model.len() {
                 for a in 0..3 {
@@ -204,7 +204,9 @@ impl Backend for CpuBackend {
         cfg: &SemanticConfig,
     ) -> Result<(), TrainError> {
         cfg.validate().map_err(TrainError::Invalid)?;
-        self.semantic = Some((anchors.clone(), cfg.clone()));
+        let index = semantic::AnchorIndex::new(anchors)
+            .ok_or_else(|| TrainError::Invalid("the semantic term needs trunk anchors".into()))?;
+        self.semantic = Some((index, anchors.n_pos, cfg.clone()));
         Ok(())
     }
 

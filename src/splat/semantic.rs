@@ -192,12 +192,50 @@ pub fn geo_targets(
     anchors: &SemanticAnchors,
     cfg: &SemanticConfig,
 ) -> Vec<GeoTarget> {
+    match AnchorIndex::new(anchors) {
+        Some(index) => geo_targets_indexed(model, &index, cfg),
+        None => vec![GeoTarget::default(); model.len()],
+    }
+}
+
+/// k-d trees over the trunk and leaf anchors, built once (anchors do not move in training).
+pub struct AnchorIndex {
+    trunk: Vec<glam::Vec3>,
+    leaf: Vec<glam::Vec3>,
+    ti: PointIndex,
+    li: Option<PointIndex>,
+}
+
+impl AnchorIndex {
+    /// None when there is no trunk anchor.
+    pub fn new(anchors: &SemanticAnchors) -> Option<Self> {
+        let to_vec = |p: &[f32; 3]| glam::Vec3::from_array(*p);
+        let trunk: Vec<glam::Vec3> = anchors.trunk.iter().map(to_vec).collect();
+        let leaf: Vec<glam::Vec3> = anchors.leaf.iter().map(to_vec).collect();
+        let ti = PointIndex::new(&trunk).ok()?;
+        let li = PointIndex::new(&leaf).ok();
+        Some(AnchorIndex {
+            trunk,
+            leaf,
+            ti,
+            li,
+        })
+    }
+}
+
+/// [`geo_targets`] with the anchors' index already built.
+pub fn geo_targets_indexed(
+    model: &Gaussians,
+    index: &AnchorIndex,
+    cfg: &SemanticConfig,
+) -> Vec<GeoTarget> {
+    let AnchorIndex {
+        trunk,
+        leaf,
+        ti,
+        li,
+    } = index;
     let to_vec = |p: &[f32; 3]| glam::Vec3::from_array(*p);
-    let trunk: Vec<glam::Vec3> = anchors.trunk.iter().map(to_vec).collect();
-    let leaf: Vec<glam::Vec3> = anchors.leaf.iter().map(to_vec).collect();
-    let (Ok(ti), li) = (PointIndex::new(&trunk), PointIndex::new(&leaf).ok()) else {
-        return vec![GeoTarget::default(); model.len()];
-    };
     let k = (cfg.k as usize).min(trunk.len()).max(1);
     let t = f64::from(cfg.temperature_m);
     (0..model.len())
