@@ -333,7 +333,12 @@ async fn open_store(args: &StoreArgs) -> anyhow::Result<(JobStore, BlobStore)> {
         .await
         .with_context(|| format!("cannot open the job database {location}"))?;
     tracing::info!(backend = db.backend_name(), database = %location, "job database open");
-    let blobs = BlobStore::open(&args.data)?;
+    let blobs = BlobStore::open_with(&args.data, args.store.as_deref())
+        .context("cannot open the blob store")?;
+    match blobs.remote() {
+        Some(r) => tracing::info!(backend = blobs.kind(), store = %r.url, "blob store open"),
+        None => tracing::info!(backend = "local", data = %args.data.display(), "blob store open"),
+    }
     Ok((db, blobs))
 }
 
@@ -473,6 +478,7 @@ async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     let store = StoreArgs {
         data: PathBuf::new(),
         database: None,
+        store: None,
         log: a.log.clone(),
         log_json: false,
     };

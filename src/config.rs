@@ -27,6 +27,14 @@ pub struct StoreArgs {
     #[arg(long, env = "SYLVA_DATABASE", hide_env_values = true)]
     pub database: Option<String>,
 
+    /// Object store for uploads and job outputs when processes run on several machines:
+    /// `s3://bucket/prefix` (any S3-compatible store; credentials, region and endpoint from
+    /// the standard `AWS_*` variables, e.g. `AWS_ENDPOINT_URL` and `AWS_ALLOW_HTTP=true` for
+    /// a MinIO on plain HTTP) or `file:///folder` (a folder every process sees). Default: local
+    /// files under --data only. --data still holds each machine's working copies.
+    #[arg(long, env = "SYLVA_STORE")]
+    pub store: Option<String>,
+
     /// Log filter in tracing's syntax, e.g. `info` or `sylva=debug,tower_http=info`.
     #[arg(long, env = "SYLVA_LOG", default_value = "info")]
     pub log: String,
@@ -156,6 +164,17 @@ pub struct ApiArgs {
     /// field laptop on a poor connection).
     #[arg(long, env = "SYLVA_UPLOAD_TTL_SECS", default_value_t = 86_400)]
     pub upload_ttl_secs: u64,
+
+    /// With an S3 store, artifacts of at least this many bytes are downloaded through a
+    /// redirect to a presigned URL instead of through the API (default 16 MiB: splat files,
+    /// clouds; CSVs and reports stay on the API).
+    #[arg(long, env = "SYLVA_PRESIGN_MIN_BYTES", default_value_t = 16 * MIB)]
+    pub presign_min_bytes: u64,
+
+    /// Seconds a presigned download URL stays valid (default 900: long enough to start a
+    /// large download, short enough that a leaked link soon dies).
+    #[arg(long, env = "SYLVA_PRESIGN_TTL_SECS", default_value_t = 900)]
+    pub presign_ttl_secs: u64,
 }
 
 impl ApiArgs {

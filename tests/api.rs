@@ -3,6 +3,7 @@
 
 mod common;
 
+use std::path::Path;
 use std::time::Duration;
 
 use common::*;
@@ -156,6 +157,7 @@ async fn job_lifecycle_through_ingest(db: Db) {
         StatusCode::NOT_FOUND,
     )
     .await;
+    object_store_holds_the_blobs(&db, &data, &id, ply).await;
     // No inventory before stage dbh.
     expect_problem(
         c.get(format!("{base}/v1/jobs/{id}/trees.csv"))
@@ -233,6 +235,73 @@ async fn job_lifecycle_through_ingest(db: Db) {
     )
     .await;
     assert!(!data.join("jobs").join(&id).exists());
+    if let Some(bucket) = db.bucket() {
+        let keys = bucket.keys();
+        assert!(
+            !keys
+                .iter()
+                .any(|k| k.starts_with(&format!("sylva/jobs/{id}/"))),
+            "the job's objects outlive it: {keys:?}"
+        );
+    }
+}
+
+/// With an object store, another API replica on another machine (its own empty data
+/// directory) serves what a worker stored, and large artifacts go out as presigned redirects.
+async fn object_store_holds_the_blobs(db: &Db, data: &Path, id: &str, ply: &Value) {
+    let Some(bucket) = db.bucket() else {
+        return;
+    };
+    let keys = bucket.keys();
+    for want in [
+        format!("sylva/jobs/{id}/ingest/cloud.ply"),
+        format!("sylva/jobs/{id}/ingest/report.json"),
+    ] {
+        assert!(keys.contains(&want), "{want} not in the bucket: {keys:?}");
+    }
+    assert!(
+        keys.iter()
+            .any(|k| k.starts_with("sylva/uploads/") && k.contains("/blob.")),
+        "no upload blob in the bucket: {keys:?}"
+    );
+    assert!(
+        !keys.iter().any(|k| k.contains("/parts/")),
+        "parts of completed uploads remain: {keys:?}"
+    );
+    let replica = db.serve(data, &["--workers", "0", "--presign-min-bytes", "0"]);
+    let href = format!("{}{}", replica.base, ply["href"].as_str().expect("href"));
+    let no_follow = reqwest::Client::builder()
+        .redirect(reqwest::redirect::Policy::none())
+        .build()
+        .expect("client");
+    let r = no_follow.get(&href).send().await.expect("get");
+    assert_eq!(r.status(), StatusCode::TEMPORARY_REDIRECT);
+    let location = r.headers()["location"]
+        .to_str()
+        .expect("location")
+        .to_string();
+    assert!(location.contains("X-Amz-Signature="), "{location}");
+    let body = client()
+        .get(&href)
+        .send()
+        .await
+        .expect("get")
+        .bytes()
+        .await
+        .expect("bytes");
+    assert_eq!(sha256_hex(&body), ply["sha256"].as_str().expect("sha"));
+    let replica = db.serve(data, &["--workers", "0"]);
+    let href = format!("{}{}", replica.base, ply["href"].as_str().expect("href"));
+    let part = no_follow
+        .get(&href)
+        .header("range", "bytes=4-11")
+        .send()
+        .await
+        .expect("range");
+    assert_eq!(part.status(), StatusCode::PARTIAL_CONTENT);
+    let full = client().get(&href).send().await.expect("get");
+    let full = full.bytes().await.expect("bytes");
+    assert_eq!(part.bytes().await.expect("bytes").as_ref(), &full[4..12]);
 }
 
 on_both_databases!(a_failed_stage_fails_the_job_clearly_and_retry_resumes_there);
@@ -270,6 +339,16 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
         .expect("retry");
     expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
 
+    // With an object store the retry runs on another machine (a fresh data directory), which
+    // fetches ingest's outputs from the store instead of running it again.
+    let srv = if db.bucket().is_some() {
+        drop(srv);
+        db.serve(&fx.dir.path().join("data"), &[])
+    } else {
+        srv
+    };
+    let base = srv.base.clone();
+
     // Retry without a stage resumes at register: ingest is not run again.
     let r = c
         .post(format!("{base}/v1/jobs/{id}/retry"))
@@ -284,6 +363,12 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
         ingest_done_at,
         "ingest was not redone"
     );
+    let detail = job["error"]["detail"].as_str().expect("detail");
+    assert!(detail.contains("control points are required"), "{detail}");
+    if db.bucket().is_some() {
+        let log = log_text(&c, &base, &id).await;
+        assert!(log.contains("from the object store"), "{log}");
+    }
 
     // Retry from ingest runs it again.
     let r = c

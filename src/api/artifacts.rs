@@ -1,5 +1,9 @@
 //! Artifact downloads with ETag (the file's SHA-256), conditional requests and single byte
-//! ranges, streamed from disk.
+//! ranges, streamed from disk or from the object store; with an S3 store, artifacts of at least
+//! `--presign-min-bytes` are answered with a redirect to a short-lived presigned URL so the
+//! bytes flow from the store, not through the API.
+
+use std::time::Duration;
 
 use axum::body::Body;
 use axum::extract::{Path, State};
@@ -67,10 +71,6 @@ async fn serve(
     if a.name.split('/').any(|c| c == ".." || c.is_empty()) {
         return Err(ApiError::not_found("no such artifact"));
     }
-    let path = state.blobs.job_dir(job_id).join(&a.name);
-    let mut file = tokio::fs::File::open(&path)
-        .await
-        .map_err(|_| ApiError::not_found(format!("artifact {} is gone from the server", a.name)))?;
     let size = a.size as u64;
     let etag = format!("\"{}\"", a.sha256);
     let mut h = HeaderMap::new();
@@ -111,6 +111,29 @@ async fn serve(
             .with_header(header::CONTENT_RANGE, &format!("bytes */{size}")));
         }
     };
+    let rel = format!("jobs/{job_id}/{}", a.name);
+    if let Some(remote) = state.blobs.remote() {
+        if size >= state.args.presign_min_bytes
+            && let Some(url) = remote
+                .presigned_get(&rel, Duration::from_secs(state.args.presign_ttl_secs))
+                .await
+        {
+            put(&mut h, header::LOCATION, &url);
+            put(&mut h, header::CACHE_CONTROL, "no-store");
+            return Ok((StatusCode::TEMPORARY_REDIRECT, h).into_response());
+        }
+        put(&mut h, header::CONTENT_TYPE, &a.content_type);
+        put(&mut h, header::CONTENT_LENGTH, &len.to_string());
+        if len == 0 {
+            return Ok((status, h, Body::empty()).into_response());
+        }
+        let stream = remote.get_range_stream(&rel, start, len).await?;
+        return Ok((status, h, Body::from_stream(stream)).into_response());
+    }
+    let path = state.blobs.job_dir(job_id).join(&a.name);
+    let mut file = tokio::fs::File::open(&path)
+        .await
+        .map_err(|_| ApiError::not_found(format!("artifact {} is gone from the server", a.name)))?;
     put(&mut h, header::CONTENT_TYPE, &a.content_type);
     put(&mut h, header::CONTENT_LENGTH, &len.to_string());
     file.seek(std::io::SeekFrom::Start(start))

@@ -302,7 +302,7 @@ pub async fn delete(
 ) -> Result<Response, ApiError> {
     load(&state, &id).await?;
     state.db.delete_job(&id).await?;
-    state.blobs.remove_job(&id)?;
+    state.blobs.remove_job(&id).await?;
     tracing::info!(job = %id, "job deleted");
     Ok(StatusCode::NO_CONTENT.into_response())
 }
@@ -376,7 +376,7 @@ pub async fn retry(
         })?),
     };
     let reset = state.db.retry(&id, from).await?;
-    state.blobs.remove_stages(&id, &reset)?;
+    state.blobs.remove_stages(&id, &reset).await?;
     let _ = state
         .db
         .append_log(

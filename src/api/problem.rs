@@ -154,6 +154,15 @@ impl From<StoreError> for ApiError {
                 ApiError::too_large(format!("the body is larger than {limit} bytes"))
             }
             StoreError::Body(m) => ApiError::bad_request(m),
+            StoreError::NotFound(m) => {
+                ApiError::not_found(format!("{m} is gone from the object store"))
+            }
+            StoreError::Remote(m) => ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "store-unavailable",
+                format!("the object store did not answer as expected: {m}"),
+            )
+            .with_header(header::RETRY_AFTER, "5"),
             other => ApiError::internal(other),
         }
     }

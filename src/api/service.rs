@@ -27,6 +27,15 @@ pub async fn readyz(State(state): State<AppState>) -> Result<Response, ApiError>
             format!("the database is not answering: {e}"),
         ));
     }
+    if let Some(remote) = state.blobs.remote()
+        && let Err(e) = remote.ping().await
+    {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "not-ready",
+            format!("the object store is not answering: {e}"),
+        ));
+    }
     let free = state.blobs.free_bytes()?;
     if free < state.args.min_free_bytes {
         return Err(ApiError::new(
@@ -39,8 +48,10 @@ pub async fn readyz(State(state): State<AppState>) -> Result<Response, ApiError>
         ));
     }
     Ok(
-        Json(json!({ "status": "ready", "database": "ok", "disk_free_bytes": free }))
-            .into_response(),
+        Json(
+            json!({ "status": "ready", "database": "ok", "store": "ok", "disk_free_bytes": free }),
+        )
+        .into_response(),
     )
 }
 
@@ -143,6 +154,8 @@ pub async fn info(State(state): State<AppState>) -> Result<Response, ApiError> {
     let workers = state.db.live_workers(state.lease * 2).await?;
     Ok(Json(json!({
         "version": env!("CARGO_PKG_VERSION"),
+        "database": state.db.backend_name(),
+        "store": state.blobs.kind(),
         "queue_depth": queued,
         "workers": workers,
         "gpu": state.gpu,

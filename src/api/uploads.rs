@@ -250,66 +250,54 @@ pub async fn complete(
 pub async fn finish_upload(state: &AppState, u: &UploadRecord) -> Result<(), ApiError> {
     let blobs = state.blobs.clone();
     let limits = state.args.extract_limits();
+    let (size, sha) = blobs.assemble(&u.id, &u.filename, u.parts_total()).await?;
+    if size as i64 != u.size {
+        blobs.discard_blob(&u.id, &u.filename).await;
+        return Err(ApiError::unprocessable(format!(
+            "{}: received {size} bytes but {} were declared",
+            u.filename, u.size
+        ))
+        .with_error(&u.filename, "size mismatch"));
+    }
+    if let Some(want) = &u.sha256
+        && *want != sha
+    {
+        blobs.discard_blob(&u.id, &u.filename).await;
+        return Err(ApiError::unprocessable(format!(
+            "{}: the SHA-256 of the received bytes is {sha}, not the declared {want}; \
+             re-send the damaged parts and complete again",
+            u.filename
+        ))
+        .with_error(&u.filename, "checksum mismatch"));
+    }
     let u2 = u.clone();
-    let result =
-        tokio::task::spawn_blocking(move || -> Result<(String, serde_json::Value), ApiError> {
-            let (size, sha) = blobs.assemble(&u2.id, &u2.filename, u2.parts_total())?;
-            let blob = blobs.upload_blob(&u2.id, &u2.filename);
-            let discard = || {
-                let _ = std::fs::remove_file(&blob);
-            };
-            if size as i64 != u2.size {
-                discard();
-                return Err(ApiError::unprocessable(format!(
-                    "{}: received {size} bytes but {} were declared",
-                    u2.filename, u2.size
-                ))
-                .with_error(&u2.filename, "size mismatch"));
-            }
-            if let Some(want) = &u2.sha256
-                && *want != sha
-            {
-                discard();
-                return Err(ApiError::unprocessable(format!(
-                    "{}: the SHA-256 of the received bytes is {sha}, not the declared {want}; \
-                     re-send the damaged parts and complete again",
-                    u2.filename
-                ))
-                .with_error(&u2.filename, "checksum mismatch"));
-            }
-            let unpack = blobs.upload_unpacked(&u2.id);
-            let inspection = inspect::inspect_upload(
-                u2.kind,
-                &u2.filename,
-                &blob,
-                &unpack,
-                &limits,
-                &NoProgress,
-            )
-            .map_err(|e| match e {
-                InspectError::Unusable(m) => {
-                    discard();
-                    let _ = std::fs::remove_dir_all(&unpack);
-                    ApiError::unprocessable(m.clone()).with_error(&u2.filename, m)
+    let b2 = blobs.clone();
+    let inspection = tokio::task::spawn_blocking(move || {
+        let blob = b2.upload_blob(&u2.id, &u2.filename);
+        let unpack = b2.upload_unpacked(&u2.id);
+        inspect::inspect_upload(u2.kind, &u2.filename, &blob, &unpack, &limits, &NoProgress)
+    })
+    .await
+    .map_err(ApiError::internal)?;
+    let inspection = match inspection {
+        Ok(v) => v,
+        Err(InspectError::Unusable(m)) => {
+            blobs.discard_blob(&u.id, &u.filename).await;
+            return Err(ApiError::unprocessable(m.clone()).with_error(&u.filename, m));
+        }
+        Err(InspectError::Io(io)) => {
+            return Err(match &io {
+                crate::io::IoError::Io { source, .. }
+                    if source.kind() == std::io::ErrorKind::StorageFull =>
+                {
+                    ApiError::storage_full("the server's disk is full")
                 }
-                InspectError::Io(io) => match &io {
-                    crate::io::IoError::Io { source, .. }
-                        if source.kind() == std::io::ErrorKind::StorageFull =>
-                    {
-                        ApiError::storage_full("the server's disk is full")
-                    }
-                    _ => ApiError::internal(io),
-                },
-                InspectError::Cancelled => ApiError::internal("inspection cancelled"),
-            })?;
-            blobs.drop_parts(&u2.id);
-            Ok((sha, inspection))
-        })
-        .await
-        .map_err(ApiError::internal)??;
-    state
-        .db
-        .complete_upload(&u.id, &result.0, &result.1)
-        .await?;
+                _ => ApiError::internal(io),
+            });
+        }
+        Err(InspectError::Cancelled) => return Err(ApiError::internal("inspection cancelled")),
+    };
+    blobs.drop_parts(&u.id).await;
+    state.db.complete_upload(&u.id, &sha, &inspection).await?;
     Ok(())
 }

@@ -15,6 +15,7 @@ use serde_json::json;
 use tokio::sync::{Notify, Semaphore, watch};
 
 use crate::config::WorkerArgs;
+use crate::io::archive::ExtractLimits;
 use crate::jobs::{Claim, DbError, Heartbeat, JobStore, RunEnd, UploadKind};
 use crate::pipeline::{self, PipelineParams, Stage, StageError, StageInputs};
 use crate::progress::{CancelFlag, Progress};
@@ -211,11 +212,19 @@ impl WorkerPool {
                 .await
                 .map_err(|e| e.to_string())?
                 .ok_or_else(|| format!("input upload {id} no longer exists"))?;
-            let path = if kind == UploadKind::Colmap {
-                self.blobs.upload_unpacked(id)
-            } else {
-                self.blobs.upload_blob(id, &up.filename)
+            // The API already checked archives against its limits; these only guard the
+            // re-extraction on a machine that has not seen the upload yet.
+            let limits = ExtractLimits {
+                max_entries: u64::MAX,
+                max_unpacked_bytes: u64::MAX,
+                max_ratio: f64::INFINITY,
             };
+            let unpack = (kind == UploadKind::Colmap).then_some(&limits);
+            let path = self
+                .blobs
+                .local_input(id, &up.filename, unpack)
+                .await
+                .map_err(|e| format!("input upload {id} ({}): {e}", up.filename))?;
             paths.push((kind, path));
         }
         let get = |k: UploadKind| {
@@ -282,6 +291,19 @@ impl WorkerPool {
                 )
                 .await;
             return;
+        }
+        match self.blobs.pull_stages(&job, &claim.done).await {
+            Ok(0) => {}
+            Ok(n) => {
+                let msg = format!("fetched {n} finished-stage file(s) from the object store");
+                self.log(&job, "info", None, &msg).await;
+            }
+            Err(e) => {
+                // The store may be briefly away: give the job back for another try rather
+                // than failing work that is already done.
+                tracing::warn!(error = %e, "cannot fetch finished stages; the job will be re-claimed");
+                return;
+            }
         }
         for &stage in &stages {
             if claim.done.iter().any(|d| d == stage.name()) {
@@ -427,6 +449,19 @@ impl WorkerPool {
             return Outcome::Stop;
         }
         let token = &claim.token;
+        // With an object store the outputs go there before the stage counts as done.
+        let result = match result {
+            Ok(outcome) => match self.blobs.push_stage(job, stage.name()).await {
+                Ok(()) => Ok(outcome),
+                Err(e) => Err(StageError::Io(crate::io::IoError::Io {
+                    path: work_dir.join(stage.name()),
+                    source: std::io::Error::other(format!(
+                        "the stage's outputs could not be copied to the object store: {e}"
+                    )),
+                })),
+            },
+            Err(e) => Err(e),
+        };
         match result {
             Ok(outcome) => {
                 let jp = job_progress(stages, stage, 1.0);

@@ -4,6 +4,7 @@
 #![allow(dead_code)]
 
 pub mod postgres;
+pub mod s3;
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
@@ -183,6 +184,15 @@ impl Drop for Proc {
 }
 
 fn spawn(args: &[&str], data: &Path, ready_prefix: &str) -> Proc {
+    spawn_with_env(args, data, ready_prefix, &[])
+}
+
+fn spawn_with_env(
+    args: &[&str],
+    data: &Path,
+    ready_prefix: &str,
+    env: &[(String, String)],
+) -> Proc {
     let stderr = data.join(format!("stderr-{}.log", uuid::Uuid::new_v4().simple()));
     std::fs::create_dir_all(data).expect("data dir");
     let mut cmd = Command::new(BIN);
@@ -195,6 +205,7 @@ fn spawn(args: &[&str], data: &Path, ready_prefix: &str) -> Proc {
         .args(args)
         .arg("--data")
         .arg(data)
+        .envs(env.iter().map(|(k, v)| (k, v)))
         .env("SYLVA_LOG", "info")
         .stdout(Stdio::piped())
         .stderr(std::fs::File::create(&stderr).expect("stderr file"))
@@ -249,12 +260,14 @@ pub fn worker(data: &Path, extra: &[&str]) -> Proc {
     spawn(&args, data, "sylva worker started")
 }
 
-/// The job database a test's `sylva` processes share.
+/// The job database (and blob store) a test's `sylva` processes share.
 pub enum Db {
-    /// SQLite under the data directory (the default; no flag).
+    /// SQLite and local files under the data directory (the default; no flag).
     Sqlite,
-    /// A fresh database on the test PostgreSQL (`--database postgres://...`).
-    Postgres(postgres::TestDatabase),
+    /// A fresh database on the test PostgreSQL (`--database postgres://...`) and, where the
+    /// test S3 server is installed, a fresh bucket (`--store s3://...`): then every process
+    /// also gets a data directory of its own, as if it ran on its own machine.
+    Postgres(postgres::TestDatabase, Option<s3::TestBucket>),
 }
 
 impl Db {
@@ -264,22 +277,52 @@ impl Db {
 
     /// `None` (with the reason printed) where PostgreSQL is not installed.
     pub fn postgres() -> Option<Db> {
-        postgres::database().map(Db::Postgres)
+        let pg = postgres::database()?;
+        Some(Db::Postgres(pg, s3::bucket()))
+    }
+
+    /// The test bucket, when blobs live in one.
+    pub fn bucket(&self) -> Option<&s3::TestBucket> {
+        match self {
+            Db::Postgres(_, b) => b.as_ref(),
+            Db::Sqlite => None,
+        }
     }
 
     fn with_flags<'a>(&'a self, extra: &[&'a str]) -> Vec<&'a str> {
         let mut args = extra.to_vec();
-        if let Db::Postgres(pg) = self {
+        if let Db::Postgres(pg, bucket) = self {
             args.extend(["--database", pg.url.as_str()]);
+            if let Some(b) = bucket {
+                args.extend(["--store", b.url.as_str()]);
+            }
         }
         args
     }
 
-    /// Fails unless the process says it opened this kind of database.
+    fn env(&self) -> Vec<(String, String)> {
+        self.bucket().map(|b| b.env.clone()).unwrap_or_default()
+    }
+
+    /// The data directory of one process: `data` itself, or with an object store a fresh
+    /// folder under it (nothing local is shared between processes then).
+    fn machine_dir(&self, data: &Path) -> PathBuf {
+        match self.bucket() {
+            Some(_) => data.join(format!("machine-{}", uuid::Uuid::new_v4().simple())),
+            None => data.to_path_buf(),
+        }
+    }
+
+    /// Fails unless the process says it opened this kind of database and blob store.
     fn check_backend(&self, p: Proc) -> Proc {
         let name = match self {
             Db::Sqlite => "\"sqlite\"",
-            Db::Postgres(_) => "\"postgres\"",
+            Db::Postgres(..) => "\"postgres\"",
+        };
+        let store = if self.bucket().is_some() {
+            "s3"
+        } else {
+            "local"
         };
         let text = p.stderr_text();
         assert!(
@@ -287,17 +330,38 @@ impl Db {
                 .any(|l| l.contains("job database open") && l.contains(name)),
             "expected a {name} job database: {text}"
         );
+        assert!(
+            text.lines()
+                .any(|l| l.contains("blob store open") && l.contains(store)),
+            "expected a {store} blob store: {text}"
+        );
         p
     }
 
     /// `sylva serve` on this database.
     pub fn serve(&self, data: &Path, extra: &[&str]) -> Proc {
-        self.check_backend(serve(data, &self.with_flags(extra)))
+        let mut args = vec!["serve", "--listen", "127.0.0.1:0"];
+        args.extend(self.with_flags(extra));
+        let p = spawn_with_env(
+            &args,
+            &self.machine_dir(data),
+            "sylva listening on",
+            &self.env(),
+        );
+        self.check_backend(p)
     }
 
     /// `sylva worker` on this database.
     pub fn worker(&self, data: &Path, extra: &[&str]) -> Proc {
-        self.check_backend(worker(data, &self.with_flags(extra)))
+        let mut args = vec!["worker"];
+        args.extend(self.with_flags(extra));
+        let p = spawn_with_env(
+            &args,
+            &self.machine_dir(data),
+            "sylva worker started",
+            &self.env(),
+        );
+        self.check_backend(p)
     }
 }
 
