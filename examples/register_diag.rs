@@ -27,7 +27,12 @@ fn errors(est: &Similarity, truth: &Similarity, centre: DVec3) -> (f64, f64, f64
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let preset = Preset::from_name(args.first().map_or("tiny", String::as_str)).ok_or("preset")?;
-    let seeds: Vec<u64> = match args.get(1).map(String::as_str).unwrap_or("1-5").split_once('-') {
+    let seeds: Vec<u64> = match args
+        .get(1)
+        .map(String::as_str)
+        .unwrap_or("1-5")
+        .split_once('-')
+    {
         Some((a, b)) => (a.parse()?..=b.parse()?).collect(),
         None => vec![args[1].parse()?],
     };
@@ -67,10 +72,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             continue;
         }
         let t0 = Instant::now();
-        let result =
-            pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &NoProgress);
+        let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &NoProgress);
         let secs = t0.elapsed().as_secs_f64();
-        let truth: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
+        let truth: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
         let t = &truth["sfm_to_world"];
         let rows: [[f64; 3]; 3] = serde_json::from_value(t["rotation"].clone())?;
         let truth_sim = Similarity {
@@ -128,7 +133,8 @@ fn analyse_seed(
     p: &sylva::pipeline::params::RegisterParams,
 ) -> Result<(), Box<dyn std::error::Error>> {
     use glam::Vec3;
-    let cloud = sylva::io::pointcloud::read_point_cloud(&out.join("work/ingest/cloud.ply"), &NoProgress)?;
+    let cloud =
+        sylva::io::pointcloud::read_point_cloud(&out.join("work/ingest/cloud.ply"), &NoProgress)?;
     let labels = std::fs::read(out.join("labels.bin"))?;
     let model = sylva::io::colmap::read_model(&out.join("work/ingest/sparse"), &NoProgress)?;
     let (truth, centre) = truth_of(out)?;
@@ -137,7 +143,11 @@ fn analyse_seed(
         ..truth
     };
     let c_local = centre - cloud.offset;
-    let source: Vec<Vec3> = model.points.iter().map(|q| local.apply(q.xyz).as_vec3()).collect();
+    let source: Vec<Vec3> = model
+        .points
+        .iter()
+        .map(|q| local.apply(q.xyz).as_vec3())
+        .collect();
     let index = sylva::geom::PointIndex::new(&cloud.positions)?;
     let mut by_label = vec![Vec::new(); 4];
     let mut lab = Vec::with_capacity(source.len());
@@ -156,7 +166,9 @@ fn analyse_seed(
     let target = sylva::geom::voxel_downsample(
         &cloud.positions,
         None,
-        &sylva::geom::VoxelParams { voxel_size: p.target_voxel_m as f32 },
+        &sylva::geom::VoxelParams {
+            voxel_size: p.target_voxel_m as f32,
+        },
         &NoProgress,
     )?
     .positions;
@@ -172,7 +184,13 @@ fn analyse_seed(
             .filter(|(_, l)| keep[**l])
             .map(|(q, _)| *q)
             .collect();
-        match sylva::pipeline::register::refine_on_surfaces(&sub, &target, &Similarity::IDENTITY, p, &NoProgress) {
+        match sylva::pipeline::register::refine_on_surfaces(
+            &sub,
+            &target,
+            &Similarity::IDENTITY,
+            p,
+            &NoProgress,
+        ) {
             Ok(r) => {
                 let t = r.transform();
                 let (er, es, et) = errors(&t, &Similarity::IDENTITY, c_local);

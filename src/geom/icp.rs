@@ -49,6 +49,10 @@ pub struct IcpParams {
     /// Estimate scale too (similarity ICP). Default true: METHOD.md Stage 1.2, SfM scale is
     /// only approximately fixed by the coarse step.
     pub estimate_scale: bool,
+    /// Estimate rotation (default true). Point-to-plane only: false keeps the initial
+    /// rotation and refines translation (and scale, if asked) alone, for surfaces that pin
+    /// position well but rotation poorly (ground plus one stem: yaw about the stem is free).
+    pub estimate_rotation: bool,
     /// Iteration cap. Default 50 (Open3D's default is 30; the shrinking schedule uses ~15).
     pub max_iterations: usize,
     /// Max correspondence distance at the first iteration. Default 1.0 m: a coarse
@@ -75,6 +79,7 @@ impl Default for IcpParams {
         Self {
             method: IcpMethod::PointToPoint,
             estimate_scale: true,
+            estimate_rotation: true,
             max_iterations: 50,
             start_distance: 1.0,
             shrink: 0.8,
@@ -247,7 +252,15 @@ pub fn icp_weighted(
             / sw.max(1e-300))
         .sqrt();
         t = if plane {
-            point_to_plane_step(source, target, normals, &pairs, &t, params.estimate_scale)?
+            point_to_plane_step(
+                source,
+                target,
+                normals,
+                &pairs,
+                &t,
+                params.estimate_scale,
+                params.estimate_rotation,
+            )?
         } else {
             fit_similarity(
                 pairs.len(),
@@ -358,6 +371,11 @@ fn validate(
             "initial transform (scale must be > 0)",
         ));
     }
+    if !p.estimate_rotation && p.method != IcpMethod::PointToPlane {
+        return Err(GeomError::InvalidParameter(
+            "a fixed rotation (estimate_rotation = false) needs point-to-plane ICP".into(),
+        ));
+    }
     let ok = p.max_iterations > 0
         && p.start_distance.is_finite()
         && p.min_distance.is_finite()
@@ -387,9 +405,9 @@ fn validate_weights(w: Option<&[f32]>, n: usize, what: &'static str) -> Result<(
             left: w.len(),
             right: n,
         }),
-        Some(w) if !w.iter().all(|v| (0.0..=1.0).contains(v)) => Err(
-            GeomError::InvalidParameter(format!("{what} must lie in [0, 1]")),
-        ),
+        Some(w) if !w.iter().all(|v| (0.0..=1.0).contains(v)) => Err(GeomError::InvalidParameter(
+            format!("{what} must lie in [0, 1]"),
+        )),
         _ => Ok(()),
     }
 }

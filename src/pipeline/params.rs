@@ -91,11 +91,13 @@ pub struct RegisterParams {
     pub refine: bool,
     /// Surface variation l3 / (l1 + l2 + l3) of a LiDAR point's neighbourhood (k = 20) above
     /// which it takes no part in the refinement; below, its weight falls linearly from 1 at 0
-    /// to 0 here. Default 0.05: a plane with 1 cm noise over the ~20 cm neighbourhood of
-    /// 5 cm voxels measures about 0.01–0.02, foliage 0.1–0.3.
+    /// to 0 here. Default 0.1 (measured best of 0.05 and 0.1 on `tiny` seeds 1–5): a plane
+    /// with 1 cm noise over the ~20 cm neighbourhood of 5 cm voxels measures about 0.01–0.02,
+    /// foliage up to 1/3.
     pub refine_max_surface_variation: f64,
     /// Linearity (l1 - l2) / l1 above which a LiDAR point takes no part in the refinement
-    /// (default 0.8: a single scan line on distant ground, whose normal is undetermined).
+    /// (default 0.95, measured best of 0.8, 0.95 and 1 on `tiny` seeds 1–5: a single scan
+    /// line on distant ground, whose normal is undetermined; 0.8 drops thin stems too).
     pub refine_max_linearity: f64,
     /// A LiDAR point whose neighbourhood's largest standard deviation sqrt(l1) exceeds this
     /// many target voxels takes no part in the refinement (default 3: k = 20 neighbours on a
@@ -106,6 +108,10 @@ pub struct RegisterParams {
     /// mostly on the ground, planes barely constrain scale, so point-to-plane scale drifts
     /// with any small bias; the point-to-point phase's scale is kept).
     pub refine_estimate_scale: bool,
+    /// Estimate rotation in the refinement too (default false: with the ground and one or
+    /// two stems, yaw about a stem is barely constrained by planes and drifts by tenths of a
+    /// degree; the point-to-point phase's rotation is kept and translation refined).
+    pub refine_estimate_rotation: bool,
     /// Huber scale of the refinement's point-to-plane residuals, metres (default 0.02: twice
     /// the ~1 cm noise of handheld SLAM ranges and of SfM points).
     pub refine_huber_m: f64,
@@ -131,9 +137,10 @@ impl Default for RegisterParams {
             min_confidence: 0.5,
             min_fitness: 0.5,
             refine: true,
-            refine_max_surface_variation: 0.05,
-            refine_max_linearity: 0.8,
+            refine_max_surface_variation: 0.1,
+            refine_max_linearity: 0.95,
             refine_estimate_scale: false,
+            refine_estimate_rotation: false,
             refine_max_spread_voxels: 3.0,
             refine_huber_m: 0.02,
             refine_max_distance_m: 0.1,

@@ -343,6 +343,7 @@ pub fn refine_on_surfaces(
     let params = IcpParams {
         method: IcpMethod::PointToPlane,
         estimate_scale: p.estimate_scale && p.refine_estimate_scale,
+        estimate_rotation: p.refine_estimate_rotation,
         max_iterations: p.refine_max_iterations.max(1) as usize,
         start_distance: p.refine_max_distance_m,
         shrink: 1.0,
@@ -374,10 +375,7 @@ pub fn refine_on_surfaces(
 /// on distant ground, a twig: its normal is undetermined), for a spread-out neighbourhood
 /// (sparse far field) and for a volume (foliage); otherwise falling linearly with the surface
 /// variation l3 / (l1 + l2 + l3).
-pub fn surface_weights(
-    eigenvalues: &[[f32; 3]],
-    p: &super::params::RegisterParams,
-) -> Vec<f32> {
+pub fn surface_weights(eigenvalues: &[[f32; 3]], p: &super::params::RegisterParams) -> Vec<f32> {
     let max_sv = p.refine_max_surface_variation.max(1e-9);
     let max_spread2 = (p.refine_max_spread_voxels * p.target_voxel_m).powi(2);
     eigenvalues

@@ -223,7 +223,10 @@ fn target_weights_keep_a_surface_seen_differently_from_biasing_the_fit() {
     };
     let plain = run(None);
     let dz = (plain.translation - t.translation).length() + (plain.scale / t.scale - 1.0).abs();
-    assert!(dz > 2e-3, "the canopy should bias the unweighted fit: {plain:?}");
+    assert!(
+        dz > 2e-3,
+        "the canopy should bias the unweighted fit: {plain:?}"
+    );
     assert_close(&run(Some(&prior)), &t, "weighted point-to-plane");
     // Weights outside [0, 1] or of the wrong length are refused.
     let bad = vec![2.0f32; target.len()];
@@ -232,15 +235,78 @@ fn target_weights_keep_a_surface_seen_differently_from_biasing_the_fit() {
         target: Some(&bad),
     };
     let id = Similarity::IDENTITY;
-    let r = icp_weighted(&source, &target, &index, Some(&normals.normals), w, &id, &params, &NoProgress);
+    let r = icp_weighted(
+        &source,
+        &target,
+        &index,
+        Some(&normals.normals),
+        w,
+        &id,
+        &params,
+        &NoProgress,
+    );
     assert!(matches!(r, Err(GeomError::InvalidParameter(_))));
     let short = [1.0f32; 3];
     let w = IcpWeights {
         source: Some(&short),
         target: None,
     };
-    let r = icp_weighted(&source, &target, &index, Some(&normals.normals), w, &id, &params, &NoProgress);
+    let r = icp_weighted(
+        &source,
+        &target,
+        &index,
+        Some(&normals.normals),
+        w,
+        &id,
+        &params,
+        &NoProgress,
+    );
     assert!(matches!(r, Err(GeomError::LengthMismatch { .. })));
+}
+
+#[test]
+fn a_fixed_rotation_refines_translation_only() {
+    let mut rng = ChaCha8Rng::seed_from_u64(25);
+    let target = scene(&mut rng, 0.0, 12.0, 60_000, 10_000);
+    let sub = scene(&mut rng, 0.0, 12.0, 12_000, 2_000);
+    let normals = estimate_normals(&target, &NormalParams::default(), &NoProgress).unwrap();
+    let t = truth(1.0);
+    let inv = t.inverse();
+    let source: Vec<Vec3> = sub.iter().map(|p| inv.apply_f32(*p)).collect();
+    // Start from the true rotation with the translation off by several centimetres.
+    let initial = Similarity {
+        translation: t.translation + DVec3::new(0.04, -0.05, 0.03),
+        ..t
+    };
+    let params = IcpParams {
+        method: IcpMethod::PointToPlane,
+        estimate_scale: false,
+        estimate_rotation: false,
+        start_distance: 0.3,
+        min_distance: 0.1,
+        robust: RobustKernel::Huber { scale: 0.02 },
+        ..IcpParams::default()
+    };
+    let res = icp(
+        &source,
+        &target,
+        Some(&normals.normals),
+        &initial,
+        &params,
+        &NoProgress,
+    )
+    .unwrap();
+    assert_eq!(res.rotation, t.rotation, "the rotation must not move");
+    assert_close(&res, &t, "translation-only point-to-plane");
+    // Point-to-point has no translation-only step.
+    let p2p = IcpParams {
+        method: IcpMethod::PointToPoint,
+        ..params
+    };
+    assert!(matches!(
+        icp(&source, &target, None, &initial, &p2p, &NoProgress),
+        Err(GeomError::InvalidParameter(_))
+    ));
 }
 
 #[test]
