@@ -83,12 +83,16 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
             trans_err * 100.0,
             report["fitness"]
         );
-        // Measured today: about 0.1° rotation, 0.02-0.4 % scale, 1-3 cm at the plot centre; the
-        // issue's goal (0.05°, 0.1 %, 1 cm) is not reached yet (README, results).
-        assert!(rot_err < 0.25, "seed {seed}: rotation error {rot_err}°");
-        assert!(scale_err < 0.006, "seed {seed}: scale error {scale_err}");
+        // Measured (README, results): translation 0.15-0.78 cm, the goal (< 1 cm),
+        // after the point-to-plane refinement on planar LiDAR surfaces. Rotation 0.02-0.18°
+        // and scale 0.02-0.33 % miss the goal (0.05°, 0.1 %): on `tiny` the SfM points that
+        // pin yaw and scale are a few dozen on one to three stems and six stones (the rest is
+        // ground, which constrains neither, and foliage, which the UAV and the scanner see
+        // from opposite sides), so both stay near the control points' estimate.
+        assert!(rot_err < 0.2, "seed {seed}: rotation error {rot_err}°");
+        assert!(scale_err < 0.004, "seed {seed}: scale error {scale_err}");
         assert!(
-            trans_err < 0.05,
+            trans_err < 0.01,
             "seed {seed}: translation error {trans_err} m"
         );
         assert_eq!(report["method"], "control_points");

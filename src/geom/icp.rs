@@ -49,6 +49,10 @@ pub struct IcpParams {
     /// Estimate scale too (similarity ICP). Default true: METHOD.md Stage 1.2, SfM scale is
     /// only approximately fixed by the coarse step.
     pub estimate_scale: bool,
+    /// Estimate rotation (default true). Point-to-plane only: false keeps the initial
+    /// rotation and refines translation (and scale, if asked) alone, for surfaces that pin
+    /// position well but rotation poorly (ground plus one stem: yaw about the stem is free).
+    pub estimate_rotation: bool,
     /// Iteration cap. Default 50 (Open3D's default is 30; the shrinking schedule uses ~15).
     pub max_iterations: usize,
     /// Max correspondence distance at the first iteration. Default 1.0 m: a coarse
@@ -75,6 +79,7 @@ impl Default for IcpParams {
         Self {
             method: IcpMethod::PointToPoint,
             estimate_scale: true,
+            estimate_rotation: true,
             max_iterations: 50,
             start_distance: 1.0,
             shrink: 0.8,
@@ -114,12 +119,25 @@ impl IcpResult {
     }
 }
 
-/// One correspondence: source index, target index, residual (metres) and weight.
+/// Prior weights of the correspondences, each in [0, 1] (`None`: all 1). A pair's weight is
+/// the source point's prior times the target point's prior times its robust weight; a pair
+/// with a zero prior is not used at all.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct IcpWeights<'a> {
+    /// One per source point (for SfM points: how well the point is triangulated).
+    pub source: Option<&'a [f32]>,
+    /// One per target point (for LiDAR points: how well the local surface is defined).
+    pub target: Option<&'a [f32]>,
+}
+
+/// One correspondence: source index, target index, residual (metres), prior weight and
+/// final weight (prior times robust weight).
 #[derive(Debug, Clone, Copy, Default)]
 struct Pair {
     src: u32,
     tgt: u32,
     residual: f64,
+    prior: f64,
     weight: f64,
 }
 
@@ -173,7 +191,33 @@ pub fn icp_with_index(
     params: &IcpParams,
     progress: &dyn Progress,
 ) -> Result<IcpResult, GeomError> {
+    icp_weighted(
+        source,
+        target,
+        index,
+        target_normals,
+        IcpWeights::default(),
+        initial,
+        params,
+        progress,
+    )
+}
+
+/// As [`icp_with_index`], with prior weights per source and per target point.
+#[allow(clippy::too_many_arguments)]
+pub fn icp_weighted(
+    source: &[Vec3],
+    target: &[Vec3],
+    index: &PointIndex,
+    target_normals: Option<&[Vec3]>,
+    weights: IcpWeights<'_>,
+    initial: &Similarity,
+    params: &IcpParams,
+    progress: &dyn Progress,
+) -> Result<IcpResult, GeomError> {
     validate(source, target, index, target_normals, initial, params)?;
+    validate_weights(weights.source, source.len(), "source weights")?;
+    validate_weights(weights.target, target.len(), "target weights")?;
     let plane = params.method == IcpMethod::PointToPlane;
     let normals = target_normals.unwrap_or(&[]);
     let mut t = *initial;
@@ -186,7 +230,7 @@ pub fn icp_with_index(
             return Err(GeomError::Cancelled);
         }
         let at_floor = dist <= params.min_distance;
-        let mut pairs = correspond(source, index, &t, dist, |q, j| {
+        let mut pairs = correspond(source, index, weights, &t, dist, |q, j| {
             if plane {
                 (q - target[j].as_dvec3()).dot(normals[j].as_dvec3()).abs()
             } else {
@@ -208,7 +252,15 @@ pub fn icp_with_index(
             / sw.max(1e-300))
         .sqrt();
         t = if plane {
-            point_to_plane_step(source, target, normals, &pairs, &t, params.estimate_scale)?
+            point_to_plane_step(
+                source,
+                target,
+                normals,
+                &pairs,
+                &t,
+                params.estimate_scale,
+                params.estimate_rotation,
+            )?
         } else {
             fit_similarity(
                 pairs.len(),
@@ -241,7 +293,7 @@ pub fn icp_with_index(
         }
         dist = (dist * params.shrink).max(params.min_distance);
     }
-    let final_pairs = correspond(source, index, &t, dist, |q, j| {
+    let final_pairs = correspond(source, index, IcpWeights::default(), &t, dist, |q, j| {
         (q - target[j].as_dvec3()).length()
     })?;
     let inlier_rmse = if final_pairs.is_empty() {
@@ -319,6 +371,11 @@ fn validate(
             "initial transform (scale must be > 0)",
         ));
     }
+    if !p.estimate_rotation && p.method != IcpMethod::PointToPlane {
+        return Err(GeomError::InvalidParameter(
+            "a fixed rotation (estimate_rotation = false) needs point-to-plane ICP".into(),
+        ));
+    }
     let ok = p.max_iterations > 0
         && p.start_distance.is_finite()
         && p.min_distance.is_finite()
@@ -340,32 +397,55 @@ fn validate(
     Ok(())
 }
 
-/// Nearest target point of every transformed source point within `max_dist`, in parallel.
+/// Each prior weight must be finite and in [0, 1].
+fn validate_weights(w: Option<&[f32]>, n: usize, what: &'static str) -> Result<(), GeomError> {
+    match w {
+        Some(w) if w.len() != n => Err(GeomError::LengthMismatch {
+            what,
+            left: w.len(),
+            right: n,
+        }),
+        Some(w) if !w.iter().all(|v| (0.0..=1.0).contains(v)) => Err(GeomError::InvalidParameter(
+            format!("{what} must lie in [0, 1]"),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Nearest target point of every transformed source point within `max_dist` whose prior
+/// weight is positive, in parallel.
 fn correspond(
     source: &[Vec3],
     index: &PointIndex,
+    weights: IcpWeights<'_>,
     t: &Similarity,
     max_dist: f64,
     residual: impl Fn(DVec3, usize) -> f64 + Sync,
 ) -> Result<Vec<Pair>, GeomError> {
     let nearest: Vec<Option<Pair>> =
         par_map_chunked(source.len(), &crate::progress::NoProgress, |i, _| {
+            let ws = weights.source.map_or(1.0, |w| w[i] as f64);
+            if ws <= 0.0 {
+                return None;
+            }
             let q = t.apply(source[i].as_dvec3());
             let m = index.nearest(q.as_vec3())?;
             if (m.dist2 as f64) > max_dist * max_dist {
                 return None;
             }
-            Some(Pair {
+            let prior = ws * weights.target.map_or(1.0, |w| w[m.index as usize] as f64);
+            (prior > 0.0).then(|| Pair {
                 src: i as u32,
                 tgt: m.index,
                 residual: residual(q, m.index as usize),
-                weight: 1.0,
+                prior,
+                weight: prior,
             })
         })?;
     Ok(nearest.into_iter().flatten().collect())
 }
 
-/// Sets each pair's robust weight.
+/// Sets each pair's weight: its prior times the robust weight.
 fn weigh(pairs: &mut [Pair], kernel: RobustKernel) {
     match kernel {
         RobustKernel::None => {}
@@ -379,7 +459,7 @@ fn weigh(pairs: &mut [Pair], kernel: RobustKernel) {
                 // Ties at the cut keep at most `keep` pairs.
                 p.weight = if p.residual <= cut && kept < keep {
                     kept += 1;
-                    1.0
+                    p.prior
                 } else {
                     0.0
                 };
@@ -387,11 +467,12 @@ fn weigh(pairs: &mut [Pair], kernel: RobustKernel) {
         }
         RobustKernel::Huber { scale } => {
             for p in pairs.iter_mut() {
-                p.weight = if p.residual <= scale {
-                    1.0
-                } else {
-                    scale / p.residual
-                };
+                p.weight = p.prior
+                    * if p.residual <= scale {
+                        1.0
+                    } else {
+                        scale / p.residual
+                    };
             }
         }
     }

@@ -22,7 +22,9 @@ mod similarity;
 mod voxel;
 
 pub use error::GeomError;
-pub use icp::{IcpMethod, IcpParams, IcpResult, RobustKernel, icp, icp_with_index};
+pub use icp::{
+    IcpMethod, IcpParams, IcpResult, IcpWeights, RobustKernel, icp, icp_weighted, icp_with_index,
+};
 pub use index::{Neighbour, PointIndex};
 pub use normals::{
     EigenFeatures, NormalOrientation, NormalParams, Normals, eigen_features, estimate_normals,

@@ -3,7 +3,9 @@
 //!
 //! Coarse: from control point pairs (Umeyama, residual per pair) or, without them, the
 //! automatic alignment of [`crate::geom::coarse`]. Fine: ICP of the SfM points onto the
-//! LiDAR cloud thinned to `target_voxel_m`, estimating scale too. Everything runs in the
+//! LiDAR cloud thinned to `target_voxel_m`, estimating scale too; then a point-to-plane
+//! refinement of the translation on the planar LiDAR surfaces only (ground, stems, stones),
+//! which takes the translation at the plot centre from 1–2 cm to below 1 cm on `tiny`. Everything runs in the
 //! LiDAR cloud's local frame (file coordinates minus the ingest offset) so f32 positions stay
 //! precise; the report gives `sfm_to_lidar` in the file's own coordinates.
 
@@ -212,11 +214,27 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             p.min_fitness * 100.0
         )));
     }
-    let local = coarse.then(&fine.transform());
     ctx.progress.log(&format!(
         "ICP: fitness {:.2}, inlier RMSE {:.3} m, scale correction {:.4}, {} iterations",
         fine.fitness, fine.inlier_rmse, fine.scale, fine.iterations
     ));
+    let fine = if p.refine {
+        let r = refine_on_surfaces(
+            &source,
+            &target,
+            &fine.transform(),
+            p,
+            &SubProgress::new(ctx.progress, 0.9, 0.08),
+        )?;
+        ctx.progress.log(&format!(
+            "point-to-plane refinement: fitness {:.2}, inlier RMSE {:.3} m, {} iterations",
+            r.fitness, r.inlier_rmse, r.iterations
+        ));
+        r
+    } else {
+        fine
+    };
+    let local = coarse.then(&fine.transform());
     let to_file = Similarity {
         translation: local.translation + offset,
         ..local
@@ -301,6 +319,78 @@ pub fn icp_two_phase(
         &SubProgress::new(progress, 0.65, 0.35),
     )
     .map_err(StageError::from)
+}
+
+/// The final refinement: point-to-plane similarity ICP from `initial`, each LiDAR point
+/// weighted by how planar its neighbourhood is (foliage gets no weight) and each residual by
+/// a Huber kernel.
+pub fn refine_on_surfaces(
+    source: &[Vec3],
+    target: &[Vec3],
+    initial: &Similarity,
+    p: &super::params::RegisterParams,
+    progress: &dyn Progress,
+) -> Result<geom::IcpResult, StageError> {
+    let index = geom::PointIndex::new(target)?;
+    let normals = geom::estimate_normals_with_index(
+        target,
+        &index,
+        &geom::NormalParams {
+            k: IcpParams::default().normal_k,
+            orientation: geom::NormalOrientation::None,
+        },
+        &SubProgress::new(progress, 0.0, 0.4),
+    )?;
+    let weights = surface_weights(&normals.eigenvalues, p);
+    let params = IcpParams {
+        method: IcpMethod::PointToPlane,
+        estimate_scale: p.estimate_scale && p.refine_estimate_scale,
+        estimate_rotation: p.refine_estimate_rotation,
+        max_iterations: p.refine_max_iterations.max(1) as usize,
+        start_distance: p.refine_max_distance_m,
+        shrink: 1.0,
+        min_distance: p.refine_max_distance_m,
+        robust: RobustKernel::Huber {
+            scale: p.refine_huber_m,
+        },
+        relative_rmse_tolerance: p.icp_relative_rmse,
+        ..Default::default()
+    };
+    geom::icp_weighted(
+        source,
+        target,
+        &index,
+        Some(&normals.normals),
+        geom::IcpWeights {
+            source: None,
+            target: Some(&weights),
+        },
+        initial,
+        &params,
+        &SubProgress::new(progress, 0.4, 0.6),
+    )
+    .map_err(StageError::from)
+}
+
+/// Weight in [0, 1] of each LiDAR point as a plane for the refinement, from its
+/// neighbourhood's covariance eigenvalues l1 >= l2 >= l3 (m²): 0 for a line (a scan line
+/// on distant ground, a twig: its normal is undetermined), for a spread-out neighbourhood
+/// (sparse far field) and for a volume (foliage); otherwise falling linearly with the surface
+/// variation l3 / (l1 + l2 + l3).
+pub fn surface_weights(eigenvalues: &[[f32; 3]], p: &super::params::RegisterParams) -> Vec<f32> {
+    let max_sv = p.refine_max_surface_variation.max(1e-9);
+    let max_spread2 = (p.refine_max_spread_voxels * p.target_voxel_m).powi(2);
+    eigenvalues
+        .iter()
+        .map(|l| {
+            let [l1, l2, l3] = l.map(f64::from);
+            let sum = l1 + l2 + l3;
+            if sum <= 0.0 || l1 > max_spread2 || (l1 - l2) / l1 > p.refine_max_linearity {
+                return 0.0;
+            }
+            (1.0 - (l3 / sum) / max_sv).clamp(0.0, 1.0) as f32
+        })
+        .collect()
 }
 
 fn file_name(p: &Path) -> String {

@@ -9,7 +9,7 @@ use super::Pair;
 use crate::geom::{GeomError, Similarity};
 
 // Index loops mirror the matrix algebra.
-#[allow(clippy::needless_range_loop)]
+#[allow(clippy::needless_range_loop, clippy::too_many_arguments)]
 /// One Gauss-Newton step of point-to-plane (similarity) ICP; returns the updated transform.
 pub(super) fn point_to_plane_step(
     source: &[Vec3],
@@ -18,6 +18,7 @@ pub(super) fn point_to_plane_step(
     pairs: &[Pair],
     t: &Similarity,
     with_scale: bool,
+    with_rotation: bool,
 ) -> Result<Similarity, GeomError> {
     let dim = if with_scale { 7 } else { 6 };
     let (mut sw, mut c) = (0.0, DVec3::ZERO);
@@ -51,6 +52,17 @@ pub(super) fn point_to_plane_step(
     for a in 0..dim {
         for b in 0..a {
             ata[a][b] = ata[b][a];
+        }
+    }
+    if !with_rotation {
+        // Pin omega to 0: its rows and columns become the identity, its right side 0.
+        for a in 0..3 {
+            for b in 0..dim {
+                ata[a][b] = 0.0;
+                ata[b][a] = 0.0;
+            }
+            ata[a][a] = ata[3][3].max(ata[4][4]).max(ata[5][5]).max(1.0);
+            atb[a] = 0.0;
         }
     }
     let delta = solve(ata, atb, dim).ok_or(GeomError::Degenerate(

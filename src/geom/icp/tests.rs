@@ -171,6 +171,145 @@ fn point_to_plane_recovers_similarity_from_independent_samples() {
 }
 
 #[test]
+fn target_weights_keep_a_surface_seen_differently_from_biasing_the_fit() {
+    // The source sees the ground and stems where the target does, plus a "canopy" layer that
+    // the target holds 8 cm lower (the scanner sees the crown from below, the UAV from
+    // above). Without prior weights the canopy drags the fit down; with the canopy's target
+    // points weighted 0 the fit is exact.
+    let mut rng = ChaCha8Rng::seed_from_u64(24);
+    let mut target = scene(&mut rng, 0.0, 12.0, 60_000, 10_000);
+    let mut sub = scene(&mut rng, 0.0, 12.0, 12_000, 2_000);
+    let canopy = |rng: &mut ChaCha8Rng, n: usize, dz: f32| -> Vec<Vec3> {
+        (0..n)
+            .map(|_| {
+                let (x, y) = (rng.random_range(0.0..12.0), rng.random_range(0.0..12.0));
+                Vec3::new(x, y, 7.0 + dz)
+            })
+            .collect()
+    };
+    let ground_and_stems = target.len();
+    target.extend(canopy(&mut rng, 60_000, -0.08));
+    sub.extend(canopy(&mut rng, 12_000, 0.0));
+    let normals = estimate_normals(&target, &NormalParams::default(), &NoProgress).unwrap();
+    let index = PointIndex::new(&target).unwrap();
+    let prior: Vec<f32> = (0..target.len())
+        .map(|i| if i < ground_and_stems { 1.0 } else { 0.0 })
+        .collect();
+    let t = truth(1.002);
+    let inv = t.inverse();
+    let source: Vec<Vec3> = sub.iter().map(|p| inv.apply_f32(*p)).collect();
+    let params = IcpParams {
+        method: IcpMethod::PointToPlane,
+        robust: RobustKernel::Huber { scale: 0.02 },
+        start_distance: 0.3,
+        min_distance: 0.1,
+        ..IcpParams::default()
+    };
+    let run = |target_w: Option<&[f32]>| {
+        icp_weighted(
+            &source,
+            &target,
+            &index,
+            Some(&normals.normals),
+            IcpWeights {
+                source: None,
+                target: target_w,
+            },
+            &Similarity::IDENTITY,
+            &params,
+            &NoProgress,
+        )
+        .unwrap()
+    };
+    let plain = run(None);
+    let dz = (plain.translation - t.translation).length() + (plain.scale / t.scale - 1.0).abs();
+    assert!(
+        dz > 2e-3,
+        "the canopy should bias the unweighted fit: {plain:?}"
+    );
+    assert_close(&run(Some(&prior)), &t, "weighted point-to-plane");
+    // Weights outside [0, 1] or of the wrong length are refused.
+    let bad = vec![2.0f32; target.len()];
+    let w = IcpWeights {
+        source: None,
+        target: Some(&bad),
+    };
+    let id = Similarity::IDENTITY;
+    let r = icp_weighted(
+        &source,
+        &target,
+        &index,
+        Some(&normals.normals),
+        w,
+        &id,
+        &params,
+        &NoProgress,
+    );
+    assert!(matches!(r, Err(GeomError::InvalidParameter(_))));
+    let short = [1.0f32; 3];
+    let w = IcpWeights {
+        source: Some(&short),
+        target: None,
+    };
+    let r = icp_weighted(
+        &source,
+        &target,
+        &index,
+        Some(&normals.normals),
+        w,
+        &id,
+        &params,
+        &NoProgress,
+    );
+    assert!(matches!(r, Err(GeomError::LengthMismatch { .. })));
+}
+
+#[test]
+fn a_fixed_rotation_refines_translation_only() {
+    let mut rng = ChaCha8Rng::seed_from_u64(25);
+    let target = scene(&mut rng, 0.0, 12.0, 60_000, 10_000);
+    let sub = scene(&mut rng, 0.0, 12.0, 12_000, 2_000);
+    let normals = estimate_normals(&target, &NormalParams::default(), &NoProgress).unwrap();
+    let t = truth(1.0);
+    let inv = t.inverse();
+    let source: Vec<Vec3> = sub.iter().map(|p| inv.apply_f32(*p)).collect();
+    // Start from the true rotation with the translation off by several centimetres.
+    let initial = Similarity {
+        translation: t.translation + DVec3::new(0.04, -0.05, 0.03),
+        ..t
+    };
+    let params = IcpParams {
+        method: IcpMethod::PointToPlane,
+        estimate_scale: false,
+        estimate_rotation: false,
+        start_distance: 0.3,
+        min_distance: 0.1,
+        robust: RobustKernel::Huber { scale: 0.02 },
+        ..IcpParams::default()
+    };
+    let res = icp(
+        &source,
+        &target,
+        Some(&normals.normals),
+        &initial,
+        &params,
+        &NoProgress,
+    )
+    .unwrap();
+    assert_eq!(res.rotation, t.rotation, "the rotation must not move");
+    assert_close(&res, &t, "translation-only point-to-plane");
+    // Point-to-point has no translation-only step.
+    let p2p = IcpParams {
+        method: IcpMethod::PointToPoint,
+        ..params
+    };
+    assert!(matches!(
+        icp(&source, &target, None, &initial, &p2p, &NoProgress),
+        Err(GeomError::InvalidParameter(_))
+    ));
+}
+
+#[test]
 fn icp_stops_on_cancel_and_rejects_bad_input() {
     struct Cancelled;
     impl Progress for Cancelled {

@@ -1,0 +1,210 @@
+//! Registration accuracy table on synthetic plots (`sylva synth`), one row per seed: the
+//! recovered `sfm_to_lidar` of stage `register` against the generator's truth.
+//!
+//! `cargo run --profile test --example register_diag -- PRESET SEEDS [auto]`, e.g.
+//! `-- tiny 1-5` or `-- stand 1-5 auto`. Plots are cached under `$REG_DIAG_DIR` (default
+//! `/tmp/sylva-register-diag`); `REG_PARAMS` may hold a JSON object of register parameters.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use glam::{DMat3, DQuat, DVec3};
+use sylva::geom::Similarity;
+use sylva::pipeline::{self, PipelineParams, Stage, StageInputs};
+use sylva::progress::NoProgress;
+use sylva::synth::{Preset, SynthParams};
+
+/// Rotation (degrees), scale (relative) and translation at the plot centre (metres) errors.
+fn errors(est: &Similarity, truth: &Similarity, centre: DVec3) -> (f64, f64, f64) {
+    let rot = DQuat::from_mat3(&(est.rotation.transpose() * truth.rotation))
+        .angle_between(DQuat::IDENTITY)
+        .to_degrees();
+    let scale = est.scale / truth.scale - 1.0;
+    let p = truth.inverse().apply(centre);
+    (rot, scale, (est.apply(p) - centre).length())
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let preset = Preset::from_name(args.first().map_or("tiny", String::as_str)).ok_or("preset")?;
+    let seeds: Vec<u64> = match args
+        .get(1)
+        .map(String::as_str)
+        .unwrap_or("1-5")
+        .split_once('-')
+    {
+        Some((a, b)) => (a.parse()?..=b.parse()?).collect(),
+        None => vec![args[1].parse()?],
+    };
+    let automatic = args.get(2).is_some_and(|a| a == "auto");
+    let analyse = args.get(2).is_some_and(|a| a == "analyse");
+    let root = PathBuf::from(
+        std::env::var("REG_DIAG_DIR").unwrap_or_else(|_| "/tmp/sylva-register-diag".into()),
+    );
+    let mut params = PipelineParams::default();
+    if let Ok(json) = std::env::var("REG_PARAMS") {
+        params.register = serde_json::from_str(&json)?;
+    }
+    params.register.automatic = automatic;
+    println!(
+        "| seed | method | coarse rot ° | coarse scale % | coarse cm | rot ° | scale % | cm | fitness | rmse m | iters | confidence | s |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for seed in seeds {
+        let out = root.join(format!("{}-{seed}", preset.name()));
+        if !out.join("truth.json").exists() {
+            let mut p = SynthParams::new(preset);
+            p.seed = seed;
+            sylva::synth::generate(&p, &out, &NoProgress)?;
+        }
+        let work = out.join("work");
+        let inputs = StageInputs {
+            lidar: out.join("lidar.laz"),
+            colmap: out.join("colmap"),
+            control_points: (!automatic).then(|| out.join("control_points.csv")),
+            field_dbh: None,
+        };
+        if !work.join("ingest").exists() {
+            pipeline::execute_stage(Stage::Ingest, &inputs, &work, &params, &NoProgress)?;
+        }
+        if analyse {
+            analyse_seed(&out, &params.register)?;
+            continue;
+        }
+        let t0 = Instant::now();
+        let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &NoProgress);
+        let secs = t0.elapsed().as_secs_f64();
+        let truth: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
+        let t = &truth["sfm_to_world"];
+        let rows: [[f64; 3]; 3] = serde_json::from_value(t["rotation"].clone())?;
+        let truth_sim = Similarity {
+            scale: t["scale"].as_f64().ok_or("scale")?,
+            rotation: DMat3::from_cols_array_2d(&rows).transpose(),
+            translation: DVec3::from_array(serde_json::from_value(t["translation"].clone())?),
+        };
+        let centre = DVec3::from_array(serde_json::from_value(truth["plot_center"].clone())?);
+        let report = match result {
+            Ok(o) => o.report,
+            Err(e) => {
+                println!("| {seed} | refused: {e} |");
+                continue;
+            }
+        };
+        let get = |k: &str| pipeline::register::similarity_from_json(&report[k]).ok_or("report");
+        let offset = DVec3::from_array(serde_json::from_value(report["lidar_offset"].clone())?);
+        let mut coarse = get("coarse")?;
+        coarse.translation += offset;
+        let (cr, cs, ct) = errors(&coarse, &truth_sim, centre);
+        let (r, s, tr) = errors(&get("sfm_to_lidar")?, &truth_sim, centre);
+        println!(
+            "| {seed} | {} | {cr:.4} | {:.4} | {:.2} | {r:.4} | {:.4} | {:.2} | {:.3} | {:.4} | {} | {:.2} | {secs:.1} |",
+            report["method"].as_str().unwrap_or("?"),
+            cs * 100.0,
+            ct * 100.0,
+            s * 100.0,
+            tr * 100.0,
+            report["fitness"].as_f64().unwrap_or(f64::NAN),
+            report["rmse_m"].as_f64().unwrap_or(f64::NAN),
+            report["icp_iterations"],
+            report["confidence"].as_f64().unwrap_or(f64::NAN),
+        );
+    }
+    Ok(())
+}
+
+fn truth_of(out: &std::path::Path) -> Result<(Similarity, DVec3), Box<dyn std::error::Error>> {
+    let truth: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
+    let t = &truth["sfm_to_world"];
+    let rows: [[f64; 3]; 3] = serde_json::from_value(t["rotation"].clone())?;
+    let sim = Similarity {
+        scale: t["scale"].as_f64().ok_or("scale")?,
+        rotation: DMat3::from_cols_array_2d(&rows).transpose(),
+        translation: DVec3::from_array(serde_json::from_value(t["translation"].clone())?),
+    };
+    let centre = DVec3::from_array(serde_json::from_value(truth["plot_center"].clone())?);
+    Ok((sim, centre))
+}
+
+/// Where the SfM points lie on the LiDAR's classes at the true pose, and where the
+/// refinement drifts from the true pose with each subset of them.
+fn analyse_seed(
+    out: &std::path::Path,
+    p: &sylva::pipeline::params::RegisterParams,
+) -> Result<(), Box<dyn std::error::Error>> {
+    use glam::Vec3;
+    let cloud =
+        sylva::io::pointcloud::read_point_cloud(&out.join("work/ingest/cloud.ply"), &NoProgress)?;
+    let labels = std::fs::read(out.join("labels.bin"))?;
+    let model = sylva::io::colmap::read_model(&out.join("work/ingest/sparse"), &NoProgress)?;
+    let (truth, centre) = truth_of(out)?;
+    let local = Similarity {
+        translation: truth.translation - cloud.offset,
+        ..truth
+    };
+    let c_local = centre - cloud.offset;
+    let source: Vec<Vec3> = model
+        .points
+        .iter()
+        .map(|q| local.apply(q.xyz).as_vec3())
+        .collect();
+    let index = sylva::geom::PointIndex::new(&cloud.positions)?;
+    let mut by_label = vec![Vec::new(); 4];
+    let mut lab = Vec::with_capacity(source.len());
+    for q in &source {
+        let m = index.nearest(*q).ok_or("nearest")?;
+        let l = labels.get(m.index as usize).copied().unwrap_or(3) as usize;
+        by_label[l.min(3)].push((m.dist2 as f64).sqrt());
+        lab.push(l);
+    }
+    for (l, d) in by_label.iter_mut().enumerate() {
+        d.sort_by(f64::total_cmp);
+        let med = d.get(d.len() / 2).copied().unwrap_or(f64::NAN);
+        print!("label {l}: {} pts, median nn {:.3} m; ", d.len(), med);
+    }
+    println!();
+    let target = sylva::geom::voxel_downsample(
+        &cloud.positions,
+        None,
+        &sylva::geom::VoxelParams {
+            voxel_size: p.target_voxel_m as f32,
+        },
+        &NoProgress,
+    )?
+    .positions;
+    for (name, keep) in [
+        ("all", [true, true, true, true]),
+        ("ground+wood+other", [true, true, false, true]),
+        ("ground", [true, false, false, false]),
+        ("leaf", [false, false, true, false]),
+    ] {
+        let sub: Vec<Vec3> = source
+            .iter()
+            .zip(&lab)
+            .filter(|(_, l)| keep[**l])
+            .map(|(q, _)| *q)
+            .collect();
+        match sylva::pipeline::register::refine_on_surfaces(
+            &sub,
+            &target,
+            &Similarity::IDENTITY,
+            p,
+            &NoProgress,
+        ) {
+            Ok(r) => {
+                let t = r.transform();
+                let (er, es, et) = errors(&t, &Similarity::IDENTITY, c_local);
+                println!(
+                    "  refine from truth on {name} ({} pts): rot {er:.4}°, scale {:.4}%, {:.2} cm, fitness {:.3}, iters {}",
+                    sub.len(),
+                    es * 100.0,
+                    et * 100.0,
+                    r.fitness,
+                    r.iterations
+                );
+            }
+            Err(e) => println!("  {name}: {e}"),
+        }
+    }
+    Ok(())
+}
