@@ -14,7 +14,11 @@ fn bench_load_prints_a_table_with_requests_on_sqlite() {
         .expect("run sylva bench load");
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "exit {}:\n{stdout}\n{stderr}", out.status);
+    assert!(
+        out.status.success(),
+        "exit {}:\n{stdout}\n{stderr}",
+        out.status
+    );
     let mut lines = stdout.lines();
     assert_eq!(
         lines.next(),

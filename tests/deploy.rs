@@ -32,7 +32,9 @@ struct Surface {
 
 /// Every subcommand's flags and variables, by subcommand name.
 fn cli() -> BTreeMap<String, Surface> {
-    let cmd = sylva::cli::Cli::command();
+    let mut cmd = sylva::cli::Cli::command();
+    // Built, so that clap's own --help and --version are listed too.
+    cmd.build();
     cmd.get_subcommands()
         .map(|sub| {
             let mut s = Surface::default();
@@ -77,8 +79,13 @@ fn check_invocation(
         return None;
     };
     for arg in &args[1..] {
-        if let Some(flag) = arg.strip_prefix("--").map(|f| f.split('=').next().unwrap_or(f)) {
-            let flag = format!("--{flag}");
+        // `--name`, `--name=value`, or in prose `--name`).` and the like.
+        if let Some(rest) = arg.strip_prefix("--") {
+            let name: String = rest
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '-')
+                .collect();
+            let flag = format!("--{name}");
             if !surface.flags.contains(&flag) && !whitelisted(&flag) {
                 errors.push(format!("{at}: `sylva {sub}` has no flag {flag}"));
             }
@@ -117,7 +124,9 @@ fn is_get_route(path: &str) -> bool {
 fn http_url(text: &str) -> Option<(u16, String)> {
     let start = text.find("http://")? + "http://".len();
     let rest = &text[start..];
-    let end = rest.find(|c: char| c.is_whitespace() || c == '"').unwrap_or(rest.len());
+    let end = rest
+        .find(|c: char| c.is_whitespace() || c == '"')
+        .unwrap_or(rest.len());
     let url = &rest[..end];
     let (authority, path) = url.split_at(url.find('/')?);
     let port = authority.rsplit(':').next()?.parse().ok()?;
@@ -259,7 +268,10 @@ fn compose_file_parses_and_uses_real_flags_and_variables() {
         }
         let at = format!("compose service {name}");
         // Without `command`, the image's CMD (`serve`) runs.
-        let args = svc.get("command").map(strings).unwrap_or_else(|| vec!["serve".into()]);
+        let args = svc
+            .get("command")
+            .map(strings)
+            .unwrap_or_else(|| vec!["serve".into()]);
         let Some(sub) = check_invocation(&cli, &args, &at, &mut errors) else {
             continue;
         };
@@ -272,7 +284,10 @@ fn compose_file_parses_and_uses_real_flags_and_variables() {
             let k = k.as_str().unwrap_or("");
             check_env_name(&envs, k, &at, &mut errors);
             if k == "SYLVA_LISTEN" {
-                let port = v.as_str().and_then(port_of).expect("SYLVA_LISTEN host:port");
+                let port = v
+                    .as_str()
+                    .and_then(port_of)
+                    .expect("SYLVA_LISTEN host:port");
                 let ports = svc.get("ports").map(strings).unwrap_or_default();
                 assert!(
                     ports.iter().all(|p| p.ends_with(&format!(":{port}"))),
@@ -281,9 +296,13 @@ fn compose_file_parses_and_uses_real_flags_and_variables() {
             }
         }
         if let Some(hc) = svc.get("healthcheck")
-            && let Some((_, path)) = http_url(&strings(hc.get("test").unwrap_or(&Value::Null)).join(" "))
+            && let Some((_, path)) =
+                http_url(&strings(hc.get("test").unwrap_or(&Value::Null)).join(" "))
         {
-            assert!(is_get_route(&path), "{at}: healthcheck {path} is not a GET route");
+            assert!(
+                is_get_route(&path),
+                "{at}: healthcheck {path} is not a GET route"
+            );
         }
         sylva_subs.insert(sub);
     }
@@ -309,12 +328,21 @@ fn kubernetes_manifests_parse_and_probe_real_routes() {
         if path.extension().and_then(|e| e.to_str()) != Some("yaml") {
             continue;
         }
-        let file = path.file_name().and_then(|n| n.to_str()).unwrap_or("?").to_string();
+        let file = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("?")
+            .to_string();
         for doc in parse_yaml_docs(&path) {
             match doc.get("kind").and_then(Value::as_str) {
                 Some("ConfigMap") | Some("Secret") => {
                     for key in ["data", "stringData"] {
-                        for (k, v) in doc.get(key).and_then(Value::as_mapping).into_iter().flatten() {
+                        for (k, v) in doc
+                            .get(key)
+                            .and_then(Value::as_mapping)
+                            .into_iter()
+                            .flatten()
+                        {
                             let k = k.as_str().unwrap_or("");
                             check_env_name(&shared_envs, k, &file, &mut errors);
                             if k == "SYLVA_LISTEN" {
@@ -340,12 +368,20 @@ fn kubernetes_manifests_parse_and_probe_real_routes() {
             continue;
         }
         let at = format!("{file} container {}", c["name"].as_str().unwrap_or("?"));
-        let args = c.get("args").map(strings).unwrap_or_else(|| vec!["serve".into()]);
+        let args = c
+            .get("args")
+            .map(strings)
+            .unwrap_or_else(|| vec!["serve".into()]);
         let Some(sub) = check_invocation(&cli, &args, &at, &mut errors) else {
             continue;
         };
         let envs = envs_of(&cli, &[sub.as_str()]);
-        for e in c.get("env").and_then(Value::as_sequence).into_iter().flatten() {
+        for e in c
+            .get("env")
+            .and_then(Value::as_sequence)
+            .into_iter()
+            .flatten()
+        {
             check_env_name(&envs, e["name"].as_str().unwrap_or(""), &at, &mut errors);
         }
         let ports: BTreeMap<String, u64> = c
@@ -353,7 +389,12 @@ fn kubernetes_manifests_parse_and_probe_real_routes() {
             .and_then(Value::as_sequence)
             .into_iter()
             .flatten()
-            .filter_map(|p| Some((p["name"].as_str()?.to_string(), p["containerPort"].as_u64()?)))
+            .filter_map(|p| {
+                Some((
+                    p["name"].as_str()?.to_string(),
+                    p["containerPort"].as_u64()?,
+                ))
+            })
             .collect();
         for probe in ["startupProbe", "livenessProbe", "readinessProbe"] {
             let Some(get) = c.get(probe).and_then(|p| p.get("httpGet")) else {
@@ -361,7 +402,10 @@ fn kubernetes_manifests_parse_and_probe_real_routes() {
             };
             probes += 1;
             let path = get["path"].as_str().unwrap_or("");
-            assert!(is_get_route(path), "{at}: {probe} {path} is not a GET route");
+            assert!(
+                is_get_route(path),
+                "{at}: {probe} {path} is not a GET route"
+            );
             let port = match &get["port"] {
                 Value::String(name) => ports.get(name).copied(),
                 other => other.as_u64(),
@@ -391,7 +435,10 @@ fn kubernetes_manifests_parse_and_probe_real_routes() {
         .into_iter()
         .filter(|f| f != "kustomization.yaml")
         .collect();
-    assert_eq!(listed, manifests, "kustomization.yaml resources against deploy/k8s/*.yaml");
+    assert_eq!(
+        listed, manifests,
+        "kustomization.yaml resources against deploy/k8s/*.yaml"
+    );
     assert!(errors.is_empty(), "{errors:#?}");
 }
 
@@ -400,7 +447,10 @@ fn deploy_texts_name_only_real_variables_and_flags() {
     let cli = cli();
     let all_envs = envs_of(&cli, &[]);
     let mut errors = Vec::new();
-    let mut texts = vec![deploy_dir().join("Dockerfile"), deploy_dir().join("compose.yaml")];
+    let mut texts = vec![
+        deploy_dir().join("Dockerfile"),
+        deploy_dir().join("compose.yaml"),
+    ];
     texts.push(deploy_dir().join("README.md"));
     for entry in std::fs::read_dir(deploy_dir().join("k8s")).expect("deploy/k8s") {
         texts.push(entry.expect("dir entry").path());
@@ -416,17 +466,23 @@ fn deploy_texts_name_only_real_variables_and_flags() {
         for line in text.lines() {
             let words: Vec<&str> = line.split_whitespace().collect();
             for (i, w) in words.iter().enumerate() {
-                if *w != "sylva" && !w.ends_with("/sylva") {
+                let w = w.trim_matches('`');
+                if w != "sylva" && !w.ends_with("/sylva") {
                     continue;
                 }
-                let Some(sub) = words.get(i + 1) else { continue };
-                if !cli.contains_key(*sub) {
+                let Some(sub) = words.get(i + 1).map(|s| s.trim_matches('`')) else {
+                    continue;
+                };
+                if !cli.contains_key(sub) {
                     continue;
                 }
                 let args: Vec<String> = words[i + 1..]
                     .iter()
                     .take_while(|w| !matches!(**w, "|" | "&&" | ";" | "#"))
-                    .map(|w| w.trim_matches(|c| c == '`' || c == '\'' || c == '"').to_string())
+                    .map(|w| {
+                        w.trim_matches(|c| c == '`' || c == '\'' || c == '"')
+                            .to_string()
+                    })
                     .collect();
                 check_invocation(&cli, &args, &at, &mut errors);
             }

@@ -406,7 +406,9 @@ pub async fn run(a: &LoadArgs) -> anyhow::Result<()> {
         for &n in &clients {
             let row = drive(&server, &ids, n, a.seconds, a.list_share).await?;
             if !printed_header {
-                println!("| database | clients | requests | requests/s | p50 ms | p99 ms | errors |");
+                println!(
+                    "| database | clients | requests | requests/s | p50 ms | p99 ms | errors |"
+                );
                 println!("|---|---|---|---|---|---|---|");
                 printed_header = true;
             }

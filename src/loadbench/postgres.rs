@@ -182,17 +182,14 @@ impl Cluster {
 
     fn init(&self) -> Result<(), String> {
         run(
-            self.tool("initdb")
-                .arg("-D")
-                .arg(self.data_dir())
-                .args([
-                    "-U",
-                    SUPERUSER,
-                    "--auth=trust",
-                    "--encoding=UTF8",
-                    "--locale=C",
-                    "--no-sync",
-                ]),
+            self.tool("initdb").arg("-D").arg(self.data_dir()).args([
+                "-U",
+                SUPERUSER,
+                "--auth=trust",
+                "--encoding=UTF8",
+                "--locale=C",
+                "--no-sync",
+            ]),
             "initdb",
         )
     }
@@ -260,10 +257,11 @@ impl Drop for Cluster {
     fn drop(&mut self) {
         if self.port != 0 {
             let _ = run(
-                self.tool("pg_ctl")
-                    .arg("-D")
-                    .arg(self.data_dir())
-                    .args(["-m", "immediate", "stop"]),
+                self.tool("pg_ctl").arg("-D").arg(self.data_dir()).args([
+                    "-m",
+                    "immediate",
+                    "stop",
+                ]),
                 "pg_ctl stop",
             );
         }
