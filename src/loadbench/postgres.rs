@@ -244,10 +244,11 @@ impl Cluster {
             .output()
             .ok()
             .and_then(|o| {
-                String::from_utf8_lossy(&o.stdout)
-                    .split_whitespace()
-                    .last()
-                    .map(str::to_string)
+                // `pg_ctl (PostgreSQL) 15.14 (Debian 15.14-0+deb12u1)`: the word after the name.
+                let text = String::from_utf8_lossy(&o.stdout).into_owned();
+                let mut words = text.split_whitespace();
+                words.find(|w| *w == "(PostgreSQL)")?;
+                words.next().map(str::to_string)
             })
             .unwrap_or_default()
     }
