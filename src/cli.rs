@@ -46,7 +46,7 @@ pub enum Command {
     /// Train Gaussian splatting on a COLMAP project (vanilla 3DGS from the SfM points, or
     /// resume from a splat PLY); writes splats.ply, eval.json, the loss curve and test renders.
     Train(TrainArgs),
-    /// Benchmarks that print tables (not tests): `sylva bench train`.
+    /// Benchmarks that print tables (not tests): `sylva bench train`, `sylva bench load`.
     Bench(BenchArgs),
     /// A generated plot through the whole service: start the server (SQLite + local files),
     /// upload the plot through the API, follow the job, print the inventory and its accuracy,
@@ -75,7 +75,8 @@ pub struct DemoArgs {
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {
-    /// What to measure: train (steps per second, where the step time goes, peak memory).
+    /// What to measure: train (steps per second, where the step time goes, peak memory) or
+    /// load (job status reads per second and latency of the HTTP API; flags marked `load:`).
     #[arg(env = "SYLVA_BENCH_WHAT", default_value = "train")]
     pub what: String,
     /// A COLMAP project to train on; without one a synthetic plot is generated.
@@ -96,6 +97,8 @@ pub struct BenchArgs {
     /// gpu or cpu.
     #[arg(long, env = "SYLVA_BENCH_BACKEND", default_value = "gpu")]
     pub backend: String,
+    #[command(flatten)]
+    pub load: crate::loadbench::LoadArgs,
 }
 
 #[derive(Debug, Args)]
@@ -747,8 +750,12 @@ fn peak_rss_mib() -> f64 {
 
 async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     use crate::pipeline::params::{TrainBackend, TrainParams};
+    if a.what == "load" {
+        crate::loadbench::run(&a.load).await?;
+        return Ok(ExitCode::SUCCESS);
+    }
     if a.what != "train" {
-        anyhow::bail!("unknown benchmark {:?}; available: train", a.what);
+        anyhow::bail!("unknown benchmark {:?}; available: train, load", a.what);
     }
     let backend = match a.backend.as_str() {
         "gpu" => TrainBackend::Gpu,

@@ -13,6 +13,7 @@ pub mod geom;
 pub mod gpu;
 pub mod io;
 pub mod jobs;
+pub mod loadbench;
 pub mod pipeline;
 pub mod progress;
 pub mod splat;
