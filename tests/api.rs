@@ -1129,3 +1129,176 @@ async fn an_expired_upload_is_gone(db: Db) {
         .expect("complete");
     expect_problem(r, StatusCode::GONE).await;
 }
+
+/// Uploads `bytes` as one upload of `kind` named `name`; the answer to `complete`.
+async fn upload_whole(
+    c: &reqwest::Client,
+    base: &str,
+    kind: &str,
+    name: &str,
+    bytes: Vec<u8>,
+) -> reqwest::Response {
+    let created: Value = c
+        .post(format!("{base}/v1/uploads"))
+        .json(&json!({ "kind": kind, "filename": name, "size": bytes.len() }))
+        .send()
+        .await
+        .expect("create")
+        .json()
+        .await
+        .expect("json");
+    let id = created["id"].as_str().expect("id").to_string();
+    let part = created["part_size"].as_u64().expect("part_size") as usize;
+    for (n, chunk) in bytes.chunks(part).enumerate() {
+        let r = c
+            .put(format!("{base}/v1/uploads/{id}/parts/{n}"))
+            .body(chunk.to_vec())
+            .send()
+            .await
+            .expect("part");
+        assert_eq!(r.status(), StatusCode::OK, "part {n} of {name}");
+    }
+    c.post(format!("{base}/v1/uploads/{id}/complete"))
+        .send()
+        .await
+        .expect("complete")
+}
+
+/// Each bad input of issue 10 is a clear problem that names the file and the fault, and the
+/// service carries on.
+#[tokio::test(flavor = "multi_thread")]
+async fn bad_inputs_are_clear_problems_naming_the_file_and_the_fault() {
+    let fx = fixture();
+    let data = fx.dir.path().join("data");
+    let srv = serve(&data, &["--max-upload-bytes", "1073741824"]);
+    let (c, base) = (client(), srv.base.clone());
+    let detail_of = |p: &Value| p["detail"].as_str().expect("detail").to_string();
+    let refused = |r: reqwest::Response| expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY);
+
+    // A LAS whose header declares more points than the file holds.
+    let mut las = std::fs::read(&fx.lidar).expect("las");
+    let n = u32::from_le_bytes(las[107..111].try_into().expect("4 bytes"));
+    las[107..111].copy_from_slice(&(n + 5000).to_le_bytes());
+    if las.len() > 255 && u16::from_le_bytes([las[94], las[95]]) >= 375 {
+        let n64 = u64::from_le_bytes(las[247..255].try_into().expect("8 bytes"));
+        las[247..255].copy_from_slice(&(n64 + 5000).to_le_bytes());
+    }
+    let d = detail_of(&refused(upload_whole(&c, &base, "lidar", "count.las", las).await).await);
+    assert!(d.starts_with("count.las") && d.contains("points"), "{d}");
+
+    // PLY headers that promise more vertices than the body has (ASCII and binary).
+    let header = |enc: &str| {
+        format!(
+            "ply\nformat {enc} 1.0\nelement vertex 100\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+        )
+    };
+    let ascii = format!("{}1 2 3\n4 5 6\n", header("ascii")).into_bytes();
+    let d = detail_of(&refused(upload_whole(&c, &base, "lidar", "rows.ply", ascii).await).await);
+    assert!(
+        d.starts_with("rows.ply") && d.contains("100 vertices"),
+        "{d}"
+    );
+    let mut binary = header("binary_little_endian").into_bytes();
+    binary.extend_from_slice(&[0u8; 120]);
+    let d = detail_of(&refused(upload_whole(&c, &base, "lidar", "bytes.ply", binary).await).await);
+    assert!(
+        d.starts_with("bytes.ply") && d.contains("100 vertices"),
+        "{d}"
+    );
+
+    // Non-finite coordinates.
+    let xyz = b"1 2 3\n4 nan 6\n7 8 9\n".to_vec();
+    let d = detail_of(&refused(upload_whole(&c, &base, "lidar", "nan.xyz", xyz).await).await);
+    assert!(
+        d.starts_with("nan.xyz") && d.contains("line 2") && d.contains("non-finite"),
+        "{d}"
+    );
+
+    // A COLMAP project with an unsupported camera model; no server path in the answer.
+    let project = fx.dir.path().join("fisheye");
+    for sub in ["images", "sparse/0"] {
+        std::fs::create_dir_all(project.join(sub)).expect("mkdir");
+        for e in std::fs::read_dir(fx.colmap_dir.join(sub)).expect("read_dir") {
+            let e = e.expect("entry");
+            std::fs::copy(e.path(), project.join(sub).join(e.file_name())).expect("copy");
+        }
+    }
+    let cams = project.join("sparse/0/cameras.txt");
+    let text = std::fs::read_to_string(&cams).expect("cameras");
+    std::fs::write(&cams, text.replace("PINHOLE", "FISHEYE_X")).expect("write");
+    let zip = fx.dir.path().join("fisheye.zip");
+    zip_dir(&project, &zip);
+    let bytes = std::fs::read(&zip).expect("zip");
+    let d =
+        detail_of(&refused(upload_whole(&c, &base, "colmap", "fisheye.zip", bytes).await).await);
+    assert!(
+        d.starts_with("fisheye.zip") && d.contains("FISHEYE_X"),
+        "{d}"
+    );
+    assert!(
+        d.contains("sparse/0/cameras.txt"),
+        "names the file inside: {d}"
+    );
+    assert!(
+        !d.contains(&data.display().to_string()),
+        "leaks a server path: {d}"
+    );
+
+    // An empty archive.
+    let empty = fx.dir.path().join("empty");
+    std::fs::create_dir_all(&empty).expect("mkdir");
+    let zip = fx.dir.path().join("empty.zip");
+    zip_dir(&empty, &zip);
+    let bytes = std::fs::read(&zip).expect("zip");
+    let d = detail_of(&refused(upload_whole(&c, &base, "colmap", "empty.zip", bytes).await).await);
+    assert!(
+        d.starts_with("empty.zip") && d.contains("no regular file"),
+        "{d}"
+    );
+
+    // 10 GB declared against a 1 GiB limit: 413 before a byte is sent.
+    let r = c
+        .post(format!("{base}/v1/uploads"))
+        .json(&json!({ "kind": "lidar", "filename": "big.laz", "size": 10_000_000_000u64 }))
+        .send()
+        .await
+        .expect("create");
+    let p = expect_problem(r, StatusCode::PAYLOAD_TOO_LARGE).await;
+    assert!(detail_of(&p).contains("1073741824"), "{p}");
+
+    // A cloud in millimetres is accepted with a warning (it may be a huge plot after all).
+    let mut cloud =
+        sylva::io::pointcloud::read_point_cloud(&fx.lidar, &sylva::progress::NoProgress)
+            .expect("read las");
+    for p in &mut cloud.positions {
+        *p *= 1000.0;
+    }
+    let mm = fx.dir.path().join("mm.las");
+    sylva::io::las::write_las(&mm, &cloud, false).expect("write las");
+    let r = upload_whole(
+        &c,
+        &base,
+        "lidar",
+        "mm.las",
+        std::fs::read(&mm).expect("mm"),
+    )
+    .await;
+    assert_eq!(r.status(), StatusCode::OK);
+    let up: Value = r.json().await.expect("json");
+    let warnings = up["inspection"]["warnings"].to_string();
+    assert!(
+        warnings.contains("mm.las") && warnings.contains("millimetres"),
+        "{up}"
+    );
+
+    // Nothing else was harmed: the service is ready and a good upload still goes through.
+    let ready = c
+        .get(format!("{base}/readyz"))
+        .send()
+        .await
+        .expect("readyz");
+    assert_eq!(ready.status(), StatusCode::OK);
+    let good = std::fs::read(&fx.lidar).expect("las");
+    let r = upload_whole(&c, &base, "lidar", "good.las", good).await;
+    assert_eq!(r.status(), StatusCode::OK);
+}

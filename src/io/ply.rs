@@ -59,6 +59,9 @@ pub fn inspect_ply(path: &Path) -> Result<PlyInfo, IoError> {
     let mut r = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
     let h = parse_header(path, &mut r)?;
     check_size(path, &h, len)?;
+    if h.encoding == PlyEncoding::Ascii {
+        check_ascii_rows(path, &h, &mut r)?;
+    }
     let vertex = h.elements.iter().find(|e| e.name == "vertex");
     let has = |n: &str| vertex.is_some_and(|v| v.props.iter().any(|p| p.name == n));
     Ok(PlyInfo {
@@ -75,6 +78,40 @@ pub fn inspect_ply(path: &Path) -> Result<PlyInfo, IoError> {
         has_color: has("red") && has("green") && has("blue"),
         sylva_offset: h.offset.map(|o| o.to_array()),
     })
+}
+
+/// An ASCII body has one row per element instance: counts the non-blank rows after the header
+/// (a streaming pass, about as fast as the disk) and refuses a file with fewer than declared.
+fn check_ascii_rows(path: &Path, h: &Header, r: &mut impl std::io::BufRead) -> Result<(), IoError> {
+    let declared: u64 = h.elements.iter().map(|e| e.count).sum();
+    let mut rows = 0u64;
+    let mut line = Vec::new();
+    loop {
+        line.clear();
+        let n = r
+            .read_until(b'\n', &mut line)
+            .map_err(|e| IoError::io(path, e))?;
+        if n == 0 || rows >= declared {
+            break;
+        }
+        if line.iter().any(|b| !b.is_ascii_whitespace()) {
+            rows += 1;
+        }
+    }
+    if rows < declared {
+        let vcount = h
+            .elements
+            .iter()
+            .find(|e| e.name == "vertex")
+            .map_or(0, |e| e.count);
+        return Err(IoError::format(
+            path,
+            format!(
+                "header declares {vcount} vertices ({declared} rows in all) but the file holds {rows} rows"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Reads a PLY point cloud (see the module documentation).

@@ -82,17 +82,24 @@ pub fn inspect_upload(
     progress: &dyn Progress,
 ) -> Result<serde_json::Value, InspectError> {
     let named = |e: InspectError| match e {
+        // Server paths never reach the client: the blob's path goes, and paths inside the
+        // extracted archive become paths relative to the archive.
         InspectError::Unusable(m) => InspectError::Unusable(format!(
             "{filename}: {}",
             m.strip_prefix(&format!("{}: ", blob.display()))
                 .unwrap_or(&m)
+                .replace(&format!("{}/", unpack_dir.display()), "")
+                .replace(&unpack_dir.display().to_string(), "the archive")
         )),
         other => other,
     };
     let result = match kind {
         UploadKind::Lidar => pointcloud::inspect_point_cloud(blob)
             .map_err(InspectError::from)
-            .map(|s| json!({ "point_cloud": s })),
+            .map(|s| {
+                let warnings: Vec<String> = units_warning(filename, &s).into_iter().collect();
+                json!({ "point_cloud": s, "warnings": warnings })
+            }),
         UploadKind::Colmap => inspect_colmap(blob, unpack_dir, limits, progress),
         UploadKind::ControlPoints => tables::read_control_points(blob)
             .map_err(InspectError::from)
@@ -102,6 +109,55 @@ pub fn inspect_upload(
             .map(|v| json!({ "field_trees": v.len() })),
     };
     result.map_err(named)
+}
+
+/// A warning when the cloud's extent, as far as the header (LAS, LAZ) or the first lines
+/// (XYZ) tell, is too large for a plot in metres: a cloud in millimetres or centimetres. The
+/// limit is the ingest stage's `max_plausible_extent_m` default (5000 m); ingest checks again
+/// on every point.
+fn units_warning(filename: &str, s: &pointcloud::CloudSummary) -> Option<String> {
+    use crate::io::pointcloud::SummaryDetails;
+    let limit = crate::pipeline::params::IngestParams::default().max_plausible_extent_m;
+    let (lo, hi) = match &s.details {
+        SummaryDetails::Las(l) => (l.bounds_min, l.bounds_max),
+        SummaryDetails::Xyz(x) => {
+            let pts: Vec<[f64; 3]> = x
+                .first_lines
+                .iter()
+                .filter_map(|l| {
+                    let v: Vec<f64> = l
+                        .split(|c: char| c == ',' || c == ';' || c.is_whitespace())
+                        .filter(|t| !t.is_empty())
+                        .take(3)
+                        .map(str::parse)
+                        .collect::<Result<_, _>>()
+                        .ok()?;
+                    (v.len() == 3).then(|| [v[0], v[1], v[2]])
+                })
+                .collect();
+            if pts.len() < 2 {
+                return None;
+            }
+            let mut lo = [f64::INFINITY; 3];
+            let mut hi = [f64::NEG_INFINITY; 3];
+            for p in &pts {
+                for k in 0..3 {
+                    lo[k] = lo[k].min(p[k]);
+                    hi[k] = hi[k].max(p[k]);
+                }
+            }
+            (lo, hi)
+        }
+        _ => return None,
+    };
+    let diagonal = (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt();
+    (diagonal.is_finite() && diagonal > limit).then(|| {
+        format!(
+            "{filename}: the cloud spans {diagonal:.0} units; a forest plot spans tens of \
+             metres, so the file may not be in metres (millimetres or centimetres?). Sylva \
+             reads coordinates as metres."
+        )
+    })
 }
 
 fn inspect_colmap(
