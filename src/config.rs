@@ -84,6 +84,14 @@ pub struct WorkerArgs {
     #[arg(long, env = "SYLVA_POLL_MS", default_value_t = 500)]
     pub poll_ms: u64,
 
+    /// Longest a stage may run, in seconds, after which it is cancelled and the job fails
+    /// with a clear "stage timed out" problem: one number for every stage and/or
+    /// `stage=seconds` overrides, comma-separated (e.g. `7200,train=172800`). Default 172800
+    /// (48 h, beyond any plot's training on a real GPU) so a hung stage never holds a worker
+    /// for ever.
+    #[arg(long, env = "SYLVA_MAX_STAGE_SECS", default_value = "172800")]
+    pub max_stage_secs: String,
+
     /// Fault injection for tests: every stage waits this many milliseconds (cancellably)
     /// before it starts. 0 in production.
     #[arg(long, env = "SYLVA_DEBUG_STAGE_PAUSE_MS", default_value_t = 0)]
@@ -93,6 +101,33 @@ pub struct WorkerArgs {
 impl WorkerArgs {
     pub fn lease(&self) -> Duration {
         Duration::from_secs(self.lease_secs.max(1))
+    }
+
+    /// The runtime limit of `stage` from --max-stage-secs.
+    pub fn max_stage_runtime(&self, stage: &str) -> Result<Duration, String> {
+        let mut default = None;
+        let mut own = None;
+        for item in self
+            .max_stage_secs
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+        {
+            let (name, secs) = match item.split_once('=') {
+                Some((n, v)) => (Some(n.trim()), v.trim()),
+                None => (None, item),
+            };
+            let secs: u64 = secs
+                .parse()
+                .map_err(|_| format!("--max-stage-secs: {item:?} is not a number of seconds"))?;
+            match name {
+                None => default = Some(secs),
+                Some(n) if n == stage => own = Some(secs),
+                Some(_) => {}
+            }
+        }
+        let secs = own.or(default).unwrap_or(172_800);
+        Ok(Duration::from_secs(secs.max(1)))
     }
 }
 
@@ -198,5 +233,35 @@ pub fn init_tracing(args: &StoreArgs) {
         let _ = builder.json().try_init();
     } else {
         let _ = builder.try_init();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct W {
+        #[command(flatten)]
+        w: WorkerArgs,
+    }
+
+    #[test]
+    fn stage_limits_take_a_default_and_per_stage_overrides() {
+        let w = W::parse_from(["x", "--max-stage-secs", "7200, train=172800"]).w;
+        assert_eq!(w.max_stage_runtime("ingest"), Ok(Duration::from_secs(7200)));
+        assert_eq!(
+            w.max_stage_runtime("train"),
+            Ok(Duration::from_secs(172_800))
+        );
+        let w = W::parse_from(["x", "--max-stage-secs", "dbh=60"]).w;
+        assert_eq!(w.max_stage_runtime("dbh"), Ok(Duration::from_secs(60)));
+        assert_eq!(
+            w.max_stage_runtime("train"),
+            Ok(Duration::from_secs(172_800))
+        );
+        let w = W::parse_from(["x", "--max-stage-secs", "train=soon"]).w;
+        assert!(w.max_stage_runtime("ingest").is_err());
     }
 }

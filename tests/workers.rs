@@ -264,3 +264,61 @@ async fn three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill(db: D
         assert!(!text.contains("claim failed"), "{text}");
     }
 }
+
+/// A stage that hangs is stopped at its runtime limit and the job fails clearly; the worker
+/// goes on to the next job.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_hung_stage_fails_at_its_runtime_limit() {
+    let fx = fixture();
+    let data = fx.dir.path().join("data");
+    let srv = serve(
+        &data,
+        &[
+            "--debug-stage-pause-ms",
+            "600000",
+            "--max-stage-secs",
+            "3600,ingest=1",
+        ],
+    );
+    let (c, base) = (client(), srv.base.clone());
+    let inputs = upload_inputs(&c, &base, &fx).await;
+    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
+    let started = std::time::Instant::now();
+    let job = create_job(&c, &base, &body).await;
+    let id = job["id"].as_str().expect("id").to_string();
+    let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
+    assert_eq!(job["state"], "failed", "{job}");
+    assert_eq!(
+        job["error"]["type"], "urn:sylva:problem:stage-timeout",
+        "{job}"
+    );
+    let detail = job["error"]["detail"].as_str().expect("detail");
+    assert!(detail.contains("limit of 1 s"), "{detail}");
+    assert_eq!(stage(&job, "ingest")["state"], "failed");
+    assert!(
+        started.elapsed() < Duration::from_secs(30),
+        "stopped long after its limit"
+    );
+    // The worker is free again: the next job is claimed (and stopped the same way).
+    let next = create_job(&c, &base, &body).await;
+    let nid = next["id"].as_str().expect("id").to_string();
+    let (next, _) = wait_job(&c, &base, &nid, Duration::from_secs(60), is_terminal).await;
+    assert_eq!(next["error"]["type"], "urn:sylva:problem:stage-timeout");
+}
+
+/// Bad --max-stage-secs values stop the process at start with a clear message.
+#[test]
+fn a_bad_stage_limit_is_refused_at_start() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = std::process::Command::new(BIN)
+        .args(["worker", "--max-stage-secs", "train=soon", "--data"])
+        .arg(dir.path())
+        .output()
+        .expect("run");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--max-stage-secs") && err.contains("train=soon"),
+        "{err}"
+    );
+}

@@ -71,6 +71,13 @@ impl SqliteJobs {
         let pool = SqlitePoolOptions::new()
             .max_connections(max_connections.max(2))
             .acquire_timeout(BUSY_TIMEOUT)
+            // A COMMIT that failed (SQLITE_FULL on a full disk) leaves its connection inside
+            // the transaction; such a connection is closed (SQLite rolls back) and replaced
+            // instead of failing every later `BEGIN` that draws it from the pool.
+            .before_acquire(|conn, _| {
+                let clean = !sqlx::Connection::is_in_transaction(conn);
+                Box::pin(async move { Ok(clean) })
+            })
             .connect_with(options)
             .await?;
         sqlx::migrate!("./migrations/sqlite").run(&pool).await?;

@@ -417,6 +417,20 @@ impl WorkerPool {
             None
         };
 
+        // The runtime limit: a watchdog cancels the stage once it has run too long.
+        let limit = self
+            .args
+            .max_stage_runtime(stage.name())
+            .unwrap_or(Duration::from_secs(172_800));
+        let timed_out = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let watchdog = {
+            let (timed_out, progress) = (timed_out.clone(), progress.clone());
+            tokio::spawn(async move {
+                tokio::time::sleep(limit).await;
+                timed_out.store(true, Ordering::SeqCst);
+                progress.cancel.cancel();
+            })
+        };
         let pause = Duration::from_millis(self.args.debug_stage_pause_ms);
         if !pause.is_zero() {
             tokio::select! {
@@ -440,6 +454,7 @@ impl WorkerPool {
                 )))
             })
         };
+        watchdog.abort();
         let _ = stop_tx.send(true);
         let _ = hb.await;
         drop(_gpu);
@@ -480,6 +495,27 @@ impl WorkerPool {
                         Outcome::Stop
                     }
                 }
+            }
+            Err(_) if timed_out.load(Ordering::SeqCst) => {
+                let detail = format!(
+                    "stage {stage} ran longer than its limit of {} s and was stopped \
+                     (--max-stage-secs)",
+                    limit.as_secs()
+                );
+                tracing::warn!("{detail}");
+                self.log(job, "error", Some(stage), &detail).await;
+                let end = RunEnd::Failed {
+                    stage: Some(stage.name().into()),
+                    problem: json!({
+                        "type": "urn:sylva:problem:stage-timeout",
+                        "title": "Stage timed out",
+                        "status": 500,
+                        "detail": detail,
+                        "stage": stage.name(),
+                    }),
+                };
+                let _ = self.db.finish_job(job, token, &end).await;
+                Outcome::Stop
             }
             Err(StageError::Cancelled) | Err(_) if progress.cancel.is_cancelled() => {
                 self.log(
