@@ -13,7 +13,7 @@ use clap::{Args, Parser, Subcommand};
 use tokio::sync::{Notify, watch};
 
 use crate::api::{self, AppState, Counters};
-use crate::config::{ApiArgs, StoreArgs, WorkerArgs, init_tracing};
+use crate::config::{ApiArgs, RetentionArgs, StoreArgs, WorkerArgs, init_tracing};
 use crate::io::archive::{self, ExtractLimits};
 use crate::jobs::JobStore;
 use crate::pipeline::{self, PipelineParams, Stage, StageInputs};
@@ -52,6 +52,18 @@ pub enum Command {
     /// upload the plot through the API, follow the job, print the inventory and its accuracy,
     /// and keep serving the web page until Ctrl-C.
     Demo(DemoArgs),
+    /// Retention sweep, once: expire abandoned and unused uploads, remove the files of jobs
+    /// finished longer ago than --job-retention-secs, remove orphaned folders; prints what
+    /// it removed. `sylva serve` also sweeps every --gc-interval-secs.
+    Gc(GcArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct GcArgs {
+    #[command(flatten)]
+    pub store: StoreArgs,
+    #[command(flatten)]
+    pub retention: RetentionArgs,
 }
 
 #[derive(Debug, Args)]
@@ -325,6 +337,7 @@ pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Train(a) => train(a).await,
         Command::Bench(a) => bench(a).await,
         Command::Demo(a) => demo(a).await,
+        Command::Gc(a) => gc(a).await,
     }
 }
 
@@ -393,6 +406,15 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
     // Recovery runs before the address is announced, so whoever waits for it sees a settled
     // queue.
     let (stop_tx, stop_rx) = watch::channel(false);
+    let sweeper = (a.api.retention.gc_interval_secs > 0).then(|| {
+        tokio::spawn(crate::gc::run_periodically(
+            db.clone(),
+            blobs.clone(),
+            a.api.retention.clone(),
+            Duration::from_secs(a.api.retention.gc_interval_secs),
+            stop_rx.clone(),
+        ))
+    });
     let workers = if a.worker.workers > 0 {
         let pool = WorkerPool::new(db, blobs, a.worker.clone(), wake);
         pool.recover().await;
@@ -415,7 +437,23 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
     if let Some(w) = workers {
         let _ = tokio::time::timeout(Duration::from_secs(5), w).await;
     }
+    if let Some(s) = sweeper {
+        s.abort();
+    }
     Ok(())
+}
+
+async fn gc(a: GcArgs) -> anyhow::Result<ExitCode> {
+    init_tracing(&a.store);
+    let (db, blobs) = open_store(&a.store).await?;
+    let report = crate::gc::sweep(&db, &blobs, &a.retention)
+        .await
+        .context("retention sweep")?;
+    println!(
+        "uploads expired: {}\njobs purged: {}\norphaned folders removed: {}\nbytes freed: {}",
+        report.uploads_expired, report.jobs_purged, report.orphans_removed, report.bytes_freed
+    );
+    Ok(ExitCode::SUCCESS)
 }
 
 async fn worker(a: WorkerOnlyArgs) -> anyhow::Result<()> {

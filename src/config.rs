@@ -206,10 +206,48 @@ pub struct ApiArgs {
     #[arg(long, env = "SYLVA_PRESIGN_MIN_BYTES", default_value_t = 16 * MIB)]
     pub presign_min_bytes: u64,
 
+    /// Bytes one token may keep on the server: its uploads (declared sizes, open or complete)
+    /// plus its jobs' artifacts. Past it, new uploads get 429 with Retry-After. 0 (the
+    /// default): no quota.
+    #[arg(long, env = "SYLVA_QUOTA_BYTES", default_value_t = 0)]
+    pub quota_bytes: u64,
+
+    /// Unfinished jobs (queued, running or canceling) one token may have at a time; past it,
+    /// submissions get 429 with Retry-After. 0 (the default): no quota.
+    #[arg(long, env = "SYLVA_QUOTA_JOBS", default_value_t = 0)]
+    pub quota_jobs: u64,
+
+    #[command(flatten)]
+    pub retention: RetentionArgs,
+
     /// Seconds a presigned download URL stays valid (default 900: long enough to start a
     /// large download, short enough that a leaked link soon dies).
     #[arg(long, env = "SYLVA_PRESIGN_TTL_SECS", default_value_t = 900)]
     pub presign_ttl_secs: u64,
+}
+
+/// How long finished work is kept (in `sylva serve`, which sweeps periodically, and in
+/// `sylva gc`, which sweeps once).
+#[derive(Debug, Clone, Args)]
+pub struct RetentionArgs {
+    /// Seconds a finished job keeps its files (artifacts, stage outputs) after it ends; then
+    /// they are removed and its artifacts answer 410 Gone (the job record stays). A complete
+    /// upload that no job with files still reads is removed the same time after completion.
+    /// 0: keep everything. Default 2592000 (30 days); each job shows its `expires_at`.
+    #[arg(long, env = "SYLVA_JOB_RETENTION_SECS", default_value_t = 2_592_000)]
+    pub job_retention_secs: u64,
+
+    /// Seconds between two retention sweeps in `sylva serve` (0: never; run `sylva gc`
+    /// instead, e.g. from cron). Default 600.
+    #[arg(long, env = "SYLVA_GC_INTERVAL_SECS", default_value_t = 600)]
+    pub gc_interval_secs: u64,
+}
+
+impl RetentionArgs {
+    /// How long a finished job keeps its files; `None`: for ever.
+    pub fn job_retention(&self) -> Option<Duration> {
+        (self.job_retention_secs > 0).then(|| Duration::from_secs(self.job_retention_secs))
+    }
 }
 
 impl ApiArgs {

@@ -9,6 +9,7 @@ pub mod api;
 pub mod cli;
 pub mod config;
 pub mod forest;
+pub mod gc;
 pub mod geom;
 pub mod gpu;
 pub mod io;

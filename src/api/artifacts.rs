@@ -13,7 +13,7 @@ use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio_util::io::ReaderStream;
 
 use super::AppState;
-use super::jobs::load;
+use super::jobs::{files_kept, load};
 use super::problem::ApiError;
 use crate::jobs::ArtifactRecord;
 
@@ -149,6 +149,7 @@ pub async fn get(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let job = load(&state, &id).await?;
+    files_kept(&job)?;
     let name = name.trim_start_matches('/');
     let a = job
         .artifacts
@@ -166,6 +167,7 @@ async fn by_file_name(
     headers: &HeaderMap,
 ) -> Result<Response, ApiError> {
     let job = load(state, id).await?;
+    files_kept(&job)?;
     let a = job
         .artifacts
         .iter()

@@ -20,8 +20,30 @@ pub fn token_matches(tokens: &[String], presented: &str) -> bool {
     ok.into()
 }
 
-pub async fn require_token(State(state): State<AppState>, req: Request, next: Next) -> Response {
+/// Who is calling, set by [`require_token`] on every authenticated route: the owner id of
+/// the presented token (see [`crate::jobs::owner_id`]), "" with authentication off.
+#[derive(Debug, Clone, Default)]
+pub struct Caller {
+    pub owner: String,
+}
+
+impl Caller {
+    /// The caller of a request that went through [`require_token`] (anonymous otherwise).
+    pub fn of<B>(req: &axum::http::Request<B>) -> Caller {
+        req.extensions()
+            .get::<Caller>()
+            .cloned()
+            .unwrap_or_default()
+    }
+}
+
+pub async fn require_token(
+    State(state): State<AppState>,
+    mut req: Request,
+    next: Next,
+) -> Response {
     if state.args.token.is_empty() {
+        req.extensions_mut().insert(Caller::default());
         return next.run(req).await;
     }
     let presented = req
@@ -34,7 +56,13 @@ pub async fn require_token(State(state): State<AppState>, req: Request, next: Ne
         })
         .map(str::trim);
     match presented {
-        Some(t) if token_matches(&state.args.token, t) => next.run(req).await,
+        Some(t) if token_matches(&state.args.token, t) => {
+            let caller = Caller {
+                owner: crate::jobs::owner_id(t),
+            };
+            req.extensions_mut().insert(caller);
+            next.run(req).await
+        }
         Some(_) => ApiError::new(
             StatusCode::UNAUTHORIZED,
             "unauthorized",

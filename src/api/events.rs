@@ -74,7 +74,7 @@ async fn next_events(mut c: Cursor) -> Option<(Result<Event, Infallible>, Cursor
                 );
             }
         }
-        let view = views::job(&job);
+        let view = views::job(&job, c.state.retention());
         let sig = signature(&view);
         if c.last_job.as_ref() != Some(&sig) {
             c.last_job = Some(sig);

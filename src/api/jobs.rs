@@ -12,10 +12,11 @@ use serde::Deserialize;
 use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 
+use super::auth::Caller;
 use super::problem::ApiError;
 use super::uploads::{self, new_id, valid_id};
 use super::{AppState, count_upload_bytes, views};
-use crate::jobs::Created;
+use crate::jobs::{Admission, Created, NewJob};
 use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
 use crate::pipeline::{PipelineParams, Stage};
 
@@ -80,6 +81,7 @@ fn idempotency_key(req: &Request) -> Result<Option<String>, ApiError> {
 
 pub async fn create(State(state): State<AppState>, req: Request) -> Result<Response, ApiError> {
     let key = idempotency_key(&req)?;
+    let caller = Caller::of(&req);
     let content_type = req
         .headers()
         .get(header::CONTENT_TYPE)
@@ -108,7 +110,7 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
         let multipart = Multipart::from_request(req, &state)
             .await
             .map_err(|e| ApiError::bad_request(format!("multipart body: {e}")))?;
-        multipart_inputs(&state, multipart).await?
+        multipart_inputs(&state, &caller, multipart).await?
     } else {
         return Err(ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -119,18 +121,21 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
     let parsed: PipelineParams =
         serde_json::from_value(params.clone()).map_err(ApiError::internal)?;
     let id = new_id();
-    let created = state
-        .db
-        .create_job(
-            &id,
-            &inputs,
-            &params,
-            &parsed.stages(),
-            key.as_deref(),
-            &hash,
-            state.args.max_queued_jobs as i64,
-        )
-        .await?;
+    let stages = parsed.stages();
+    let job = NewJob {
+        id: &id,
+        inputs: &inputs,
+        params: &params,
+        stages: &stages,
+        idempotency_key: key.as_deref(),
+        request_hash: &hash,
+        owner: &caller.owner,
+    };
+    let limits = Admission {
+        max_queued: state.args.max_queued_jobs as i64,
+        max_active_per_owner: state.args.quota_jobs as i64,
+    };
+    let created = state.db.create_job(&job, limits).await?;
     let (id, new) = match created {
         Created::New(id) => (id, true),
         Created::Existing(id) => (id, false),
@@ -142,11 +147,27 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
         wake_workers(&state, &id).await;
         tracing::info!(job = %id, "job queued");
     }
-    let mut resp = (StatusCode::ACCEPTED, Json(views::job(&job))).into_response();
+    let mut resp = (
+        StatusCode::ACCEPTED,
+        Json(views::job(&job, state.retention())),
+    )
+        .into_response();
     if let Ok(loc) = HeaderValue::from_str(&format!("/v1/jobs/{id}")) {
         resp.headers_mut().insert(header::LOCATION, loc);
     }
     Ok(resp)
+}
+
+/// 410 Gone for a job whose files retention removed.
+pub fn files_kept(job: &JobRecord) -> Result<(), ApiError> {
+    match job.purged_at {
+        Some(at) => Err(ApiError::gone(format!(
+            "job {} ended more than the retention time ago; its files were removed at {}",
+            job.id,
+            crate::jobs::rfc3339(at)
+        ))),
+        None => Ok(()),
+    }
 }
 
 fn request_hash(v: &Value) -> String {
@@ -156,6 +177,7 @@ fn request_hash(v: &Value) -> String {
 /// Stores each file part of a one-request submission as a completed upload.
 async fn multipart_inputs(
     state: &AppState,
+    caller: &Caller,
     mut mp: Multipart,
 ) -> Result<(JobInputs, Value, String), ApiError> {
     let mut files: HashMap<UploadKind, (String, String)> = HashMap::new();
@@ -197,6 +219,10 @@ async fn multipart_inputs(
                 "part `{name}` ({filename}) is empty"
             )));
         }
+        if let Err(e) = uploads::check_byte_quota(state, &caller.owner, size).await {
+            state.blobs.drop_parts(&id).await;
+            return Err(e);
+        }
         let now = now_ms();
         let rec = UploadRecord {
             id: id.clone(),
@@ -211,6 +237,8 @@ async fn multipart_inputs(
             expires_at: now + state.args.upload_ttl_secs as i64 * 1000,
             completed_at: None,
             parts: vec![(0, size as i64)],
+            owner: caller.owner.clone(),
+            expired: false,
         };
         state.db.create_upload(&rec).await?;
         state.db.put_part(&id, 0, size as i64, &sha).await?;
@@ -285,7 +313,10 @@ pub async fn list(
     let next = (jobs.len() as i64 == limit)
         .then(|| jobs.last().map(|j| j.seq.to_string()))
         .flatten();
-    let views: Vec<Value> = jobs.iter().map(views::job).collect();
+    let views: Vec<Value> = jobs
+        .iter()
+        .map(|j| views::job(j, state.retention()))
+        .collect();
     Ok(Json(json!({ "jobs": views, "next_cursor": next })).into_response())
 }
 
@@ -293,7 +324,7 @@ pub async fn get(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    Ok(Json(views::job(&load(&state, &id).await?)).into_response())
+    Ok(Json(views::job(&load(&state, &id).await?, state.retention())).into_response())
 }
 
 pub async fn delete(
@@ -347,7 +378,11 @@ pub async fn cancel(
         )
         .await;
     let job = load(&state, &id).await?;
-    Ok((StatusCode::ACCEPTED, Json(views::job(&job))).into_response())
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(views::job(&job, state.retention())),
+    )
+        .into_response())
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -362,7 +397,7 @@ pub async fn retry(
     Path(id): Path<String>,
     body: Bytes,
 ) -> Result<Response, ApiError> {
-    load(&state, &id).await?;
+    files_kept(&load(&state, &id).await?)?;
     let req: RetryBody = if body.iter().all(u8::is_ascii_whitespace) {
         RetryBody::default()
     } else {
@@ -391,7 +426,11 @@ pub async fn retry(
         .await;
     wake_workers(&state, &id).await;
     let job = load(&state, &id).await?;
-    Ok((StatusCode::ACCEPTED, Json(views::job(&job))).into_response())
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(views::job(&job, state.retention())),
+    )
+        .into_response())
 }
 
 /// Wakes idle workers for a job that can now be claimed: this process's own, and through

@@ -55,6 +55,13 @@ pub struct AppState {
     pub lease: Duration,
 }
 
+impl AppState {
+    /// How long a finished job keeps its files (`None`: for ever).
+    pub fn retention(&self) -> Option<Duration> {
+        self.args.retention.job_retention()
+    }
+}
+
 /// Every (method, path) the router serves, in axum's path syntax. The router below is built
 /// from the same handlers; a test checks this list against openapi.yaml both ways and
 /// another that every entry is really routed.

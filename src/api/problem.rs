@@ -53,6 +53,9 @@ impl ApiError {
     pub fn unprocessable(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::UNPROCESSABLE_ENTITY, "unprocessable", detail)
     }
+    pub fn gone(detail: impl Into<String>) -> Self {
+        Self::new(StatusCode::GONE, "gone", detail)
+    }
     pub fn too_large(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::PAYLOAD_TOO_LARGE, "payload-too-large", detail)
     }
@@ -140,6 +143,16 @@ impl From<DbError> for ApiError {
                 format!("{n} jobs are waiting; submit again later"),
             )
             .with_header(header::RETRY_AFTER, "60"),
+            DbError::JobQuota(n) => ApiError::new(
+                StatusCode::TOO_MANY_REQUESTS,
+                "quota-exceeded",
+                format!(
+                    "this token already has {n} unfinished jobs, its quota; submit again when one \
+                     has finished"
+                ),
+            )
+            .with_header(header::RETRY_AFTER, "60"),
+            DbError::Gone(m) => ApiError::gone(m),
             other if other.is_storage_full() => ApiError::storage_full("the server's disk is full"),
             other => ApiError::internal(other.to_string()),
         }

@@ -4,14 +4,15 @@
 use std::collections::HashSet;
 use std::sync::{LazyLock, Mutex};
 
-use axum::Json;
 use axum::body::Body;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use axum::{Extension, Json};
 use serde::Deserialize;
 use serde_json::json;
 
+use super::auth::Caller;
 use super::problem::ApiError;
 use super::{AppState, count_upload_bytes, views};
 use crate::jobs::{UploadKind, UploadRecord, now_ms};
@@ -54,7 +55,36 @@ pub async fn load(state: &AppState, id: &str) -> Result<UploadRecord, ApiError> 
 
 /// Checks an upload request and records it; shared by `POST /v1/uploads` and one-request
 /// job submissions.
-pub async fn create_record(state: &AppState, req: UploadCreate) -> Result<UploadRecord, ApiError> {
+/// 429 when `adding` more bytes would take `owner` past `--quota-bytes`.
+pub async fn check_byte_quota(state: &AppState, owner: &str, adding: u64) -> Result<(), ApiError> {
+    let quota = state.args.quota_bytes;
+    if quota == 0 {
+        return Ok(());
+    }
+    let used = state.db.stored_bytes(owner).await?.max(0) as u64;
+    if used.saturating_add(adding) <= quota {
+        return Ok(());
+    }
+    // Space comes back when a job is deleted or retention removes old files; the sweep runs
+    // every --gc-interval-secs, which is when asking again can first succeed unaided.
+    let retry = state.args.retention.gc_interval_secs.clamp(60, 3600);
+    Err(ApiError::new(
+        StatusCode::TOO_MANY_REQUESTS,
+        "quota-exceeded",
+        format!(
+            "this token keeps {used} bytes on the server and may keep {quota}; {adding} more \
+             would exceed its quota: delete finished jobs (DELETE /v1/jobs/{{id}}) or wait for \
+             retention to remove old ones"
+        ),
+    )
+    .with_header(header::RETRY_AFTER, &retry.to_string()))
+}
+
+pub async fn create_record(
+    state: &AppState,
+    owner: &str,
+    req: UploadCreate,
+) -> Result<UploadRecord, ApiError> {
     let a = &state.args;
     if req.filename.is_empty() || req.filename.chars().count() > 255 {
         return Err(
@@ -90,6 +120,7 @@ pub async fn create_record(state: &AppState, req: UploadCreate) -> Result<Upload
                 .with_error("sha256", "pattern ^[0-9a-f]{64}$"),
         );
     }
+    check_byte_quota(state, owner, req.size).await?;
     let free = state.blobs.free_bytes()?;
     // The upload needs room for its parts and its assembled copy.
     if free < a.min_free_bytes.saturating_add(req.size.saturating_mul(2)) {
@@ -112,6 +143,8 @@ pub async fn create_record(state: &AppState, req: UploadCreate) -> Result<Upload
         expires_at: now + a.upload_ttl_secs as i64 * 1000,
         completed_at: None,
         parts: Vec::new(),
+        owner: owner.to_string(),
+        expired: false,
     };
     state.db.create_upload(&rec).await?;
     Ok(rec)
@@ -119,9 +152,10 @@ pub async fn create_record(state: &AppState, req: UploadCreate) -> Result<Upload
 
 pub async fn create(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Json(req): Json<UploadCreate>,
 ) -> Result<Response, ApiError> {
-    let rec = create_record(&state, req).await?;
+    let rec = create_record(&state, &caller.owner, req).await?;
     let mut resp = (StatusCode::CREATED, Json(views::upload(&rec))).into_response();
     if let Ok(loc) = HeaderValue::from_str(&format!("/v1/uploads/{}", rec.id)) {
         resp.headers_mut().insert(header::LOCATION, loc);

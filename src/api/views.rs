@@ -32,7 +32,15 @@ fn eta_seconds(job: &JobRecord) -> Value {
     }
 }
 
-pub fn job(j: &JobRecord) -> Value {
+/// A job as the API shows it; `retention` (how long a finished job keeps its files, `None`
+/// for ever) gives its `expires_at`.
+pub fn job(j: &JobRecord, retention: Option<std::time::Duration>) -> Value {
+    let expires_at = match (j.finished_at, retention) {
+        (Some(end), Some(keep)) if j.state.is_terminal() => {
+            json!(rfc3339(end.saturating_add(keep.as_millis() as i64)))
+        }
+        _ => Value::Null,
+    };
     let base = format!("/v1/jobs/{}", j.id);
     let stages: Vec<Value> = j
         .stages
@@ -80,6 +88,8 @@ pub fn job(j: &JobRecord) -> Value {
         "updated_at": rfc3339(j.updated_at),
         "started_at": ts(j.started_at),
         "finished_at": ts(j.finished_at),
+        "expires_at": expires_at,
+        "purged_at": ts(j.purged_at),
         "eta_seconds": eta_seconds(j),
         "error": j.error.clone().unwrap_or(Value::Null),
         "inputs": j.inputs,
@@ -107,7 +117,13 @@ pub fn upload(u: &UploadRecord) -> Value {
         "parts_total": u.parts_total(),
         "parts_received": received,
         "bytes_received": u.bytes_received(),
-        "state": if u.complete { "complete" } else { "open" },
+        "state": if u.complete {
+            "complete"
+        } else if u.expired || crate::jobs::now_ms() > u.expires_at {
+            "expired"
+        } else {
+            "open"
+        },
         "created_at": rfc3339(u.created_at),
         "expires_at": rfc3339(u.expires_at),
         "completed_at": ts(u.completed_at),

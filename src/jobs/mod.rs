@@ -138,8 +138,79 @@ pub struct JobRecord {
     pub updated_at: i64,
     pub started_at: Option<i64>,
     pub finished_at: Option<i64>,
+    /// Who submitted it ([`owner_id`] of the token; "" with authentication off).
+    pub owner: String,
+    /// When retention removed its files (ms since the epoch); its artifacts are then gone.
+    pub purged_at: Option<i64>,
     pub stages: Vec<StageRecord>,
     pub artifacts: Vec<ArtifactRecord>,
+}
+
+/// A job to queue, as the API accepted it.
+#[derive(Debug, Clone, Copy)]
+pub struct NewJob<'a> {
+    pub id: &'a str,
+    pub inputs: &'a JobInputs,
+    pub params: &'a serde_json::Value,
+    pub stages: &'a [Stage],
+    pub idempotency_key: Option<&'a str>,
+    /// SHA-256 of the request, so a reused Idempotency-Key with another body is refused.
+    pub request_hash: &'a str,
+    /// Who submits it ([`owner_id`]); its inputs must be this owner's uploads.
+    pub owner: &'a str,
+}
+
+/// Limits checked in the same transaction that queues a job, so concurrent submissions
+/// cannot both slip under them.
+#[derive(Debug, Clone, Copy)]
+pub struct Admission {
+    /// Queued jobs (all owners) at which new jobs are refused.
+    pub max_queued: i64,
+    /// Unfinished jobs (queued, running, canceling) one owner may have; 0: no limit.
+    pub max_active_per_owner: i64,
+}
+
+impl Admission {
+    /// Only the queue length limits admission.
+    pub fn queue(max_queued: i64) -> Self {
+        Self {
+            max_queued,
+            max_active_per_owner: 0,
+        }
+    }
+}
+
+/// Refuses an input upload of the wrong kind or not (or no longer) complete; `kind` and
+/// `state` are the upload's row.
+pub(crate) fn check_input(
+    want: UploadKind,
+    upload: &str,
+    kind: &str,
+    state: &str,
+) -> Result<(), DbError> {
+    let field = want.as_str();
+    if kind != field {
+        return Err(DbError::Invalid(format!(
+            "inputs.{field}: upload {upload} holds `{kind}`, not `{field}`"
+        )));
+    }
+    match state {
+        "complete" => Ok(()),
+        "expired" => Err(DbError::Gone(format!(
+            "inputs.{field}: upload {upload} has expired and its bytes were removed; upload it again"
+        ))),
+        _ => Err(DbError::Invalid(format!(
+            "inputs.{field}: upload {upload} is not complete"
+        ))),
+    }
+}
+
+/// The opaque owner id of a bearer token: `t` and the first 16 hex digits of its SHA-256, so
+/// records can be attributed and counted per token without storing the token.
+pub fn owner_id(token: &str) -> String {
+    use sha2::Digest;
+    let digest = sha2::Sha256::digest(token.as_bytes());
+    format!("t{}", &hex::encode(digest)[..16])
 }
 
 #[derive(Debug, Clone)]
@@ -178,6 +249,11 @@ pub struct UploadRecord {
     pub completed_at: Option<i64>,
     /// Received parts: (index, size in bytes).
     pub parts: Vec<(i64, i64)>,
+    /// Who created it ([`owner_id`] of the token; "" with authentication off).
+    pub owner: String,
+    /// Removed by retention (an open upload past `expires_at`, or a finished one no job
+    /// needs any more): its bytes are gone and it answers 410.
+    pub expired: bool,
 }
 
 impl UploadRecord {
@@ -357,6 +433,12 @@ pub enum DbError {
     Fenced,
     #[error("queue full: {0} jobs waiting")]
     QueueFull(i64),
+    /// The owner already has this many unfinished jobs, its quota.
+    #[error("quota: {0} unfinished jobs")]
+    JobQuota(i64),
+    /// The resource existed but retention removed it (HTTP 410).
+    #[error("{0}")]
+    Gone(String),
 }
 
 impl DbError {

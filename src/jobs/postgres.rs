@@ -72,13 +72,15 @@ fn job_from_row(r: &PgRow) -> Result<JobRecord, DbError> {
         updated_at: r.try_get("updated_at")?,
         started_at: r.try_get("started_at")?,
         finished_at: r.try_get("finished_at")?,
+        owner: r.try_get("owner")?,
+        purged_at: r.try_get("purged_at")?,
         stages: Vec::new(),
         artifacts: Vec::new(),
     })
 }
 
 const JOB_COLUMNS: &str = "seq, id, state, stage, progress, attempt, inputs, params, error, \
-                           created_at, updated_at, started_at, finished_at";
+                           created_at, updated_at, started_at, finished_at, owner, purged_at";
 
 impl PgJobs {
     /// Connects to the database at `url` (`postgres://user:password@host:port/database`) and
@@ -194,8 +196,8 @@ impl PgJobs {
     /// Records a new upload (no parts yet).
     pub async fn create_upload(&self, u: &UploadRecord) -> Result<(), DbError> {
         sqlx::query(
-            "INSERT INTO uploads (id, kind, filename, size, sha256, part_size, state, created_at, expires_at) \
-             VALUES ($1, $2, $3, $4, $5, $6, 'open', $7, $8)",
+            "INSERT INTO uploads (id, kind, filename, size, sha256, part_size, state, created_at, expires_at, owner) \
+             VALUES ($1, $2, $3, $4, $5, $6, 'open', $7, $8, $9)",
         )
         .bind(&u.id)
         .bind(u.kind.as_str())
@@ -205,6 +207,7 @@ impl PgJobs {
         .bind(u.part_size)
         .bind(u.created_at)
         .bind(u.expires_at)
+        .bind(&u.owner)
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -242,6 +245,8 @@ impl PgJobs {
             expires_at: r.try_get("expires_at")?,
             completed_at: r.try_get("completed_at")?,
             parts,
+            owner: r.try_get("owner")?,
+            expired: state == "expired",
         }))
     }
 
@@ -298,30 +303,24 @@ impl PgJobs {
 
     /// Creates a job with its stage rows. With an idempotency key seen before, returns the
     /// earlier job if the request was the same, and a conflict otherwise.
-    #[allow(clippy::too_many_arguments)]
     pub async fn create_job(
         &self,
-        id: &str,
-        inputs: &JobInputs,
-        params: &serde_json::Value,
-        stages: &[Stage],
-        idempotency_key: Option<&str>,
-        request_hash: &str,
-        max_queued: i64,
+        job: &NewJob<'_>,
+        limits: Admission,
     ) -> Result<Created, DbError> {
         let mut tx = self.pool.begin().await?;
         sqlx::query("SELECT pg_advisory_xact_lock($1)")
             .bind(CREATE_LOCK)
             .execute(&mut *tx)
             .await?;
-        if let Some(key) = idempotency_key {
+        if let Some(key) = job.idempotency_key {
             let row = sqlx::query("SELECT id, request_hash FROM jobs WHERE idempotency_key = $1")
                 .bind(key)
                 .fetch_optional(&mut *tx)
                 .await?;
             if let Some(row) = row {
                 let hash: Option<String> = row.try_get("request_hash")?;
-                return if hash.as_deref() == Some(request_hash) {
+                return if hash.as_deref() == Some(job.request_hash) {
                     Ok(Created::Existing(row.try_get("id")?))
                 } else {
                     Err(DbError::Invalid(
@@ -333,14 +332,28 @@ impl PgJobs {
         let queued: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE state = 'queued'")
             .fetch_one(&mut *tx)
             .await?;
-        if queued >= max_queued {
+        if queued >= limits.max_queued {
             return Err(DbError::QueueFull(queued));
         }
-        for (kind, upload) in inputs.all() {
-            let row = sqlx::query("SELECT kind, state FROM uploads WHERE id = $1 FOR SHARE")
-                .bind(upload)
-                .fetch_optional(&mut *tx)
-                .await?;
+        if limits.max_active_per_owner > 0 {
+            let active: i64 = sqlx::query_scalar(
+                "SELECT COUNT(*) FROM jobs WHERE owner = $1 AND state IN ('queued', 'running', 'canceling')",
+            )
+            .bind(job.owner)
+            .fetch_one(&mut *tx)
+            .await?;
+            if active >= limits.max_active_per_owner {
+                return Err(DbError::JobQuota(active));
+            }
+        }
+        for (kind, upload) in job.inputs.all() {
+            let row = sqlx::query(
+                "SELECT kind, state FROM uploads WHERE id = $1 AND owner = $2 FOR SHARE",
+            )
+            .bind(upload)
+            .bind(job.owner)
+            .fetch_optional(&mut *tx)
+            .await?;
             let Some(row) = row else {
                 return Err(DbError::Invalid(format!(
                     "inputs.{}: upload {upload} does not exist",
@@ -348,45 +361,34 @@ impl PgJobs {
                 )));
             };
             let (k, s): (String, String) = (row.try_get("kind")?, row.try_get("state")?);
-            if k != kind.as_str() {
-                return Err(DbError::Invalid(format!(
-                    "inputs.{}: upload {upload} holds `{k}`, not `{}`",
-                    kind.as_str(),
-                    kind.as_str()
-                )));
-            }
-            if s != "complete" {
-                return Err(DbError::Invalid(format!(
-                    "inputs.{}: upload {upload} is not complete",
-                    kind.as_str()
-                )));
-            }
+            check_input(kind, upload, &k, &s)?;
         }
-        let inputs = serde_json::to_value(inputs)
+        let inputs = serde_json::to_value(job.inputs)
             .map_err(|e| DbError::Invalid(format!("bad inputs: {e}")))?;
         let now = now_ms();
         sqlx::query(
-            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at) \
-             VALUES ($1, 'queued', 0, 0, $2, $3, $4, $5, $6, $6)",
+            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at, owner) \
+             VALUES ($1, 'queued', 0, 0, $2, $3, $4, $5, $6, $6, $7)",
         )
-        .bind(id)
+        .bind(job.id)
         .bind(&inputs)
-        .bind(params)
-        .bind(idempotency_key)
-        .bind(request_hash)
+        .bind(job.params)
+        .bind(job.idempotency_key)
+        .bind(job.request_hash)
         .bind(now)
+        .bind(job.owner)
         .execute(&mut *tx)
         .await?;
-        for s in stages {
+        for s in job.stages {
             sqlx::query("INSERT INTO job_stages (job_id, idx, name) VALUES ($1, $2, $3)")
-                .bind(id)
+                .bind(job.id)
                 .bind(s.index() as i64)
                 .bind(s.name())
                 .execute(&mut *tx)
                 .await?;
         }
         tx.commit().await?;
-        Ok(Created::New(id.to_string()))
+        Ok(Created::New(job.id.to_string()))
     }
 
     async fn fill(&self, job: JobRecord) -> Result<JobRecord, DbError> {
@@ -671,6 +673,94 @@ impl PgJobs {
             .await?;
         tx.commit().await?;
         Ok(())
+    }
+
+    // ---------------------------------------------------------------- retention and quotas
+
+    /// Bytes an owner keeps on the server: its open and complete uploads (declared sizes) and
+    /// the artifacts of its jobs whose files retention has not removed.
+    pub async fn stored_bytes(&self, owner: &str) -> Result<i64, DbError> {
+        Ok(sqlx::query_scalar(
+            "SELECT COALESCE((SELECT SUM(size) FROM uploads WHERE owner = $1 AND state IN ('open', 'complete')), 0)::bigint \
+                  + COALESCE((SELECT SUM(a.size) FROM artifacts a JOIN jobs j ON j.id = a.job_id WHERE j.owner = $1), 0)::bigint",
+        )
+        .bind(owner)
+        .fetch_one(&self.pool)
+        .await?)
+    }
+
+    /// Marks as expired (at most `limit`) the open uploads whose `expires_at` is before `now`
+    /// and the complete ones finished before `unused_before` that no job with files still
+    /// reads; their parts' rows go. Returns (id, filename) of each, whose bytes the caller
+    /// removes.
+    pub async fn expire_uploads(
+        &self,
+        now: i64,
+        unused_before: i64,
+        limit: i64,
+    ) -> Result<Vec<(String, String)>, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let rows = sqlx::query(
+            "SELECT id, filename FROM uploads u WHERE (state = 'open' AND expires_at < $1) \
+             OR (state = 'complete' AND completed_at < $2 AND NOT EXISTS \
+                 (SELECT 1 FROM jobs j WHERE j.purged_at IS NULL AND strpos(j.inputs::text, u.id) > 0)) \
+             ORDER BY created_at LIMIT $3 FOR UPDATE SKIP LOCKED",
+        )
+        .bind(now)
+        .bind(unused_before)
+        .bind(limit)
+        .fetch_all(&mut *tx)
+        .await?;
+        let mut out = Vec::with_capacity(rows.len());
+        for r in &rows {
+            let id: String = r.try_get("id")?;
+            sqlx::query("UPDATE uploads SET state = 'expired', expires_at = LEAST(expires_at, $1) WHERE id = $2")
+                .bind(now)
+                .bind(&id)
+                .execute(&mut *tx)
+                .await?;
+            sqlx::query("DELETE FROM upload_parts WHERE upload_id = $1")
+                .bind(&id)
+                .execute(&mut *tx)
+                .await?;
+            out.push((id, r.try_get("filename")?));
+        }
+        tx.commit().await?;
+        Ok(out)
+    }
+
+    /// Marks as purged (at most `limit`) the finished jobs that ended before `finished_before`
+    /// and still have their files, and forgets their artifacts. Returns their ids, whose files
+    /// the caller removes.
+    pub async fn purge_jobs(
+        &self,
+        finished_before: i64,
+        limit: i64,
+    ) -> Result<Vec<String>, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let ids: Vec<String> = sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE purged_at IS NULL AND finished_at < $1 \
+             AND state IN ('succeeded', 'failed', 'canceled') ORDER BY finished_at LIMIT $2 \
+             FOR UPDATE SKIP LOCKED",
+        )
+        .bind(finished_before)
+        .bind(limit)
+        .fetch_all(&mut *tx)
+        .await?;
+        let now = now_ms();
+        for id in &ids {
+            sqlx::query("UPDATE jobs SET purged_at = $1 WHERE id = $2")
+                .bind(now)
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+            sqlx::query("DELETE FROM artifacts WHERE job_id = $1")
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(ids)
     }
 
     // ---------------------------------------------------------------- queue (workers)

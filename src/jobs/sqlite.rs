@@ -50,13 +50,15 @@ fn job_from_row(r: &SqliteRow) -> Result<JobRecord, DbError> {
         updated_at: r.try_get("updated_at")?,
         started_at: r.try_get("started_at")?,
         finished_at: r.try_get("finished_at")?,
+        owner: r.try_get("owner")?,
+        purged_at: r.try_get("purged_at")?,
         stages: Vec::new(),
         artifacts: Vec::new(),
     })
 }
 
 const JOB_COLUMNS: &str = "seq, id, state, stage, progress, attempt, inputs, params, error, \
-                           created_at, updated_at, started_at, finished_at";
+                           created_at, updated_at, started_at, finished_at, owner, purged_at";
 
 impl SqliteJobs {
     /// Opens (creating if needed) the database file and applies migrations.
@@ -106,8 +108,8 @@ impl SqliteJobs {
 
     pub async fn create_upload(&self, u: &UploadRecord) -> Result<(), DbError> {
         sqlx::query(
-            "INSERT INTO uploads (id, kind, filename, size, sha256, part_size, state, created_at, expires_at) \
-             VALUES (?, ?, ?, ?, ?, ?, 'open', ?, ?)",
+            "INSERT INTO uploads (id, kind, filename, size, sha256, part_size, state, created_at, expires_at, owner) \
+             VALUES (?, ?, ?, ?, ?, ?, 'open', ?, ?, ?)",
         )
         .bind(&u.id)
         .bind(u.kind.as_str())
@@ -117,6 +119,7 @@ impl SqliteJobs {
         .bind(u.part_size)
         .bind(u.created_at)
         .bind(u.expires_at)
+        .bind(&u.owner)
         .execute(&self.pool)
         .await?;
         Ok(())
@@ -153,6 +156,8 @@ impl SqliteJobs {
             expires_at: r.try_get("expires_at")?,
             completed_at: r.try_get("completed_at")?,
             parts,
+            owner: r.try_get("owner")?,
+            expired: state == "expired",
         }))
     }
 
@@ -207,26 +212,20 @@ impl SqliteJobs {
 
     /// Creates a job with its stage rows. With an idempotency key seen before, returns the
     /// earlier job if the request was the same, and a conflict otherwise.
-    #[allow(clippy::too_many_arguments)]
     pub async fn create_job(
         &self,
-        id: &str,
-        inputs: &JobInputs,
-        params: &serde_json::Value,
-        stages: &[Stage],
-        idempotency_key: Option<&str>,
-        request_hash: &str,
-        max_queued: i64,
+        job: &NewJob<'_>,
+        limits: Admission,
     ) -> Result<Created, DbError> {
         let mut tx = self.begin().await?;
-        if let Some(key) = idempotency_key {
+        if let Some(key) = job.idempotency_key {
             let row = sqlx::query("SELECT id, request_hash FROM jobs WHERE idempotency_key = ?")
                 .bind(key)
                 .fetch_optional(&mut *tx)
                 .await?;
             if let Some(row) = row {
                 let hash: Option<String> = row.try_get("request_hash")?;
-                return if hash.as_deref() == Some(request_hash) {
+                return if hash.as_deref() == Some(job.request_hash) {
                     Ok(Created::Existing(row.try_get("id")?))
                 } else {
                     Err(DbError::Invalid(
@@ -238,12 +237,24 @@ impl SqliteJobs {
         let queued: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE state = 'queued'")
             .fetch_one(&mut *tx)
             .await?;
-        if queued >= max_queued {
+        if queued >= limits.max_queued {
             return Err(DbError::QueueFull(queued));
         }
-        for (kind, upload) in inputs.all() {
-            let row = sqlx::query("SELECT kind, state FROM uploads WHERE id = ?")
+        if limits.max_active_per_owner > 0 {
+            let active: i64 = sqlx::query_scalar(
+                "SELECT COUNT(*) FROM jobs WHERE owner = ? AND state IN ('queued', 'running', 'canceling')",
+            )
+            .bind(job.owner)
+            .fetch_one(&mut *tx)
+            .await?;
+            if active >= limits.max_active_per_owner {
+                return Err(DbError::JobQuota(active));
+            }
+        }
+        for (kind, upload) in job.inputs.all() {
+            let row = sqlx::query("SELECT kind, state FROM uploads WHERE id = ? AND owner = ?")
                 .bind(upload)
+                .bind(job.owner)
                 .fetch_optional(&mut *tx)
                 .await?;
             let Some(row) = row else {
@@ -253,44 +264,33 @@ impl SqliteJobs {
                 )));
             };
             let (k, s): (String, String) = (row.try_get("kind")?, row.try_get("state")?);
-            if k != kind.as_str() {
-                return Err(DbError::Invalid(format!(
-                    "inputs.{}: upload {upload} holds `{k}`, not `{}`",
-                    kind.as_str(),
-                    kind.as_str()
-                )));
-            }
-            if s != "complete" {
-                return Err(DbError::Invalid(format!(
-                    "inputs.{}: upload {upload} is not complete",
-                    kind.as_str()
-                )));
-            }
+            check_input(kind, upload, &k, &s)?;
         }
         let now = now_ms();
         sqlx::query(
-            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at) \
-             VALUES (?, 'queued', 0, 0, ?, ?, ?, ?, ?, ?)",
+            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at, owner) \
+             VALUES (?, 'queued', 0, 0, ?, ?, ?, ?, ?, ?, ?)",
         )
-        .bind(id)
-        .bind(serde_json::to_string(inputs).unwrap_or_default())
-        .bind(params.to_string())
-        .bind(idempotency_key)
-        .bind(request_hash)
+        .bind(job.id)
+        .bind(serde_json::to_string(job.inputs).unwrap_or_default())
+        .bind(job.params.to_string())
+        .bind(job.idempotency_key)
+        .bind(job.request_hash)
         .bind(now)
         .bind(now)
+        .bind(job.owner)
         .execute(&mut *tx)
         .await?;
-        for s in stages {
+        for s in job.stages {
             sqlx::query("INSERT INTO job_stages (job_id, idx, name) VALUES (?, ?, ?)")
-                .bind(id)
+                .bind(job.id)
                 .bind(s.index() as i64)
                 .bind(s.name())
                 .execute(&mut *tx)
                 .await?;
         }
         tx.commit().await?;
-        Ok(Created::New(id.to_string()))
+        Ok(Created::New(job.id.to_string()))
     }
 
     async fn fill(&self, job: JobRecord) -> Result<JobRecord, DbError> {
@@ -572,6 +572,94 @@ impl SqliteJobs {
             .await?;
         tx.commit().await?;
         Ok(())
+    }
+
+    // ---------------------------------------------------------------- retention and quotas
+
+    /// Bytes an owner keeps on the server: its open and complete uploads (declared sizes) and
+    /// the artifacts of its jobs whose files retention has not removed.
+    pub async fn stored_bytes(&self, owner: &str) -> Result<i64, DbError> {
+        Ok(sqlx::query_scalar(
+            "SELECT COALESCE((SELECT SUM(size) FROM uploads WHERE owner = ? AND state IN ('open', 'complete')), 0) \
+                  + COALESCE((SELECT SUM(a.size) FROM artifacts a JOIN jobs j ON j.id = a.job_id WHERE j.owner = ?), 0)",
+        )
+        .bind(owner)
+        .bind(owner)
+        .fetch_one(&self.pool)
+        .await?)
+    }
+
+    /// Marks as expired (at most `limit`) the open uploads whose `expires_at` is before `now`
+    /// and the complete ones finished before `unused_before` that no job with files still
+    /// reads; their parts' rows go. Returns (id, filename) of each, whose bytes the caller
+    /// removes.
+    pub async fn expire_uploads(
+        &self,
+        now: i64,
+        unused_before: i64,
+        limit: i64,
+    ) -> Result<Vec<(String, String)>, DbError> {
+        let mut tx = self.begin().await?;
+        let rows = sqlx::query(
+            "SELECT id, filename FROM uploads u WHERE (state = 'open' AND expires_at < ?) \
+             OR (state = 'complete' AND completed_at < ? AND NOT EXISTS \
+                 (SELECT 1 FROM jobs j WHERE j.purged_at IS NULL AND instr(j.inputs, u.id) > 0)) \
+             ORDER BY created_at LIMIT ?",
+        )
+        .bind(now)
+        .bind(unused_before)
+        .bind(limit)
+        .fetch_all(&mut *tx)
+        .await?;
+        let mut out = Vec::with_capacity(rows.len());
+        for r in &rows {
+            let id: String = r.try_get("id")?;
+            sqlx::query("UPDATE uploads SET state = 'expired', expires_at = MIN(expires_at, ?) WHERE id = ?")
+                .bind(now)
+                .bind(&id)
+                .execute(&mut *tx)
+                .await?;
+            sqlx::query("DELETE FROM upload_parts WHERE upload_id = ?")
+                .bind(&id)
+                .execute(&mut *tx)
+                .await?;
+            out.push((id, r.try_get("filename")?));
+        }
+        tx.commit().await?;
+        Ok(out)
+    }
+
+    /// Marks as purged (at most `limit`) the finished jobs that ended before `finished_before`
+    /// and still have their files, and forgets their artifacts. Returns their ids, whose files
+    /// the caller removes.
+    pub async fn purge_jobs(
+        &self,
+        finished_before: i64,
+        limit: i64,
+    ) -> Result<Vec<String>, DbError> {
+        let mut tx = self.begin().await?;
+        let ids: Vec<String> = sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE purged_at IS NULL AND finished_at < ? \
+             AND state IN ('succeeded', 'failed', 'canceled') ORDER BY finished_at LIMIT ?",
+        )
+        .bind(finished_before)
+        .bind(limit)
+        .fetch_all(&mut *tx)
+        .await?;
+        let now = now_ms();
+        for id in &ids {
+            sqlx::query("UPDATE jobs SET purged_at = ? WHERE id = ?")
+                .bind(now)
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+            sqlx::query("DELETE FROM artifacts WHERE job_id = ?")
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(ids)
     }
 
     // ---------------------------------------------------------------- queue (workers)

@@ -190,18 +190,9 @@ forward! {
 
     /// Creates a job with its stage rows. With an idempotency key seen before, returns the
     /// earlier job if the request was the same, and a conflict otherwise; `QueueFull` when
-    /// `max_queued` jobs already wait.
-    #[allow(clippy::too_many_arguments)]
-    pub async fn create_job(
-        &self,
-        id: &str,
-        inputs: &JobInputs,
-        params: &serde_json::Value,
-        stages: &[Stage],
-        idempotency_key: Option<&str>,
-        request_hash: &str,
-        max_queued: i64,
-    ) -> Result<Created, DbError>;
+    /// `limits.max_queued` jobs already wait, `JobQuota` when the owner has its quota of
+    /// unfinished jobs.
+    pub async fn create_job(&self, job: &NewJob<'_>, limits: Admission) -> Result<Created, DbError>;
 
     /// A job with its stages and artifacts.
     pub async fn get_job(&self, id: &str) -> Result<Option<JobRecord>, DbError>;
@@ -300,4 +291,20 @@ forward! {
 
     /// Durations in seconds of finished stages, per stage name.
     pub async fn stage_durations(&self) -> Result<Vec<(String, f64)>, DbError>;
+
+    /// Bytes an owner keeps on the server (its live uploads and its jobs' artifacts).
+    pub async fn stored_bytes(&self, owner: &str) -> Result<i64, DbError>;
+
+    /// Expires open uploads past `expires_at` and complete ones, finished before
+    /// `unused_before`, that no job with files reads; returns (id, filename) of each.
+    pub async fn expire_uploads(
+        &self,
+        now: i64,
+        unused_before: i64,
+        limit: i64,
+    ) -> Result<Vec<(String, String)>, DbError>;
+
+    /// Marks finished jobs that ended before `finished_before` as purged and forgets their
+    /// artifacts; returns their ids.
+    pub async fn purge_jobs(&self, finished_before: i64, limit: i64) -> Result<Vec<String>, DbError>;
 }

@@ -71,7 +71,51 @@ fn upload(id: &str, kind: UploadKind) -> UploadRecord {
         expires_at: now,
         completed_at: None,
         parts: vec![],
+        owner: String::new(),
+        expired: false,
     }
+}
+
+/// Queues job `id` for the anonymous owner over `inputs()`.
+async fn create(
+    db: &JobStore,
+    id: &str,
+    key: Option<&str>,
+    hash: &str,
+    max_queued: i64,
+) -> Result<Created, DbError> {
+    create_as(
+        db,
+        id,
+        &inputs(),
+        key,
+        hash,
+        "",
+        Admission::queue(max_queued),
+    )
+    .await
+}
+
+async fn create_as(
+    db: &JobStore,
+    id: &str,
+    inputs: &JobInputs,
+    key: Option<&str>,
+    hash: &str,
+    owner: &str,
+    limits: Admission,
+) -> Result<Created, DbError> {
+    let params = params();
+    let job = NewJob {
+        id,
+        inputs,
+        params: &params,
+        stages: &Stage::ALL,
+        idempotency_key: key,
+        request_hash: hash,
+        owner,
+    };
+    db.create_job(&job, limits).await
 }
 
 fn inputs() -> JobInputs {
@@ -99,9 +143,7 @@ async fn with_jobs(db: &JobStore, jobs: usize) -> Vec<String> {
     let mut ids = Vec::new();
     for k in 0..jobs {
         let id = format!("j{k}");
-        db.create_job(&id, &inputs(), &params(), &Stage::ALL, None, "h", 1000)
-            .await
-            .expect("job");
+        create(db, &id, None, "h", 1000).await.expect("job");
         ids.push(id);
     }
     ids
@@ -231,58 +273,24 @@ on_both_backends!(heartbeat_sees_cancel_and_progress_never_decreases);
 
 async fn the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses(db: JobStore) {
     with_jobs(&db, 0).await;
-    let first = db
-        .create_job(
-            "k1",
-            &inputs(),
-            &params(),
-            &Stage::ALL,
-            Some("key"),
-            "h1",
-            2,
-        )
+    let first = create(&db, "k1", Some("key"), "h1", 2)
         .await
         .expect("create");
     assert!(matches!(first, Created::New(ref id) if id == "k1"));
-    let again = db
-        .create_job(
-            "k2",
-            &inputs(),
-            &params(),
-            &Stage::ALL,
-            Some("key"),
-            "h1",
-            2,
-        )
+    let again = create(&db, "k2", Some("key"), "h1", 2)
         .await
         .expect("same request");
     assert!(matches!(again, Created::Existing(ref id) if id == "k1"));
-    let other = db
-        .create_job(
-            "k3",
-            &inputs(),
-            &params(),
-            &Stage::ALL,
-            Some("key"),
-            "h2",
-            2,
-        )
-        .await;
+    let other = create(&db, "k3", Some("key"), "h2", 2).await;
     assert!(matches!(other, Err(DbError::Invalid(_))), "{other:?}");
-    db.create_job("k4", &inputs(), &params(), &Stage::ALL, None, "h", 2)
-        .await
-        .expect("second job");
-    let full = db
-        .create_job("k5", &inputs(), &params(), &Stage::ALL, None, "h", 2)
-        .await;
+    create(&db, "k4", None, "h", 2).await.expect("second job");
+    let full = create(&db, "k5", None, "h", 2).await;
     assert!(matches!(full, Err(DbError::QueueFull(2))), "{full:?}");
     let missing = JobInputs {
         lidar: "nope".into(),
         ..inputs()
     };
-    let r = db
-        .create_job("k6", &missing, &params(), &Stage::ALL, None, "h", 10)
-        .await;
+    let r = create_as(&db, "k6", &missing, None, "h", "", Admission::queue(10)).await;
     assert!(
         matches!(r, Err(DbError::Invalid(ref m)) if m.contains("does not exist")),
         "{r:?}"
@@ -586,3 +594,106 @@ async fn announcements_wake_idle_workers_on_postgres_and_cost_nothing_on_sqlite(
         .expect("waiter");
     listener.abort();
 }
+
+async fn owners_have_quotas_and_retention_expires_uploads_and_purges_jobs(db: JobStore) {
+    with_jobs(&db, 0).await;
+    // Another owner's uploads: 1000 bytes each, one still open.
+    for (id, kind, complete) in [
+        ("la", UploadKind::Lidar, true),
+        ("ca", UploadKind::Colmap, true),
+        ("open", UploadKind::Lidar, false),
+    ] {
+        let u = UploadRecord {
+            size: 1000,
+            part_size: 1000,
+            owner: "ta".into(),
+            ..upload(id, kind)
+        };
+        db.create_upload(&u).await.expect("upload");
+        if complete {
+            db.put_part(id, 0, 1000, "x").await.expect("part");
+            db.complete_upload(id, "x", &serde_json::json!({}))
+                .await
+                .expect("complete");
+        }
+    }
+    assert_eq!(db.stored_bytes("ta").await.expect("bytes"), 3000);
+    assert_eq!(db.stored_bytes("").await.expect("bytes"), 2);
+    let mine = JobInputs {
+        lidar: "la".into(),
+        colmap: "ca".into(),
+        control_points: None,
+        field_dbh: None,
+    };
+    let limits = Admission {
+        max_queued: 100,
+        max_active_per_owner: 1,
+    };
+    // Nobody reads another owner's uploads.
+    let r = create_as(&db, "x", &inputs(), None, "h", "ta", limits).await;
+    assert!(
+        matches!(r, Err(DbError::Invalid(ref m)) if m.contains("does not exist")),
+        "{r:?}"
+    );
+    create_as(&db, "a1", &mine, None, "h", "ta", limits)
+        .await
+        .expect("first job");
+    let r = create_as(&db, "a2", &mine, None, "h", "ta", limits).await;
+    assert!(matches!(r, Err(DbError::JobQuota(1))), "{r:?}");
+    // The quota is per owner.
+    create_as(&db, "n1", &inputs(), None, "h", "", limits)
+        .await
+        .expect("another owner's job");
+
+    // a1 runs and finishes; then the quota has room again.
+    let c = db
+        .claim("w", Duration::from_secs(30), 5)
+        .await
+        .expect("claim")
+        .expect("a job");
+    assert_eq!(c.job_id, "a1");
+    db.finish_job("a1", &c.token, &RunEnd::Succeeded)
+        .await
+        .expect("finish");
+    create_as(&db, "a2", &mine, None, "h", "ta", limits)
+        .await
+        .expect("room again");
+
+    // The open upload expires once past its deadline; complete ones read by a job with
+    // files stay.
+    let now = now_ms() + 10;
+    let expired = db.expire_uploads(now, now, 100).await.expect("expire");
+    assert_eq!(expired, vec![("open".to_string(), "f".to_string())]);
+    let u = db.get_upload("open").await.expect("get").expect("kept");
+    assert!(u.expired && !u.complete);
+    assert_eq!(db.stored_bytes("ta").await.expect("bytes"), 2000);
+    // Only finished jobs are purged, and only once.
+    assert_eq!(
+        db.purge_jobs(now, 100).await.expect("purge"),
+        vec!["a1".to_string()]
+    );
+    assert!(db.purge_jobs(now, 100).await.expect("again").is_empty());
+    let j = db.get_job("a1").await.expect("get").expect("kept");
+    assert!(j.purged_at.is_some() && j.artifacts.is_empty());
+    // a2 (queued) still reads la and ca: they stay until it too is purged or deleted.
+    assert!(
+        db.expire_uploads(now, now, 100)
+            .await
+            .expect("expire")
+            .is_empty()
+    );
+    db.cancel("a2").await.expect("cancel");
+    db.delete_job("a2").await.expect("delete");
+    let mut gone = db.expire_uploads(now, now, 100).await.expect("expire");
+    gone.sort();
+    assert_eq!(
+        gone.iter().map(|g| g.0.as_str()).collect::<Vec<_>>(),
+        ["ca", "la"]
+    );
+    // An expired upload cannot feed a new job: 410, not "incomplete".
+    let r = create_as(&db, "a3", &mine, None, "h", "ta", limits).await;
+    assert!(matches!(r, Err(DbError::Gone(_))), "{r:?}");
+    assert_eq!(db.stored_bytes("ta").await.expect("bytes"), 0);
+    assert_eq!(db.integrity_check().await.expect("check"), "ok");
+}
+on_both_backends!(owners_have_quotas_and_retention_expires_uploads_and_purges_jobs);

@@ -31,7 +31,9 @@ use tokio::sync::{Notify, oneshot};
 
 use crate::api::{self, AppState, Counters};
 use crate::config::{ApiArgs, WorkerArgs};
-use crate::jobs::{Created, Database, JobInputs, JobStore, UploadKind, UploadRecord, now_ms};
+use crate::jobs::{
+    Admission, Created, Database, JobInputs, JobStore, NewJob, UploadKind, UploadRecord, now_ms,
+};
 use crate::pipeline::PipelineParams;
 use crate::store::BlobStore;
 
@@ -210,6 +212,8 @@ async fn seed(db: &JobStore, n: u32) -> anyhow::Result<Vec<String>> {
         expires_at: now + 86_400_000,
         completed_at: None,
         parts: Vec::new(),
+        owner: String::new(),
+        expired: false,
     };
     let lidar = upload(UploadKind::Lidar, "bench.laz");
     let colmap = upload(UploadKind::Colmap, "bench.tar");
@@ -231,17 +235,17 @@ async fn seed(db: &JobStore, n: u32) -> anyhow::Result<Vec<String>> {
     let stages = params.stages();
     let mut ids = Vec::with_capacity(n as usize);
     for i in 0..n {
-        let created = db
-            .create_job(
-                &api::uploads::new_id(),
-                &inputs,
-                &value,
-                &stages,
-                None,
-                &format!("sylva-bench-load-{i}"),
-                i64::MAX,
-            )
-            .await?;
+        let (id, hash) = (api::uploads::new_id(), format!("sylva-bench-load-{i}"));
+        let job = NewJob {
+            id: &id,
+            inputs: &inputs,
+            params: &value,
+            stages: &stages,
+            idempotency_key: None,
+            request_hash: &hash,
+            owner: "",
+        };
+        let created = db.create_job(&job, Admission::queue(i64::MAX)).await?;
         ids.push(match created {
             Created::New(id) | Created::Existing(id) => id,
         });

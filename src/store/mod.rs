@@ -290,13 +290,25 @@ impl BlobStore {
 
     /// Removes a job's files (locally and in the object store).
     pub async fn remove_job(&self, id: &str) -> Result<(), StoreError> {
-        let dir = self.job_dir(id);
-        match tokio::fs::remove_dir_all(&dir).await {
-            Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io(&dir)(e)),
+        self.remove_tree(&self.job_dir(id), &format!("jobs/{id}"))
+            .await
+    }
+
+    /// Removes an upload's files (parts, blob, extracted folder), locally and in the object
+    /// store.
+    pub async fn remove_upload(&self, id: &str) -> Result<(), StoreError> {
+        self.remove_tree(&self.upload_dir(id), &format!("uploads/{id}"))
+            .await
+    }
+
+    /// Removes the local folder `dir` and the object-store prefix `rel`.
+    async fn remove_tree(&self, dir: &Path, rel: &str) -> Result<(), StoreError> {
+        match tokio::fs::remove_dir_all(dir).await {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io(dir)(e)),
             _ => {}
         }
         if let Some(r) = &self.remote {
-            r.delete_prefix(&format!("jobs/{id}")).await?;
+            r.delete_prefix(rel).await?;
         }
         Ok(())
     }

@@ -1,0 +1,190 @@
+//! Retention: the sweep that removes what no one may ask for any more.
+//!
+//! Three kinds of leftovers, each found through the job database and removed from the blob
+//! store (local folder and object store alike):
+//! - open uploads past their `expires_at` (a client that never came back), and complete
+//!   uploads, finished longer ago than the job retention, that no job with files still reads;
+//!   their record stays, marked `expired`, so the API answers 410 Gone rather than 404;
+//! - finished jobs older than the job retention: their files and artifact rows go, the job
+//!   record, its stage metrics and its log stay (`purged_at` set; artifacts answer 410);
+//! - folders under the local data directory that belong to no live record (a crash between
+//!   the database and the file system), once older than [`ORPHAN_MIN_AGE`] so a transfer
+//!   that is still writing is never touched.
+//!
+//! The database is marked first and the files removed after, so a crash in between only
+//! leaves orphans, which the next sweep removes.
+
+use std::path::Path;
+use std::time::{Duration, SystemTime};
+
+use serde::Serialize;
+
+use crate::config::RetentionArgs;
+use crate::jobs::{DbError, JobStore, now_ms};
+use crate::store::BlobStore;
+
+/// Records handled per database round trip: a sweep after a long pause works in bounded
+/// transactions.
+const BATCH: i64 = 200;
+
+/// A folder with no live record is removed only once it is this old (a multipart submission
+/// writes its files before its record exists). One hour: longer than any single request.
+pub const ORPHAN_MIN_AGE: Duration = Duration::from_secs(3600);
+
+/// What one sweep removed.
+#[derive(Debug, Default, Clone, PartialEq, Eq, Serialize)]
+pub struct SweepReport {
+    /// Uploads marked expired (open past their deadline, or complete and unused).
+    pub uploads_expired: u64,
+    /// Finished jobs whose files were removed.
+    pub jobs_purged: u64,
+    /// Local folders removed that no record owned.
+    pub orphans_removed: u64,
+    /// Bytes freed on the local disk (the object store's are not counted).
+    pub bytes_freed: u64,
+}
+
+impl SweepReport {
+    pub fn is_empty(&self) -> bool {
+        self.uploads_expired == 0 && self.jobs_purged == 0 && self.orphans_removed == 0
+    }
+}
+
+/// One retention sweep, at the time `now_ms()`.
+pub async fn sweep(
+    db: &JobStore,
+    blobs: &BlobStore,
+    retention: &RetentionArgs,
+) -> Result<SweepReport, DbError> {
+    let now = now_ms();
+    let keep = retention
+        .job_retention()
+        .map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
+    // With retention off, no complete upload and no finished job is ever old enough.
+    let before = keep.map(|k| now.saturating_sub(k)).unwrap_or(i64::MIN);
+    let mut report = SweepReport::default();
+
+    loop {
+        let expired = db.expire_uploads(now, before, BATCH).await?;
+        for (id, _filename) in &expired {
+            report.bytes_freed += dir_size(&blobs.upload_dir(id));
+            if let Err(e) = blobs.remove_upload(id).await {
+                tracing::warn!(upload = %id, error = %e, "could not remove an expired upload's files");
+            }
+            tracing::info!(upload = %id, "upload expired and removed");
+        }
+        report.uploads_expired += expired.len() as u64;
+        if (expired.len() as i64) < BATCH {
+            break;
+        }
+    }
+    if keep.is_some() {
+        loop {
+            let purged = db.purge_jobs(before, BATCH).await?;
+            for id in &purged {
+                report.bytes_freed += dir_size(&blobs.job_dir(id));
+                if let Err(e) = blobs.remove_job(id).await {
+                    tracing::warn!(job = %id, error = %e, "could not remove a purged job's files");
+                }
+                tracing::info!(job = %id, "finished job past retention; files removed");
+            }
+            report.jobs_purged += purged.len() as u64;
+            if (purged.len() as i64) < BATCH {
+                break;
+            }
+        }
+    }
+    remove_orphans(db, blobs, &mut report).await?;
+    Ok(report)
+}
+
+/// Removes local folders under `uploads/` and `jobs/` that no live record owns.
+async fn remove_orphans(
+    db: &JobStore,
+    blobs: &BlobStore,
+    report: &mut SweepReport,
+) -> Result<(), DbError> {
+    for (sub, is_upload) in [("uploads", true), ("jobs", false)] {
+        let Ok(entries) = std::fs::read_dir(blobs.root().join(sub)) else {
+            continue;
+        };
+        for entry in entries.flatten() {
+            let Some(id) = entry.file_name().to_str().map(str::to_string) else {
+                continue;
+            };
+            if !old_enough(&entry.path()) {
+                continue;
+            }
+            let live = if is_upload {
+                db.get_upload(&id).await?.is_some_and(|u| !u.expired)
+            } else {
+                db.get_job(&id)
+                    .await?
+                    .is_some_and(|j| j.purged_at.is_none())
+            };
+            if live {
+                continue;
+            }
+            report.bytes_freed += dir_size(&entry.path());
+            match std::fs::remove_dir_all(entry.path()) {
+                Ok(()) => {
+                    report.orphans_removed += 1;
+                    tracing::info!(folder = %entry.path().display(), "orphaned folder removed");
+                }
+                Err(e) => {
+                    tracing::warn!(folder = %entry.path().display(), error = %e, "could not remove an orphaned folder");
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+fn old_enough(path: &Path) -> bool {
+    std::fs::metadata(path)
+        .and_then(|m| m.modified())
+        .ok()
+        .and_then(|t| SystemTime::now().duration_since(t).ok())
+        .is_some_and(|age| age >= ORPHAN_MIN_AGE)
+}
+
+/// Bytes of the files under `path` (0 when it does not exist).
+fn dir_size(path: &Path) -> u64 {
+    let Ok(meta) = std::fs::symlink_metadata(path) else {
+        return 0;
+    };
+    if !meta.is_dir() {
+        return meta.len();
+    }
+    std::fs::read_dir(path)
+        .map(|entries| entries.flatten().map(|e| dir_size(&e.path())).sum())
+        .unwrap_or(0)
+}
+
+/// Sweeps every `interval` until `stop` turns true (the first sweep one interval after
+/// start, so start-up is not slowed).
+pub async fn run_periodically(
+    db: JobStore,
+    blobs: BlobStore,
+    retention: RetentionArgs,
+    interval: Duration,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) {
+    loop {
+        tokio::select! {
+            _ = tokio::time::sleep(interval) => {}
+            _ = stop.changed() => return,
+        }
+        match sweep(&db, &blobs, &retention).await {
+            Ok(r) if !r.is_empty() => tracing::info!(
+                uploads_expired = r.uploads_expired,
+                jobs_purged = r.jobs_purged,
+                orphans_removed = r.orphans_removed,
+                bytes_freed = r.bytes_freed,
+                "retention sweep"
+            ),
+            Ok(_) => {}
+            Err(e) => tracing::warn!(error = %e, "retention sweep failed; trying again later"),
+        }
+    }
+}
