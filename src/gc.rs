@@ -64,20 +64,7 @@ pub async fn sweep(
     let before = keep.map(|k| now.saturating_sub(k)).unwrap_or(i64::MIN);
     let mut report = SweepReport::default();
 
-    loop {
-        let expired = db.expire_uploads(now, before, BATCH).await?;
-        for (id, _filename) in &expired {
-            report.bytes_freed += dir_size(&blobs.upload_dir(id));
-            if let Err(e) = blobs.remove_upload(id).await {
-                tracing::warn!(upload = %id, error = %e, "could not remove an expired upload's files");
-            }
-            tracing::info!(upload = %id, "upload expired and removed");
-        }
-        report.uploads_expired += expired.len() as u64;
-        if (expired.len() as i64) < BATCH {
-            break;
-        }
-    }
+    // Jobs first: the uploads their purge leaves unread expire in the same sweep.
     if keep.is_some() {
         loop {
             let purged = db.purge_jobs(before, BATCH).await?;
@@ -92,6 +79,20 @@ pub async fn sweep(
             if (purged.len() as i64) < BATCH {
                 break;
             }
+        }
+    }
+    loop {
+        let expired = db.expire_uploads(now, before, BATCH).await?;
+        for (id, _filename) in &expired {
+            report.bytes_freed += dir_size(&blobs.upload_dir(id));
+            if let Err(e) = blobs.remove_upload(id).await {
+                tracing::warn!(upload = %id, error = %e, "could not remove an expired upload's files");
+            }
+            tracing::info!(upload = %id, "upload expired and removed");
+        }
+        report.uploads_expired += expired.len() as u64;
+        if (expired.len() as i64) < BATCH {
+            break;
         }
     }
     remove_orphans(db, blobs, &mut report).await?;
