@@ -322,3 +322,59 @@ fn a_bad_stage_limit_is_refused_at_start() {
         "{err}"
     );
 }
+
+// A worker that stops answering without dying (a frozen process, a stalled VM: its
+// heartbeat stops) loses the job after the lease; another worker finishes it, and the frozen
+// one, once thawed, is fenced out: it writes nothing over the finished job and carries on.
+on_both_databases!(a_frozen_worker_loses_its_job_after_the_lease_and_is_fenced_when_it_thaws);
+async fn a_frozen_worker_loses_its_job_after_the_lease_and_is_fenced_when_it_thaws(db: Db) {
+    let fx = fixture();
+    let data = fx.dir.path().join("data");
+    let api = db.serve(&data, &["--workers", "0"]);
+    let (c, base) = (client(), api.base.clone());
+    let inputs = upload_inputs(&c, &base, &fx).await;
+    let a = db.worker(
+        &data,
+        &["--lease-secs", "2", "--debug-stage-pause-ms", "3000"],
+    );
+    let job = create_job(
+        &c,
+        &base,
+        &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
+    )
+    .await;
+    let id = job["id"].as_str().expect("id").to_string();
+    wait_job(&c, &base, &id, Duration::from_secs(60), |j| {
+        stage(j, "ingest")["state"] == "running"
+    })
+    .await;
+    let pid = a.child.id() as libc::pid_t;
+    // SAFETY: signals to our own child process.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGSTOP) }, 0);
+    let _b = db.worker(&data, &["--lease-secs", "2", "--poll-ms", "50"]);
+    let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    assert_eq!(job["attempt"], 2, "{job}");
+    let finished = job["finished_at"].clone();
+
+    // SAFETY: as above.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGCONT) }, 0);
+    // The thawed worker wakes inside its stage pause, finishes the stage and tries to record
+    // it: refused, since the job is no longer its own.
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    while !a.stderr_text().contains("lease lost") {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the thawed worker never noticed: {}",
+            a.stderr_text()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let after = get_job(&c, &base, &id).await;
+    assert_eq!(after["state"], "succeeded", "{after}");
+    assert_eq!(after["attempt"], 2);
+    assert_eq!(
+        after["finished_at"], finished,
+        "overwritten by the fenced worker"
+    );
+}

@@ -169,6 +169,10 @@ pub async fn info(State(state): State<AppState>) -> Result<Response, ApiError> {
             "max_archive_entries": a.max_archive_entries,
             "max_unpacked_bytes": a.max_unpacked_bytes,
             "max_queued_jobs": a.max_queued_jobs,
+            "quota_bytes": a.quota_bytes,
+            "quota_jobs": a.quota_jobs,
+            "job_retention_secs": a.retention.job_retention_secs,
+            "upload_ttl_secs": a.upload_ttl_secs,
         },
     }))
     .into_response())
