@@ -383,7 +383,7 @@ async fn shutdown_signal() {
 
 async fn serve(a: ServeArgs) -> anyhow::Result<()> {
     init_tracing(&a.store);
-    a.worker.max_stage_runtime("").map_err(anyhow::Error::msg)?;
+    a.worker.validate().map_err(anyhow::Error::msg)?;
     let (db, blobs) = open_store(&a.store).await?;
     let gpu = tokio::time::timeout(Duration::from_secs(10), crate::gpu::probe())
         .await
@@ -457,7 +457,7 @@ async fn gc(a: GcArgs) -> anyhow::Result<ExitCode> {
 }
 
 async fn worker(a: WorkerOnlyArgs) -> anyhow::Result<()> {
-    a.worker.max_stage_runtime("").map_err(anyhow::Error::msg)?;
+    a.worker.validate().map_err(anyhow::Error::msg)?;
     init_tracing(&a.store);
     if a.worker.workers == 0 {
         anyhow::bail!("--workers must be at least 1 for `sylva worker`");

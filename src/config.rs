@@ -92,10 +92,33 @@ pub struct WorkerArgs {
     #[arg(long, env = "SYLVA_MAX_STAGE_SECS", default_value = "172800")]
     pub max_stage_secs: String,
 
-    /// Fault injection for tests: every stage waits this many milliseconds (cancellably)
-    /// before it starts. 0 in production.
-    #[arg(long, env = "SYLVA_DEBUG_STAGE_PAUSE_MS", default_value_t = 0)]
-    pub debug_stage_pause_ms: u64,
+    /// Fault injection for tests: a stage waits this many milliseconds (cancellably, and
+    /// holding its GPU slot if it uses the GPU) before it starts; one number for every stage
+    /// and/or `stage=ms` overrides, e.g. `train=60000`. 0 in production.
+    #[arg(long, env = "SYLVA_DEBUG_STAGE_PAUSE_MS", default_value = "0")]
+    pub debug_stage_pause_ms: String,
+}
+
+/// The value for `stage` in a per-stage setting of `flag`: comma-separated items, each a
+/// number (for every stage) or `stage=number` (for that stage, winning over the former).
+fn per_stage(flag: &str, text: &str, stage: &str) -> Result<Option<u64>, String> {
+    let mut default = None;
+    let mut own = None;
+    for item in text.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        let (name, value) = match item.split_once('=') {
+            Some((n, v)) => (Some(n.trim()), v.trim()),
+            None => (None, item),
+        };
+        let value: u64 = value
+            .parse()
+            .map_err(|_| format!("{flag}: {item:?} is not a whole number"))?;
+        match name {
+            None => default = Some(value),
+            Some(n) if n == stage => own = Some(value),
+            Some(_) => {}
+        }
+    }
+    Ok(own.or(default))
 }
 
 impl WorkerArgs {
@@ -105,29 +128,22 @@ impl WorkerArgs {
 
     /// The runtime limit of `stage` from --max-stage-secs.
     pub fn max_stage_runtime(&self, stage: &str) -> Result<Duration, String> {
-        let mut default = None;
-        let mut own = None;
-        for item in self
-            .max_stage_secs
-            .split(',')
-            .map(str::trim)
-            .filter(|s| !s.is_empty())
-        {
-            let (name, secs) = match item.split_once('=') {
-                Some((n, v)) => (Some(n.trim()), v.trim()),
-                None => (None, item),
-            };
-            let secs: u64 = secs
-                .parse()
-                .map_err(|_| format!("--max-stage-secs: {item:?} is not a number of seconds"))?;
-            match name {
-                None => default = Some(secs),
-                Some(n) if n == stage => own = Some(secs),
-                Some(_) => {}
-            }
-        }
-        let secs = own.or(default).unwrap_or(172_800);
-        Ok(Duration::from_secs(secs.max(1)))
+        let secs = per_stage("--max-stage-secs", &self.max_stage_secs, stage)?;
+        Ok(Duration::from_secs(secs.unwrap_or(172_800).max(1)))
+    }
+
+    /// The injected pause before `stage` from --debug-stage-pause-ms.
+    pub fn debug_stage_pause(&self, stage: &str) -> Result<Duration, String> {
+        let ms = per_stage("--debug-stage-pause-ms", &self.debug_stage_pause_ms, stage)?;
+        Ok(Duration::from_millis(ms.unwrap_or(0)))
+    }
+
+    /// Checks the per-stage settings once, at start, so a typo stops the process with a
+    /// clear message instead of being ignored.
+    pub fn validate(&self) -> Result<(), String> {
+        self.max_stage_runtime("")?;
+        self.debug_stage_pause("")?;
+        Ok(())
     }
 }
 
@@ -301,5 +317,9 @@ mod tests {
         );
         let w = W::parse_from(["x", "--max-stage-secs", "train=soon"]).w;
         assert!(w.max_stage_runtime("ingest").is_err());
+        let w = W::parse_from(["x", "--debug-stage-pause-ms", "train=500"]).w;
+        assert_eq!(w.debug_stage_pause("train"), Ok(Duration::from_millis(500)));
+        assert_eq!(w.debug_stage_pause("ingest"), Ok(Duration::ZERO));
+        assert!(w.validate().is_ok());
     }
 }

@@ -378,3 +378,112 @@ async fn a_frozen_worker_loses_its_job_after_the_lease_and_is_fenced_when_it_tha
         "overwritten by the fenced worker"
     );
 }
+
+/// Cancelling a job that holds the GPU slot hands the slot to the next job within a second.
+#[tokio::test(flavor = "multi_thread")]
+async fn cancel_frees_the_gpu_slot_within_a_second() {
+    // A generated plot (the small fixture has too little to register): its stages up to
+    // training run for real.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let plot = dir.path().join("plot");
+    let out = std::process::Command::new(BIN)
+        .args(["synth", "--preset", "tiny", "--seed", "1", "--out"])
+        .arg(&plot)
+        .output()
+        .expect("synth");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    zip_dir(&plot.join("colmap"), &plot.join("colmap.zip"));
+    let data = dir.path().join("data");
+    // Two job slots, one GPU slot; the train stage holds its GPU slot for two minutes.
+    let srv = serve(
+        &data,
+        &[
+            "--workers",
+            "2",
+            "--gpu-slots",
+            "1",
+            "--debug-stage-pause-ms",
+            "train=120000",
+        ],
+    );
+    let (c, base) = (client(), srv.base.clone());
+    let inputs = json!({
+        "lidar": upload(&c, &base, "lidar", &plot.join("lidar.laz")).await,
+        "colmap": upload(&c, &base, "colmap", &plot.join("colmap.zip")).await,
+        "control_points": upload(&c, &base, "control_points", &plot.join("control_points.csv")).await,
+    });
+    let body =
+        json!({ "inputs": inputs, "params": { "until": "train", "train": { "backend": "cpu" } } });
+    let a = create_job(&c, &base, &body).await;
+    let a = a["id"].as_str().expect("id").to_string();
+    let (job, _) = wait_job(&c, &base, &a, Duration::from_secs(300), |j| {
+        is_terminal(j) || stage(j, "train")["state"] == "running"
+    })
+    .await;
+    assert_eq!(job["state"], "running", "{job}");
+    let b = create_job(&c, &base, &body).await;
+    let b = b["id"].as_str().expect("id").to_string();
+    let deadline = std::time::Instant::now() + Duration::from_secs(300);
+    while !log_text(&c, &base, &b)
+        .await
+        .contains("waiting for a GPU slot")
+    {
+        let job = get_job(&c, &base, &b).await;
+        assert!(
+            std::time::Instant::now() < deadline && !is_terminal(&job),
+            "the second job never waited for the GPU: {job}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+
+    let asked = time::OffsetDateTime::now_utc();
+    let r = c
+        .post(format!("{base}/v1/jobs/{a}/cancel"))
+        .send()
+        .await
+        .expect("cancel");
+    assert_eq!(r.status(), reqwest::StatusCode::ACCEPTED);
+    // The second job's log says when it got the slot (server clock, the same machine's).
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    let acquired = loop {
+        let r: serde_json::Value = c
+            .get(format!("{base}/v1/jobs/{b}/log"))
+            .send()
+            .await
+            .expect("log")
+            .json()
+            .await
+            .expect("json");
+        let line = r["lines"].as_array().and_then(|lines| {
+            lines
+                .iter()
+                .find(|l| l["message"] == "GPU slot acquired")
+                .cloned()
+        });
+        if let Some(line) = line {
+            break line;
+        }
+        assert!(std::time::Instant::now() < deadline, "slot never handed on");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let at = time::OffsetDateTime::parse(
+        acquired["ts"].as_str().expect("ts"),
+        &time::format_description::well_known::Rfc3339,
+    )
+    .expect("rfc3339");
+    let waited = at - asked;
+    assert!(
+        waited < time::Duration::seconds(1),
+        "the GPU slot came free {waited} after the cancel"
+    );
+    let (job, _) = wait_job(&c, &base, &a, Duration::from_secs(10), is_terminal).await;
+    assert_eq!(job["state"], "canceled");
+    c.post(format!("{base}/v1/jobs/{b}/cancel"))
+        .send()
+        .await
+        .expect("cancel b");
+}

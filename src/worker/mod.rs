@@ -409,9 +409,26 @@ impl WorkerPool {
         };
 
         let _gpu = if stage.uses_gpu() {
-            tokio::select! {
-                p = self.gpu.clone().acquire_owned() => p.ok(),
-                _ = wait_cancel(&progress.cancel) => None,
+            match self.gpu.clone().try_acquire_owned() {
+                Ok(p) => Some(p),
+                Err(_) => {
+                    self.log(
+                        job,
+                        "info",
+                        Some(stage),
+                        "waiting for a GPU slot (every slot of this worker is busy)",
+                    )
+                    .await;
+                    let p = tokio::select! {
+                        p = self.gpu.clone().acquire_owned() => p.ok(),
+                        _ = wait_cancel(&progress.cancel) => None,
+                    };
+                    if p.is_some() {
+                        self.log(job, "info", Some(stage), "GPU slot acquired")
+                            .await;
+                    }
+                    p
+                }
             }
         } else {
             None
@@ -431,7 +448,10 @@ impl WorkerPool {
                 progress.cancel.cancel();
             })
         };
-        let pause = Duration::from_millis(self.args.debug_stage_pause_ms);
+        let pause = self
+            .args
+            .debug_stage_pause(stage.name())
+            .unwrap_or(Duration::ZERO);
         if !pause.is_zero() {
             tokio::select! {
                 _ = tokio::time::sleep(pause) => {}
