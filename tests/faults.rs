@@ -76,6 +76,19 @@ fn fill(dir: &Path) -> PathBuf {
     path
 }
 
+/// `PRAGMA integrity_check` of the SQLite file at `path` says "ok".
+async fn assert_intact(path: &Path) {
+    let url = format!("sqlite://{}", path.display());
+    let mut conn = <sqlx::SqliteConnection as sqlx::Connection>::connect(&url)
+        .await
+        .expect("open the database");
+    let check: (String,) = sqlx::query_as("PRAGMA integrity_check")
+        .fetch_one(&mut conn)
+        .await
+        .expect("integrity_check");
+    assert_eq!(check.0, "ok");
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_full_disk_gives_507_and_a_failed_stage_and_the_database_survives() {
     let Some(fs) = Tmpfs::mount("24m") else {
@@ -172,15 +185,7 @@ async fn a_full_disk_gives_507_and_a_failed_stage_and_the_database_survives() {
     assert_eq!(r.status(), StatusCode::OK);
 
     drop(srv);
-    let url = format!("sqlite://{}", data.join("sylva.db").display());
-    let mut conn = <sqlx::SqliteConnection as sqlx::Connection>::connect(&url)
-        .await
-        .expect("open the database");
-    let check: (String,) = sqlx::query_as("PRAGMA integrity_check")
-        .fetch_one(&mut conn)
-        .await
-        .expect("integrity_check");
-    assert_eq!(check.0, "ok");
+    assert_intact(&data.join("sylva.db")).await;
 }
 
 /// The disk fills while a stage runs: the stage fails with a disk-full (507) problem, the
@@ -240,13 +245,5 @@ async fn a_disk_that_fills_during_a_stage_fails_it_with_507_and_a_retry_succeeds
     assert_eq!(job["state"], "succeeded", "{job}");
 
     drop(srv);
-    let url = format!("sqlite://{}", db.display());
-    let mut conn = <sqlx::SqliteConnection as sqlx::Connection>::connect(&url)
-        .await
-        .expect("open the database");
-    let check: (String,) = sqlx::query_as("PRAGMA integrity_check")
-        .fetch_one(&mut conn)
-        .await
-        .expect("integrity_check");
-    assert_eq!(check.0, "ok");
+    assert_intact(&db).await;
 }
