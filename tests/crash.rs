@@ -25,14 +25,17 @@ use sylva::store::BlobStore;
 
 /// Where each stage is killed: a progress fraction the stage reports after it has written
 /// some of its files (see each stage's `progress.set` calls), and the file that proves it.
-const CRASH_POINTS: [(&str, f64, &str); 7] = [
-    ("ingest", 0.5, "cloud.ply"),
-    ("register", 1.0, "sparse"),
-    ("anchors", 0.2, "fused.ply"),
-    ("segment", 0.9, "labelled.ply"),
-    ("train", 1.0, "splats.ply"),
-    ("dbh", 1.0, "trees.geojson"),
-    ("export", 1.0, "frame.json"),
+/// Training writes nothing until its last step, so it is also killed half-way through its
+/// optimisation, where a real crash most likely lands.
+const CRASH_POINTS: [(&str, f64, Option<&str>); 8] = [
+    ("ingest", 0.5, Some("cloud.ply")),
+    ("register", 1.0, Some("sparse")),
+    ("anchors", 0.2, Some("fused.ply")),
+    ("segment", 0.9, Some("labelled.ply")),
+    ("train", 0.5, None),
+    ("train", 1.0, Some("splats.ply")),
+    ("dbh", 1.0, Some("trees.geojson")),
+    ("export", 1.0, Some("frame.json")),
 ];
 
 /// A whole job on a tiny plot within seconds: the CPU reference trainer, few steps, small
@@ -43,11 +46,12 @@ fn params() -> Value {
     } })
 }
 
-/// Relative tolerance on a metric between the reference and a resumed run; most agree
-/// exactly, since every stage is seeded, but parallel reductions may sum in another order.
-const REL_TOL: f64 = 0.02;
+/// Relative tolerance on a metric between the reference and a resumed run. Every stage is
+/// seeded and all 175 metrics agreed exactly in every run so far; the margin is for parallel
+/// reductions that may sum in another order on another machine.
+const REL_TOL: f64 = 1e-3;
 /// Absolute tolerance below which two metrics count as equal whatever their ratio.
-const ABS_TOL: f64 = 1e-6;
+const ABS_TOL: f64 = 1e-9;
 
 /// Metric keys measured in wall-clock time, which no two runs share.
 fn is_timing(key: &str) -> bool {
@@ -61,8 +65,10 @@ fn is_timing(key: &str) -> bool {
 }
 
 /// Compares two metric trees: the same keys and array lengths, numbers within tolerance,
-/// other scalars equal (except timings and free text). Pushes every difference to `errs`.
-fn compare(path: &str, want: &Value, got: &Value, errs: &mut Vec<String>) {
+/// other scalars equal (except timings and free text). Pushes every difference to `errs`;
+/// returns how many numbers it compared.
+fn compare(path: &str, want: &Value, got: &Value, errs: &mut Vec<String>) -> usize {
+    let mut n = 0;
     match (want, got) {
         (Value::Object(a), Value::Object(b)) => {
             let (ka, kb): (BTreeSet<_>, BTreeSet<_>) = (a.keys().collect(), b.keys().collect());
@@ -74,7 +80,7 @@ fn compare(path: &str, want: &Value, got: &Value, errs: &mut Vec<String>) {
                     continue;
                 }
                 if let Some(vb) = b.get(k) {
-                    compare(&format!("{path}.{k}"), va, vb, errs);
+                    n += compare(&format!("{path}.{k}"), va, vb, errs);
                 }
             }
         }
@@ -83,7 +89,7 @@ fn compare(path: &str, want: &Value, got: &Value, errs: &mut Vec<String>) {
                 errs.push(format!("{path}: {} items != {}", a.len(), b.len()));
             }
             for (i, (va, vb)) in a.iter().zip(b).enumerate() {
-                compare(&format!("{path}[{i}]"), va, vb, errs);
+                n += compare(&format!("{path}[{i}]"), va, vb, errs);
             }
         }
         (Value::Number(a), Value::Number(b)) => {
@@ -92,12 +98,14 @@ fn compare(path: &str, want: &Value, got: &Value, errs: &mut Vec<String>) {
             if !close {
                 errs.push(format!("{path}: {a} != {b}"));
             }
+            n += 1;
         }
         // Log-like text (device names, notes) may differ; its presence is checked above.
         (Value::String(_), Value::String(_)) => {}
         (a, b) if a == b => {}
         (a, b) => errs.push(format!("{path}: {a} != {b}")),
     }
+    n
 }
 
 /// Waits for a process to end by itself.
@@ -214,8 +222,11 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
     eprintln!("reference run done after {:?}", started.elapsed());
 
     let blobs = BlobStore::open(&data).expect("blob store");
-    for (k, &(stage, fraction, witness)) in CRASH_POINTS.iter().enumerate() {
+    for (stage, fraction, witness) in CRASH_POINTS {
         let case = Instant::now();
+        let k = sylva::pipeline::Stage::from_name(stage)
+            .expect("a stage")
+            .index();
         // 1. Run a fresh job until the process kills itself inside `stage`.
         let point = format!("{stage}:{fraction}");
         let mut srv = serve(&data, &["--debug-crash-at", &point]);
@@ -272,11 +283,14 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
         drop(db);
         let job_dir = blobs.job_dir(&id);
         let partial = job_dir.join(format!("{stage}.partial"));
-        let written = entries(&partial);
-        assert!(
-            written.iter().any(|f| f == witness),
-            "{stage}: killed before it wrote {witness}: {written:?}"
-        );
+        assert!(partial.is_dir(), "{stage}: killed outside the stage");
+        if let Some(witness) = witness {
+            let written = entries(&partial);
+            assert!(
+                written.iter().any(|f| f == witness),
+                "{stage}: killed before it wrote {witness}: {written:?}"
+            );
+        }
         assert!(!job_dir.join(stage).exists(), "{stage}: promoted already");
 
         // 3. Restart without the flag: the job resumes at `stage` and succeeds.
@@ -331,15 +345,19 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
             .await
             .expect("json");
         let mut errs = Vec::new();
-        compare(
+        let compared = compare(
             "stages",
             &want_results["stages"],
             &results["stages"],
             &mut errs,
         );
         assert!(errs.is_empty(), "{stage}: metrics differ:\n{}", errs.join("\n"));
+        assert!(compared > 50, "{stage}: only {compared} metrics compared");
         drop(srv);
-        eprintln!("crash in {stage} checked in {:?}", case.elapsed());
+        eprintln!(
+            "crash in {stage} at {fraction}: {compared} metrics compared, checked in {:?}",
+            case.elapsed()
+        );
     }
 
     // 5. Nothing accepted was lost: every upload is still complete, with its bytes intact,
