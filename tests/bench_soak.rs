@@ -8,7 +8,16 @@ use std::process::Command;
 #[test]
 fn bench_soak_runs_jobs_across_a_sigkill_and_loses_nothing() {
     let out = Command::new(env!("CARGO_BIN_EXE_sylva"))
-        .args(["bench", "soak", "--jobs", "6", "--workers", "2", "--seed", "1"])
+        .args([
+            "bench",
+            "soak",
+            "--jobs",
+            "6",
+            "--workers",
+            "2",
+            "--seed",
+            "1",
+        ])
         .args(["--cancel-share", "0.5", "--pollers", "2"])
         // Authentication off, whatever the environment says.
         .env_remove("SYLVA_TOKEN")
@@ -29,7 +38,10 @@ fn bench_soak_runs_jobs_across_a_sigkill_and_loses_nothing() {
         ),
         "{stdout}"
     );
-    assert_eq!(lines.next(), Some("|---|---|---|---|---|---|---|---|---|---|---|---|"));
+    assert_eq!(
+        lines.next(),
+        Some("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    );
     let row: Vec<&str> = lines
         .next()
         .expect("one row")
@@ -52,8 +64,5 @@ fn bench_soak_runs_jobs_across_a_sigkill_and_loses_nothing() {
         row[11].starts_with("serve SIGKILLed"),
         "the server was killed and restarted: {stdout}\n{stderr}"
     );
-    assert!(
-        stderr.contains("database integrity: ok"),
-        "{stderr}"
-    );
+    assert!(stderr.contains("database integrity: ok"), "{stderr}");
 }

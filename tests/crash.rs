@@ -93,7 +93,10 @@ fn compare(path: &str, want: &Value, got: &Value, errs: &mut Vec<String>) -> usi
             }
         }
         (Value::Number(a), Value::Number(b)) => {
-            let (a, b) = (a.as_f64().unwrap_or(f64::NAN), b.as_f64().unwrap_or(f64::NAN));
+            let (a, b) = (
+                a.as_f64().unwrap_or(f64::NAN),
+                b.as_f64().unwrap_or(f64::NAN),
+            );
             let close = (a - b).abs() <= ABS_TOL.max(REL_TOL * a.abs().max(b.abs()));
             if !close {
                 errs.push(format!("{path}: {a} != {b}"));
@@ -193,15 +196,17 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
     let srv = serve(&data, &[]);
     let mut inputs = serde_json::Map::new();
     for (kind, path) in &plot.files {
-        inputs.insert(kind.to_string(), json!(upload(&c, &srv.base, kind, path).await));
+        inputs.insert(
+            kind.to_string(),
+            json!(upload(&c, &srv.base, kind, path).await),
+        );
     }
     let body = json!({ "inputs": inputs, "params": params() });
 
     // The reference: the same job without interruption.
     let reference = create_job(&c, &srv.base, &body).await;
     let rid = reference["id"].as_str().expect("id").to_string();
-    let (reference, _) =
-        wait_job(&c, &srv.base, &rid, Duration::from_secs(300), is_terminal).await;
+    let (reference, _) = wait_job(&c, &srv.base, &rid, Duration::from_secs(300), is_terminal).await;
     assert_eq!(reference["state"], "succeeded", "{reference}");
     let want_names = artifact_names(&reference);
     let want_results: Value = c
@@ -351,7 +356,11 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
             &results["stages"],
             &mut errs,
         );
-        assert!(errs.is_empty(), "{stage}: metrics differ:\n{}", errs.join("\n"));
+        assert!(
+            errs.is_empty(),
+            "{stage}: metrics differ:\n{}",
+            errs.join("\n")
+        );
         assert!(compared > 50, "{stage}: only {compared} metrics compared");
         drop(srv);
         eprintln!(
@@ -378,7 +387,11 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
         assert_eq!(up["sha256"], sha256_hex(&bytes), "{kind}");
         let name = path.file_name().and_then(|n| n.to_str()).expect("name");
         let blob = std::fs::read(blobs.upload_blob(id, name)).expect("upload blob kept");
-        assert_eq!(sha256_hex(&blob), sha256_hex(&bytes), "{kind}: blob changed");
+        assert_eq!(
+            sha256_hex(&blob),
+            sha256_hex(&bytes),
+            "{kind}: blob changed"
+        );
     }
     let list: Value = c
         .get(format!("{}/v1/jobs?limit=50", srv.base))

@@ -212,9 +212,8 @@ impl Proc {
 
     /// The end of the current log, for error messages.
     fn log_tail(&self) -> String {
-        let text =
-            std::fs::read_to_string(Self::log(&self.data, self.label, self.starts - 1))
-                .unwrap_or_default();
+        let text = std::fs::read_to_string(Self::log(&self.data, self.label, self.starts - 1))
+            .unwrap_or_default();
         let start = text.len().saturating_sub(2000);
         text.get(start..).unwrap_or("").to_string()
     }
@@ -274,7 +273,11 @@ async fn wait_ready(api: &Api, p: &mut Proc) -> anyhow::Result<()> {
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    anyhow::bail!("sylva {} did not answer in time:\n{}", p.label, p.log_tail())
+    anyhow::bail!(
+        "sylva {} did not answer in time:\n{}",
+        p.label,
+        p.log_tail()
+    )
 }
 
 /// Waits until the worker process says it started.
@@ -321,7 +324,10 @@ async fn upload(api: &Api, kind: &str, path: &Path) -> anyhow::Result<String> {
             .ok_or_else(|| anyhow::anyhow!("part {n} of the {kind} upload refused"))?;
     }
     let done = api
-        .send(api.http.post(api.url(&format!("/v1/uploads/{id}/complete"))))
+        .send(
+            api.http
+                .post(api.url(&format!("/v1/uploads/{id}/complete"))),
+        )
         .await;
     match done {
         Some(a) if a.status.is_success() => Ok(id),
@@ -435,9 +441,10 @@ async fn poller(api: Arc<Api>, shared: Arc<Shared>, seed: u64) {
     while !shared.done.load(Ordering::Relaxed) {
         tokio::time::sleep(Duration::from_millis(POLL_EVERY_MS)).await;
         k += 1;
-        let pick = shared.accepted.lock().ok().and_then(|l| {
-            (!l.is_empty()).then(|| l[rng.next_u32() as usize % l.len()].clone())
-        });
+        let pick =
+            shared.accepted.lock().ok().and_then(|l| {
+                (!l.is_empty()).then(|| l[rng.next_u32() as usize % l.len()].clone())
+            });
         let path = match pick {
             Some(id) if !k.is_multiple_of(5) => format!("/v1/jobs/{id}"),
             _ => "/v1/jobs?limit=50".to_string(),
@@ -469,6 +476,24 @@ async fn all_states(api: &Api) -> Option<HashMap<String, String>> {
     }
 }
 
+/// Whether the last worker that claimed job `id` (from its log: `claimed by worker W` or
+/// `resumed at stage S by worker W`, with W = `host-pid-slot-tag`) belongs to process `pid`.
+async fn held_by(api: &Api, id: &str, pid: u32) -> bool {
+    let Some(a) = api.get(&format!("/v1/jobs/{id}/log")).await else {
+        return false;
+    };
+    let v = a.json();
+    let last = v["lines"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|l| l["message"].as_str())
+        .filter(|m| m.starts_with("claimed by worker ") || m.starts_with("resumed "))
+        .filter_map(|m| m.split_once("by worker ").map(|(_, w)| w.to_string()))
+        .next_back();
+    last.is_some_and(|w| w.contains(&format!("-{pid}-")))
+}
+
 fn is_terminal(state: &str) -> bool {
     matches!(state, "succeeded" | "failed" | "canceled")
 }
@@ -477,9 +502,13 @@ fn is_terminal(state: &str) -> bool {
 struct Restart {
     victim: Victim,
     at_s: f64,
-    running: usize,
+    /// Jobs the killed process was running, as far as the job logs tell.
+    held: usize,
     down_s: f64,
 }
+
+/// Longest the restart waits, once due, for the process to be running a job, seconds.
+const RESTART_WAIT_SECS: u64 = 30;
 
 /// What the end-of-run checks found.
 #[derive(Default)]
@@ -513,7 +542,12 @@ async fn audit(api: &Api, ids: &[String], uploads: &[String]) -> Tally {
                     .into_iter()
                     .flatten()
                     .any(|x| x["name"] == "ingest/report.json");
-                if !has_report {
+                // Listed, and on disk: the report is the last file a stage writes.
+                let readable = api
+                    .get(&format!("/v1/jobs/{id}/artifacts/ingest/report.json"))
+                    .await
+                    .is_some_and(|a| a.status.is_success());
+                if !(has_report && readable) {
                     t.lost
                         .push(format!("job {id}: succeeded without its ingest outputs"));
                 }
@@ -672,10 +706,17 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
 
     // Monitor: count finished jobs, restart once at half-way, stop when all are finished.
     let mut restart: Option<Restart> = None;
+    let mut restart_due: Option<Instant> = None;
     let mut last_finished = (0usize, Instant::now());
     let mut last_job_done = started;
     loop {
-        tokio::time::sleep(Duration::from_millis(500)).await;
+        // Closer watch while waiting for the process to be killed to hold a job.
+        let pause = if restart_due.is_some() && restart.is_none() {
+            50
+        } else {
+            500
+        };
+        tokio::time::sleep(Duration::from_millis(pause)).await;
         serve.check_alive()?;
         if let Some(w) = worker.as_mut() {
             w.check_alive()?;
@@ -683,7 +724,11 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
         let Some(states) = all_states(&api).await else {
             continue;
         };
-        let ids: Vec<String> = shared.accepted.lock().map(|l| l.clone()).unwrap_or_default();
+        let ids: Vec<String> = shared
+            .accepted
+            .lock()
+            .map(|l| l.clone())
+            .unwrap_or_default();
         let finished = ids
             .iter()
             .filter(|id| states.get(*id).is_some_and(|s| is_terminal(s)))
@@ -694,18 +739,33 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
             last_job_done = Instant::now();
         }
         if restart.is_none() && victim != Victim::Nobody && finished * 2 >= jobs as usize {
-            let running = states.values().filter(|s| *s == "running").count();
+            let due = *restart_due.get_or_insert_with(Instant::now);
+            // Kill the process while it runs a job, so that a job is taken over.
+            let pid = match (victim, worker.as_ref()) {
+                (Victim::Worker, Some(w)) => w.child.id(),
+                _ => serve.child.id(),
+            };
+            let mut held = 0;
+            for (id, state) in &states {
+                if state == "running" && held_by(&api, id, pid).await {
+                    held += 1;
+                }
+            }
+            let all_done = !shared.submitting.load(Ordering::SeqCst) && finished >= ids.len();
+            if held == 0 && !all_done && due.elapsed() < Duration::from_secs(RESTART_WAIT_SECS) {
+                continue;
+            }
             let at_s = started.elapsed().as_secs_f64();
             let t0 = Instant::now();
             match (victim, worker.as_mut()) {
                 (Victim::Worker, Some(w)) => {
-                    eprintln!("SIGKILL of sylva worker ({running} job(s) running)…");
+                    eprintln!("SIGKILL of sylva worker ({held} job(s) running there)…");
                     w.kill();
                     w.restart()?;
                     wait_worker(w).await?;
                 }
                 _ => {
-                    eprintln!("SIGKILL of sylva serve ({running} job(s) running)…");
+                    eprintln!("SIGKILL of sylva serve ({held} job(s) running there)…");
                     serve.kill();
                     serve.restart()?;
                     wait_ready(&api, &mut serve).await?;
@@ -714,7 +774,7 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
             restart = Some(Restart {
                 victim,
                 at_s,
-                running,
+                held,
                 down_s: t0.elapsed().as_secs_f64(),
             });
         }
@@ -737,7 +797,11 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
     let wall_s = last_job_done.duration_since(started).as_secs_f64();
 
     // The audit, through the API, then through the database itself.
-    let ids: Vec<String> = shared.accepted.lock().map(|l| l.clone()).unwrap_or_default();
+    let ids: Vec<String> = shared
+        .accepted
+        .lock()
+        .map(|l| l.clone())
+        .unwrap_or_default();
     let mut tally = audit(&api, &ids, &uploads).await;
     let all = all_states(&api).await.unwrap_or_default();
     let unique: HashSet<&String> = ids.iter().collect();
@@ -754,10 +818,7 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
     let db = JobStore::open_sqlite(&data.join("sylva.db"), 1)
         .await
         .context("cannot open the job database after the run")?;
-    let integrity = db
-        .integrity_check()
-        .await
-        .unwrap_or_else(|e| e.to_string());
+    let integrity = db.integrity_check().await.unwrap_or_else(|e| e.to_string());
     if integrity != "ok" {
         tally
             .lost
@@ -767,28 +828,33 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
         eprintln!("LOST: {l}");
     }
 
-    let mut lat = api.latencies_us.lock().map(|l| l.clone()).unwrap_or_default();
+    let mut lat = api
+        .latencies_us
+        .lock()
+        .map(|l| l.clone())
+        .unwrap_or_default();
     lat.sort_unstable();
     let finished = tally.succeeded + tally.canceled + tally.failed;
     let per_hour = finished as f64 / wall_s.max(1e-9) * 3600.0;
     let restart_text = match &restart {
         None => "none".to_string(),
         Some(r) => format!(
-            "{} SIGKILLed at {:.0} s with {} job(s) running, back in {:.1} s; {} job(s) resumed",
+            "{} SIGKILLed at {:.0} s running {} job(s), back in {:.1} s; {} job(s) resumed",
             match r.victim {
                 Victim::Worker => "worker",
                 _ => "serve",
             },
             r.at_s,
-            r.running,
+            r.held,
             r.down_s,
             tally.resumed
         ),
     };
+    let accepted = shared.cancels_accepted.load(Ordering::Relaxed);
     eprintln!(
-        "cancels: {} accepted, {} too late (job already finished); {} submission(s) refused; \
-         database integrity: {integrity}",
-        shared.cancels_accepted.load(Ordering::Relaxed),
+        "cancels: {accepted} accepted ({} of those jobs finished their stage first), {} too \
+         late (job already finished); {} submission(s) refused; database integrity: {integrity}",
+        accepted.saturating_sub(tally.canceled),
         shared.cancels_too_late.load(Ordering::Relaxed),
         shared.refused.load(Ordering::Relaxed),
     );
