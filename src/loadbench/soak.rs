@@ -46,9 +46,10 @@ const BACKLOG_PER_WORKER: usize = 4;
 /// Pause between two status reads of one poller, milliseconds (a script polling 10 times a
 /// second; the web page polls less often).
 const POLL_EVERY_MS: u64 = 100;
-/// Cancels land at a uniformly random moment this long after the job's submission, ms: some
-/// while queued, some while running, some too late.
-const CANCEL_WITHIN_MS: u64 = 3000;
+/// Cancels land at a uniformly random moment this long after the job's submission, ms: about
+/// the time a small job spends queued and running with the default backlog, so some land while
+/// it is queued, some while it runs, some too late.
+const CANCEL_WITHIN_MS: u64 = 1000;
 /// A job not finished after this many seconds without any job finishing counts as lost.
 const STALL_SECS: u64 = 180;
 /// Longest a request may take before it counts as unanswered, seconds.
@@ -67,7 +68,7 @@ pub struct SoakArgs {
     /// pollers' picks; the same seed makes the same choices.
     #[arg(long, env = "SYLVA_BENCH_SEED", default_value_t = 1)]
     pub seed: u64,
-    /// soak: share of jobs cancelled at a random moment within 3 s of their submission, in
+    /// soak: share of jobs cancelled at a random moment within 1 s of their submission, in
     /// [0, 1] (default 0.1).
     #[arg(long, env = "SYLVA_BENCH_CANCEL_SHARE", default_value_t = 0.1)]
     pub cancel_share: f64,
