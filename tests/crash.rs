@@ -5,7 +5,8 @@
 //! Then, for each stage in turn, a fresh job on the same server data runs under
 //! `--debug-crash-at STAGE:FRACTION`, which makes the process SIGKILL itself from inside that
 //! stage once the stage reports the fraction, at a point where the stage has already written
-//! files into its `<stage>.partial/` folder. The server is started again without the flag, and
+//! files into its `<stage>.partial/` folder (training is also killed half-way through its
+//! optimisation, before it writes anything). The server is started again without the flag, and
 //! the job must resume at that stage (earlier stages untouched), succeed, and match the
 //! reference: the same artifact names and the same metrics within a tolerance. The database
 //! must pass `PRAGMA integrity_check` after every crash, and every upload stays complete.
