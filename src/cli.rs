@@ -46,7 +46,8 @@ pub enum Command {
     /// Train Gaussian splatting on a COLMAP project (vanilla 3DGS from the SfM points, or
     /// resume from a splat PLY); writes splats.ply, eval.json, the loss curve and test renders.
     Train(TrainArgs),
-    /// Benchmarks that print tables (not tests): `sylva bench train`, `sylva bench load`.
+    /// Benchmarks that print tables (not tests): `sylva bench train`, `sylva bench load`,
+    /// `sylva bench soak`.
     Bench(BenchArgs),
     /// A generated plot through the whole service: start the server (SQLite + local files),
     /// upload the plot through the API, follow the job, print the inventory and its accuracy,
@@ -87,8 +88,11 @@ pub struct DemoArgs {
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {
-    /// What to measure: train (steps per second, where the step time goes, peak memory) or
-    /// load (job status reads per second and latency of the HTTP API; flags marked `load:`).
+    /// What to measure: train (steps per second, where the step time goes, peak memory),
+    /// load (job status reads per second and latency of the HTTP API; flags marked `load:`)
+    /// or soak (many small jobs through `sylva serve` and `sylva worker` processes with random
+    /// cancels and one SIGKILL; jobs per hour, API latency and anything lost; flags marked
+    /// `soak:`, and --jobs).
     #[arg(env = "SYLVA_BENCH_WHAT", default_value = "train")]
     pub what: String,
     /// A COLMAP project to train on; without one a synthetic plot is generated.
@@ -111,6 +115,8 @@ pub struct BenchArgs {
     pub backend: String,
     #[command(flatten)]
     pub load: crate::loadbench::LoadArgs,
+    #[command(flatten)]
+    pub soak: crate::loadbench::soak::SoakArgs,
 }
 
 #[derive(Debug, Args)]
@@ -794,8 +800,19 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         crate::loadbench::run(&a.load).await?;
         return Ok(ExitCode::SUCCESS);
     }
+    if a.what == "soak" {
+        let nothing_lost = crate::loadbench::soak::run(a.load.jobs, &a.soak).await?;
+        return Ok(if nothing_lost {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::FAILURE
+        });
+    }
     if a.what != "train" {
-        anyhow::bail!("unknown benchmark {:?}; available: train, load", a.what);
+        anyhow::bail!(
+            "unknown benchmark {:?}; available: train, load, soak",
+            a.what
+        );
     }
     let backend = match a.backend.as_str() {
         "gpu" => TrainBackend::Gpu,

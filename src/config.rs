@@ -9,6 +9,7 @@ use clap::Args;
 
 use crate::io::archive::ExtractLimits;
 use crate::jobs::{Database, DbError};
+use crate::pipeline::Stage;
 
 const MIB: u64 = 1 << 20;
 const GIB: u64 = 1 << 30;
@@ -97,6 +98,50 @@ pub struct WorkerArgs {
     /// and/or `stage=ms` overrides, e.g. `train=60000`. 0 in production.
     #[arg(long, env = "SYLVA_DEBUG_STAGE_PAUSE_MS", default_value = "0")]
     pub debug_stage_pause_ms: String,
+
+    /// Fault injection for tests only: `STAGE[:FRACTION]` makes this process kill itself with
+    /// SIGKILL inside stage STAGE, at the stage's first progress report at or above FRACTION
+    /// in [0, 1] (default 0.5), to prove that a crash mid-stage loses nothing. Unset (the
+    /// default) in production.
+    #[arg(long, env = "SYLVA_DEBUG_CRASH_AT")]
+    pub debug_crash_at: Option<CrashPoint>,
+}
+
+/// Where `--debug-crash-at` kills the worker process: inside `stage`, once the stage reports
+/// progress at or above `fraction` (of the stage, in [0, 1]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CrashPoint {
+    pub stage: Stage,
+    pub fraction: f64,
+}
+
+impl CrashPoint {
+    /// The fraction when `STAGE` is given alone: half-way through the stage.
+    pub const DEFAULT_FRACTION: f64 = 0.5;
+}
+
+impl std::str::FromStr for CrashPoint {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, String> {
+        let (name, fraction) = match text.split_once(':') {
+            Some((n, f)) => (n.trim(), Some(f.trim())),
+            None => (text.trim(), None),
+        };
+        let stage = Stage::from_name(name).ok_or_else(|| {
+            let names: Vec<&str> = Stage::ALL.iter().map(|s| s.name()).collect();
+            format!("{name:?} is not a stage; stages: {}", names.join(", "))
+        })?;
+        let fraction = match fraction {
+            None => Self::DEFAULT_FRACTION,
+            Some(f) => f
+                .parse::<f64>()
+                .ok()
+                .filter(|f| (0.0..=1.0).contains(f))
+                .ok_or_else(|| format!("{f:?} is not a fraction in [0, 1]"))?,
+        };
+        Ok(Self { stage, fraction })
+    }
 }
 
 /// The value for `stage` in a per-stage setting of `flag`: comma-separated items, each a
@@ -321,5 +366,32 @@ mod tests {
         assert_eq!(w.debug_stage_pause("train"), Ok(Duration::from_millis(500)));
         assert_eq!(w.debug_stage_pause("ingest"), Ok(Duration::ZERO));
         assert!(w.validate().is_ok());
+    }
+
+    #[test]
+    fn crash_points_name_a_stage_and_an_optional_fraction() {
+        let w = W::parse_from(["x", "--debug-crash-at", "train:0.25"]).w;
+        assert_eq!(
+            w.debug_crash_at,
+            Some(CrashPoint {
+                stage: Stage::Train,
+                fraction: 0.25
+            })
+        );
+        let w = W::parse_from(["x", "--debug-crash-at", "dbh"]).w;
+        assert_eq!(
+            w.debug_crash_at,
+            Some(CrashPoint {
+                stage: Stage::Dbh,
+                fraction: CrashPoint::DEFAULT_FRACTION
+            })
+        );
+        assert_eq!(W::parse_from(["x"]).w.debug_crash_at, None);
+        for bad in ["fly", "train:2", "train:half", "train:-0.1"] {
+            assert!(
+                W::try_parse_from(["x", "--debug-crash-at", bad]).is_err(),
+                "{bad}"
+            );
+        }
     }
 }

@@ -17,6 +17,7 @@
 //! machine.
 
 pub mod postgres;
+pub mod soak;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -47,7 +48,8 @@ const LIST_LIMIT: u32 = 50;
 /// Flags of `sylva bench load`.
 #[derive(Debug, Clone, Args)]
 pub struct LoadArgs {
-    /// load: jobs seeded before the clients start (queued, never run).
+    /// load: jobs seeded before the clients start (queued, never run). soak: jobs submitted
+    /// through the API.
     #[arg(long, env = "SYLVA_BENCH_JOBS", default_value_t = 200)]
     pub jobs: u32,
     /// load: concurrent HTTP clients, each with its own connection (comma-separated for
@@ -114,9 +116,10 @@ fn parse_clients(text: &str) -> anyhow::Result<Vec<u32>> {
 struct ScratchDir(PathBuf);
 
 impl ScratchDir {
-    fn new() -> anyhow::Result<Self> {
+    /// `sylva-bench-<label>-<pid>-<ms>` under the temporary directory.
+    fn new(label: &str) -> anyhow::Result<Self> {
         let p = std::env::temp_dir().join(format!(
-            "sylva-bench-load-{}-{}",
+            "sylva-bench-{label}-{}-{}",
             std::process::id(),
             now_ms()
         ));
@@ -315,7 +318,7 @@ struct Row {
 }
 
 /// The `q`-quantile (nearest rank) of sorted values, in milliseconds from microseconds.
-fn quantile_ms(sorted_us: &[u64], q: f64) -> f64 {
+pub(crate) fn quantile_ms(sorted_us: &[u64], q: f64) -> f64 {
     if sorted_us.is_empty() {
         return 0.0;
     }
@@ -377,7 +380,7 @@ pub async fn run(a: &LoadArgs) -> anyhow::Result<()> {
     if a.jobs == 0 {
         anyhow::bail!("--jobs must be at least 1");
     }
-    let scratch = ScratchDir::new()?;
+    let scratch = ScratchDir::new("load")?;
     let mut printed_header = false;
     for (i, target) in targets.iter().enumerate() {
         // The cluster (if any) outlives the server that uses it: declared first, dropped last.

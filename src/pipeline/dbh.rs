@@ -252,10 +252,11 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "radial_dev_mm": dev.map(|d| d * 1000.0),
         }));
         ctx.progress
-            .set((k + 1) as f64 / stems.stems.len().max(1) as f64);
+            .set(0.9 * (k + 1) as f64 / stems.stems.len().max(1) as f64);
     }
     forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), &rows)?;
     forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &rows)?;
+    ctx.progress.set(1.0);
     let field = match &ctx.inputs.field_dbh {
         Some(path) => Some(field_accuracy(&rows, path)?),
         None => None,

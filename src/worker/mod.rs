@@ -43,6 +43,9 @@ struct StageProgress {
     fraction_bits: AtomicU64,
     lines: Mutex<Vec<String>>,
     cancel: CancelFlag,
+    /// `--debug-crash-at` for this stage: the process kills itself once the stage reports
+    /// this fraction (tests only; `None` in production).
+    crash_at: Option<(Stage, f64)>,
 }
 
 impl StageProgress {
@@ -54,6 +57,11 @@ impl StageProgress {
 impl Progress for StageProgress {
     fn set(&self, fraction: f64) {
         let f = fraction.clamp(0.0, 1.0);
+        if let Some((stage, at)) = self.crash_at
+            && f >= at
+        {
+            crash_now(stage, f);
+        }
         let _ = self
             .fraction_bits
             .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |old| {
@@ -68,6 +76,19 @@ impl Progress for StageProgress {
     fn is_cancelled(&self) -> bool {
         self.cancel.is_cancelled()
     }
+}
+
+/// `--debug-crash-at`: kills this process with SIGKILL, as the kernel's OOM killer or a
+/// power cut would stop it (no unwinding, no destructors, no flush), from inside a stage.
+fn crash_now(stage: Stage, fraction: f64) -> ! {
+    eprintln!("sylva: --debug-crash-at: SIGKILL inside stage {stage} at progress {fraction:.3}");
+    // SAFETY: kill(2) with our own pid and a valid signal number has no memory effects.
+    unsafe {
+        libc::kill(libc::getpid(), libc::SIGKILL);
+    }
+    // SIGKILL cannot be caught; should it somehow not land, never carry on as if nothing
+    // happened.
+    std::process::abort()
 }
 
 /// Job progress once `stage` is `fraction` done, given the stages the job runs.
@@ -356,6 +377,11 @@ impl WorkerPool {
             fraction_bits: AtomicU64::new(0f64.to_bits()),
             lines: Mutex::new(Vec::new()),
             cancel: CancelFlag::new(),
+            crash_at: self
+                .args
+                .debug_crash_at
+                .filter(|c| c.stage == stage)
+                .map(|c| (c.stage, c.fraction)),
         });
 
         // Heartbeat: lease, progress, log lines, cancellation.
@@ -604,6 +630,7 @@ mod tests {
             fraction_bits: AtomicU64::new(0f64.to_bits()),
             lines: Mutex::new(Vec::new()),
             cancel: CancelFlag::new(),
+            crash_at: None,
         };
         p.set(0.5);
         p.set(0.2);
