@@ -7,7 +7,6 @@ mod common;
 mod webdriver;
 
 use std::path::Path;
-use std::process::Command;
 use std::time::Duration;
 
 use common::*;
@@ -22,23 +21,6 @@ async fn browser_or_skip(test: &str) -> Option<Browser> {
             None
         }
     }
-}
-
-/// A generated plot (`sylva synth --preset tiny`) with its COLMAP project zipped.
-fn synthetic_plot(dir: &Path) -> std::path::PathBuf {
-    let plot = dir.join("plot");
-    let out = Command::new(BIN)
-        .args(["synth", "--preset", "tiny", "--seed", "1", "--out"])
-        .arg(&plot)
-        .output()
-        .expect("synth");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    zip_dir(&plot.join("colmap"), &plot.join("colmap.zip"));
-    plot
 }
 
 /// Submits the plot in one multipart request and waits for the job to succeed.
@@ -74,7 +56,7 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
         return;
     };
     let dir = tempfile::tempdir().expect("tempdir");
-    let plot = synthetic_plot(dir.path());
+    let plot = synthetic_plot(dir.path(), 1);
     let srv = serve(&dir.path().join("data"), &[]);
     let job = finished_segment_job(&srv.base, &plot).await;
     let id = job["id"].as_str().expect("id");
@@ -238,7 +220,7 @@ async fn upload_through_the_form_creates_a_job_followed_live_and_retries_a_faile
         return;
     };
     let dir = tempfile::tempdir().expect("tempdir");
-    let plot = synthetic_plot(dir.path());
+    let plot = synthetic_plot(dir.path(), 1);
     // Small parts so the LiDAR file goes in several.
     let srv = serve(&dir.path().join("data"), &["--part-size", "262144"]);
     b.goto(&format!("{}/", srv.base)).await;

@@ -164,18 +164,7 @@ struct Plot {
 /// `sylva synth --preset tiny --seed 3`, with its COLMAP project zipped for upload.
 fn plot() -> Plot {
     let dir = tempfile::tempdir().expect("tempdir");
-    let out = dir.path().join("plot");
-    let status = std::process::Command::new(BIN)
-        .args(["synth", "--preset", "tiny", "--seed", "3", "--out"])
-        .arg(&out)
-        .output()
-        .expect("synth");
-    assert!(
-        status.status.success(),
-        "{}",
-        String::from_utf8_lossy(&status.stderr)
-    );
-    zip_dir(&out.join("colmap"), &out.join("colmap.zip"));
+    let out = synthetic_plot(dir.path(), 3);
     let files = vec![
         ("lidar", out.join("lidar.laz")),
         ("colmap", out.join("colmap.zip")),

@@ -385,18 +385,7 @@ async fn cancel_frees_the_gpu_slot_within_a_second() {
     // A generated plot (the small fixture has too little to register): its stages up to
     // training run for real.
     let dir = tempfile::tempdir().expect("tempdir");
-    let plot = dir.path().join("plot");
-    let out = std::process::Command::new(BIN)
-        .args(["synth", "--preset", "tiny", "--seed", "1", "--out"])
-        .arg(&plot)
-        .output()
-        .expect("synth");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    zip_dir(&plot.join("colmap"), &plot.join("colmap.zip"));
+    let plot = synthetic_plot(dir.path(), 1);
     let data = dir.path().join("data");
     // Two job slots, one GPU slot; the train stage holds its GPU slot for two minutes.
     let srv = serve(

@@ -160,6 +160,32 @@ pub fn zip_dir(dir: &Path, out: &Path) {
     z.finish().expect("finish zip");
 }
 
+/// `sylva synth --preset tiny --seed SEED` into `dir/plot`, with its COLMAP project zipped
+/// (`colmap.zip`) for upload; returns the plot folder.
+#[allow(dead_code)]
+pub fn synthetic_plot(dir: &Path, seed: u64) -> PathBuf {
+    let plot = dir.join("plot");
+    let out = Command::new(BIN)
+        .args([
+            "synth",
+            "--preset",
+            "tiny",
+            "--seed",
+            &seed.to_string(),
+            "--out",
+        ])
+        .arg(&plot)
+        .output()
+        .expect("synth");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    zip_dir(&plot.join("colmap"), &plot.join("colmap.zip"));
+    plot
+}
+
 /// A running `sylva` process, killed when dropped.
 pub struct Proc {
     pub child: Child,
