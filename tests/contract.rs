@@ -133,10 +133,12 @@ async fn every_listed_route_reaches_a_handler() {
 const FUZZ_TOKEN: &str = "contract-fuzz-token";
 
 /// Examples per operation and phase (schemathesis `--max-examples`): enough for each check to
-/// see every operation several times, small enough for about three minutes on two cores.
-const FUZZ_EXAMPLES: &str = "12";
+/// see every operation many times, small enough for two to three minutes on two cores.
+/// `SYLVA_TEST_FUZZ_EXAMPLES` overrides it (to search harder by hand).
+const FUZZ_EXAMPLES: &str = "200";
 
 /// Fixed seed, so a failure can be replayed with the command the test prints.
+/// `SYLVA_TEST_FUZZ_SEED` overrides it (to search elsewhere by hand).
 const FUZZ_SEED: &str = "20240701";
 
 /// Longest the whole schemathesis run may take before the test gives up on it.
@@ -183,7 +185,8 @@ fn authed_client() -> reqwest::Client {
 }
 
 /// Real resources for the fuzzer to find through the listings and links: completed uploads
-/// and an open one, a job that succeeded (with artifacts), a queued job and a canceled one.
+/// and an open one, a canceled job and, newest (first in `GET /v1/jobs`, which the links
+/// follow), a job that succeeded and has artifacts. Queued jobs appear when the fuzzer retries.
 async fn seed_resources(data: &Path, base: &str) {
     let c = authed_client();
     let fx = fixture();
@@ -196,14 +199,6 @@ async fn seed_resources(data: &Path, base: &str) {
         .error_for_status()
         .expect("201");
     let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
-    // One job runs (ingest only, no GPU) on a worker of its own, which then stops: the server
-    // under test has none, so nothing heavy runs while it is fuzzed.
-    let mut w = worker(data, &["--poll-ms", "50"]);
-    let done = create_job(&c, base, &body).await;
-    let id = done["id"].as_str().expect("id");
-    let (job, _) = wait_job(&c, base, id, Duration::from_secs(180), is_terminal).await;
-    assert_eq!(job["state"], "succeeded", "{job}");
-    w.kill();
     let canceled = create_job(&c, base, &body).await;
     let id = canceled["id"].as_str().expect("id");
     let r = c
@@ -212,7 +207,18 @@ async fn seed_resources(data: &Path, base: &str) {
         .await
         .expect("cancel");
     assert_eq!(r.status(), reqwest::StatusCode::ACCEPTED);
-    create_job(&c, base, &body).await;
+    // One job runs (ingest only, no GPU) on a worker of its own, which then stops: the server
+    // under test has none, so nothing heavy runs while it is fuzzed.
+    let mut w = worker(data, &["--poll-ms", "50"]);
+    let done = create_job(&c, base, &body).await;
+    let id = done["id"].as_str().expect("id");
+    let (job, _) = wait_job(&c, base, id, Duration::from_secs(180), is_terminal).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    assert!(
+        job["artifacts"].as_array().is_some_and(|a| !a.is_empty()),
+        "{job}"
+    );
+    w.kill();
 }
 
 /// schemathesis (PyPI) against the live server's /openapi.yaml with auth on and every
@@ -247,6 +253,8 @@ async fn schemathesis_finds_no_contract_violation() {
     );
     seed_resources(&data, &srv.base).await;
 
+    let seed = std::env::var("SYLVA_TEST_FUZZ_SEED").unwrap_or(FUZZ_SEED.into());
+    let examples = std::env::var("SYLVA_TEST_FUZZ_EXAMPLES").unwrap_or(FUZZ_EXAMPLES.into());
     let auth = format!("Authorization: Bearer {FUZZ_TOKEN}");
     let schema = format!("{}/openapi.yaml", srv.base);
     let config = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/schemathesis.toml");
@@ -258,9 +266,9 @@ async fn schemathesis_finds_no_contract_violation() {
         "--header",
         auth.as_str(),
         "--seed",
-        FUZZ_SEED,
+        seed.as_str(),
         "--max-examples",
-        FUZZ_EXAMPLES,
+        examples.as_str(),
         "--workers",
         "1",
         "--request-timeout",
@@ -291,8 +299,14 @@ async fn schemathesis_finds_no_contract_violation() {
         tokio::time::sleep(Duration::from_millis(250)).await;
     };
     let output = std::fs::read_to_string(&out_path).unwrap_or_default();
+    // Its warnings (operations it could not reach) and summary, also when it passes.
+    let summary = output
+        .find("=== WARNINGS ===")
+        .or_else(|| output.find("=== SUMMARY ==="))
+        .map(|at| &output[at..])
+        .unwrap_or_default();
     eprintln!(
-        "schemathesis ran {:.0} s: {} {}",
+        "schemathesis ran {:.0} s: {} {}\n{summary}",
         started.elapsed().as_secs_f64(),
         exe.display(),
         args.join(" ")
