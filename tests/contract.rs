@@ -3,8 +3,11 @@
 mod common;
 
 use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use common::*;
+use serde_json::json;
 use sylva::api::ROUTES;
 
 /// (METHOD, path) pairs of openapi.yaml's `paths`.
@@ -124,4 +127,198 @@ async fn every_listed_route_reaches_a_handler() {
     let file = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/openapi.yaml"))
         .expect("read");
     assert_eq!(served, file);
+}
+
+/// The bearer token of the fuzzed server.
+const FUZZ_TOKEN: &str = "contract-fuzz-token";
+
+/// Examples per operation and phase (schemathesis `--max-examples`): enough for each check to
+/// see every operation many times, small enough for two to three minutes on two cores.
+/// `SYLVA_TEST_FUZZ_EXAMPLES` overrides it (to search harder by hand).
+const FUZZ_EXAMPLES: &str = "200";
+
+/// Fixed seed, so a failure can be replayed with the command the test prints.
+/// `SYLVA_TEST_FUZZ_SEED` overrides it (to search elsewhere by hand).
+const FUZZ_SEED: &str = "20240701";
+
+/// Longest the whole schemathesis run may take before the test gives up on it.
+const FUZZ_DEADLINE: Duration = Duration::from_secs(15 * 60);
+
+/// Where schemathesis is: `SYLVA_TEST_SCHEMATHESIS` (its path, or `none` to skip), else the
+/// test virtual environment that scripts/test makes (target/test-venv), else `PATH`.
+fn schemathesis() -> Result<PathBuf, String> {
+    if let Ok(v) = std::env::var("SYLVA_TEST_SCHEMATHESIS") {
+        if v == "none" {
+            return Err("SYLVA_TEST_SCHEMATHESIS=none".into());
+        }
+        return Ok(PathBuf::from(v));
+    }
+    let venv = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/test-venv/bin/schemathesis");
+    if venv.is_file() {
+        return Ok(venv);
+    }
+    std::env::var_os("PATH")
+        .and_then(|p| {
+            std::env::split_paths(&p)
+                .map(|d| d.join("schemathesis"))
+                .find(|p| p.is_file())
+        })
+        .ok_or_else(|| {
+            "schemathesis is not installed (scripts/test installs it into target/test-venv; \
+             or set SYLVA_TEST_SCHEMATHESIS)"
+                .into()
+        })
+}
+
+/// An HTTP client that sends the fuzzed server's bearer token.
+fn authed_client() -> reqwest::Client {
+    let mut headers = reqwest::header::HeaderMap::new();
+    headers.insert(
+        reqwest::header::AUTHORIZATION,
+        reqwest::header::HeaderValue::from_str(&format!("Bearer {FUZZ_TOKEN}")).expect("token"),
+    );
+    reqwest::Client::builder()
+        .default_headers(headers)
+        .timeout(Duration::from_secs(60))
+        .build()
+        .expect("client")
+}
+
+/// Real resources for the fuzzer to find through the listings and links: completed uploads
+/// and an open one, a canceled job and, newest (first in `GET /v1/jobs`, which the links
+/// follow), a job that succeeded and has artifacts. Queued jobs appear when the fuzzer retries.
+async fn seed_resources(data: &Path, base: &str) {
+    let c = authed_client();
+    let fx = fixture();
+    let inputs = upload_inputs(&c, base, &fx).await;
+    c.post(format!("{base}/v1/uploads"))
+        .json(&json!({ "kind": "field_dbh", "filename": "open.csv", "size": 100 }))
+        .send()
+        .await
+        .expect("open upload")
+        .error_for_status()
+        .expect("201");
+    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
+    let canceled = create_job(&c, base, &body).await;
+    let id = canceled["id"].as_str().expect("id");
+    let r = c
+        .post(format!("{base}/v1/jobs/{id}/cancel"))
+        .send()
+        .await
+        .expect("cancel");
+    assert_eq!(r.status(), reqwest::StatusCode::ACCEPTED);
+    // One job runs (ingest only, no GPU) on a worker of its own, which then stops: the server
+    // under test has none, so nothing heavy runs while it is fuzzed.
+    let mut w = worker(data, &["--poll-ms", "50"]);
+    let done = create_job(&c, base, &body).await;
+    let id = done["id"].as_str().expect("id");
+    let (job, _) = wait_job(&c, base, id, Duration::from_secs(180), is_terminal).await;
+    assert_eq!(job["state"], "succeeded", "{job}");
+    assert!(
+        job["artifacts"].as_array().is_some_and(|a| !a.is_empty()),
+        "{job}"
+    );
+    w.kill();
+}
+
+/// schemathesis (PyPI) against the live server's /openapi.yaml with auth on and every
+/// default check: status codes, content types, headers and bodies as documented, negative
+/// data rejected, a missing token refused, unsupported methods answered 405 with `Allow`,
+/// deleted resources gone. Skips, saying why, where schemathesis is not installed.
+#[tokio::test(flavor = "multi_thread")]
+async fn schemathesis_finds_no_contract_violation() {
+    let exe = match schemathesis() {
+        Ok(exe) => exe,
+        Err(why) => {
+            eprintln!("contract fuzzing skipped: {why}");
+            return;
+        }
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    // No workers: nothing heavy runs while the API is fuzzed. Small, fixed limits: the answers
+    // must not depend on the free space of the machine the test runs on.
+    let srv = serve(
+        &data,
+        &[
+            "--token",
+            FUZZ_TOKEN,
+            "--workers",
+            "0",
+            "--max-upload-bytes",
+            "67108864",
+            "--min-free-bytes",
+            "0",
+        ],
+    );
+    seed_resources(&data, &srv.base).await;
+
+    let seed = std::env::var("SYLVA_TEST_FUZZ_SEED").unwrap_or(FUZZ_SEED.into());
+    let examples = std::env::var("SYLVA_TEST_FUZZ_EXAMPLES").unwrap_or(FUZZ_EXAMPLES.into());
+    let auth = format!("Authorization: Bearer {FUZZ_TOKEN}");
+    let schema = format!("{}/openapi.yaml", srv.base);
+    let config = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/schemathesis.toml");
+    let args = [
+        "--config-file",
+        config,
+        "run",
+        schema.as_str(),
+        "--header",
+        auth.as_str(),
+        "--seed",
+        seed.as_str(),
+        "--max-examples",
+        examples.as_str(),
+        "--workers",
+        "1",
+        "--request-timeout",
+        "20",
+        "--generation-database",
+        "none",
+        "--no-color",
+    ];
+    let started = Instant::now();
+    let out_path = dir.path().join("schemathesis.out");
+    let out = std::fs::File::create(&out_path).expect("output file");
+    let mut child = std::process::Command::new(&exe)
+        .args(args)
+        .current_dir(dir.path())
+        .stdout(out.try_clone().expect("clone"))
+        .stderr(out)
+        .spawn()
+        .unwrap_or_else(|e| panic!("could not run {}: {e}", exe.display()));
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("wait") {
+            break Some(s);
+        }
+        if started.elapsed() > FUZZ_DEADLINE {
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    };
+    let output = std::fs::read_to_string(&out_path).unwrap_or_default();
+    // Its warnings (operations it could not reach) and summary, also when it passes.
+    let summary = output
+        .find("=== WARNINGS ===")
+        .or_else(|| output.find("=== SUMMARY ==="))
+        .map(|at| &output[at..])
+        .unwrap_or_default();
+    eprintln!(
+        "schemathesis ran {:.0} s: {} {}\n{summary}",
+        started.elapsed().as_secs_f64(),
+        exe.display(),
+        args.join(" ")
+    );
+    assert!(
+        status.is_some_and(|s| s.success()),
+        "schemathesis found contract violations ({status:?}):\n{output}\n\nserver log:\n{}",
+        srv.stderr_text()
+    );
+    // A run that tested nothing would also exit 0.
+    assert!(
+        output.contains("passed") && !output.contains("No operations"),
+        "schemathesis tested nothing:\n{output}"
+    );
 }

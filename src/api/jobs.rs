@@ -68,9 +68,12 @@ fn idempotency_key(req: &Request) -> Result<Option<String>, ApiError> {
     let Some(v) = req.headers().get("idempotency-key") else {
         return Ok(None);
     };
+    // Printable ASCII, as openapi.yaml says (`to_str` alone would also let tabs through).
     let s = v
         .to_str()
-        .map_err(|_| ApiError::bad_request("Idempotency-Key must be visible ASCII"))?;
+        .ok()
+        .filter(|s| s.bytes().all(|b| (b' '..=b'~').contains(&b)))
+        .ok_or_else(|| ApiError::bad_request("Idempotency-Key must be printable ASCII"))?;
     if s.is_empty() || s.len() > 255 {
         return Err(ApiError::bad_request(
             "Idempotency-Key must be 1 to 255 characters",
@@ -193,7 +196,12 @@ async fn multipart_inputs(
                 .text()
                 .await
                 .map_err(|e| ApiError::bad_request(format!("multipart params: {e}")))?;
-            params = Some(serde_json::from_str(&text).map_err(|e| json_error(e, "params"))?);
+            // The part is text holding JSON; text that is not JSON is unusable content (422,
+            // as openapi.yaml says), unlike a JSON body that does not parse (400).
+            params = Some(serde_json::from_str(&text).map_err(|e| {
+                ApiError::unprocessable(format!("params is not a JSON object: {e}"))
+                    .with_error("params", e.to_string())
+            })?);
             continue;
         }
         let Some(kind) = UploadKind::parse(&name) else {
@@ -287,6 +295,15 @@ fn query_int(
     }
 }
 
+/// A page cursor as this server gives them out (openapi.yaml `cursor`: `^[1-9][0-9]{0,17}$`,
+/// the job sequence number to continue below); anything else is refused, even what Rust's
+/// integer parser would take (`+7`, `007`).
+fn parse_cursor(c: &str) -> Option<i64> {
+    let digits =
+        (1..=18).contains(&c.len()) && c.bytes().all(|b| b.is_ascii_digit()) && !c.starts_with('0');
+    digits.then(|| c.parse().ok()).flatten()
+}
+
 pub async fn list(
     State(state): State<AppState>,
     Query(q): Query<HashMap<String, String>>,
@@ -302,9 +319,7 @@ pub async fn list(
     let cursor = match q.get("cursor") {
         None => None,
         Some(c) => Some(
-            c.parse::<i64>()
-                .ok()
-                .filter(|n| *n > 0)
+            parse_cursor(c)
                 .ok_or_else(|| ApiError::bad_request("cursor is not one this server gave out"))?,
         ),
     };
@@ -388,7 +403,8 @@ pub async fn cancel(
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RetryBody {
-    #[serde(default)]
+    /// Stage to rerun from; may be left out, but not sent as `null`.
+    #[serde(default, deserialize_with = "uploads::present_string")]
     from_stage: Option<String>,
 }
 
@@ -456,4 +472,30 @@ pub async fn results(
         Json(json!({ "job_id": job.id, "state": job.state.as_str(), "stages": stages }))
             .into_response(),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_cursor;
+
+    #[test]
+    fn cursors_are_plain_positive_decimals() {
+        assert_eq!(parse_cursor("1"), Some(1));
+        assert_eq!(
+            parse_cursor("999999999999999999"),
+            Some(999_999_999_999_999_999)
+        );
+        for bad in [
+            "",
+            "0",
+            "007",
+            "+7",
+            "-7",
+            " 7",
+            "7a",
+            "9999999999999999999",
+        ] {
+            assert_eq!(parse_cursor(bad), None, "{bad:?}");
+        }
+    }
 }

@@ -19,15 +19,45 @@ use crate::jobs::{UploadKind, UploadRecord, now_ms};
 use crate::pipeline::inspect::{self, InspectError};
 use crate::progress::NoProgress;
 
-/// Body of `POST /v1/uploads`.
+/// Body of `POST /v1/uploads` (openapi.yaml `UploadCreate`).
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct UploadCreate {
     pub kind: UploadKind,
     pub filename: String,
+    /// Declared total size, bytes.
+    #[serde(deserialize_with = "json_integer")]
     pub size: u64,
-    #[serde(default)]
+    /// Expected SHA-256 of the whole file; may be left out, but not sent as `null`.
+    #[serde(default, deserialize_with = "present_string")]
     pub sha256: Option<String>,
+}
+
+/// A JSON Schema `integer` in `0..=i64::MAX` (openapi.yaml: `format: int64, minimum: 0`): any
+/// number without a fractional part, so `3` and `3.0` alike (JSON Schema counts mathematical
+/// values, not spellings).
+fn json_integer<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Error> {
+    let n = serde_json::Number::deserialize(d)?;
+    // 2^63 as f64: every integral f64 below it converts exactly.
+    const LIMIT: f64 = 9_223_372_036_854_775_808.0;
+    let v = match (n.as_u64(), n.as_f64()) {
+        (Some(v), _) => Some(v),
+        (None, Some(f)) if f.fract() == 0.0 && (0.0..LIMIT).contains(&f) => Some(f as u64),
+        _ => None,
+    };
+    v.filter(|v| i64::try_from(*v).is_ok()).ok_or_else(|| {
+        serde::de::Error::custom(format!(
+            "invalid value: {n}, expected an integer from 0 to {}",
+            i64::MAX
+        ))
+    })
+}
+
+/// An optional field that, when present, must be a string (`null` is refused).
+pub(crate) fn present_string<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Option<String>, D::Error> {
+    String::deserialize(d).map(Some)
 }
 
 /// Ids are UUIDv7 in simple form: 32 lowercase hex digits.
@@ -103,12 +133,6 @@ pub async fn create_record(
             ApiError::unprocessable("size must be at least 1 byte").with_error("size", "minimum 1")
         );
     }
-    if req.size > a.max_upload_bytes {
-        return Err(ApiError::too_large(format!(
-            "{} bytes declared; this server accepts uploads up to {} bytes",
-            req.size, a.max_upload_bytes
-        )));
-    }
     if let Some(s) = &req.sha256
         && (s.len() != 64
             || !s
@@ -119,6 +143,14 @@ pub async fn create_record(
             ApiError::unprocessable("sha256 must be 64 lowercase hex digits")
                 .with_error("sha256", "pattern ^[0-9a-f]{64}$"),
         );
+    }
+    // Only a well-formed request meets the configured limit: a malformed one is 422 whatever
+    // size it declares.
+    if req.size > a.max_upload_bytes {
+        return Err(ApiError::too_large(format!(
+            "{} bytes declared; this server accepts uploads up to {} bytes",
+            req.size, a.max_upload_bytes
+        )));
     }
     check_byte_quota(state, owner, req.size).await?;
     let free = state.blobs.free_bytes()?;
@@ -334,4 +366,33 @@ pub async fn finish_upload(state: &AppState, u: &UploadRecord) -> Result<(), Api
     blobs.drop_parts(&u.id).await;
     state.db.complete_upload(&u.id, &sha, &inspection).await?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(body: &str) -> Result<UploadCreate, serde_json::Error> {
+        serde_json::from_str(body)
+    }
+
+    #[test]
+    fn size_is_any_integral_number_and_sha256_is_absent_or_a_string() {
+        let u = parse(r#"{"kind":"lidar","filename":"a.las","size":54928.0}"#).expect("3.0");
+        assert_eq!(u.size, 54928);
+        assert_eq!(u.sha256, None);
+        let u = parse(r#"{"kind":"lidar","filename":"a.las","size":7,"sha256":"ab"}"#)
+            .expect("string sha256");
+        assert_eq!(u.sha256.as_deref(), Some("ab"));
+        for bad in [
+            r#"{"kind":"lidar","filename":"a.las","size":1.5}"#,
+            r#"{"kind":"lidar","filename":"a.las","size":-1}"#,
+            r#"{"kind":"lidar","filename":"a.las","size":"1"}"#,
+            r#"{"kind":"lidar","filename":"a.las","size":1e30}"#,
+            r#"{"kind":"lidar","filename":"a.las","size":9223372036854775808}"#,
+            r#"{"kind":"lidar","filename":"a.las","size":1,"sha256":null}"#,
+        ] {
+            assert!(parse(bad).is_err(), "{bad} was accepted");
+        }
+    }
 }
