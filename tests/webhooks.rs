@@ -443,6 +443,53 @@ async fn private_and_malformed_targets_are_refused_at_submission() {
     )
     .await;
     assert_eq!(job["webhook"]["events"], json!(["job.failed"]));
+
+    // The webhook is part of the request an Idempotency-Key stands for.
+    let keyed = |hook: &str| {
+        c.post(format!("{}/v1/jobs", srv.base))
+            .header("Idempotency-Key", "hooked-once")
+            .json(&json!({ "inputs": inputs, "webhook": { "url": hook } }))
+            .send()
+    };
+    let first: Value = keyed("https://8.8.8.8/a")
+        .await
+        .expect("post")
+        .json()
+        .await
+        .expect("json");
+    let again: Value = keyed("https://8.8.8.8/a")
+        .await
+        .expect("post")
+        .json()
+        .await
+        .expect("json");
+    assert_eq!(first["id"], again["id"]);
+    expect_problem(
+        keyed("https://8.8.8.8/b").await.expect("post"),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    )
+    .await;
+
+    // A one-request multipart submission takes a `webhook` part, checked the same way.
+    let form = reqwest::multipart::Form::new()
+        .part(
+            "lidar",
+            reqwest::multipart::Part::bytes(std::fs::read(&fx.lidar).expect("read"))
+                .file_name("plot.las"),
+        )
+        .part(
+            "colmap",
+            reqwest::multipart::Part::bytes(std::fs::read(&fx.colmap_zip).expect("read"))
+                .file_name("project.zip"),
+        )
+        .text("webhook", r#"{"url": "http://10.0.0.1/hook"}"#);
+    let r = c
+        .post(format!("{}/v1/jobs", srv.base))
+        .multipart(form)
+        .send()
+        .await
+        .expect("post");
+    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
     drop(srv);
 
     // An allowed network lets its addresses through, and only those.
