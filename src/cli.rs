@@ -13,12 +13,13 @@ use clap::{Args, Parser, Subcommand};
 use tokio::sync::{Notify, watch};
 
 use crate::api::{self, AppState, Counters};
-use crate::config::{ApiArgs, RetentionArgs, StoreArgs, WorkerArgs, init_tracing};
+use crate::config::{ApiArgs, RetentionArgs, StoreArgs, WebhookArgs, WorkerArgs, init_tracing};
 use crate::io::archive::{self, ExtractLimits};
 use crate::jobs::JobStore;
 use crate::pipeline::{self, PipelineParams, Stage, StageInputs};
 use crate::progress::{CancelFlag, Progress};
 use crate::store::BlobStore;
+use crate::webhooks::{Dispatcher, Webhooks};
 use crate::worker::WorkerPool;
 
 /// Sylva turns a forest plot (handheld LiDAR + UAV photos with a COLMAP model) into a
@@ -207,6 +208,8 @@ pub struct ServeArgs {
     pub api: ApiArgs,
     #[command(flatten)]
     pub worker: WorkerArgs,
+    #[command(flatten)]
+    pub webhooks: WebhookArgs,
 }
 
 #[derive(Debug, Args)]
@@ -215,6 +218,8 @@ pub struct WorkerOnlyArgs {
     pub store: StoreArgs,
     #[command(flatten)]
     pub worker: WorkerArgs,
+    #[command(flatten)]
+    pub webhooks: WebhookArgs,
 }
 
 fn parse_stage(s: &str) -> Result<Stage, String> {
@@ -400,6 +405,7 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
         None => tracing::warn!("no GPU adapter found; the train stage will not run here"),
     }
     let wake = Arc::new(Notify::new());
+    let hooks = Webhooks::open(&db, &a.webhooks).await?;
     let state = AppState {
         db: db.clone(),
         blobs: blobs.clone(),
@@ -408,10 +414,14 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
         counters: Arc::new(Counters::default()),
         gpu,
         lease: a.worker.lease(),
+        webhooks: hooks.clone(),
     };
     // Recovery runs before the address is announced, so whoever waits for it sees a settled
     // queue.
     let (stop_tx, stop_rx) = watch::channel(false);
+    let dispatcher = Dispatcher::new(db.clone(), hooks, a.webhooks.clone())
+        .context("cannot build the webhook client")?;
+    let dispatcher = tokio::spawn(dispatcher.run(stop_rx.clone()));
     let sweeper = (a.api.retention.gc_interval_secs > 0).then(|| {
         tokio::spawn(crate::gc::run_periodically(
             db.clone(),
@@ -443,6 +453,7 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
     if let Some(w) = workers {
         let _ = tokio::time::timeout(Duration::from_secs(5), w).await;
     }
+    let _ = tokio::time::timeout(Duration::from_secs(5), dispatcher).await;
     if let Some(s) = sweeper {
         s.abort();
     }
@@ -470,6 +481,10 @@ async fn worker(a: WorkerOnlyArgs) -> anyhow::Result<()> {
     }
     let (db, blobs) = open_store(&a.store).await?;
     let (stop_tx, stop_rx) = watch::channel(false);
+    let hooks = Webhooks::open(&db, &a.webhooks).await?;
+    let dispatcher = Dispatcher::new(db.clone(), hooks, a.webhooks.clone())
+        .context("cannot build the webhook client")?;
+    let dispatcher = tokio::spawn(dispatcher.run(stop_rx.clone()));
     let pool = WorkerPool::new(db, blobs, a.worker.clone(), Arc::new(Notify::new()));
     pool.recover().await;
     println!("sylva worker started ({} slot(s))", a.worker.workers);
@@ -478,6 +493,7 @@ async fn worker(a: WorkerOnlyArgs) -> anyhow::Result<()> {
     shutdown_signal().await;
     let _ = stop_tx.send(true);
     let _ = tokio::time::timeout(Duration::from_secs(5), handle).await;
+    let _ = tokio::time::timeout(Duration::from_secs(5), dispatcher).await;
     Ok(())
 }
 

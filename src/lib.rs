@@ -20,4 +20,5 @@ pub mod progress;
 pub mod splat;
 pub mod store;
 pub mod synth;
+pub mod webhooks;
 pub mod worker;

@@ -891,7 +891,7 @@ async fn errors_are_problem_json_with_real_status_codes() {
     );
     let r = c
         .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": inputs, "webhook": { "url": "http://example.com" } }))
+        .json(&json!({ "inputs": inputs, "webhook": { "url": "http://10.0.0.1/hook" } }))
         .send()
         .await
         .expect("post");

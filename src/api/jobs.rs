@@ -16,7 +16,7 @@ use super::auth::Caller;
 use super::problem::ApiError;
 use super::uploads::{self, new_id, valid_id};
 use super::{AppState, count_upload_bytes, views};
-use crate::jobs::{Admission, Created, NewJob};
+use crate::jobs::{Admission, Created, NewJob, WebhookSpec};
 use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
 use crate::pipeline::{PipelineParams, Stage};
 
@@ -91,7 +91,7 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
         .and_then(|v| v.to_str().ok())
         .unwrap_or("")
         .to_ascii_lowercase();
-    let (inputs, params, hash) = if content_type.starts_with("application/json") {
+    let (inputs, params, hash, webhook) = if content_type.starts_with("application/json") {
         let limit = state.args.max_json_bytes as usize;
         let body = axum::body::to_bytes(req.into_body(), limit)
             .await
@@ -100,15 +100,13 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
             })?;
         let create: JobCreate =
             serde_json::from_slice(&body).map_err(|e| json_error(e, "the body"))?;
-        if create.webhook.is_some() {
-            return Err(
-                ApiError::unprocessable("webhooks are not available in this build")
-                    .with_error("webhook", "not supported yet"),
-            );
-        }
         let params = effective_params(create.params)?;
-        let hash = request_hash(&json!({ "inputs": create.inputs, "params": params }));
-        (create.inputs, params, hash)
+        let webhook = accept_webhook(&state, create.webhook).await?;
+        let hash = request_hash(&hashed(
+            json!({ "inputs": create.inputs, "params": params }),
+            webhook.as_ref(),
+        ));
+        (create.inputs, params, hash, webhook)
     } else if content_type.starts_with("multipart/form-data") {
         let multipart = Multipart::from_request(req, &state)
             .await
@@ -133,6 +131,7 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
         idempotency_key: key.as_deref(),
         request_hash: &hash,
         owner: &caller.owner,
+        webhook: webhook.as_ref(),
     };
     let limits = Admission {
         max_queued: state.args.max_queued_jobs as i64,
@@ -173,6 +172,42 @@ pub fn files_kept(job: &JobRecord) -> Result<(), ApiError> {
     }
 }
 
+/// Checks a submitted webhook: its shape and events, then its URL against the target policy
+/// (the host resolved; private targets refused unless configured).
+async fn accept_webhook(
+    state: &AppState,
+    webhook: Option<Value>,
+) -> Result<Option<WebhookSpec>, ApiError> {
+    let Some(v) = webhook.filter(|v| !v.is_null()) else {
+        return Ok(None);
+    };
+    let mut spec: WebhookSpec = serde_json::from_value(v).map_err(|e| {
+        ApiError::unprocessable(format!("webhook: {e}")).with_error("webhook", e.to_string())
+    })?;
+    if spec.events.is_empty() {
+        return Err(ApiError::unprocessable(
+            "webhook.events is empty; name at least one event, or leave it out for the end of the job",
+        )
+        .with_error("webhook.events", "empty"));
+    }
+    let mut seen = std::collections::HashSet::new();
+    spec.events.retain(|e| seen.insert(*e));
+    state.webhooks.policy.check(&spec.url).await.map_err(|e| {
+        ApiError::unprocessable(format!("webhook.url: {e}"))
+            .with_error("webhook.url", e.to_string())
+    })?;
+    Ok(Some(spec))
+}
+
+/// The request as hashed for the Idempotency-Key check: `base`, with the webhook when there
+/// is one (so requests without one hash as they always did).
+fn hashed(mut base: Value, webhook: Option<&WebhookSpec>) -> Value {
+    if let Some(w) = webhook {
+        base["webhook"] = json!(w);
+    }
+    base
+}
+
 fn request_hash(v: &Value) -> String {
     hex::encode(Sha256::digest(v.to_string().as_bytes()))
 }
@@ -182,9 +217,10 @@ async fn multipart_inputs(
     state: &AppState,
     caller: &Caller,
     mut mp: Multipart,
-) -> Result<(JobInputs, Value, String), ApiError> {
+) -> Result<(JobInputs, Value, String, Option<WebhookSpec>), ApiError> {
     let mut files: HashMap<UploadKind, (String, String)> = HashMap::new();
     let mut params: Option<Value> = None;
+    let mut webhook: Option<Value> = None;
     while let Some(field) = mp
         .next_field()
         .await
@@ -204,9 +240,17 @@ async fn multipart_inputs(
             })?);
             continue;
         }
+        if name == "webhook" {
+            let text = field
+                .text()
+                .await
+                .map_err(|e| ApiError::bad_request(format!("multipart webhook: {e}")))?;
+            webhook = Some(serde_json::from_str(&text).map_err(|e| json_error(e, "webhook"))?);
+            continue;
+        }
         let Some(kind) = UploadKind::parse(&name) else {
             return Err(ApiError::unprocessable(format!(
-                "unknown part `{name}`; expected lidar, colmap, control_points, field_dbh or params"
+                "unknown part `{name}`; expected lidar, colmap, control_points, field_dbh, params or webhook"
             )));
         };
         let filename = field
@@ -267,13 +311,17 @@ async fn multipart_inputs(
         field_dbh: take(UploadKind::FieldDbh),
     };
     let params = effective_params(params)?;
+    let webhook = accept_webhook(state, webhook).await?;
     let mut hashes: Vec<(&str, &str)> = files
         .iter()
         .map(|(k, (_, sha))| (k.as_str(), sha.as_str()))
         .collect();
     hashes.sort_unstable();
-    let hash = request_hash(&json!({ "files": hashes, "params": params }));
-    Ok((inputs, params, hash))
+    let hash = request_hash(&hashed(
+        json!({ "files": hashes, "params": params }),
+        webhook.as_ref(),
+    ));
+    Ok((inputs, params, hash, webhook))
 }
 
 fn query_int(

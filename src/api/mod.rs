@@ -11,6 +11,7 @@ pub mod service;
 pub mod uploads;
 pub mod views;
 pub mod web;
+pub mod webhooks;
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -53,6 +54,8 @@ pub struct AppState {
     pub gpu: Option<GpuInfo>,
     /// Lease length of the workers, used to count live workers.
     pub lease: Duration,
+    /// Webhook target policy and signing secrets.
+    pub webhooks: crate::webhooks::Webhooks,
 }
 
 impl AppState {
@@ -91,6 +94,8 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("GET", "/v1/jobs/{id}/trees.csv"),
     ("GET", "/v1/jobs/{id}/trees.geojson"),
     ("GET", "/v1/jobs/{id}/artifacts/{*name}"),
+    ("GET", "/v1/jobs/{id}/webhooks"),
+    ("GET", "/v1/webhooks/secret"),
 ];
 
 async fn count_requests(State(state): State<AppState>, req: Request, next: Next) -> Response {
@@ -139,6 +144,8 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/trees.csv", get(artifacts::trees_csv))
         .route("/v1/jobs/{id}/trees.geojson", get(artifacts::trees_geojson))
         .route("/v1/jobs/{id}/artifacts/{*name}", get(artifacts::get))
+        .route("/v1/jobs/{id}/webhooks", get(webhooks::deliveries))
+        .route("/v1/webhooks/secret", get(webhooks::secret))
         .layer(DefaultBodyLimit::max(json_limit))
         .layer(TimeoutLayer::with_status_code(
             StatusCode::REQUEST_TIMEOUT,

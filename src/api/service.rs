@@ -10,6 +10,7 @@ use serde_json::json;
 
 use super::AppState;
 use super::problem::ApiError;
+use crate::jobs::DeliveryState;
 use crate::pipeline::{PipelineParams, Stage};
 
 /// The contract, compiled in so the binary always serves the one it implements.
@@ -87,6 +88,23 @@ pub async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError
         out,
         "# HELP sylva_workers Worker slots seen recently.\n# TYPE sylva_workers gauge\nsylva_workers {workers}"
     );
+    let deliveries = state.db.count_deliveries().await?;
+    let _ = writeln!(
+        out,
+        "# HELP sylva_webhook_deliveries Webhook deliveries by state (pending: not yet acknowledged).\n# TYPE sylva_webhook_deliveries gauge"
+    );
+    for s in DeliveryState::ALL {
+        let n = deliveries
+            .iter()
+            .find(|(st, _)| st == s)
+            .map(|(_, n)| *n)
+            .unwrap_or(0);
+        let _ = writeln!(
+            out,
+            "sylva_webhook_deliveries{{state=\"{}\"}} {n}",
+            s.as_str()
+        );
+    }
     let _ = writeln!(
         out,
         "# HELP sylva_stage_duration_seconds Duration of finished stages.\n# TYPE sylva_stage_duration_seconds histogram"

@@ -2,7 +2,9 @@
 
 use serde_json::{Value, json};
 
-use crate::jobs::{JobRecord, JobState, UploadRecord, now_ms, rfc3339};
+use crate::jobs::{
+    DeliveryRecord, JobRecord, JobState, UploadRecord, WebhookSpec, now_ms, rfc3339,
+};
 
 fn ts(ms: Option<i64>) -> Value {
     ms.map(|m| Value::String(rfc3339(m))).unwrap_or(Value::Null)
@@ -94,14 +96,40 @@ pub fn job(j: &JobRecord, retention: Option<std::time::Duration>) -> Value {
         "error": j.error.clone().unwrap_or(Value::Null),
         "inputs": j.inputs,
         "params": j.params,
+        "webhook": j.webhook.as_ref().map(webhook).unwrap_or(Value::Null),
         "artifacts": artifacts,
         "links": {
             "self": base,
+            "webhooks": format!("{base}/webhooks"),
             "events": format!("{base}/events"),
             "log": format!("{base}/log"),
             "results": format!("{base}/results"),
             "trees_csv": format!("{base}/trees.csv"),
         },
+    })
+}
+
+/// A job's webhook as submitted.
+pub fn webhook(w: &WebhookSpec) -> Value {
+    json!({
+        "url": w.url,
+        "events": w.events,
+    })
+}
+
+/// One webhook delivery.
+pub fn delivery(d: &DeliveryRecord) -> Value {
+    json!({
+        "id": d.id,
+        "event": d.event,
+        "url": d.url,
+        "state": d.state.as_str(),
+        "attempts": d.attempts,
+        "next_attempt_at": ts(d.next_attempt_at),
+        "last_status": d.last_status,
+        "last_error": d.last_error,
+        "created_at": rfc3339(d.created_at),
+        "finished_at": ts(d.finished_at),
     })
 }
 

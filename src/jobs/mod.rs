@@ -15,6 +15,7 @@
 pub mod postgres;
 pub mod sqlite;
 mod store;
+pub mod webhooks;
 
 use std::time::Duration;
 
@@ -23,6 +24,9 @@ use serde::{Deserialize, Serialize};
 use crate::pipeline::Stage;
 
 pub use store::{Database, JobStore};
+pub use webhooks::{
+    Delivery, DeliveryOutcome, DeliveryRecord, DeliveryState, WebhookEvent, WebhookSpec,
+};
 
 /// Milliseconds since the Unix epoch, UTC.
 pub fn now_ms() -> i64 {
@@ -142,6 +146,8 @@ pub struct JobRecord {
     pub owner: String,
     /// When retention removed its files (ms since the epoch); its artifacts are then gone.
     pub purged_at: Option<i64>,
+    /// Where to announce its events, if the submitter asked.
+    pub webhook: Option<WebhookSpec>,
     pub stages: Vec<StageRecord>,
     pub artifacts: Vec<ArtifactRecord>,
 }
@@ -158,6 +164,8 @@ pub struct NewJob<'a> {
     pub request_hash: &'a str,
     /// Who submits it ([`owner_id`]); its inputs must be this owner's uploads.
     pub owner: &'a str,
+    /// Where to announce its events (its URL already checked).
+    pub webhook: Option<&'a WebhookSpec>,
 }
 
 /// Limits checked in the same transaction that queues a job, so concurrent submissions

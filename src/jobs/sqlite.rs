@@ -29,6 +29,12 @@ fn parse_json(text: Option<String>) -> Option<serde_json::Value> {
     text.and_then(|t| serde_json::from_str(&t).ok())
 }
 
+fn parse_webhook(text: Option<String>) -> Result<Option<WebhookSpec>, DbError> {
+    text.map(|t| serde_json::from_str(&t))
+        .transpose()
+        .map_err(|e| DbError::Invalid(format!("bad webhook: {e}")))
+}
+
 fn job_from_row(r: &SqliteRow) -> Result<JobRecord, DbError> {
     let state: String = r.try_get("state")?;
     let inputs: String = r.try_get("inputs")?;
@@ -52,13 +58,14 @@ fn job_from_row(r: &SqliteRow) -> Result<JobRecord, DbError> {
         finished_at: r.try_get("finished_at")?,
         owner: r.try_get("owner")?,
         purged_at: r.try_get("purged_at")?,
+        webhook: parse_webhook(r.try_get("webhook")?)?,
         stages: Vec::new(),
         artifacts: Vec::new(),
     })
 }
 
 const JOB_COLUMNS: &str = "seq, id, state, stage, progress, attempt, inputs, params, error, \
-                           created_at, updated_at, started_at, finished_at, owner, purged_at";
+                           created_at, updated_at, started_at, finished_at, owner, purged_at, webhook";
 
 impl SqliteJobs {
     /// Opens (creating if needed) the database file and applies migrations.
@@ -268,8 +275,8 @@ impl SqliteJobs {
         }
         let now = now_ms();
         sqlx::query(
-            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at, owner) \
-             VALUES (?, 'queued', 0, 0, ?, ?, ?, ?, ?, ?, ?)",
+            "INSERT INTO jobs (id, state, progress, attempt, inputs, params, idempotency_key, request_hash, created_at, updated_at, owner, webhook) \
+             VALUES (?, 'queued', 0, 0, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(job.id)
         .bind(serde_json::to_string(job.inputs).unwrap_or_default())
@@ -279,6 +286,7 @@ impl SqliteJobs {
         .bind(now)
         .bind(now)
         .bind(job.owner)
+        .bind(job.webhook.map(|w| serde_json::to_string(w).unwrap_or_default()))
         .execute(&mut *tx)
         .await?;
         for s in job.stages {
@@ -467,6 +475,7 @@ impl SqliteJobs {
                 .bind(id)
                 .execute(&mut *tx)
                 .await?;
+                Self::record_end(&mut tx, id, now).await?;
                 JobState::Canceled
             }
             JobState::Running => {
@@ -567,6 +576,11 @@ impl SqliteJobs {
             )));
         }
         sqlx::query("DELETE FROM jobs WHERE id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        // Its pending notifications still go out; the record of past ones goes with it.
+        sqlx::query("DELETE FROM webhook_deliveries WHERE job_id = ? AND state != 'pending'")
             .bind(id)
             .execute(&mut *tx)
             .await?;
@@ -675,23 +689,27 @@ impl SqliteJobs {
     ) -> Result<Option<Claim>, DbError> {
         let now = now_ms();
         let mut tx = self.begin().await?;
-        sqlx::query(
+        let mut ended: Vec<String> = sqlx::query_scalar(
             "UPDATE jobs SET state = 'canceled', finished_at = ?1, updated_at = ?1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
-             WHERE state = 'canceling' AND lease_until < ?1",
+             WHERE state = 'canceling' AND lease_until < ?1 RETURNING id",
         )
         .bind(now)
-        .execute(&mut *tx)
+        .fetch_all(&mut *tx)
         .await?;
         let problem = worker_lost_problem(max_attempts);
-        sqlx::query(
+        let failed: Vec<String> = sqlx::query_scalar(
             "UPDATE jobs SET state = 'failed', error = ?2, finished_at = ?1, updated_at = ?1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
-             WHERE state = 'running' AND lease_until < ?1 AND attempt >= ?3",
+             WHERE state = 'running' AND lease_until < ?1 AND attempt >= ?3 RETURNING id",
         )
         .bind(now)
         .bind(problem.to_string())
         .bind(max_attempts)
-        .execute(&mut *tx)
+        .fetch_all(&mut *tx)
         .await?;
+        ended.extend(failed);
+        for id in &ended {
+            Self::record_end(&mut tx, id, now).await?;
+        }
         let token = uuid::Uuid::new_v4().simple().to_string();
         let row = sqlx::query(
             "UPDATE jobs SET state = 'running', worker_id = ?1, lease_token = ?2, lease_until = ?3, attempt = attempt + 1, \
@@ -868,6 +886,14 @@ impl SqliteJobs {
             .bind(job_id)
             .execute(&mut *tx)
             .await?;
+        Self::record_event(
+            &mut tx,
+            job_id,
+            WebhookEvent::StageFinished,
+            Some(stage.name()),
+            now,
+        )
+        .await?;
         tx.commit().await?;
         Ok(())
     }
@@ -909,8 +935,189 @@ impl SqliteJobs {
         .bind(job_id)
         .execute(&mut *tx)
         .await?;
+        Self::record_end(&mut tx, job_id, now).await?;
         tx.commit().await?;
         Ok(())
+    }
+
+    // ---------------------------------------------------------------- webhooks
+
+    /// Writes the delivery announcing `event` of `job_id`, inside the transaction that made
+    /// it happen; nothing when the job has no webhook or its webhook does not want `event`.
+    async fn record_event(
+        tx: &mut Transaction<'static, Sqlite>,
+        job_id: &str,
+        event: WebhookEvent,
+        stage: Option<&str>,
+        now: i64,
+    ) -> Result<(), DbError> {
+        let Some(r) = sqlx::query(
+            "SELECT id, owner, webhook, state, stage, attempt, error FROM jobs WHERE id = ?",
+        )
+        .bind(job_id)
+        .fetch_optional(&mut **tx)
+        .await?
+        else {
+            return Ok(());
+        };
+        let job = webhooks::EventJob {
+            id: r.try_get("id")?,
+            owner: r.try_get("owner")?,
+            webhook: r.try_get("webhook")?,
+            state: r.try_get("state")?,
+            stage: r.try_get("stage")?,
+            attempt: r.try_get("attempt")?,
+            error: parse_json(r.try_get("error")?),
+        };
+        let Some(d) = webhooks::new_delivery(&job, event, stage, now) else {
+            return Ok(());
+        };
+        sqlx::query(
+            "INSERT INTO webhook_deliveries (id, job_id, owner, url, event, body, next_attempt_at, created_at, updated_at) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?7, ?7)",
+        )
+        .bind(&d.id)
+        .bind(&job.id)
+        .bind(&job.owner)
+        .bind(&d.url)
+        .bind(d.event)
+        .bind(&d.body)
+        .bind(now)
+        .execute(&mut **tx)
+        .await?;
+        Ok(())
+    }
+
+    /// Records the event announcing the end of `job_id` (succeeded, failed or canceled: the
+    /// state it now has).
+    async fn record_end(
+        tx: &mut Transaction<'static, Sqlite>,
+        job_id: &str,
+        now: i64,
+    ) -> Result<(), DbError> {
+        let state: Option<String> = sqlx::query_scalar("SELECT state FROM jobs WHERE id = ?")
+            .bind(job_id)
+            .fetch_optional(&mut **tx)
+            .await?;
+        match state
+            .as_deref()
+            .and_then(JobState::parse)
+            .and_then(WebhookEvent::for_end)
+        {
+            Some(event) => Self::record_event(tx, job_id, event, None, now).await,
+            None => Ok(()),
+        }
+    }
+
+    /// Claims up to `limit` due deliveries (pending, next attempt due, no live lease) for
+    /// `lease`, counting the attempt; only the returned token may record their outcome.
+    pub async fn claim_deliveries(
+        &self,
+        lease: Duration,
+        limit: i64,
+    ) -> Result<Vec<Delivery>, DbError> {
+        let now = now_ms();
+        let token = uuid::Uuid::new_v4().simple().to_string();
+        let mut tx = self.begin().await?;
+        let rows = sqlx::query(
+            "UPDATE webhook_deliveries SET lease_until = ?1, lease_token = ?2, attempts = attempts + 1, updated_at = ?3 \
+             WHERE seq IN (SELECT seq FROM webhook_deliveries WHERE state = 'pending' AND next_attempt_at <= ?3 \
+                           AND (lease_until IS NULL OR lease_until < ?3) ORDER BY next_attempt_at, seq LIMIT ?4) \
+             RETURNING id, job_id, owner, url, event, body, attempts, created_at",
+        )
+        .bind(now + lease_ms(lease))
+        .bind(&token)
+        .bind(now)
+        .bind(limit)
+        .fetch_all(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        rows.iter()
+            .map(|r| delivery_from_row(r, &token))
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(DbError::from)
+    }
+
+    /// Records how an attempt went; `false` (and nothing written) when `token` no longer
+    /// holds the delivery (its lease ran out and another dispatcher took it).
+    pub async fn finish_delivery(
+        &self,
+        id: &str,
+        token: &str,
+        outcome: &DeliveryOutcome,
+    ) -> Result<bool, DbError> {
+        let now = now_ms();
+        let (state, status, error, next) = match outcome {
+            DeliveryOutcome::Delivered { status } => ("delivered", Some(*status), None, now),
+            DeliveryOutcome::Retry {
+                status,
+                error,
+                delay_ms,
+            } => ("pending", *status, Some(error.as_str()), now + delay_ms),
+            DeliveryOutcome::GiveUp { status, error } => {
+                ("failed", *status, Some(error.as_str()), now)
+            }
+        };
+        let done = (state != "pending").then_some(now);
+        let res = sqlx::query(
+            "UPDATE webhook_deliveries SET state = ?1, last_status = ?2, last_error = ?3, next_attempt_at = ?4, \
+             finished_at = ?5, updated_at = ?6, lease_until = NULL, lease_token = NULL \
+             WHERE id = ?7 AND lease_token = ?8 AND state = 'pending'",
+        )
+        .bind(state)
+        .bind(status.map(i64::from))
+        .bind(error)
+        .bind(next)
+        .bind(done)
+        .bind(now)
+        .bind(id)
+        .bind(token)
+        .execute(&self.pool)
+        .await?;
+        Ok(res.rows_affected() == 1)
+    }
+
+    /// A job's deliveries, oldest first.
+    pub async fn job_deliveries(&self, job_id: &str) -> Result<Vec<DeliveryRecord>, DbError> {
+        let rows = sqlx::query("SELECT * FROM webhook_deliveries WHERE job_id = ? ORDER BY seq")
+            .bind(job_id)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(delivery_record_from_row).collect()
+    }
+
+    /// Deliveries in each state.
+    pub async fn count_deliveries(&self) -> Result<Vec<(DeliveryState, i64)>, DbError> {
+        let rows =
+            sqlx::query("SELECT state, COUNT(*) AS n FROM webhook_deliveries GROUP BY state")
+                .fetch_all(&self.pool)
+                .await?;
+        let mut out = Vec::new();
+        for r in &rows {
+            let s: String = r.try_get("state")?;
+            if let Some(st) = DeliveryState::parse(&s) {
+                out.push((st, r.try_get("n")?));
+            }
+        }
+        Ok(out)
+    }
+
+    /// The server-wide setting `name`: its stored value, or `value` stored now if it had
+    /// none (the first process to ask wins; every later one reads the same).
+    pub async fn setting_or_insert(&self, name: &str, value: &str) -> Result<String, DbError> {
+        sqlx::query(
+            "INSERT INTO settings (name, value) VALUES (?, ?) ON CONFLICT(name) DO NOTHING",
+        )
+        .bind(name)
+        .bind(value)
+        .execute(&self.pool)
+        .await?;
+        Ok(
+            sqlx::query_scalar("SELECT value FROM settings WHERE name = ?")
+                .bind(name)
+                .fetch_one(&self.pool)
+                .await?,
+        )
     }
 
     // ---------------------------------------------------------------- workers and metrics
@@ -1017,5 +1224,40 @@ fn artifact_from_row(r: &sqlx::sqlite::SqliteRow) -> Result<ArtifactRecord, sqlx
         size: r.try_get("size")?,
         sha256: r.try_get("sha256")?,
         content_type: r.try_get("content_type")?,
+    })
+}
+
+fn delivery_from_row(r: &SqliteRow, token: &str) -> Result<Delivery, sqlx::Error> {
+    Ok(Delivery {
+        id: r.try_get("id")?,
+        job_id: r.try_get("job_id")?,
+        owner: r.try_get("owner")?,
+        url: r.try_get("url")?,
+        event: r.try_get("event")?,
+        body: r.try_get("body")?,
+        attempts: r.try_get("attempts")?,
+        created_at: r.try_get("created_at")?,
+        token: token.to_string(),
+    })
+}
+
+fn delivery_record_from_row(r: &SqliteRow) -> Result<DeliveryRecord, DbError> {
+    let state: String = r.try_get("state")?;
+    let state = DeliveryState::parse(&state)
+        .ok_or_else(|| DbError::Invalid(format!("bad delivery state {state:?}")))?;
+    Ok(DeliveryRecord {
+        id: r.try_get("id")?,
+        event: r.try_get("event")?,
+        url: r.try_get("url")?,
+        state,
+        attempts: r.try_get("attempts")?,
+        next_attempt_at: match state {
+            DeliveryState::Pending => Some(r.try_get("next_attempt_at")?),
+            _ => None,
+        },
+        last_status: r.try_get("last_status")?,
+        last_error: r.try_get("last_error")?,
+        created_at: r.try_get("created_at")?,
+        finished_at: r.try_get("finished_at")?,
     })
 }

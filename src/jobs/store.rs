@@ -307,4 +307,25 @@ forward! {
     /// Marks finished jobs that ended before `finished_before` as purged and forgets their
     /// artifacts; returns their ids.
     pub async fn purge_jobs(&self, finished_before: i64, limit: i64) -> Result<Vec<String>, DbError>;
+
+    /// Claims up to `limit` due webhook deliveries for `lease`, counting the attempt; only
+    /// the token they carry may record their outcome.
+    pub async fn claim_deliveries(&self, lease: Duration, limit: i64) -> Result<Vec<Delivery>, DbError>;
+
+    /// Records how a delivery attempt went; `false` when the claim's lease was lost.
+    pub async fn finish_delivery(
+        &self,
+        id: &str,
+        token: &str,
+        outcome: &DeliveryOutcome,
+    ) -> Result<bool, DbError>;
+
+    /// A job's webhook deliveries, oldest first.
+    pub async fn job_deliveries(&self, job_id: &str) -> Result<Vec<DeliveryRecord>, DbError>;
+
+    /// Webhook deliveries in each state (states with none are left out).
+    pub async fn count_deliveries(&self) -> Result<Vec<(DeliveryState, i64)>, DbError>;
+
+    /// A server-wide setting: the stored value, or `value` stored now if there was none.
+    pub async fn setting_or_insert(&self, name: &str, value: &str) -> Result<String, DbError>;
 }

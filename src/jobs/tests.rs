@@ -114,6 +114,7 @@ async fn create_as(
         idempotency_key: key,
         request_hash: hash,
         owner,
+        webhook: None,
     };
     db.create_job(&job, limits).await
 }
@@ -697,3 +698,253 @@ async fn owners_have_quotas_and_retention_expires_uploads_and_purges_jobs(db: Jo
     assert_eq!(db.integrity_check().await.expect("check"), "ok");
 }
 on_both_backends!(owners_have_quotas_and_retention_expires_uploads_and_purges_jobs);
+
+/// Queues job `id` (over the uploads of [`with_jobs`]) with a webhook wanting `events`.
+async fn create_with_webhook(db: &JobStore, id: &str, events: &[WebhookEvent]) {
+    let params = params();
+    let spec = WebhookSpec {
+        url: format!("http://hooks.example/{id}"),
+        events: events.to_vec(),
+    };
+    let job = NewJob {
+        id,
+        inputs: &inputs(),
+        params: &params,
+        stages: &Stage::ALL,
+        idempotency_key: None,
+        request_hash: "h",
+        owner: "",
+        webhook: Some(&spec),
+    };
+    db.create_job(&job, Admission::queue(1000))
+        .await
+        .expect("job");
+}
+
+fn body(d: &Delivery) -> serde_json::Value {
+    serde_json::from_str(&d.body).expect("body is JSON")
+}
+
+async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: JobStore) {
+    let plain = with_jobs(&db, 1).await.remove(0);
+    create_with_webhook(&db, "hooked", WebhookEvent::DEFAULT).await;
+    let j = db.get_job("hooked").await.expect("get").expect("job");
+    assert_eq!(
+        j.webhook.as_ref().map(|w| w.url.as_str()),
+        Some("http://hooks.example/hooked")
+    );
+    assert!(
+        db.get_job(&plain)
+            .await
+            .expect("get")
+            .expect("job")
+            .webhook
+            .is_none()
+    );
+    // Nothing to announce before the end.
+    assert!(
+        db.claim_deliveries(Duration::from_secs(60), 10)
+            .await
+            .expect("claim")
+            .is_empty()
+    );
+    db.cancel(&plain).await.expect("cancel");
+    db.cancel("hooked").await.expect("cancel");
+    assert!(db.job_deliveries(&plain).await.expect("list").is_empty());
+    let listed = db.job_deliveries("hooked").await.expect("list");
+    assert_eq!(listed.len(), 1);
+    assert_eq!(listed[0].state, DeliveryState::Pending);
+    assert_eq!(listed[0].event, "job.canceled");
+
+    // One claim holds it: a second dispatcher gets nothing while the lease lives.
+    let lease = Duration::from_secs(60);
+    let mut got = db.claim_deliveries(lease, 10).await.expect("claim");
+    assert_eq!(got.len(), 1);
+    let d = got.remove(0);
+    assert_eq!(
+        (d.attempts, d.owner.as_str(), d.job_id.as_str()),
+        (1, "", "hooked")
+    );
+    assert_eq!(d.url, "http://hooks.example/hooked");
+    let b = body(&d);
+    assert_eq!(b["id"], d.id.as_str());
+    assert_eq!(b["type"], "job.canceled");
+    assert_eq!(b["data"]["job"]["state"], "canceled");
+    assert!(
+        db.claim_deliveries(lease, 10)
+            .await
+            .expect("claim")
+            .is_empty()
+    );
+
+    // Only the claim's token records an outcome; a retry is due after its delay.
+    let retry = |delay_ms| DeliveryOutcome::Retry {
+        status: Some(500),
+        error: "the receiver answered 500".into(),
+        delay_ms,
+    };
+    assert!(
+        !db.finish_delivery(&d.id, "not-the-token", &retry(0))
+            .await
+            .expect("finish")
+    );
+    assert!(
+        db.finish_delivery(&d.id, &d.token, &retry(0))
+            .await
+            .expect("finish")
+    );
+    let again = db.claim_deliveries(lease, 10).await.expect("claim");
+    assert_eq!(again.len(), 1);
+    assert_eq!(again[0].attempts, 2);
+    assert_eq!(again[0].body, d.body, "every attempt sends the same bytes");
+    assert!(
+        db.finish_delivery(&d.id, &again[0].token, &retry(60_000))
+            .await
+            .expect("finish")
+    );
+    assert!(
+        db.claim_deliveries(lease, 10)
+            .await
+            .expect("claim")
+            .is_empty(),
+        "not yet due"
+    );
+    let listed = db.job_deliveries("hooked").await.expect("list");
+    assert_eq!(listed[0].attempts, 2);
+    assert_eq!(listed[0].last_status, Some(500));
+    assert!(
+        listed[0]
+            .next_attempt_at
+            .is_some_and(|t| t > now_ms() + 50_000)
+    );
+
+    // A lease that runs out lets another dispatcher take over; the first is fenced.
+    create_with_webhook(&db, "second", WebhookEvent::DEFAULT).await;
+    db.cancel("second").await.expect("cancel");
+    let first = db
+        .claim_deliveries(Duration::from_millis(1), 10)
+        .await
+        .expect("claim");
+    assert_eq!(first.len(), 1);
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    let taken = db.claim_deliveries(lease, 10).await.expect("claim");
+    assert_eq!(taken.len(), 1);
+    assert_eq!(taken[0].id, first[0].id);
+    assert_eq!(taken[0].attempts, 2);
+    let delivered = DeliveryOutcome::Delivered { status: 204 };
+    assert!(
+        !db.finish_delivery(&first[0].id, &first[0].token, &delivered)
+            .await
+            .expect("finish")
+    );
+    assert!(
+        db.finish_delivery(&taken[0].id, &taken[0].token, &delivered)
+            .await
+            .expect("finish")
+    );
+    assert!(
+        !db.finish_delivery(&taken[0].id, &taken[0].token, &delivered)
+            .await
+            .expect("finish")
+    );
+    let rec = db.job_deliveries("second").await.expect("list").remove(0);
+    assert_eq!(rec.state, DeliveryState::Delivered);
+    assert_eq!((rec.last_status, rec.next_attempt_at), (Some(204), None));
+    assert!(rec.finished_at.is_some());
+
+    // Given up: failed, never claimed again.
+    create_with_webhook(&db, "third", WebhookEvent::DEFAULT).await;
+    db.cancel("third").await.expect("cancel");
+    let d = db
+        .claim_deliveries(lease, 10)
+        .await
+        .expect("claim")
+        .remove(0);
+    let give_up = DeliveryOutcome::GiveUp {
+        status: None,
+        error: "refused: 10.0.0.1 is a private address".into(),
+    };
+    assert!(
+        db.finish_delivery(&d.id, &d.token, &give_up)
+            .await
+            .expect("finish")
+    );
+    let rec = db.job_deliveries("third").await.expect("list").remove(0);
+    assert_eq!(rec.state, DeliveryState::Failed);
+    assert!(rec.last_error.is_some_and(|e| e.contains("private")));
+    let counts = db.count_deliveries().await.expect("counts");
+    for (state, n) in [
+        (DeliveryState::Pending, 1),
+        (DeliveryState::Delivered, 1),
+        (DeliveryState::Failed, 1),
+    ] {
+        assert!(counts.contains(&(state, n)), "{counts:?}");
+    }
+
+    // Deleting a job forgets its past deliveries but still sends its pending ones.
+    db.delete_job("second").await.expect("delete");
+    assert!(db.job_deliveries("second").await.expect("list").is_empty());
+    db.delete_job("hooked").await.expect("delete");
+    assert_eq!(db.job_deliveries("hooked").await.expect("list").len(), 1);
+}
+on_both_backends!(webhook_deliveries_are_written_with_the_change_and_claimed_once);
+
+async fn stages_and_the_end_of_a_run_are_announced_as_the_webhook_asks(db: JobStore) {
+    with_jobs(&db, 0).await;
+    create_with_webhook(
+        &db,
+        "run",
+        &[WebhookEvent::StageFinished, WebhookEvent::JobSucceeded],
+    )
+    .await;
+    let lease = Duration::from_secs(30);
+    let c = db.claim("W", lease, 3).await.expect("claim").expect("job");
+    db.start_stage("run", &c.token, Stage::Ingest, 1)
+        .await
+        .expect("start");
+    db.finish_stage(
+        "run",
+        &c.token,
+        Stage::Ingest,
+        &serde_json::json!({}),
+        &[],
+        0.1,
+    )
+    .await
+    .expect("checkpoint");
+    db.finish_job("run", &c.token, &RunEnd::Succeeded)
+        .await
+        .expect("end");
+    let sent = db.claim_deliveries(lease, 10).await.expect("claim");
+    let events: Vec<&str> = sent.iter().map(|d| d.event.as_str()).collect();
+    assert_eq!(events, ["stage.finished", "job.succeeded"]);
+    assert_eq!(body(&sent[0])["data"]["stage"]["name"], "ingest");
+    assert_eq!(body(&sent[1])["data"]["job"]["state"], "succeeded");
+
+    // A job failed by the queue (its workers kept dying) is announced too, and a webhook
+    // that did not ask for stages hears only the end.
+    create_with_webhook(&db, "dies", WebhookEvent::DEFAULT).await;
+    let short = Duration::from_millis(20);
+    assert!(db.claim("W", short, 1).await.expect("claim").is_some());
+    tokio::time::sleep(Duration::from_millis(40)).await;
+    assert!(db.claim("W", short, 1).await.expect("claim").is_none());
+    let sent = db.claim_deliveries(lease, 10).await.expect("claim");
+    assert_eq!(sent.len(), 1);
+    assert_eq!(sent[0].event, "job.failed");
+    assert!(
+        body(&sent[0])["data"]["job"]["error"]
+            .to_string()
+            .contains("worker-lost")
+    );
+
+    // The signing key setting: the first value stored wins.
+    assert_eq!(
+        db.setting_or_insert("k", "first").await.expect("set"),
+        "first"
+    );
+    assert_eq!(
+        db.setting_or_insert("k", "second").await.expect("set"),
+        "first"
+    );
+}
+on_both_backends!(stages_and_the_end_of_a_run_are_announced_as_the_webhook_asks);

@@ -142,6 +142,8 @@ struct ServeDefaults {
     api: ApiArgs,
     #[command(flatten)]
     worker: WorkerArgs,
+    #[command(flatten)]
+    webhooks: crate::config::WebhookArgs,
 }
 
 /// The API running in this process, without workers.
@@ -163,6 +165,7 @@ impl Server {
         let blobs = BlobStore::open(data)?;
         let defaults = ServeDefaults::try_parse_from(["sylva-bench-load"])?;
         let token = defaults.api.token.first().cloned();
+        let webhooks = crate::webhooks::Webhooks::open(&db, &defaults.webhooks).await?;
         let state = AppState {
             db: db.clone(),
             blobs,
@@ -171,6 +174,7 @@ impl Server {
             counters: Arc::new(Counters::default()),
             gpu: None,
             lease: defaults.worker.lease(),
+            webhooks,
         };
         let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0)).await?;
         let addr = listener.local_addr()?;
@@ -247,6 +251,7 @@ async fn seed(db: &JobStore, n: u32) -> anyhow::Result<Vec<String>> {
             idempotency_key: None,
             request_hash: &hash,
             owner: "",
+            webhook: None,
         };
         let created = db.create_job(&job, Admission::queue(i64::MAX)).await?;
         ids.push(match created {
