@@ -744,7 +744,8 @@ impl PgJobs {
     }
 
     /// Marks as purged (at most `limit`) the finished jobs that ended before `finished_before`
-    /// and still have their files, and forgets their artifacts. Returns their ids, whose files
+    /// and still have their files, and forgets their artifacts and finished webhook
+    /// deliveries. Returns their ids, whose files
     /// the caller removes.
     pub async fn purge_jobs(
         &self,
@@ -769,6 +770,11 @@ impl PgJobs {
                 .execute(&mut *tx)
                 .await?;
             sqlx::query("DELETE FROM artifacts WHERE job_id = $1")
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+            // Finished webhook deliveries go with the files; pending ones are still owed.
+            sqlx::query("DELETE FROM webhook_deliveries WHERE job_id = $1 AND state != 'pending'")
                 .bind(id)
                 .execute(&mut *tx)
                 .await?;

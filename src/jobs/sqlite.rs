@@ -644,7 +644,8 @@ impl SqliteJobs {
     }
 
     /// Marks as purged (at most `limit`) the finished jobs that ended before `finished_before`
-    /// and still have their files, and forgets their artifacts. Returns their ids, whose files
+    /// and still have their files, and forgets their artifacts and finished webhook
+    /// deliveries. Returns their ids, whose files
     /// the caller removes.
     pub async fn purge_jobs(
         &self,
@@ -668,6 +669,11 @@ impl SqliteJobs {
                 .execute(&mut *tx)
                 .await?;
             sqlx::query("DELETE FROM artifacts WHERE job_id = ?")
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+            // Finished webhook deliveries go with the files; pending ones are still owed.
+            sqlx::query("DELETE FROM webhook_deliveries WHERE job_id = ? AND state != 'pending'")
                 .bind(id)
                 .execute(&mut *tx)
                 .await?;

@@ -948,3 +948,36 @@ async fn stages_and_the_end_of_a_run_are_announced_as_the_webhook_asks(db: JobSt
     );
 }
 on_both_backends!(stages_and_the_end_of_a_run_are_announced_as_the_webhook_asks);
+
+async fn retention_forgets_finished_deliveries_and_keeps_pending_ones(db: JobStore) {
+    with_jobs(&db, 0).await;
+    for id in ["sent", "owed"] {
+        create_with_webhook(&db, id, WebhookEvent::DEFAULT).await;
+        db.cancel(id).await.expect("cancel");
+    }
+    let claimed = db
+        .claim_deliveries(Duration::from_secs(60), 10)
+        .await
+        .expect("claim");
+    let sent = claimed
+        .iter()
+        .find(|d| d.job_id == "sent")
+        .expect("a delivery for `sent`");
+    assert!(
+        db.finish_delivery(
+            &sent.id,
+            &sent.token,
+            &DeliveryOutcome::Delivered { status: 204 }
+        )
+        .await
+        .expect("finish")
+    );
+    let mut purged = db.purge_jobs(now_ms() + 10, 100).await.expect("purge");
+    purged.sort();
+    assert_eq!(purged, ["owed", "sent"]);
+    assert!(db.job_deliveries("sent").await.expect("list").is_empty());
+    let owed = db.job_deliveries("owed").await.expect("list");
+    assert_eq!(owed.len(), 1, "a pending delivery is still owed");
+    assert_eq!(owed[0].state, DeliveryState::Pending);
+}
+on_both_backends!(retention_forgets_finished_deliveries_and_keeps_pending_ones);
