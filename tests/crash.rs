@@ -199,14 +199,7 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
     let (reference, _) = wait_job(&c, &srv.base, &rid, Duration::from_secs(300), is_terminal).await;
     assert_eq!(reference["state"], "succeeded", "{reference}");
     let want_names = artifact_names(&reference);
-    let want_results: Value = c
-        .get(format!("{}/v1/jobs/{rid}/results", srv.base))
-        .send()
-        .await
-        .expect("results")
-        .json()
-        .await
-        .expect("json");
+    let want_results: Value = get_json(&c, &format!("{}/v1/jobs/{rid}/results", srv.base)).await;
     for (stage, _, _) in CRASH_POINTS {
         assert!(
             want_results["stages"][stage].is_object(),
@@ -331,14 +324,7 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
 
         // 4. The same results as the uninterrupted run.
         assert_eq!(artifact_names(&job), want_names, "{stage}: artifacts");
-        let results: Value = c
-            .get(format!("{}/v1/jobs/{id}/results", srv.base))
-            .send()
-            .await
-            .expect("results")
-            .json()
-            .await
-            .expect("json");
+        let results: Value = get_json(&c, &format!("{}/v1/jobs/{id}/results", srv.base)).await;
         let mut errs = Vec::new();
         let compared = compare(
             "stages",
@@ -364,14 +350,7 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
     let srv = serve(&data, &[]);
     for (kind, path) in &plot.files {
         let id = inputs[*kind].as_str().expect("upload id");
-        let up: Value = c
-            .get(format!("{}/v1/uploads/{id}", srv.base))
-            .send()
-            .await
-            .expect("upload")
-            .json()
-            .await
-            .expect("json");
+        let up: Value = get_json(&c, &format!("{}/v1/uploads/{id}", srv.base)).await;
         assert_eq!(up["state"], "complete", "{kind}: {up}");
         let bytes = std::fs::read(path).expect("input");
         assert_eq!(up["sha256"], sha256_hex(&bytes), "{kind}");
@@ -383,14 +362,7 @@ async fn a_job_killed_inside_any_stage_resumes_there_and_matches_an_uninterrupte
             "{kind}: blob changed"
         );
     }
-    let list: Value = c
-        .get(format!("{}/v1/jobs?limit=50", srv.base))
-        .send()
-        .await
-        .expect("list")
-        .json()
-        .await
-        .expect("json");
+    let list: Value = get_json(&c, &format!("{}/v1/jobs?limit=50", srv.base)).await;
     let jobs = list["jobs"].as_array().expect("jobs");
     assert_eq!(jobs.len(), 1 + CRASH_POINTS.len(), "{list}");
     assert!(jobs.iter().all(|j| j["state"] == "succeeded"), "{list}");

@@ -426,14 +426,7 @@ async fn private_and_malformed_targets_are_refused_at_submission() {
         refused(&c, &srv.base, &inputs, bad).await;
     }
     // No job was created by any of them.
-    let jobs: Value = c
-        .get(format!("{}/v1/jobs", srv.base))
-        .send()
-        .await
-        .expect("list")
-        .json()
-        .await
-        .expect("json");
+    let jobs: Value = get_json(&c, &format!("{}/v1/jobs", srv.base)).await;
     assert_eq!(jobs["jobs"].as_array().map(Vec::len), Some(0), "{jobs}");
     // A public literal address is accepted without any lookup.
     let job = create_job(

@@ -506,6 +506,18 @@ pub async fn create_job(c: &Client, base: &str, body: &Value) -> Value {
     resp.json().await.expect("job json")
 }
 
+/// GET `url` and its JSON body.
+#[allow(dead_code)]
+pub async fn get_json(c: &Client, url: &str) -> Value {
+    c.get(url)
+        .send()
+        .await
+        .expect("get")
+        .json()
+        .await
+        .expect("json")
+}
+
 pub async fn get_job(c: &Client, base: &str, id: &str) -> Value {
     c.get(format!("{base}/v1/jobs/{id}"))
         .send()
