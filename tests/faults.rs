@@ -120,6 +120,13 @@ async fn a_full_disk_gives_507_and_a_failed_stage_and_the_database_survives() {
         .send()
         .await
         .expect("part");
+    // The body may be left unread: the answer says the connection will not be reused.
+    assert_eq!(
+        r.headers().get("connection").map(|v| v.as_bytes()),
+        Some(&b"close"[..]),
+        "{:?}",
+        r.headers()
+    );
     let p = expect_problem(r, StatusCode::INSUFFICIENT_STORAGE).await;
     assert!(
         p["detail"].as_str().expect("detail").contains("disk"),

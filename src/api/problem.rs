@@ -198,18 +198,41 @@ fn slug_for(status: StatusCode) -> &'static str {
 
 /// Rewrites error responses that are not problem+json yet (framework rejections) into
 /// problem+json with the same status and headers; the original text becomes the detail.
+/// Whether an HTTP/1 request carries a body (a length above zero, or chunked).
+fn sends_body(req: &axum::extract::Request) -> bool {
+    if req.version() > axum::http::Version::HTTP_11 {
+        return false;
+    }
+    let h = req.headers();
+    h.contains_key(header::TRANSFER_ENCODING)
+        || h.get(header::CONTENT_LENGTH)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .is_some_and(|n| n > 0)
+}
+
 pub async fn problem_fallback(
     req: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> Response {
     let is_head = req.method() == axum::http::Method::HEAD;
-    let resp = next.run(req).await;
+    let close_after = sends_body(&req);
+    let mut resp = next.run(req).await;
     let status = resp.status();
+    let is_error = status.is_client_error() || status.is_server_error();
+    if is_error && close_after {
+        // An error may be answered before the request body was read to its end (a part
+        // refused at 507 or 409 mid-stream). The server then drops the connection, and a
+        // client that put it back in its pool would lose its next request; saying so in
+        // the answer keeps clients from reusing it.
+        resp.headers_mut()
+            .insert(header::CONNECTION, HeaderValue::from_static("close"));
+    }
     let is_problem = resp
         .headers()
         .get(header::CONTENT_TYPE)
         .is_some_and(|v| v.as_bytes().starts_with(PROBLEM_JSON.as_bytes()));
-    if (!status.is_client_error() && !status.is_server_error()) || is_problem {
+    if !is_error || is_problem {
         return resp;
     }
     let (parts, body) = resp.into_parts();
