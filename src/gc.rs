@@ -20,12 +20,14 @@ use std::time::{Duration, SystemTime};
 use serde::Serialize;
 
 use crate::config::RetentionArgs;
-use crate::jobs::{DbError, JobStore, now_ms};
+use crate::jobs::{DbError, JobStore, LiveTable, now_ms};
 use crate::store::BlobStore;
 
 /// Records handled per database round trip: a sweep after a long pause works in bounded
 /// transactions.
 const BATCH: i64 = 200;
+/// Folders asked about in one `live_ids` query by the orphan sweep.
+const ORPHAN_BATCH: usize = 500;
 
 /// A folder with no live record is removed only once it is this old (a multipart submission
 /// writes its files before its record exists). One hour: longer than any single request.
@@ -109,31 +111,35 @@ async fn remove_orphans(
         let Ok(entries) = std::fs::read_dir(blobs.root().join(sub)) else {
             continue;
         };
-        for entry in entries.flatten() {
-            let Some(id) = entry.file_name().to_str().map(str::to_string) else {
-                continue;
-            };
-            if !old_enough(&entry.path()) {
-                continue;
-            }
-            let live = if is_upload {
-                db.get_upload(&id).await?.is_some_and(|u| !u.expired)
-            } else {
-                db.get_job(&id)
-                    .await?
-                    .is_some_and(|j| j.purged_at.is_none())
-            };
-            if live {
-                continue;
-            }
-            report.bytes_freed += dir_size(&entry.path());
-            match std::fs::remove_dir_all(entry.path()) {
-                Ok(()) => {
-                    report.orphans_removed += 1;
-                    tracing::info!(folder = %entry.path().display(), "orphaned folder removed");
+        // The folders old enough to judge, then one question to the database per batch.
+        let mut old: Vec<(String, std::path::PathBuf)> = entries
+            .flatten()
+            .filter(|e| old_enough(&e.path()))
+            .filter_map(|e| Some((e.file_name().to_str()?.to_string(), e.path())))
+            .collect();
+        old.sort();
+        let table = if is_upload {
+            LiveTable::Uploads
+        } else {
+            LiveTable::Jobs
+        };
+        for batch in old.chunks(ORPHAN_BATCH) {
+            let ids: Vec<String> = batch.iter().map(|(id, _)| id.clone()).collect();
+            let live: std::collections::HashSet<String> =
+                db.live_ids(table, &ids).await?.into_iter().collect();
+            for (id, path) in batch {
+                if live.contains(id) {
+                    continue;
                 }
-                Err(e) => {
-                    tracing::warn!(folder = %entry.path().display(), error = %e, "could not remove an orphaned folder");
+                report.bytes_freed += dir_size(path);
+                match std::fs::remove_dir_all(path) {
+                    Ok(()) => {
+                        report.orphans_removed += 1;
+                        tracing::info!(folder = %path.display(), "orphaned folder removed");
+                    }
+                    Err(e) => {
+                        tracing::warn!(folder = %path.display(), error = %e, "could not remove an orphaned folder");
+                    }
                 }
             }
         }

@@ -168,6 +168,13 @@ pub struct NewJob<'a> {
     pub webhook: Option<&'a WebhookSpec>,
 }
 
+/// The records whose files the retention sweep asks about (see `JobStore::live_ids`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LiveTable {
+    Uploads,
+    Jobs,
+}
+
 /// Limits checked in the same transaction that queues a job, so concurrent submissions
 /// cannot both slip under them.
 #[derive(Debug, Clone, Copy)]

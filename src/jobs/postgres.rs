@@ -725,20 +725,24 @@ impl PgJobs {
         .bind(limit)
         .fetch_all(&mut *tx)
         .await?;
-        let mut out = Vec::with_capacity(rows.len());
+        let mut out: Vec<(String, String)> = Vec::with_capacity(rows.len());
         for r in &rows {
-            let id: String = r.try_get("id")?;
-            sqlx::query("UPDATE uploads SET state = 'expired', expires_at = LEAST(expires_at, $1) WHERE id = $2")
-                .bind(now)
-                .bind(&id)
-                .execute(&mut *tx)
-                .await?;
-            sqlx::query("DELETE FROM upload_parts WHERE upload_id = $1")
-                .bind(&id)
-                .execute(&mut *tx)
-                .await?;
-            out.push((id, r.try_get("filename")?));
+            out.push((r.try_get("id")?, r.try_get("filename")?));
         }
+        // One statement per table for the whole batch.
+        let ids: Vec<&str> = out.iter().map(|(id, _)| id.as_str()).collect();
+        sqlx::query(
+            "UPDATE uploads SET state = 'expired', expires_at = LEAST(expires_at, $1) \
+             WHERE id = ANY($2)",
+        )
+        .bind(now)
+        .bind(&ids)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("DELETE FROM upload_parts WHERE upload_id = ANY($1)")
+            .bind(&ids)
+            .execute(&mut *tx)
+            .await?;
         tx.commit().await?;
         Ok(out)
     }
@@ -763,24 +767,37 @@ impl PgJobs {
         .fetch_all(&mut *tx)
         .await?;
         let now = now_ms();
-        for id in &ids {
-            sqlx::query("UPDATE jobs SET purged_at = $1 WHERE id = $2")
-                .bind(now)
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-            sqlx::query("DELETE FROM artifacts WHERE job_id = $1")
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-            // Finished webhook deliveries go with the files; pending ones are still owed.
-            sqlx::query("DELETE FROM webhook_deliveries WHERE job_id = $1 AND state != 'pending'")
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-        }
+        sqlx::query("UPDATE jobs SET purged_at = $1 WHERE id = ANY($2)")
+            .bind(now)
+            .bind(&ids)
+            .execute(&mut *tx)
+            .await?;
+        sqlx::query("DELETE FROM artifacts WHERE job_id = ANY($1)")
+            .bind(&ids)
+            .execute(&mut *tx)
+            .await?;
+        // Finished webhook deliveries go with the files; pending ones are still owed.
+        sqlx::query("DELETE FROM webhook_deliveries WHERE state != 'pending' AND job_id = ANY($1)")
+            .bind(&ids)
+            .execute(&mut *tx)
+            .await?;
         tx.commit().await?;
         Ok(ids)
+    }
+
+    /// Which of `ids` name an upload (`uploads`) or a job (`jobs`) whose files are still
+    /// wanted: an upload not expired, a job not purged. One query for the whole list.
+    pub async fn live_ids(&self, table: LiveTable, ids: &[String]) -> Result<Vec<String>, DbError> {
+        let sql = match table {
+            LiveTable::Uploads => {
+                "SELECT id FROM uploads WHERE state != 'expired' AND id = ANY($1)"
+            }
+            LiveTable::Jobs => "SELECT id FROM jobs WHERE purged_at IS NULL AND id = ANY($1)",
+        };
+        Ok(sqlx::query_scalar(sql)
+            .bind(ids)
+            .fetch_all(&self.pool)
+            .await?)
     }
 
     // ---------------------------------------------------------------- queue (workers)

@@ -625,20 +625,24 @@ impl SqliteJobs {
         .bind(limit)
         .fetch_all(&mut *tx)
         .await?;
-        let mut out = Vec::with_capacity(rows.len());
+        let mut out: Vec<(String, String)> = Vec::with_capacity(rows.len());
         for r in &rows {
-            let id: String = r.try_get("id")?;
-            sqlx::query("UPDATE uploads SET state = 'expired', expires_at = MIN(expires_at, ?) WHERE id = ?")
-                .bind(now)
-                .bind(&id)
-                .execute(&mut *tx)
-                .await?;
-            sqlx::query("DELETE FROM upload_parts WHERE upload_id = ?")
-                .bind(&id)
-                .execute(&mut *tx)
-                .await?;
-            out.push((id, r.try_get("filename")?));
+            out.push((r.try_get("id")?, r.try_get("filename")?));
         }
+        // One statement per table for the whole batch: the ids go in as a JSON array.
+        let ids = id_array(out.iter().map(|(id, _)| id));
+        sqlx::query(
+            "UPDATE uploads SET state = 'expired', expires_at = MIN(expires_at, ?) \
+             WHERE id IN (SELECT value FROM json_each(?))",
+        )
+        .bind(now)
+        .bind(&ids)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("DELETE FROM upload_parts WHERE upload_id IN (SELECT value FROM json_each(?))")
+            .bind(&ids)
+            .execute(&mut *tx)
+            .await?;
         tx.commit().await?;
         Ok(out)
     }
@@ -662,24 +666,45 @@ impl SqliteJobs {
         .fetch_all(&mut *tx)
         .await?;
         let now = now_ms();
-        for id in &ids {
-            sqlx::query("UPDATE jobs SET purged_at = ? WHERE id = ?")
-                .bind(now)
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-            sqlx::query("DELETE FROM artifacts WHERE job_id = ?")
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-            // Finished webhook deliveries go with the files; pending ones are still owed.
-            sqlx::query("DELETE FROM webhook_deliveries WHERE job_id = ? AND state != 'pending'")
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-        }
+        let list = id_array(&ids);
+        sqlx::query("UPDATE jobs SET purged_at = ? WHERE id IN (SELECT value FROM json_each(?))")
+            .bind(now)
+            .bind(&list)
+            .execute(&mut *tx)
+            .await?;
+        sqlx::query("DELETE FROM artifacts WHERE job_id IN (SELECT value FROM json_each(?))")
+            .bind(&list)
+            .execute(&mut *tx)
+            .await?;
+        // Finished webhook deliveries go with the files; pending ones are still owed.
+        sqlx::query(
+            "DELETE FROM webhook_deliveries WHERE state != 'pending' \
+             AND job_id IN (SELECT value FROM json_each(?))",
+        )
+        .bind(&list)
+        .execute(&mut *tx)
+        .await?;
         tx.commit().await?;
         Ok(ids)
+    }
+
+    /// Which of `ids` name an upload (`uploads`) or a job (`jobs`) whose files are still
+    /// wanted: an upload not expired, a job not purged. One query for the whole list.
+    pub async fn live_ids(&self, table: LiveTable, ids: &[String]) -> Result<Vec<String>, DbError> {
+        let sql = match table {
+            LiveTable::Uploads => {
+                "SELECT id FROM uploads WHERE state != 'expired' \
+                 AND id IN (SELECT value FROM json_each(?))"
+            }
+            LiveTable::Jobs => {
+                "SELECT id FROM jobs WHERE purged_at IS NULL \
+                 AND id IN (SELECT value FROM json_each(?))"
+            }
+        };
+        Ok(sqlx::query_scalar(sql)
+            .bind(id_array(ids))
+            .fetch_all(&self.pool)
+            .await?)
     }
 
     // ---------------------------------------------------------------- queue (workers)
@@ -1266,4 +1291,10 @@ fn delivery_record_from_row(r: &SqliteRow) -> Result<DeliveryRecord, DbError> {
         created_at: r.try_get("created_at")?,
         finished_at: r.try_get("finished_at")?,
     })
+}
+
+/// Ids as a JSON array, bound to one parameter and read back with `json_each`.
+fn id_array<S: AsRef<str>>(ids: impl IntoIterator<Item = S>) -> String {
+    let v: Vec<String> = ids.into_iter().map(|s| s.as_ref().to_string()).collect();
+    serde_json::Value::from(v).to_string()
 }

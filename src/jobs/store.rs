@@ -197,6 +197,9 @@ forward! {
     /// A job with its stages and artifacts.
     pub async fn get_job(&self, id: &str) -> Result<Option<JobRecord>, DbError>;
 
+    /// Which of `ids` still own files: uploads not expired, or jobs not purged.
+    pub async fn live_ids(&self, table: LiveTable, ids: &[String]) -> Result<Vec<String>, DbError>;
+
     /// Jobs newest first; `before_seq` is the cursor (the last seq of the previous page).
     pub async fn list_jobs(
         &self,

@@ -676,6 +676,26 @@ async fn owners_have_quotas_and_retention_expires_uploads_and_purges_jobs(db: Jo
     assert!(db.purge_jobs(now, 100).await.expect("again").is_empty());
     let j = db.get_job("a1").await.expect("get").expect("kept");
     assert!(j.purged_at.is_some() && j.artifacts.is_empty());
+    // The orphan sweep's question: which of these still own files?
+    let ask = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    let mut live = db
+        .live_ids(LiveTable::Jobs, &ask(&["a1", "a2", "n1", "nope"]))
+        .await
+        .expect("live jobs");
+    live.sort();
+    assert_eq!(live, ["a2", "n1"]);
+    let mut live = db
+        .live_ids(LiveTable::Uploads, &ask(&["open", "la", "ca", "nope"]))
+        .await
+        .expect("live uploads");
+    live.sort();
+    assert_eq!(live, ["ca", "la"]);
+    assert!(
+        db.live_ids(LiveTable::Jobs, &[])
+            .await
+            .expect("none")
+            .is_empty()
+    );
     // a2 (queued) still reads la and ca: they stay until it too is purged or deleted.
     assert!(
         db.expire_uploads(now, now, 100)
