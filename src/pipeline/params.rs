@@ -205,7 +205,8 @@ pub struct TrainParams {
     /// Longest image side in pixels used for training; 0 keeps the full resolution.
     pub resolution: u32,
     /// Upper bound on the number of Gaussians, at initialisation (a seeded random subset of
-    /// the anchors or points) and during densification; 0 = no bound (default).
+    /// the anchors or points, half of it reserved for trunk Gaussians: see
+    /// `train::cap_gaussians`) and during densification; 0 = no bound (default).
     pub max_gaussians: u32,
     /// Where the steps run: the GPU (default) or the CPU reference, which is exact but only
     /// fit for tiny scenes.
