@@ -113,6 +113,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     Ok(())
 }
 
+/// Prints log lines when `REG_DIAG_LOG` is set.
+struct Printer;
+
+impl sylva::progress::Progress for Printer {
+    fn set(&self, _fraction: f64) {}
+    fn log(&self, message: &str) {
+        if std::env::var_os("REG_DIAG_LOG").is_some() {
+            println!("    {message}");
+        }
+    }
+}
+
 fn truth_of(out: &std::path::Path) -> Result<(Similarity, DVec3), Box<dyn std::error::Error>> {
     let truth: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
     let t = &truth["sfm_to_world"];
@@ -163,44 +175,61 @@ fn analyse_seed(
         print!("label {l}: {} pts, median nn {:.3} m; ", d.len(), med);
     }
     println!();
-    let target = sylva::geom::voxel_downsample(
+    let thin = sylva::geom::voxel_downsample(
         &cloud.positions,
         None,
         &sylva::geom::VoxelParams {
-            voxel_size: p.target_voxel_m as f32,
+            voxel_size: p.refine_voxel_m as f32,
         },
         &NoProgress,
     )?
     .positions;
-    for (name, keep) in [
-        ("all", [true, true, true, true]),
-        ("ground+wood+other", [true, true, false, true]),
-        ("ground", [true, false, false, false]),
-        ("leaf", [false, false, true, false]),
+    let tindex = sylva::geom::PointIndex::new(&thin)?;
+    let sp = sylva::pipeline::register::surface_params(p);
+    let cps = sylva::io::tables::read_control_points(&out.join("control_points.csv"))?;
+    let cp_sfm: Vec<DVec3> = cps.iter().map(|c| c.sfm).collect();
+    let cp_lidar: Vec<DVec3> = cps.iter().map(|c| c.lidar - cloud.offset).collect();
+    let mut why = [[0usize; 6]; 4];
+    for (q, l) in source.iter().zip(&lab) {
+        let k = sylva::geom::surface::patch_status(&thin, &tindex, q.as_dvec3(), &sp);
+        why[(*l).min(3)][k as usize] += 1;
+    }
+    println!("  patch status by label (ok, few, line, off-centre, singular, rms): {why:?}");
+    let sfm_local: Vec<DVec3> = model.points.iter().map(|q| q.xyz).collect();
+    for (name, keep, with_cp) in [
+        ("all", [true, true, true, true], false),
+        ("all + control points", [true, true, true, true], true),
+        ("ground+wood+other", [true, true, false, true], false),
+        ("ground", [true, false, false, false], false),
     ] {
-        let sub: Vec<Vec3> = source
-            .iter()
-            .zip(&lab)
-            .filter(|(_, l)| keep[**l])
-            .map(|(q, _)| *q)
-            .collect();
-        match sylva::pipeline::register::refine_on_surfaces(
-            &sub,
-            &target,
-            &Similarity::IDENTITY,
-            p,
-            &NoProgress,
+        let w: Vec<f64> = lab.iter().map(|l| f64::from(u8::from(keep[*l]))).collect();
+        match sylva::geom::surface::refine_on_surface(
+            &sfm_local,
+            Some(&w),
+            &thin,
+            &tindex,
+            &local,
+            with_cp.then_some(sylva::geom::surface::PairPrior {
+                sfm: &cp_sfm,
+                lidar: &cp_lidar,
+                sigma_m: p.control_point_sigma_m,
+            }),
+            &sp,
+            &Printer,
         ) {
             Ok(r) => {
-                let t = r.transform();
+                let t = local.inverse().then(&r.transform);
                 let (er, es, et) = errors(&t, &Similarity::IDENTITY, c_local);
                 println!(
-                    "  refine from truth on {name} ({} pts): rot {er:.4}°, scale {:.4}%, {:.2} cm, fitness {:.3}, iters {}",
-                    sub.len(),
+                    "  surface refine from truth on {name}: rot {er:.4}°, scale {:.4}%, {:.2} cm, used {} ({:.2}), rmse {:.4}, iters {}, std rot {:.4?}° scale {:.4}%",
                     es * 100.0,
                     et * 100.0,
+                    r.used,
                     r.fitness,
-                    r.iterations
+                    r.rmse_m,
+                    r.iterations,
+                    r.std_rotation_deg,
+                    r.std_scale * 100.0
                 );
             }
             Err(e) => println!("  {name}: {e}"),
