@@ -71,6 +71,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             analyse_seed(&out, &params.register)?;
             continue;
         }
+        if automatic {
+            coarse_only(&out)?;
+        }
         let t0 = Instant::now();
         let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &NoProgress);
         let secs = t0.elapsed().as_secs_f64();
@@ -109,6 +112,41 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             report["icp_iterations"],
             report["confidence"].as_f64().unwrap_or(f64::NAN),
         );
+    }
+    Ok(())
+}
+
+/// The automatic coarse alignment alone against the truth (printed before the stage's row).
+fn coarse_only(out: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> {
+    let cloud =
+        sylva::io::pointcloud::read_point_cloud(&out.join("work/ingest/cloud.ply"), &NoProgress)?;
+    let model = sylva::io::colmap::read_model(&out.join("work/ingest/sparse"), &NoProgress)?;
+    let (truth, centre) = truth_of(out)?;
+    let sfm: Vec<DVec3> = model.points.iter().map(|q| q.xyz).collect();
+    let rays = pipeline::register::camera_rays(&model);
+    match sylva::geom::coarse::align(
+        &sfm,
+        &rays,
+        &cloud.positions,
+        &Default::default(),
+        &NoProgress,
+    ) {
+        Ok(c) => {
+            let est = Similarity {
+                translation: c.transform.translation + cloud.offset,
+                ..c.transform
+            };
+            let (r, s, t) = errors(&est, &truth, centre);
+            println!(
+                "  coarse alone: rot {r:.2}°, scale {:.2}%, {:.2} m at the centre; confidence {:.2}, score {:.3}, runner-up {:.3}",
+                s * 100.0,
+                t,
+                c.confidence,
+                c.score,
+                c.runner_up
+            );
+        }
+        Err(e) => println!("  coarse alone: {e}"),
     }
     Ok(())
 }
