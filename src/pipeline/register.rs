@@ -3,9 +3,10 @@
 //!
 //! Coarse: from control point pairs (Umeyama, residual per pair) or, without them, the
 //! automatic alignment of [`crate::geom::coarse`]. Fine: ICP of the SfM points onto the
-//! LiDAR cloud thinned to `target_voxel_m`, estimating scale too; then a point-to-plane
-//! refinement of the translation on the planar LiDAR surfaces only (ground, stems, stones),
-//! which takes the translation at the plot centre from 1–2 cm to below 1 cm on `tiny`. Everything runs in the
+//! LiDAR cloud thinned to `target_voxel_m`, estimating scale too; then the surface
+//! refinement of [`crate::geom::surface`] (similarity Gauss-Newton of the SfM points onto
+//! quadric patches of the LiDAR surface, the control points as extra observations), whose
+//! standard errors the report gives as `uncertainty`. Everything runs in the
 //! LiDAR cloud's local frame (file coordinates minus the ingest offset) so f32 positions stay
 //! precise; the report gives `sfm_to_lidar` in the file's own coordinates.
 
