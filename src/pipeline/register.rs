@@ -275,6 +275,22 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             serde_json::Value::Null,
         )
     };
+    // Each control pair's residual under the final transform too (metres, LiDAR frame).
+    let pairs: Vec<serde_json::Value> = match &ctx.inputs.control_points {
+        Some(path) => {
+            let cps = tables::read_control_points(path)?;
+            pairs
+                .into_iter()
+                .zip(&cps)
+                .map(|(mut v, c)| {
+                    let r = (local.apply(c.sfm) - (c.lidar - offset)).length();
+                    v["residual_final_m"] = json!(r);
+                    v
+                })
+                .collect()
+        }
+        None => pairs,
+    };
     let to_file = Similarity {
         translation: local.translation + offset,
         ..local
