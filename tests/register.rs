@@ -140,18 +140,18 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
 }
 
 /// `stand` (17 trees) reaches the goals with control points. A lighter stand than
-/// the preset (40 photos of 320×180, 1.5 M LiDAR points, 8000 SfM points) keeps the test to
+/// the preset (30 photos of 320×180, 800 k LiDAR points, 5000 SfM points) keeps the test to
 /// tens of seconds; the full preset's five seeds are in the README (register_diag).
 #[test]
 fn control_points_reach_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");
     let mut p = SynthParams::new(Preset::Stand);
     p.seed = 1;
-    p.images = Some(40);
+    p.images = Some(30);
     p.width = Some(320);
     p.height = Some(180);
-    p.lidar_points = Some(1_500_000);
-    p.points3d = Some(8_000);
+    p.lidar_points = Some(800_000);
+    p.points3d = Some(5_000);
     let out = generate(dir.path(), p);
     let report = register(
         &dir.path().join("work"),
