@@ -1,8 +1,11 @@
 //! Registration accuracy table on synthetic plots (`sylva synth`), one row per seed: the
 //! recovered `sfm_to_lidar` of stage `register` against the generator's truth.
 //!
-//! `cargo run --profile test --example register_diag -- PRESET SEEDS [auto]`, e.g.
-//! `-- tiny 1-5` or `-- stand 1-5 auto`. Plots are cached under `$REG_DIAG_DIR` (default
+//! `cargo run --profile test --example register_diag -- PRESET SEEDS [auto|analyse]`, e.g.
+//! `-- tiny 1-5` or `-- stand 1-5 auto` (which also prints the automatic coarse alignment's
+//! own errors). `analyse` prints where the SfM points lie on the LiDAR's classes, why points
+//! get no surface patch, and the surface refinement started from the true pose with its
+//! standard errors (`REG_DIAG_LOG=1` shows its iterations). Plots are cached under `$REG_DIAG_DIR` (default
 //! `/tmp/sylva-register-diag`); `REG_PARAMS` may hold a JSON object of register parameters.
 
 use std::path::PathBuf;
