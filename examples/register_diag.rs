@@ -1,8 +1,11 @@
 //! Registration accuracy table on synthetic plots (`sylva synth`), one row per seed: the
 //! recovered `sfm_to_lidar` of stage `register` against the generator's truth.
 //!
-//! `cargo run --profile test --example register_diag -- PRESET SEEDS [auto]`, e.g.
-//! `-- tiny 1-5` or `-- stand 1-5 auto`. Plots are cached under `$REG_DIAG_DIR` (default
+//! `cargo run --profile test --example register_diag -- PRESET SEEDS [auto|analyse]`, e.g.
+//! `-- tiny 1-5` or `-- stand 1-5 auto` (which also prints the automatic coarse alignment's
+//! own errors). `analyse` prints where the SfM points lie on the LiDAR's classes, why points
+//! get no surface patch, and the surface refinement started from the true pose with its
+//! standard errors (`REG_DIAG_LOG=1` shows its iterations). Plots are cached under `$REG_DIAG_DIR` (default
 //! `/tmp/sylva-register-diag`); `REG_PARAMS` may hold a JSON object of register parameters.
 
 use std::path::PathBuf;
@@ -71,6 +74,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             analyse_seed(&out, &params.register)?;
             continue;
         }
+        if automatic {
+            coarse_only(&out)?;
+        }
         let t0 = Instant::now();
         let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &NoProgress);
         let secs = t0.elapsed().as_secs_f64();
@@ -111,6 +117,53 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     Ok(())
+}
+
+/// The automatic coarse alignment alone against the truth (printed before the stage's row).
+fn coarse_only(out: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> {
+    let cloud =
+        sylva::io::pointcloud::read_point_cloud(&out.join("work/ingest/cloud.ply"), &NoProgress)?;
+    let model = sylva::io::colmap::read_model(&out.join("work/ingest/sparse"), &NoProgress)?;
+    let (truth, centre) = truth_of(out)?;
+    let sfm: Vec<DVec3> = model.points.iter().map(|q| q.xyz).collect();
+    let rays = pipeline::register::camera_rays(&model);
+    match sylva::geom::coarse::align(
+        &sfm,
+        &rays,
+        &cloud.positions,
+        &Default::default(),
+        &NoProgress,
+    ) {
+        Ok(c) => {
+            let est = Similarity {
+                translation: c.transform.translation + cloud.offset,
+                ..c.transform
+            };
+            let (r, s, t) = errors(&est, &truth, centre);
+            println!(
+                "  coarse alone: rot {r:.2}°, scale {:.2}%, {:.2} m at the centre; confidence {:.2}, score {:.3}, runner-up {:.3}",
+                s * 100.0,
+                t,
+                c.confidence,
+                c.score,
+                c.runner_up
+            );
+        }
+        Err(e) => println!("  coarse alone: {e}"),
+    }
+    Ok(())
+}
+
+/// Prints log lines when `REG_DIAG_LOG` is set.
+struct Printer;
+
+impl sylva::progress::Progress for Printer {
+    fn set(&self, _fraction: f64) {}
+    fn log(&self, message: &str) {
+        if std::env::var_os("REG_DIAG_LOG").is_some() {
+            println!("    {message}");
+        }
+    }
 }
 
 fn truth_of(out: &std::path::Path) -> Result<(Similarity, DVec3), Box<dyn std::error::Error>> {
@@ -163,44 +216,61 @@ fn analyse_seed(
         print!("label {l}: {} pts, median nn {:.3} m; ", d.len(), med);
     }
     println!();
-    let target = sylva::geom::voxel_downsample(
+    let thin = sylva::geom::voxel_downsample(
         &cloud.positions,
         None,
         &sylva::geom::VoxelParams {
-            voxel_size: p.target_voxel_m as f32,
+            voxel_size: p.refine_voxel_m as f32,
         },
         &NoProgress,
     )?
     .positions;
-    for (name, keep) in [
-        ("all", [true, true, true, true]),
-        ("ground+wood+other", [true, true, false, true]),
-        ("ground", [true, false, false, false]),
-        ("leaf", [false, false, true, false]),
+    let tindex = sylva::geom::PointIndex::new(&thin)?;
+    let sp = sylva::pipeline::register::surface_params(p);
+    let cps = sylva::io::tables::read_control_points(&out.join("control_points.csv"))?;
+    let cp_sfm: Vec<DVec3> = cps.iter().map(|c| c.sfm).collect();
+    let cp_lidar: Vec<DVec3> = cps.iter().map(|c| c.lidar - cloud.offset).collect();
+    let mut why = [[0usize; 6]; 4];
+    for (q, l) in source.iter().zip(&lab) {
+        let k = sylva::geom::surface::patch_status(&thin, &tindex, q.as_dvec3(), &sp);
+        why[(*l).min(3)][k as usize] += 1;
+    }
+    println!("  patch status by label (ok, few, line, off-centre, singular, rms): {why:?}");
+    let sfm_local: Vec<DVec3> = model.points.iter().map(|q| q.xyz).collect();
+    for (name, keep, with_cp) in [
+        ("all", [true, true, true, true], false),
+        ("all + control points", [true, true, true, true], true),
+        ("ground+wood+other", [true, true, false, true], false),
+        ("ground", [true, false, false, false], false),
     ] {
-        let sub: Vec<Vec3> = source
-            .iter()
-            .zip(&lab)
-            .filter(|(_, l)| keep[**l])
-            .map(|(q, _)| *q)
-            .collect();
-        match sylva::pipeline::register::refine_on_surfaces(
-            &sub,
-            &target,
-            &Similarity::IDENTITY,
-            p,
-            &NoProgress,
+        let w: Vec<f64> = lab.iter().map(|l| f64::from(u8::from(keep[*l]))).collect();
+        match sylva::geom::surface::refine_on_surface(
+            &sfm_local,
+            Some(&w),
+            &thin,
+            &tindex,
+            &local,
+            with_cp.then_some(sylva::geom::surface::PairPrior {
+                sfm: &cp_sfm,
+                lidar: &cp_lidar,
+                sigma_m: p.control_point_sigma_m,
+            }),
+            &sp,
+            &Printer,
         ) {
             Ok(r) => {
-                let t = r.transform();
+                let t = local.inverse().then(&r.transform);
                 let (er, es, et) = errors(&t, &Similarity::IDENTITY, c_local);
                 println!(
-                    "  refine from truth on {name} ({} pts): rot {er:.4}°, scale {:.4}%, {:.2} cm, fitness {:.3}, iters {}",
-                    sub.len(),
+                    "  surface refine from truth on {name}: rot {er:.4}°, scale {:.4}%, {:.2} cm, used {} ({:.2}), rmse {:.4}, iters {}, std rot {:.4?}° scale {:.4}%",
                     es * 100.0,
                     et * 100.0,
+                    r.used,
                     r.fitness,
-                    r.iterations
+                    r.rmse_m,
+                    r.iterations,
+                    r.std_rotation_deg,
+                    r.std_scale * 100.0
                 );
             }
             Err(e) => println!("  {name}: {e}"),

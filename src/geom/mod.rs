@@ -19,6 +19,7 @@ mod orient;
 mod outliers;
 mod pca;
 mod similarity;
+pub mod surface;
 mod voxel;
 
 pub use error::GeomError;

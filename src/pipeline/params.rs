@@ -84,42 +84,38 @@ pub struct RegisterParams {
     /// After an automatic coarse alignment, ICP must pair at least this share of the SfM
     /// points with LiDAR points, or the stage refuses (default 0.5).
     pub min_fitness: f64,
-    /// Finish with point-to-plane similarity ICP on the well-defined LiDAR surfaces only
-    /// (ground, stems, stones; not foliage, which the UAV sees from above and the scanner
-    /// from below). Default true: point-to-point ICP onto a thinned cloud stops a few
-    /// millimetres to centimetres short, biased by foliage and by the voxel spacing.
+    /// Finish with the surface refinement of [`crate::geom::surface`]: the similarity that
+    /// puts the SfM points on quadric patches of the LiDAR surface (ground, stems, stones;
+    /// foliage and edges fail the patch test), with the control points as extra observations.
+    /// Default true: point-to-point ICP onto a thinned cloud stops centimetres and tenths of a
+    /// degree short (README, registration results).
     pub refine: bool,
-    /// Surface variation l3 / (l1 + l2 + l3) of a LiDAR point's neighbourhood (k = 20) above
-    /// which it takes no part in the refinement; below, its weight falls linearly from 1 at 0
-    /// to 0 here. Default 0.1 (measured best of 0.05 and 0.1 on `tiny` seeds 1–5): a plane
-    /// with 1 cm noise over the ~20 cm neighbourhood of 5 cm voxels measures about 0.01–0.02,
-    /// foliage up to 1/3.
-    pub refine_max_surface_variation: f64,
-    /// Linearity (l1 - l2) / l1 above which a LiDAR point takes no part in the refinement
-    /// (default 0.95, measured best of 0.8, 0.95 and 1 on `tiny` seeds 1–5: a single scan
-    /// line on distant ground, whose normal is undetermined; 0.8 drops thin stems too).
-    pub refine_max_linearity: f64,
-    /// A LiDAR point whose neighbourhood's largest standard deviation sqrt(l1) exceeds this
-    /// many target voxels takes no part in the refinement (default 3: k = 20 neighbours on a
-    /// fully sampled plane of 5 cm voxels spread about 1.3 voxels; more means sparse far
-    /// field, where the plane is a guess).
-    pub refine_max_spread_voxels: f64,
-    /// Estimate scale in the refinement too (default false: on a plot whose SfM points lie
-    /// mostly on the ground, planes barely constrain scale, so point-to-plane scale drifts
-    /// with any small bias; the point-to-point phase's scale is kept).
-    pub refine_estimate_scale: bool,
-    /// Estimate rotation in the refinement too (default false: with the ground and one or
-    /// two stems, yaw about a stem is barely constrained by planes and drifts by tenths of a
-    /// degree; the point-to-point phase's rotation is kept and translation refined).
-    pub refine_estimate_rotation: bool,
-    /// Huber scale of the refinement's point-to-plane residuals, metres (default 0.02: twice
-    /// the ~1 cm noise of handheld SLAM ranges and of SfM points).
+    /// The LiDAR cloud is thinned to this voxel size (metres) for the surface patches
+    /// (default 0.01 m: the range noise of a handheld scanner; finer only adds time).
+    pub refine_voxel_m: f64,
+    /// Radius of the first LiDAR patch tried around each SfM point, metres (default 0.08; it
+    /// doubles up to `refine_max_radius_m` where the cloud is sparse).
+    pub refine_radius_m: f64,
+    /// Largest patch radius, metres (default 0.32: terrain relief is still a quadric at that
+    /// size).
+    pub refine_max_radius_m: f64,
+    /// A patch whose quadric fit leaves a larger RMS is not a surface, metres (default 0.012:
+    /// measured on `tiny` seeds 1-3, 1 cm LiDAR noise leaves 0.6-1 cm on ground and stems,
+    /// foliage several centimetres).
+    pub refine_max_fit_rms_m: f64,
+    /// Huber scale of the point-to-surface distances, metres (default 0.015: 1.5 times the
+    /// ~1 cm noise of SfM points).
     pub refine_huber_m: f64,
-    /// Correspondence distance of the refinement, metres (default 0.1: twice the target
-    /// voxel, enough to find the nearest surface point after point-to-point ICP).
+    /// Point-to-surface distances beyond this are not used, metres (default 0.05).
     pub refine_max_distance_m: f64,
-    /// Iteration cap of the refinement (default 30; it usually converges in 5–15).
-    pub refine_max_iterations: u32,
+    /// Rounds of the refinement, each refitting the patches where the points moved to and
+    /// solving on their tangent planes (default 3, measured best of 1, 2, 3 and 10 on `tiny`
+    /// seeds 1-5; it stops early once converged).
+    pub refine_rounds: u32,
+    /// Standard deviation of a control point pair's coordinates, metres (default 0.015: a
+    /// target picked by hand in a photo model and in a LiDAR cloud, each to about a
+    /// centimetre). The pairs enter the refinement with this weight against the SfM points.
+    pub control_point_sigma_m: f64,
 }
 
 impl Default for RegisterParams {
@@ -137,14 +133,14 @@ impl Default for RegisterParams {
             min_confidence: 0.5,
             min_fitness: 0.5,
             refine: true,
-            refine_max_surface_variation: 0.1,
-            refine_max_linearity: 0.95,
-            refine_estimate_scale: false,
-            refine_estimate_rotation: false,
-            refine_max_spread_voxels: 3.0,
-            refine_huber_m: 0.02,
-            refine_max_distance_m: 0.1,
-            refine_max_iterations: 30,
+            refine_voxel_m: 0.01,
+            refine_radius_m: 0.08,
+            refine_max_radius_m: 0.32,
+            refine_max_fit_rms_m: 0.012,
+            refine_huber_m: 0.015,
+            refine_max_distance_m: 0.05,
+            refine_rounds: 3,
+            control_point_sigma_m: 0.015,
         }
     }
 }

@@ -3,9 +3,10 @@
 //!
 //! Coarse: from control point pairs (Umeyama, residual per pair) or, without them, the
 //! automatic alignment of [`crate::geom::coarse`]. Fine: ICP of the SfM points onto the
-//! LiDAR cloud thinned to `target_voxel_m`, estimating scale too; then a point-to-plane
-//! refinement of the translation on the planar LiDAR surfaces only (ground, stems, stones),
-//! which takes the translation at the plot centre from 1–2 cm to below 1 cm on `tiny`. Everything runs in the
+//! LiDAR cloud thinned to `target_voxel_m`, estimating scale too; then the surface
+//! refinement of [`crate::geom::surface`] (similarity Gauss-Newton of the SfM points onto
+//! quadric patches of the LiDAR surface, the control points as extra observations), whose
+//! standard errors the report gives as `uncertainty`. Everything runs in the
 //! LiDAR cloud's local frame (file coordinates minus the ingest offset) so f32 positions stay
 //! precise; the report gives `sfm_to_lidar` in the file's own coordinates.
 
@@ -218,23 +219,78 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "ICP: fitness {:.2}, inlier RMSE {:.3} m, scale correction {:.4}, {} iterations",
         fine.fitness, fine.inlier_rmse, fine.scale, fine.iterations
     ));
-    let fine = if p.refine {
-        let r = refine_on_surfaces(
-            &source,
-            &target,
-            &fine.transform(),
+    let icp_t = coarse.then(&fine.transform());
+    let (local, fitness, rmse, iterations, converged, uncertainty) = if p.refine {
+        let pairs_local = match &ctx.inputs.control_points {
+            Some(path) => {
+                let cps = tables::read_control_points(path)?;
+                Some((
+                    cps.iter().map(|c| c.sfm).collect::<Vec<_>>(),
+                    cps.iter().map(|c| c.lidar - offset).collect::<Vec<_>>(),
+                ))
+            }
+            None => None,
+        };
+        let r = refine_on_surface(
+            &sfm,
+            &cloud.positions,
+            &icp_t,
+            pairs_local
+                .as_ref()
+                .map(|(a, b)| (a.as_slice(), b.as_slice())),
             p,
             &SubProgress::new(ctx.progress, 0.9, 0.08),
         )?;
         ctx.progress.log(&format!(
-            "point-to-plane refinement: fitness {:.2}, inlier RMSE {:.3} m, {} iterations",
-            r.fitness, r.inlier_rmse, r.iterations
+            "surface refinement: {} SfM points on LiDAR surfaces ({:.0}%), robust RMS {:.4} m, \
+             {} iterations; standard errors: rotation {:.4?} deg, scale {:.4}%",
+            r.used,
+            r.fitness * 100.0,
+            r.rmse_m,
+            r.iterations,
+            r.std_rotation_deg,
+            r.std_scale * 100.0
         ));
-        r
+        let u = json!({
+            "rotation_deg": r.std_rotation_deg,
+            "scale": r.std_scale,
+            "translation_m": r.std_translation_m,
+            "points_on_surfaces": r.used,
+        });
+        (
+            r.transform,
+            r.fitness,
+            r.rmse_m,
+            fine.iterations + r.iterations,
+            r.converged,
+            u,
+        )
     } else {
-        fine
+        (
+            icp_t,
+            fine.fitness,
+            fine.inlier_rmse,
+            fine.iterations,
+            fine.converged,
+            serde_json::Value::Null,
+        )
     };
-    let local = coarse.then(&fine.transform());
+    // Each control pair's residual under the final transform too (metres, LiDAR frame).
+    let pairs: Vec<serde_json::Value> = match &ctx.inputs.control_points {
+        Some(path) => {
+            let cps = tables::read_control_points(path)?;
+            pairs
+                .into_iter()
+                .zip(&cps)
+                .map(|(mut v, c)| {
+                    let r = (local.apply(c.sfm) - (c.lidar - offset)).length();
+                    v["residual_final_m"] = json!(r);
+                    v
+                })
+                .collect()
+        }
+        None => pairs,
+    };
     let to_file = Similarity {
         translation: local.translation + offset,
         ..local
@@ -253,10 +309,13 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "method": method,
         "coarse": similarity_json(&coarse),
         "pairs": pairs,
-        "fitness": fine.fitness,
-        "rmse_m": fine.inlier_rmse,
-        "icp_iterations": fine.iterations,
-        "icp_converged": fine.converged,
+        "fitness": fitness,
+        "rmse_m": rmse,
+        "icp_fitness": fine.fitness,
+        "icp_rmse_m": fine.inlier_rmse,
+        "icp_iterations": iterations,
+        "icp_converged": converged,
+        "uncertainty": uncertainty,
         "confidence": confidence,
         "sfm_points": sfm.len(),
         "lidar_points_target": target.len(),
@@ -321,76 +380,57 @@ pub fn icp_two_phase(
     .map_err(StageError::from)
 }
 
-/// The final refinement: point-to-plane similarity ICP from `initial`, each LiDAR point
-/// weighted by how planar its neighbourhood is (foliage gets no weight) and each residual by
-/// a Huber kernel.
-pub fn refine_on_surfaces(
-    source: &[Vec3],
-    target: &[Vec3],
+/// The final refinement ([`geom::surface`]): from `initial` (SfM → LiDAR local), the
+/// similarity that puts the SfM points on the LiDAR surface thinned to `refine_voxel_m`, with
+/// the control point pairs (SfM, LiDAR local) as extra observations when given.
+pub fn refine_on_surface(
+    sfm: &[DVec3],
+    lidar: &[Vec3],
     initial: &Similarity,
+    pairs: Option<(&[DVec3], &[DVec3])>,
     p: &super::params::RegisterParams,
     progress: &dyn Progress,
-) -> Result<geom::IcpResult, StageError> {
-    let index = geom::PointIndex::new(target)?;
-    let normals = geom::estimate_normals_with_index(
-        target,
+) -> Result<geom::surface::SurfaceResult, StageError> {
+    let thin = geom::voxel_downsample(
+        lidar,
+        None,
+        &VoxelParams {
+            voxel_size: p.refine_voxel_m as f32,
+        },
+        &SubProgress::new(progress, 0.0, 0.3),
+    )?
+    .positions;
+    let index = geom::PointIndex::new(&thin)?;
+    let params = surface_params(p);
+    geom::surface::refine_on_surface(
+        sfm,
+        None,
+        &thin,
         &index,
-        &geom::NormalParams {
-            k: IcpParams::default().normal_k,
-            orientation: geom::NormalOrientation::None,
-        },
-        &SubProgress::new(progress, 0.0, 0.4),
-    )?;
-    let weights = surface_weights(&normals.eigenvalues, p);
-    let params = IcpParams {
-        method: IcpMethod::PointToPlane,
-        estimate_scale: p.estimate_scale && p.refine_estimate_scale,
-        estimate_rotation: p.refine_estimate_rotation,
-        max_iterations: p.refine_max_iterations.max(1) as usize,
-        start_distance: p.refine_max_distance_m,
-        shrink: 1.0,
-        min_distance: p.refine_max_distance_m,
-        robust: RobustKernel::Huber {
-            scale: p.refine_huber_m,
-        },
-        relative_rmse_tolerance: p.icp_relative_rmse,
-        ..Default::default()
-    };
-    geom::icp_weighted(
-        source,
-        target,
-        &index,
-        Some(&normals.normals),
-        geom::IcpWeights {
-            source: None,
-            target: Some(&weights),
-        },
         initial,
+        pairs.map(|(sfm, lidar)| geom::surface::PairPrior {
+            sfm,
+            lidar,
+            sigma_m: p.control_point_sigma_m,
+        }),
         &params,
         &SubProgress::new(progress, 0.4, 0.6),
     )
     .map_err(StageError::from)
 }
 
-/// Weight in [0, 1] of each LiDAR point as a plane for the refinement, from its
-/// neighbourhood's covariance eigenvalues l1 >= l2 >= l3 (m²): 0 for a line (a scan line
-/// on distant ground, a twig: its normal is undetermined), for a spread-out neighbourhood
-/// (sparse far field) and for a volume (foliage); otherwise falling linearly with the surface
-/// variation l3 / (l1 + l2 + l3).
-pub fn surface_weights(eigenvalues: &[[f32; 3]], p: &super::params::RegisterParams) -> Vec<f32> {
-    let max_sv = p.refine_max_surface_variation.max(1e-9);
-    let max_spread2 = (p.refine_max_spread_voxels * p.target_voxel_m).powi(2);
-    eigenvalues
-        .iter()
-        .map(|l| {
-            let [l1, l2, l3] = l.map(f64::from);
-            let sum = l1 + l2 + l3;
-            if sum <= 0.0 || l1 > max_spread2 || (l1 - l2) / l1 > p.refine_max_linearity {
-                return 0.0;
-            }
-            (1.0 - (l3 / sum) / max_sv).clamp(0.0, 1.0) as f32
-        })
-        .collect()
+/// The surface refinement's parameters from the stage's.
+pub fn surface_params(p: &super::params::RegisterParams) -> geom::surface::SurfaceParams {
+    geom::surface::SurfaceParams {
+        radius_m: p.refine_radius_m,
+        max_radius_m: p.refine_max_radius_m,
+        max_fit_rms_m: p.refine_max_fit_rms_m,
+        huber_m: p.refine_huber_m,
+        max_distance_m: p.refine_max_distance_m,
+        rounds: p.refine_rounds.max(1) as usize,
+        estimate_scale: p.estimate_scale,
+        ..Default::default()
+    }
 }
 
 fn file_name(p: &Path) -> String {
