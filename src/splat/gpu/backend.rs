@@ -59,7 +59,12 @@ pub struct GpuBackend {
 impl GpuBackend {
     /// Finds an adapter and compiles the kernels; a clear error without one.
     pub fn new(background: [f32; 3]) -> Result<Self, TrainError> {
-        let ctx = GpuContext::new()?;
+        Self::with_context(GpuContext::new()?, background)
+    }
+
+    /// As [`GpuBackend::new`] on a given context (e.g. one with a small
+    /// [`GpuContext::chunk_cap_bytes`], to exercise chunking).
+    pub fn with_context(ctx: GpuContext, background: [f32; 3]) -> Result<Self, TrainError> {
         let renderer = Renderer::new(&ctx);
         let loss = LossKernel::new(&ctx.device);
         let loss_out = storage_zeroed(&ctx, "loss out", LOSS_OUT_BYTES)?;
