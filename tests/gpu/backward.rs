@@ -126,7 +126,7 @@ fn every_pixels_per_thread_variant_matches_cpu_reference() {
             sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
         for pix in [1u32, 2, 4, 8, 16] {
             let mut c = ctx.clone();
-            c.bwd_pixels = pix;
+            c.raster_pixels = pix;
             eprintln!("seed {seed}, {w}x{h}, {pix} pixels per thread");
             let got = gpu_backward(&c, seed, n, deg, w, h);
             check_all(&got.grads, &want);

@@ -50,20 +50,20 @@ pub enum AtomicMode {
     CompareSwap,
 }
 
-/// Backward-raster pixels per thread on CPU adapters: each thread sums 8 pixels' contributions
-/// before one atomic add per Gaussian (measured on lavapipe, 2 cores: README "Gaussian
-/// splatting", speed table).
-pub const BWD_PIXELS_CPU: u32 = 8;
+/// Raster pixels per thread on CPU adapters: in the backward raster each thread sums 8 pixels'
+/// contributions before one atomic add per Gaussian, and both rasters read each staged Gaussian
+/// once per 8 pixels (measured on lavapipe, 2 cores: README "Gaussian splatting", speed table).
+pub const RASTER_PIXELS_CPU: u32 = 8;
 
-/// The backward raster's pixels per thread for `device_type`, unless `SYLVA_BWD_PIXELS` (a power
-/// of two up to 16) says otherwise.
-fn bwd_pixels_for(device_type: wgpu::DeviceType) -> u32 {
+/// The rasters' pixels per thread for `device_type`, unless `SYLVA_RASTER_PIXELS` (a power of two
+/// up to 16) says otherwise.
+fn raster_pixels_for(device_type: wgpu::DeviceType) -> u32 {
     let default = if device_type == wgpu::DeviceType::Cpu {
-        BWD_PIXELS_CPU
+        RASTER_PIXELS_CPU
     } else {
         1
     };
-    std::env::var("SYLVA_BWD_PIXELS")
+    std::env::var("SYLVA_RASTER_PIXELS")
         .ok()
         .and_then(|v| v.trim().parse::<u32>().ok())
         .filter(|v| v.is_power_of_two() && *v <= 16)
@@ -90,10 +90,10 @@ pub struct GpuContext {
     /// `max_binding_bytes`). Only for tests and experiments: a small cap splits even a small
     /// model into many chunks.
     pub chunk_cap_bytes: Option<u64>,
-    /// Pixels per thread of the backward raster (1, 2, 4, 8 or 16; see `raster_bwd.wgsl`):
-    /// [`BWD_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, or `SYLVA_BWD_PIXELS`.
+    /// Pixels per thread of both rasters (1, 2, 4, 8 or 16; see `raster_bwd.wgsl`):
+    /// [`RASTER_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, or `SYLVA_RASTER_PIXELS`.
     /// Read when a [`crate::splat::gpu::Renderer`] is built.
-    pub bwd_pixels: u32,
+    pub raster_pixels: u32,
     /// Adapter name and backend, for logs.
     pub description: Arc<str>,
 }
@@ -154,7 +154,7 @@ impl GpuContext {
             max_buffer_bytes: limits.max_buffer_size,
             offset_alignment: u64::from(limits.min_storage_buffer_offset_alignment.max(4)),
             chunk_cap_bytes: None,
-            bwd_pixels: bwd_pixels_for(info.device_type),
+            raster_pixels: raster_pixels_for(info.device_type),
             description,
         })
     }

@@ -21,7 +21,7 @@ impl RasterBwd {
             AtomicMode::Float => include_str!("../../../shaders/atomic_float.wgsl"),
             AtomicMode::CompareSwap => include_str!("../../../shaders/atomic_cas.wgsl"),
         };
-        let pix = ctx.bwd_pixels.clamp(1, 16).next_power_of_two();
+        let pix = ctx.raster_pixels.clamp(1, 16).next_power_of_two();
         let src = with_common(&format!(
             "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{atomics}\n{}",
             256 / pix,
