@@ -1,5 +1,7 @@
-// Projection (SPLATTING.md "Forward", steps 1-8): one thread per Gaussian. Writes the screen-space
-// record (3 vec4 per Gaussian) and the number of touched tiles (0 when culled).
+// Projection (SPLATTING.md "Forward", steps 1-8): one thread per Gaussian of one chunk. Writes the
+// screen-space record (3 vec4 per Gaussian) and the number of touched tiles (0 when culled). The
+// parameter buffers are bound as the chunk's sub-range (index `c`), `proj` and `tile_counts`
+// whole (index `i = chunk.x + c`).
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -11,6 +13,8 @@
 // proj[3i+2] = (r, g, b, 0).
 @group(0) @binding(6) var<storage, read_write> proj: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read_write> tile_counts: array<u32>;
+// First Gaussian of the chunk, Gaussians in the chunk.
+@group(0) @binding(8) var<uniform> chunk: vec4<u32>;
 
 fn cull(i: u32) {
     proj[3u * i] = vec4<f32>(0.0);
@@ -22,22 +26,23 @@ fn cull(i: u32) {
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = linear_id(wg, nwg, lid);
-    let p = params;
-    if i >= p.counts.x {
+    let c = linear_id(wg, nwg, lid);
+    if c >= chunk.y {
         return;
     }
-    let mu = vec3<f32>(means[3u * i], means[3u * i + 1u], means[3u * i + 2u]);
+    let i = chunk.x + c;
+    let p = params;
+    let mu = vec3<f32>(means[3u * c], means[3u * c + 1u], means[3u * c + 2u]);
     let w = cam_rot(p);
     let t = w * mu + p.trans.xyz;
     if t.z < NEAR {
         cull(i);
         return;
     }
-    let q = vec4<f32>(rotations[4u * i], rotations[4u * i + 1u], rotations[4u * i + 2u],
-        rotations[4u * i + 3u]);
+    let q = vec4<f32>(rotations[4u * c], rotations[4u * c + 1u], rotations[4u * c + 2u],
+        rotations[4u * c + 3u]);
     let rq = quat_to_mat(q / length(q));
-    let s = exp(vec3<f32>(log_scales[3u * i], log_scales[3u * i + 1u], log_scales[3u * i + 2u]));
+    let s = exp(vec3<f32>(log_scales[3u * c], log_scales[3u * c + 1u], log_scales[3u * c + 2u]));
     let m = mat3x3<f32>(rq[0] * s.x, rq[1] * s.y, rq[2] * s.z);
     let sigma_c = w * (m * transpose(m)) * transpose(w);
     let fx = p.focal.x;
@@ -71,11 +76,11 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     var rgb = vec3<f32>(0.5);
     let nk = (p.counts.y + 1u) * (p.counts.y + 1u);
     for (var k = 0u; k < nk; k++) {
-        let b = 48u * i + 3u * k;
+        let b = 48u * c + 3u * k;
         rgb += y[k] * vec3<f32>(sh[b], sh[b + 1u], sh[b + 2u]);
     }
     rgb = max(rgb, vec3<f32>(0.0));
-    let opacity = 1.0 / (1.0 + exp(-opacity_logits[i]));
+    let opacity = 1.0 / (1.0 + exp(-opacity_logits[c]));
     proj[3u * i] = vec4<f32>(mean2d, t.z, bitcast<f32>(u32(r)));
     proj[3u * i + 1u] = vec4<f32>(conic, opacity);
     proj[3u * i + 2u] = vec4<f32>(rgb, 0.0);

@@ -19,6 +19,10 @@
 // densify[3 i] += |dL/dm| scaled to NDC, densify[3 i + 1] += 1 per view where visible,
 // densify[3 i + 2] = the largest screen radius (pixels) over those views.
 @group(0) @binding(12) var<storage, read_write> densify: array<f32>;
+// First Gaussian of the chunk, Gaussians in the chunk: per-Gaussian buffers (parameters,
+// gradients, densify) are bound as the chunk's sub-range (index `c`); proj and grads2d whole
+// (index `i = chunk.x + c`).
+@group(0) @binding(13) var<uniform> chunk: vec4<u32>;
 
 // d Y_k / d(x, y, z) for k = 1..15, treating the components as independent.
 fn sh_basis_grad(d: vec3<f32>, k: u32) -> vec3<f32> {
@@ -61,24 +65,25 @@ fn outer(a: vec3<f32>, b: vec3<f32>) -> mat3x3<f32> {
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = linear_id(wg, nwg, lid);
-    let p = params;
-    if i >= p.counts.x {
+    let c = linear_id(wg, nwg, lid);
+    if c >= chunk.y {
         return;
     }
+    let i = chunk.x + c;
+    let p = params;
     let radius = bitcast<u32>(proj[3u * i].w);
     for (var k = 0u; k < 48u; k++) {
-        g_sh[48u * i + k] = 0.0;
+        g_sh[48u * c + k] = 0.0;
     }
     if radius == 0u {
         for (var k = 0u; k < 3u; k++) {
-            g_means[3u * i + k] = 0.0;
-            g_log_scales[3u * i + k] = 0.0;
+            g_means[3u * c + k] = 0.0;
+            g_log_scales[3u * c + k] = 0.0;
         }
         for (var k = 0u; k < 4u; k++) {
-            g_rotations[4u * i + k] = 0.0;
+            g_rotations[4u * c + k] = 0.0;
         }
-        g_opacity[i] = 0.0;
+        g_opacity[c] = 0.0;
         return;
     }
     let v_m = vec2<f32>(grads2d[9u * i], grads2d[9u * i + 1u]);
@@ -87,24 +92,24 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let v_opacity = grads2d[9u * i + 8u];
 
     // Densification statistic (reference: NDC gradient = pixel gradient x (w/2, h/2)).
-    densify[3u * i] += length(v_m * 0.5 * p.lim.zw);
-    densify[3u * i + 1u] += 1.0;
-    densify[3u * i + 2u] = max(densify[3u * i + 2u], f32(radius));
+    densify[3u * c] += length(v_m * 0.5 * p.lim.zw);
+    densify[3u * c + 1u] += 1.0;
+    densify[3u * c + 2u] = max(densify[3u * c + 2u], f32(radius));
 
     // Opacity: sigmoid derivative.
     let o = proj[3u * i + 1u].w;
-    g_opacity[i] = v_opacity * o * (1.0 - o);
+    g_opacity[c] = v_opacity * o * (1.0 - o);
 
     // Recompute the forward quantities.
-    let mu = vec3<f32>(means[3u * i], means[3u * i + 1u], means[3u * i + 2u]);
+    let mu = vec3<f32>(means[3u * c], means[3u * c + 1u], means[3u * c + 2u]);
     let w = cam_rot(p);
     let t = w * mu + p.trans.xyz;
-    let q_raw = vec4<f32>(rotations[4u * i], rotations[4u * i + 1u], rotations[4u * i + 2u],
-        rotations[4u * i + 3u]);
+    let q_raw = vec4<f32>(rotations[4u * c], rotations[4u * c + 1u], rotations[4u * c + 2u],
+        rotations[4u * c + 3u]);
     let q_len = length(q_raw);
     let qn = q_raw / q_len;
     let rq = quat_to_mat(qn);
-    let s = exp(vec3<f32>(log_scales[3u * i], log_scales[3u * i + 1u], log_scales[3u * i + 2u]));
+    let s = exp(vec3<f32>(log_scales[3u * c], log_scales[3u * c + 1u], log_scales[3u * c + 2u]));
     let m = mat3x3<f32>(rq[0] * s.x, rq[1] * s.y, rq[2] * s.z);
     let sigma_c = w * (m * transpose(m)) * transpose(w);
     let fx = p.focal.x;
@@ -195,13 +200,13 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let y = sh_basis(dir, deg);
     var raw = vec3<f32>(0.5);
     for (var k = 0u; k < nk; k++) {
-        let b = 48u * i + 3u * k;
+        let b = 48u * c + 3u * k;
         raw += y[k] * vec3<f32>(sh[b], sh[b + 1u], sh[b + 2u]);
     }
     let v_rgb = select(vec3<f32>(0.0), v_rgb_in, raw > vec3<f32>(0.0));
     var v_dir = vec3<f32>(0.0);
     for (var k = 0u; k < nk; k++) {
-        let b = 48u * i + 3u * k;
+        let b = 48u * c + 3u * k;
         g_sh[b] = y[k] * v_rgb.x;
         g_sh[b + 1u] = y[k] * v_rgb.y;
         g_sh[b + 2u] = y[k] * v_rgb.z;
@@ -213,10 +218,10 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     v_mu += (v_dir - dir * dot(dir, v_dir)) / dir_len;
 
     for (var k = 0u; k < 3u; k++) {
-        g_means[3u * i + k] = v_mu[k];
-        g_log_scales[3u * i + k] = v_s[k];
+        g_means[3u * c + k] = v_mu[k];
+        g_log_scales[3u * c + k] = v_s[k];
     }
     for (var k = 0u; k < 4u; k++) {
-        g_rotations[4u * i + k] = v_q[k];
+        g_rotations[4u * c + k] = v_q[k];
     }
 }

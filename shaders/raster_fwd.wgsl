@@ -1,6 +1,8 @@
-// Forward rasterisation: one workgroup per 16x16 tile, one thread per pixel. Batches of 256
-// Gaussians of the tile's depth-sorted run are staged in workgroup memory and blended front to
-// back (SPLATTING.md "Per pixel"); the workgroup stops once every pixel is saturated.
+// Forward rasterisation: one workgroup per 16x16 tile; each thread owns PIX consecutive pixels of
+// one tile row (PIX and THREADS = 256 / PIX are prepended by `raster_fwd.rs`; see
+// `raster_bwd.wgsl`). Batches of 256 Gaussians of the tile's depth-sorted run are staged in
+// workgroup memory and blended front to back (SPLATTING.md "Per pixel"); a thread reads each
+// staged Gaussian once for all its pixels, and the workgroup stops once every pixel is saturated.
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> proj: array<vec4<f32>>;
@@ -11,36 +13,48 @@
 // Per pixel: 1 + position (within the tile's run) of the last Gaussian blended, 0 if none.
 @group(0) @binding(6) var<storage, read_write> n_contrib: array<u32>;
 
-var<workgroup> b_xy_op: array<vec4<f32>, 256>;   // mean x, mean y, opacity, unused
-var<workgroup> b_conic: array<vec4<f32>, 256>;
-var<workgroup> b_rgb: array<vec4<f32>, 256>;
+const BATCH: u32 = 256u;
+
+var<workgroup> b_xy_op: array<vec4<f32>, BATCH>;   // mean x, mean y, opacity, unused
+var<workgroup> b_conic: array<vec4<f32>, BATCH>;
+var<workgroup> b_rgb: array<vec4<f32>, BATCH>;
 var<workgroup> done_count: atomic<u32>;
 var<workgroup> shared_u: vec2<u32>;
 var<workgroup> done_snap: u32;
 
-@compute @workgroup_size(16, 16)
-fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) lid3: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
+@compute @workgroup_size(THREADS)
+fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let p = params;
     let tile = wg.y * p.dims.z + wg.x;
-    let px = wg.x * TILE + lid3.x;
-    let py = wg.y * TILE + lid3.y;
-    let inside = px < p.dims.x && py < p.dims.y;
-    let pix = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
     if lid == 0u {
         shared_u = vec2<u32>(ranges[2u * tile], ranges[2u * tile + 1u]);
         atomicStore(&done_count, 0u);
     }
     let range = workgroupUniformLoad(&shared_u);
-    var done = !inside;
-    if done {
-        atomicAdd(&done_count, 1u);
+    var pix: array<vec2<f32>, PIX>;
+    var done: array<bool, PIX>;
+    var t: array<f32, PIX>;
+    var c: array<vec3<f32>, PIX>;
+    var last: array<u32, PIX>;
+    var live = 0u;
+    for (var k = 0u; k < PIX; k++) {
+        let lp = lid * PIX + k;
+        let px = wg.x * TILE + lp % TILE;
+        let py = wg.y * TILE + lp / TILE;
+        pix[k] = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
+        done[k] = !(px < p.dims.x && py < p.dims.y);
+        t[k] = 1.0;
+        c[k] = vec3<f32>(0.0);
+        last[k] = 0u;
+        if !done[k] {
+            live++;
+        }
     }
-    var t = 1.0;
-    var c = vec3<f32>(0.0);
-    var last = 0u;
+    if live < PIX {
+        atomicAdd(&done_count, PIX - live);
+    }
     let total = range.y - range.x;
-    let batches = (total + 255u) / 256u;
+    let batches = (total + BATCH - 1u) / BATCH;
     for (var b = 0u; b < batches; b++) {
         workgroupBarrier();
         if lid == 0u {
@@ -49,47 +63,60 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) lid3
         if workgroupUniformLoad(&done_snap) >= 256u {
             break;
         }
-        let k = range.x + b * 256u + lid;
-        if k < range.y {
-            let g = values[k];
-            let p0 = proj[3u * g];
-            let p1 = proj[3u * g + 1u];
-            b_xy_op[lid] = vec4<f32>(p0.xy, p1.w, 0.0);
-            b_conic[lid] = vec4<f32>(p1.xyz, 0.0);
-            b_rgb[lid] = proj[3u * g + 2u];
+        for (var s = lid; s < BATCH; s += THREADS) {
+            let k = range.x + b * BATCH + s;
+            if k < range.y {
+                let g = values[k];
+                let p0 = proj[3u * g];
+                let p1 = proj[3u * g + 1u];
+                b_xy_op[s] = vec4<f32>(p0.xy, p1.w, 0.0);
+                b_conic[s] = vec4<f32>(p1.xyz, 0.0);
+                b_rgb[s] = proj[3u * g + 2u];
+            }
         }
         workgroupBarrier();
-        let in_batch = min(256u, total - b * 256u);
-        for (var j = 0u; j < in_batch && !done; j++) {
+        let in_batch = min(BATCH, total - b * BATCH);
+        for (var j = 0u; j < in_batch && live > 0u; j++) {
             let xo = b_xy_op[j];
             let q = b_conic[j].xyz;
-            let d = xo.xy - pix;
-            let power = -0.5 * (q.x * d.x * d.x + q.z * d.y * d.y) - q.y * d.x * d.y;
-            if power > 0.0 {
-                continue;
+            for (var k = 0u; k < PIX; k++) {
+                if done[k] {
+                    continue;
+                }
+                let d = xo.xy - pix[k];
+                let power = -0.5 * (q.x * d.x * d.x + q.z * d.y * d.y) - q.y * d.x * d.y;
+                if power > 0.0 {
+                    continue;
+                }
+                let alpha = min(ALPHA_MAX, xo.z * exp(power));
+                if alpha < ALPHA_MIN {
+                    continue;
+                }
+                let t_next = t[k] * (1.0 - alpha);
+                if t_next < T_MIN {
+                    done[k] = true;
+                    live--;
+                    atomicAdd(&done_count, 1u);
+                    continue;
+                }
+                c[k] += t[k] * alpha * b_rgb[j].xyz;
+                t[k] = t_next;
+                last[k] = b * BATCH + j + 1u;
             }
-            let alpha = min(ALPHA_MAX, xo.z * exp(power));
-            if alpha < ALPHA_MIN {
-                continue;
-            }
-            let t_next = t * (1.0 - alpha);
-            if t_next < T_MIN {
-                done = true;
-                atomicAdd(&done_count, 1u);
-                break;
-            }
-            c += t * alpha * b_rgb[j].xyz;
-            t = t_next;
-            last = b * 256u + j + 1u;
         }
     }
-    if inside {
-        let o = py * p.dims.x + px;
-        let col = c + t * p.bg.xyz;
-        image[3u * o] = col.x;
-        image[3u * o + 1u] = col.y;
-        image[3u * o + 2u] = col.z;
-        final_t[o] = t;
-        n_contrib[o] = last;
+    for (var k = 0u; k < PIX; k++) {
+        let lp = lid * PIX + k;
+        let px = wg.x * TILE + lp % TILE;
+        let py = wg.y * TILE + lp / TILE;
+        if px < p.dims.x && py < p.dims.y {
+            let o = py * p.dims.x + px;
+            let col = c[k] + t[k] * p.bg.xyz;
+            image[3u * o] = col.x;
+            image[3u * o + 1u] = col.y;
+            image[3u * o + 2u] = col.z;
+            final_t[o] = t[k];
+            n_contrib[o] = last[k];
+        }
     }
 }

@@ -1,6 +1,7 @@
 //! Stage `export`: the deliverables in one folder — the splats as an INRIA-layout PLY that
-//! common splat viewers open and, with `params.export.compact`, the compact web format
-//! (antimatter15 `.splat`); the final inventory; and `frame.json`, which says how the splats'
+//! common splat viewers open and, with `params.export.compact`, the compact web formats
+//! (antimatter15 `splats.splat`, and Niantic's `splats.spz` version 2, which keeps the SH
+//! bands); the final inventory; and `frame.json`, which says how the splats'
 //! local metric frame maps to the LiDAR file's own coordinates.
 //!
 //! The splats stay in the local frame (file coordinates minus `offset`): projected coordinates
@@ -36,6 +37,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     if ctx.params.export.compact {
         write("splats.splat", &|w| {
             crate::splat::export_splat::write_splat(w, &model)
+        })?;
+        write("splats.spz", &|w| {
+            crate::splat::export_spz::write_spz(w, &model)
         })?;
     }
     for name in ["trees.csv", "trees.geojson"] {

@@ -15,6 +15,7 @@ pub mod dataset;
 pub mod eval;
 pub mod export;
 pub mod export_splat;
+pub mod export_spz;
 pub mod gpu;
 pub mod init;
 pub mod model;

@@ -112,3 +112,25 @@ fn float_atomics_and_cas_fallback_agree() {
     let b = gpu_backward(&native, 8, 300, 2, 64, 48);
     check_all(&a.grads, &b.grads);
 }
+
+#[test]
+fn every_pixels_per_thread_variant_matches_cpu_reference() {
+    let Some(ctx) = common::context() else { return };
+    for (seed, n, deg, w, h) in [(7u64, 400usize, 3u32, 64u32, 64u32), (9, 500, 3, 40, 56)] {
+        let model = common::scene(seed, n, deg, spread(seed));
+        let cam = common::camera(w, h, 0.8 * w as f32);
+        let bg = [0.2, 0.1, 0.4];
+        let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
+        let dl = common::random_dl((w * h) as usize, seed + 100);
+        let (want, want_stat) =
+            sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+        for pix in [1u32, 2, 4, 8, 16] {
+            let mut c = ctx.clone();
+            c.raster_pixels = pix;
+            eprintln!("seed {seed}, {w}x{h}, {pix} pixels per thread");
+            let got = gpu_backward(&c, seed, n, deg, w, h);
+            check_all(&got.grads, &want);
+            check("densify stat", &got.stat, &want_stat);
+        }
+    }
+}

@@ -40,3 +40,32 @@ fn forward_matches_cpu_reference() {
         assert!(trel < 1e-4 && tbad < 0.002, "final T disagrees");
     }
 }
+
+#[test]
+fn every_pixels_per_thread_variant_renders_the_same_image() {
+    let Some(ctx) = common::context() else { return };
+    let model = common::scene(3, 300, 2, 1.2);
+    let cam = common::camera(61, 37, 48.0);
+    let cpu = sylva::splat::cpu::render(&model, &cam, [0.1, 0.2, 0.3]).expect("cpu render");
+    let want: Vec<f32> = cpu.image.iter().flatten().copied().collect();
+    let mut first: Option<Vec<[f32; 3]>> = None;
+    for pix in [1u32, 2, 4, 8, 16] {
+        let mut c = ctx.clone();
+        c.raster_pixels = pix;
+        let renderer = Renderer::new(&c);
+        let splats = GpuSplats::upload(&c, &model).expect("upload");
+        let frame = renderer
+            .render(&c, &splats, &cam, [0.1, 0.2, 0.3])
+            .expect("render");
+        let img = frame.read_image(&c).expect("image");
+        let got: Vec<f32> = img.iter().flatten().copied().collect();
+        let (rel, bad) = common::compare(&got, &want, 1e-3, 1e-4);
+        eprintln!("{pix} pixels per thread: rel {rel:.2e}, bad {bad:.4}");
+        assert!(rel < 1e-4 && bad < 0.001, "{pix} pixels per thread");
+        // Each pixel's blending is the same arithmetic in every variant: identical images.
+        match &first {
+            None => first = Some(img),
+            Some(f) => assert_eq!(f, &img, "{pix} pixels per thread"),
+        }
+    }
+}

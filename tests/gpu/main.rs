@@ -3,6 +3,7 @@
 
 mod adam;
 mod backward;
+mod chunks;
 mod common;
 mod context;
 mod forward;

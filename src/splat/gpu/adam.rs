@@ -1,13 +1,14 @@
-//! Adam on the GPU (`adam.wgsl`), one dispatch per parameter buffer, with a CPU twin.
+//! Adam on the GPU (`adam.wgsl`), one dispatch per parameter buffer and chunk, with a CPU twin.
 //!
 //! Hyper-parameters are the reference's (Kerbl et al. 2023 `train.py`, torch Adam):
 //! β1 = 0.9, β2 = 0.999, ε = 1e-15. Moments start at zero; the step count is shared.
 
 use crate::splat::model::SH_FLOATS;
 
-use crate::splat::gpu::buffers::{read_buffer, storage_from, storage_zeroed, uniform_from};
+use crate::splat::gpu::buffers::{chunked_from, chunked_zeroed, read_buffer, uniform_from};
+use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::{GpuContext, GpuError};
-use crate::splat::gpu::project::{dispatch, groups_for};
+use crate::splat::gpu::project::{dispatch_group, groups_for};
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
 
 /// First-moment decay (reference / torch default).
@@ -107,8 +108,8 @@ impl GpuAdam {
             .map(|s| {
                 let bytes = s * count as u64 * 4;
                 Ok((
-                    storage_zeroed(ctx, "adam m", bytes)?,
-                    storage_zeroed(ctx, "adam v", bytes)?,
+                    chunked_zeroed(ctx, "adam m", bytes)?,
+                    chunked_zeroed(ctx, "adam v", bytes)?,
                 ))
             })
             .collect::<Result<_, GpuError>>()?;
@@ -150,8 +151,8 @@ impl GpuAdam {
             .iter()
             .map(|(m, v)| {
                 Ok((
-                    storage_from(ctx, "adam m", m)?,
-                    storage_from(ctx, "adam v", v)?,
+                    chunked_from(ctx, "adam m", m)?,
+                    chunked_from(ctx, "adam v", v)?,
                 ))
             })
             .collect::<Result<_, GpuError>>()?;
@@ -205,30 +206,39 @@ impl GpuAdam {
         for (k, ((param, stride), (m, v))) in
             splats.buffers().into_iter().zip(&self.moments).enumerate()
         {
-            let n_floats = stride as u32 * self.count;
             let (lr_first, lr_rest, n_first) = lrs[k];
-            let ap = AdamParams {
-                n_floats,
-                stride: stride as u32,
-                n_first,
-                _pad: 0,
-                lr_first,
-                lr_rest,
-                bc1,
-                bc2,
-                beta1: BETA1,
-                beta2: BETA2,
-                eps: EPSILON,
-                _pad2: 0.0,
-            };
-            let u = uniform_from(ctx, "adam params", &ap);
-            dispatch(
-                ctx,
-                enc,
-                &self.pipeline,
-                &[&u, param, grad_bufs[k], m, v],
-                groups_for(n_floats),
-            );
+            let floats = stride as u32;
+            // A chunk starts at a whole Gaussian, so `i % stride` in the kernel is unchanged.
+            for chunk in splats.plan.chunks() {
+                let n_floats = floats * chunk.len;
+                let ap = AdamParams {
+                    n_floats,
+                    stride: floats,
+                    n_first,
+                    _pad: 0,
+                    lr_first,
+                    lr_rest,
+                    bc1,
+                    bc2,
+                    beta1: BETA1,
+                    beta2: BETA2,
+                    eps: EPSILON,
+                    _pad2: 0.0,
+                };
+                let u = uniform_from(ctx, "adam params", &ap);
+                let bg = bind_ranges(
+                    ctx,
+                    &self.pipeline,
+                    &[
+                        u.as_entire_buffer_binding(),
+                        chunk.range(param, floats),
+                        chunk.range(grad_bufs[k], floats),
+                        chunk.range(m, floats),
+                        chunk.range(v, floats),
+                    ],
+                );
+                dispatch_group(enc, &self.pipeline, &bg, groups_for(n_floats));
+            }
         }
         Ok(())
     }

@@ -59,7 +59,12 @@ pub struct GpuBackend {
 impl GpuBackend {
     /// Finds an adapter and compiles the kernels; a clear error without one.
     pub fn new(background: [f32; 3]) -> Result<Self, TrainError> {
-        let ctx = GpuContext::new()?;
+        Self::with_context(GpuContext::new()?, background)
+    }
+
+    /// As [`GpuBackend::new`] on a given context (e.g. one with a small
+    /// [`GpuContext::chunk_cap_bytes`], to exercise chunking).
+    pub fn with_context(ctx: GpuContext, background: [f32; 3]) -> Result<Self, TrainError> {
         let renderer = Renderer::new(&ctx);
         let loss = LossKernel::new(&ctx.device);
         let loss_out = storage_zeroed(&ctx, "loss out", LOSS_OUT_BYTES)?;
@@ -169,10 +174,26 @@ impl Backend for GpuBackend {
             .as_mut()
             .ok_or_else(|| TrainError::Invalid("no model on the GPU yet".into()))?;
         state.splats.sh_degree = sh_degree.min(3);
-        let frame =
-            self.renderer
-                .render(&self.ctx, &state.splats, &view.camera, self.background)?;
-        let forward_ms = t.elapsed().as_secs_f64() * 1000.0;
+        // Timed: wait after projection (with its read-back), sort and raster so that each lands
+        // in its own column; untimed, the forward's GPU work finishes inside later phases.
+        let frame = if self.timed {
+            let (frame, pt) = self.renderer.render_timed(
+                &self.ctx,
+                &state.splats,
+                &view.camera,
+                self.background,
+            )?;
+            self.times.projection_ms += pt.project_ms;
+            self.times.sort_ms += pt.sort_ms;
+            self.times.raster_ms += pt.raster_ms;
+            frame
+        } else {
+            let frame =
+                self.renderer
+                    .render(&self.ctx, &state.splats, &view.camera, self.background)?;
+            self.times.raster_ms += t.elapsed().as_secs_f64() * 1000.0;
+            frame
+        };
         let (Some(target), Some((_, dl))) = (self.targets.get(&view.name), self.dl_dimage.as_ref())
         else {
             return Err(TrainError::Invalid("internal: missing step buffers".into()));
@@ -236,9 +257,6 @@ impl Backend for GpuBackend {
             .encode_step(&self.ctx, &mut enc, &state.splats, &state.grads, &rates)?;
         self.ctx.queue.submit([enc.finish()]);
         let optimizer_ms = self.wait_ms(t)?;
-        // The forward pass waits for its intersection count; split it as the renderer does
-        // not report sub-passes here.
-        self.times.raster_ms += forward_ms;
         self.times.loss_ms += loss_ms;
         self.times.backward_ms += backward_ms;
         self.times.optimizer_ms += optimizer_ms;

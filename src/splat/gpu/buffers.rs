@@ -10,16 +10,28 @@ pub const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
     .union(wgpu::BufferUsages::COPY_DST)
     .union(wgpu::BufferUsages::COPY_SRC);
 
-/// A storage buffer holding `data` (zero-filled 16 bytes when empty: empty bindings are invalid).
+/// A storage buffer holding `data` (zero-filled 16 bytes when empty: empty bindings are invalid),
+/// bound whole: it must fit one storage binding.
 pub fn storage_from<T: bytemuck::Pod>(
     ctx: &GpuContext,
     label: &'static str,
     data: &[T],
 ) -> Result<wgpu::Buffer, GpuError> {
+    ctx.check_binding(label, size_of_val(data) as u64)?;
+    chunked_from(ctx, label, data)
+}
+
+/// As [`storage_from`] for a per-Gaussian buffer that kernels bind in chunks
+/// ([`crate::splat::gpu::chunks`]): it must fit the adapter's largest buffer only.
+pub fn chunked_from<T: bytemuck::Pod>(
+    ctx: &GpuContext,
+    label: &'static str,
+    data: &[T],
+) -> Result<wgpu::Buffer, GpuError> {
     let bytes: &[u8] = bytemuck::cast_slice(data);
-    ctx.check_binding(label, bytes.len() as u64)?;
+    ctx.check_buffer(label, bytes.len() as u64)?;
     if bytes.is_empty() {
-        return storage_zeroed(ctx, label, 4);
+        return chunked_zeroed(ctx, label, 4);
     }
     Ok(ctx
         .device
@@ -31,14 +43,25 @@ pub fn storage_from<T: bytemuck::Pod>(
 }
 
 /// A zero-filled storage buffer of `bytes` bytes (rounded up to a multiple of 4, at least 16 so
-/// that an empty model still binds `array<vec4<f32>>`).
+/// that an empty model still binds `array<vec4<f32>>`), bound whole: it must fit one binding.
 pub fn storage_zeroed(
     ctx: &GpuContext,
     label: &'static str,
     bytes: u64,
 ) -> Result<wgpu::Buffer, GpuError> {
+    ctx.check_binding(label, bytes.max(16).div_ceil(4) * 4)?;
+    chunked_zeroed(ctx, label, bytes)
+}
+
+/// As [`storage_zeroed`] for a per-Gaussian buffer bound in chunks: it must fit the adapter's
+/// largest buffer only.
+pub fn chunked_zeroed(
+    ctx: &GpuContext,
+    label: &'static str,
+    bytes: u64,
+) -> Result<wgpu::Buffer, GpuError> {
     let size = bytes.max(16).div_ceil(4) * 4;
-    ctx.check_binding(label, size)?;
+    ctx.check_buffer(label, size)?;
     Ok(ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size,

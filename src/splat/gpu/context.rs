@@ -17,9 +17,18 @@ pub enum GpuError {
     /// A buffer would exceed what one storage binding may hold on this adapter.
     #[error(
         "{what} needs {bytes} bytes but one storage binding may hold at most {limit} bytes on this \
-         adapter; render fewer Gaussians or a smaller image (chunking is not implemented yet)"
+         adapter (it is bound whole: the rasteriser or the sort reads it at random); render fewer \
+         Gaussians or a smaller image"
     )]
     BufferTooLarge {
+        what: &'static str,
+        bytes: u64,
+        limit: u64,
+    },
+    /// A buffer would exceed the adapter's largest buffer (`max_buffer_size`), or per-Gaussian
+    /// chunks cannot be planned under the binding cap.
+    #[error("{what} needs {bytes} bytes but the largest buffer on this adapter is {limit} bytes")]
+    BufferBeyondDevice {
         what: &'static str,
         bytes: u64,
         limit: u64,
@@ -41,6 +50,26 @@ pub enum AtomicMode {
     CompareSwap,
 }
 
+/// Raster pixels per thread on CPU adapters: in the backward raster each thread sums 8 pixels'
+/// contributions before one atomic add per Gaussian, and both rasters read each staged Gaussian
+/// once per 8 pixels (measured on lavapipe, 2 cores: README "Gaussian splatting", speed table).
+pub const RASTER_PIXELS_CPU: u32 = 8;
+
+/// The rasters' pixels per thread for `device_type`, unless `SYLVA_RASTER_PIXELS` (a power of two
+/// up to 16) says otherwise.
+fn raster_pixels_for(device_type: wgpu::DeviceType) -> u32 {
+    let default = if device_type == wgpu::DeviceType::Cpu {
+        RASTER_PIXELS_CPU
+    } else {
+        1
+    };
+    std::env::var("SYLVA_RASTER_PIXELS")
+        .ok()
+        .and_then(|v| v.trim().parse::<u32>().ok())
+        .filter(|v| v.is_power_of_two() && *v <= 16)
+        .unwrap_or(default)
+}
+
 /// Adapter, device and queue, plus what the adapter can do.
 #[derive(Clone)]
 pub struct GpuContext {
@@ -51,6 +80,20 @@ pub struct GpuContext {
     pub atomic_mode: AtomicMode,
     /// The largest storage binding, bytes (`max_storage_buffer_binding_size`; 128 MiB on lavapipe).
     pub max_binding_bytes: u64,
+    /// The largest buffer, bytes (`max_buffer_size`). Per-Gaussian buffers may be larger than
+    /// one binding: kernels bind them in whole-Gaussian chunks (see [`crate::splat::gpu::chunks`]).
+    pub max_buffer_bytes: u64,
+    /// Alignment of a bound sub-range's offset, bytes (`min_storage_buffer_offset_alignment`;
+    /// 256 by the WebGPU default).
+    pub offset_alignment: u64,
+    /// Caps the binding size used to plan per-Gaussian chunks, bytes (`None`: the adapter's
+    /// `max_binding_bytes`). Only for tests and experiments: a small cap splits even a small
+    /// model into many chunks.
+    pub chunk_cap_bytes: Option<u64>,
+    /// Pixels per thread of both rasters (1, 2, 4, 8 or 16; see `raster_bwd.wgsl`):
+    /// [`RASTER_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, or `SYLVA_RASTER_PIXELS`.
+    /// Read when a [`crate::splat::gpu::Renderer`] is built.
+    pub raster_pixels: u32,
     /// Adapter name and backend, for logs.
     pub description: Arc<str>,
 }
@@ -108,6 +151,10 @@ impl GpuContext {
             max_binding_bytes: limits
                 .max_storage_buffer_binding_size
                 .min(limits.max_buffer_size),
+            max_buffer_bytes: limits.max_buffer_size,
+            offset_alignment: u64::from(limits.min_storage_buffer_offset_alignment.max(4)),
+            chunk_cap_bytes: None,
+            raster_pixels: raster_pixels_for(info.device_type),
             description,
         })
     }
@@ -122,6 +169,25 @@ impl GpuContext {
             });
         }
         Ok(())
+    }
+
+    /// Fails with [`GpuError::BufferBeyondDevice`] when `bytes` exceed the largest buffer.
+    pub fn check_buffer(&self, what: &'static str, bytes: u64) -> Result<(), GpuError> {
+        if bytes > self.max_buffer_bytes {
+            return Err(GpuError::BufferBeyondDevice {
+                what,
+                bytes,
+                limit: self.max_buffer_bytes,
+            });
+        }
+        Ok(())
+    }
+
+    /// The binding size per-Gaussian chunks are planned for, bytes: the adapter's binding limit,
+    /// or [`GpuContext::chunk_cap_bytes`] when smaller.
+    pub fn chunk_binding_bytes(&self) -> u64 {
+        self.chunk_cap_bytes
+            .map_or(self.max_binding_bytes, |c| c.min(self.max_binding_bytes))
     }
 
     /// Blocks until all submitted work has finished.

@@ -8,15 +8,20 @@
 //! [`Renderer::encode_backward`] and [`adam::GpuAdam::encode_step`] recorded into one command
 //! encoder with no read-back.
 //!
-//! Capacity: every buffer is a single storage binding, so each must fit the adapter's
-//! `max_storage_buffer_binding_size` (128 MiB on lavapipe, e.g. ≈ 699k Gaussians for the
-//! 192-byte-per-Gaussian SH buffer, ≈ 33M tile intersections). Chunking into whole-Gaussian
-//! ranges is not implemented: a larger buffer fails with [`GpuError::BufferTooLarge`].
-//! The projection backward binds 12 storage buffers (the adapter must allow that per stage).
+//! Capacity: per-Gaussian buffers (parameters, gradients, Adam moments, densification
+//! statistics; up to 192 bytes per Gaussian for the SH block) may exceed one storage binding:
+//! kernels bind them in whole-Gaussian chunks ([`chunks`]), so they are limited by the adapter's
+//! `max_buffer_size` only. The projected records (48 bytes per Gaussian), the screen-space
+//! gradients (36 bytes), the intersection arrays (4 bytes per intersection each) and the images
+//! are read at random by the rasteriser or the sort and are bound whole: past one binding
+//! (128 MiB on lavapipe: ≈ 2.8M Gaussians, ≈ 33M tile intersections) they fail with
+//! [`GpuError::BufferTooLarge`], which names the buffer. The projection backward binds 12
+//! storage buffers (the adapter must allow that per stage).
 
 pub mod adam;
 pub mod backend;
 pub mod buffers;
+pub mod chunks;
 pub mod context;
 pub mod frame;
 pub mod loss;

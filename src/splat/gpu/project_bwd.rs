@@ -1,9 +1,14 @@
 //! Projection backward kernel (`project_bwd.wgsl`): screen-space gradients → parameters.
 
 use crate::splat::gpu::buffers::pipeline;
+use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::GpuContext;
 use crate::splat::gpu::frame::Frame;
-use crate::splat::gpu::project::{dispatch, groups_for, with_common};
+use crate::splat::gpu::project::{dispatch_group, groups_for, with_common};
+use crate::splat::model::SH_FLOATS;
+
+/// SH floats per Gaussian, as the `u32` that sub-range bindings take.
+const SH: u32 = SH_FLOATS as u32;
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
 
 /// The projection backward pipeline.
@@ -20,8 +25,9 @@ impl ProjectBwd {
         }
     }
 
-    /// Records the projection backward: writes every gradient of `grads` (zero for Gaussians
-    /// culled in `frame`) and adds this view to the densification statistic.
+    /// Records the projection backward, one dispatch per chunk of the model's plan: writes
+    /// every gradient of `grads` (zero for Gaussians culled in `frame`) and adds this view to
+    /// the densification statistic.
     pub fn encode(
         &self,
         ctx: &GpuContext,
@@ -31,26 +37,29 @@ impl ProjectBwd {
         grads2d: &wgpu::Buffer,
         grads: &GpuGrads,
     ) {
-        dispatch(
-            ctx,
-            enc,
-            &self.pipeline,
-            &[
-                &frame.params_buf,
-                &splats.means,
-                &splats.log_scales,
-                &splats.rotations,
-                &splats.sh,
-                &frame.proj,
-                grads2d,
-                &grads.means,
-                &grads.log_scales,
-                &grads.rotations,
-                &grads.opacity_logits,
-                &grads.sh,
-                &grads.densify,
-            ],
-            groups_for(frame.count),
-        );
+        for chunk in splats.plan.chunks() {
+            let cu = chunk.uniform(ctx);
+            let bg = bind_ranges(
+                ctx,
+                &self.pipeline,
+                &[
+                    frame.params_buf.as_entire_buffer_binding(),
+                    chunk.range(&splats.means, 3),
+                    chunk.range(&splats.log_scales, 3),
+                    chunk.range(&splats.rotations, 4),
+                    chunk.range(&splats.sh, SH),
+                    frame.proj.as_entire_buffer_binding(),
+                    grads2d.as_entire_buffer_binding(),
+                    chunk.range(&grads.means, 3),
+                    chunk.range(&grads.log_scales, 3),
+                    chunk.range(&grads.rotations, 4),
+                    chunk.range(&grads.opacity_logits, 1),
+                    chunk.range(&grads.sh, SH),
+                    chunk.range(&grads.densify, 3),
+                    cu.as_entire_buffer_binding(),
+                ],
+            );
+            dispatch_group(enc, &self.pipeline, &bg, groups_for(chunk.len));
+        }
     }
 }

@@ -15,14 +15,16 @@ pub struct RasterBwd {
 }
 
 impl RasterBwd {
-    /// Compiles the kernel for the context's atomic mode.
+    /// Compiles the kernel for the context's atomic mode and pixels per thread.
     pub fn new(ctx: &GpuContext) -> Self {
         let atomics = match ctx.atomic_mode {
             AtomicMode::Float => include_str!("../../../shaders/atomic_float.wgsl"),
             AtomicMode::CompareSwap => include_str!("../../../shaders/atomic_cas.wgsl"),
         };
+        let pix = ctx.raster_pixels.clamp(1, 16).next_power_of_two();
         let src = with_common(&format!(
-            "{atomics}\n{}",
+            "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{atomics}\n{}",
+            256 / pix,
             include_str!("../../../shaders/raster_bwd.wgsl")
         ));
         RasterBwd {

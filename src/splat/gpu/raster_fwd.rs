@@ -1,4 +1,5 @@
-//! Forward rasterisation kernel (`raster_fwd.wgsl`): one workgroup per 16×16 tile.
+//! Forward rasterisation kernel (`raster_fwd.wgsl`): one workgroup per 16×16 tile,
+//! [`GpuContext::raster_pixels`] pixels per thread.
 
 use crate::splat::gpu::buffers::pipeline;
 use crate::splat::gpu::context::GpuContext;
@@ -11,9 +12,14 @@ pub struct RasterFwd {
 }
 
 impl RasterFwd {
-    /// Compiles the kernel.
+    /// Compiles the kernel for the context's pixels per thread.
     pub fn new(ctx: &GpuContext) -> Self {
-        let src = with_common(include_str!("../../../shaders/raster_fwd.wgsl"));
+        let pix = ctx.raster_pixels.clamp(1, 16).next_power_of_two();
+        let src = with_common(&format!(
+            "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{}",
+            256 / pix,
+            include_str!("../../../shaders/raster_fwd.wgsl")
+        ));
         RasterFwd {
             pipeline: pipeline(ctx, "raster_fwd", &src, "main"),
         }

@@ -6,6 +6,7 @@ use std::time::Instant;
 use crate::splat::camera::Camera;
 
 use crate::splat::gpu::buffers::{read_buffer, storage_zeroed, uniform_from};
+use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::frame::Frame;
 use crate::splat::gpu::params::RenderParams;
@@ -17,6 +18,7 @@ use crate::splat::gpu::scan::Scanner;
 use crate::splat::gpu::sort::{RadixSorter, bits_for};
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
 use crate::splat::gpu::timing::{Clock, PassTimings};
+use crate::splat::model::SH_FLOATS;
 
 /// All pipelines of the forward and backward rasteriser.
 pub struct Renderer {
@@ -101,17 +103,25 @@ impl Renderer {
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         let p = &self.project;
         let s = splats;
-        let bufs = [
-            &params_buf,
-            &s.means,
-            &s.log_scales,
-            &s.rotations,
-            &s.opacity_logits,
-            &s.sh,
-            &proj,
-            &offsets,
-        ];
-        dispatch(ctx, &mut enc, &p.project, &bufs, groups_for(n));
+        for chunk in s.plan.chunks() {
+            let cu = chunk.uniform(ctx);
+            let bg = bind_ranges(
+                ctx,
+                &p.project,
+                &[
+                    params_buf.as_entire_buffer_binding(),
+                    chunk.range(&s.means, 3),
+                    chunk.range(&s.log_scales, 3),
+                    chunk.range(&s.rotations, 4),
+                    chunk.range(&s.opacity_logits, 1),
+                    chunk.range(&s.sh, SH_FLOATS as u32),
+                    proj.as_entire_buffer_binding(),
+                    offsets.as_entire_buffer_binding(),
+                    cu.as_entire_buffer_binding(),
+                ],
+            );
+            dispatch_group(&mut enc, &p.project, &bg, groups_for(chunk.len));
+        }
         self.scanner.encode(ctx, &mut enc, &offsets, n + 1)?;
         ctx.queue.submit([enc.finish()]);
         // The one read-back of the forward pass: the total number of intersections.

@@ -162,6 +162,12 @@ impl GpuSemantic {
                 self.count, splats.count
             )));
         }
+        // The reduction reads every Gaussian in one workgroup, so this pass binds the (12 bytes
+        // per Gaussian) means and log-scales whole rather than in chunks.
+        ctx.check_binding(
+            "means and log-scales (bound whole by the semantic term)",
+            self.count as u64 * 12,
+        )?;
         let params = GeoParams {
             n: self.count,
             gamma,

@@ -2,10 +2,12 @@
 
 use crate::splat::model::{GaussianGrads, Gaussians, SH_FLOATS};
 
-use crate::splat::gpu::buffers::{read_buffer, storage_from, storage_zeroed};
+use crate::splat::gpu::buffers::{chunked_from, chunked_zeroed, read_buffer};
+use crate::splat::gpu::chunks::ChunkPlan;
 use crate::splat::gpu::context::{GpuContext, GpuError};
 
 /// A [`Gaussians`] model on the GPU (`trunk_prob` stays on the CPU: it is not trained).
+/// Each buffer may exceed one storage binding: kernels bind it in [`GpuSplats::plan`] chunks.
 /// Layout per buffer: flat `f32`, `means` 3, `log_scales` 3, `rotations` 4 (w, x, y, z),
 /// `opacity_logits` 1, `sh` 48 (coefficient-major) floats per Gaussian.
 pub struct GpuSplats {
@@ -18,6 +20,8 @@ pub struct GpuSplats {
     pub count: u32,
     /// Active SH degree (0..=3).
     pub sh_degree: u32,
+    /// How kernels split the Gaussians into chunks that fit one binding.
+    pub plan: ChunkPlan,
 }
 
 fn check_count(n: usize) -> Result<u32, GpuError> {
@@ -37,13 +41,14 @@ impl GpuSplats {
         }
         let count = check_count(model.len())?;
         Ok(GpuSplats {
-            means: storage_from(ctx, "means", &model.means)?,
-            log_scales: storage_from(ctx, "log_scales", &model.log_scales)?,
-            rotations: storage_from(ctx, "rotations", &model.rotations)?,
-            opacity_logits: storage_from(ctx, "opacity_logits", &model.opacity_logits)?,
-            sh: storage_from(ctx, "sh", &model.sh)?,
+            means: chunked_from(ctx, "means", &model.means)?,
+            log_scales: chunked_from(ctx, "log_scales", &model.log_scales)?,
+            rotations: chunked_from(ctx, "rotations", &model.rotations)?,
+            opacity_logits: chunked_from(ctx, "opacity_logits", &model.opacity_logits)?,
+            sh: chunked_from(ctx, "sh", &model.sh)?,
             count,
             sh_degree: model.sh_degree.min(3),
+            plan: ChunkPlan::new(ctx, count)?,
         })
     }
 
@@ -100,12 +105,12 @@ impl GpuGrads {
     pub fn new(ctx: &GpuContext, count: u32) -> Result<Self, GpuError> {
         let n = count as u64 * 4;
         Ok(GpuGrads {
-            means: storage_zeroed(ctx, "grad means", 3 * n)?,
-            log_scales: storage_zeroed(ctx, "grad log_scales", 3 * n)?,
-            rotations: storage_zeroed(ctx, "grad rotations", 4 * n)?,
-            opacity_logits: storage_zeroed(ctx, "grad opacity_logits", n)?,
-            sh: storage_zeroed(ctx, "grad sh", SH_FLOATS as u64 * n)?,
-            densify: storage_zeroed(ctx, "densify stats", 3 * n)?,
+            means: chunked_zeroed(ctx, "grad means", 3 * n)?,
+            log_scales: chunked_zeroed(ctx, "grad log_scales", 3 * n)?,
+            rotations: chunked_zeroed(ctx, "grad rotations", 4 * n)?,
+            opacity_logits: chunked_zeroed(ctx, "grad opacity_logits", n)?,
+            sh: chunked_zeroed(ctx, "grad sh", SH_FLOATS as u64 * n)?,
+            densify: chunked_zeroed(ctx, "densify stats", 3 * n)?,
             count,
         })
     }

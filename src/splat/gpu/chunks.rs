@@ -1,0 +1,122 @@
+//! Whole-Gaussian chunks of the per-Gaussian buffers (parameters, gradients, Adam moments,
+//! densification statistics).
+//!
+//! Each per-Gaussian buffer is one `wgpu::Buffer` (up to the adapter's `max_buffer_size`), but a
+//! kernel binds it as sub-ranges of at most `per_chunk` Gaussians, each within the adapter's
+//! `max_storage_buffer_binding_size`, and is dispatched once per chunk. The chunk size is planned
+//! for the widest per-Gaussian buffer, the 48-float (192-byte) SH block, and is a multiple of
+//! `min_storage_buffer_offset_alignment / 4` Gaussians so that every sub-range offset is aligned
+//! whatever the buffer's floats per Gaussian. On a real GPU (≥ 2 GiB bindings) a model of up to
+//! ≈ 11M Gaussians is one chunk, i.e. one dispatch as before; on lavapipe (128 MiB) a chunk is
+//! 699,008 Gaussians.
+//!
+//! Buffers read at random by Gaussian id (the projected records and the screen-space gradients,
+//! read and written by the rasteriser through the sorted intersections) and the intersection
+//! arrays (sorted by a radix sort's scatter) are bound whole; they are 48, 36 and 4 × 3 bytes per
+//! Gaussian or intersection and fail with [`GpuError::BufferTooLarge`] past one binding (≈ 2.8M
+//! Gaussians or 11M intersections on lavapipe).
+
+use std::num::NonZeroU64;
+
+use crate::splat::gpu::buffers::uniform_from;
+use crate::splat::gpu::context::{GpuContext, GpuError};
+use crate::splat::model::SH_FLOATS;
+
+/// Floats per Gaussian of the widest per-Gaussian buffer (the SH block, its gradient and moments).
+pub const WIDEST_FLOATS: u64 = SH_FLOATS as u64;
+
+/// How `count` Gaussians split into chunks of `per_chunk` (the last one possibly shorter).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ChunkPlan {
+    /// Number of Gaussians.
+    pub count: u32,
+    /// Gaussians per chunk (a multiple of the alignment unit).
+    pub per_chunk: u32,
+}
+
+/// One chunk: first Gaussian and number of Gaussians.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Chunk {
+    pub base: u32,
+    pub len: u32,
+}
+
+impl ChunkPlan {
+    /// Plans chunks of `count` Gaussians under [`GpuContext::chunk_binding_bytes`].
+    pub fn new(ctx: &GpuContext, count: u32) -> Result<Self, GpuError> {
+        let cap = ctx.chunk_binding_bytes();
+        let unit = (ctx.offset_alignment / 4).max(1);
+        let per = (cap / (WIDEST_FLOATS * 4)) / unit * unit;
+        if per == 0 {
+            return Err(GpuError::BufferTooLarge {
+                what: "one aligned chunk of per-Gaussian SH coefficients",
+                bytes: unit * WIDEST_FLOATS * 4,
+                limit: cap,
+            });
+        }
+        Ok(ChunkPlan {
+            count,
+            per_chunk: u32::try_from(per).unwrap_or(u32::MAX),
+        })
+    }
+
+    /// Number of chunks (0 for an empty model).
+    pub fn len(&self) -> u32 {
+        self.count.div_ceil(self.per_chunk)
+    }
+
+    /// Whether there is no chunk (an empty model).
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// The chunks in order.
+    pub fn chunks(&self) -> impl Iterator<Item = Chunk> + '_ {
+        (0..self.len()).map(move |c| {
+            let base = c * self.per_chunk;
+            Chunk {
+                base,
+                len: self.per_chunk.min(self.count - base),
+            }
+        })
+    }
+}
+
+impl Chunk {
+    /// The sub-range of `buffer` (`floats` f32 per Gaussian) holding this chunk.
+    pub fn range<'a>(&self, buffer: &'a wgpu::Buffer, floats: u32) -> wgpu::BufferBinding<'a> {
+        let per = floats as u64 * 4;
+        wgpu::BufferBinding {
+            buffer,
+            offset: self.base as u64 * per,
+            size: NonZeroU64::new(self.len as u64 * per),
+        }
+    }
+
+    /// A uniform `vec4<u32>(base, len, 0, 0)` that chunked kernels read as `chunk`.
+    pub fn uniform(&self, ctx: &GpuContext) -> wgpu::Buffer {
+        uniform_from(ctx, "chunk", &[self.base, self.len, 0, 0])
+    }
+}
+
+/// Binds `bindings` in order to binding 0.. of a fresh bind group for `pipeline`'s group 0.
+pub fn bind_ranges(
+    ctx: &GpuContext,
+    pipeline: &wgpu::ComputePipeline,
+    bindings: &[wgpu::BufferBinding],
+) -> wgpu::BindGroup {
+    let layout = pipeline.get_bind_group_layout(0);
+    let entries: Vec<wgpu::BindGroupEntry> = bindings
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: wgpu::BindingResource::Buffer(b.clone()),
+        })
+        .collect();
+    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: None,
+        layout: &layout,
+        entries: &entries,
+    })
+}
