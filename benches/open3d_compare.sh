@@ -54,7 +54,7 @@ if ! "$PY" -c "import open3d, laspy, lazrs, numpy" 2>/dev/null; then
     "$PY" -m pip install -q numpy "laspy[lazrs]"
     "$PY" -m pip install -q "open3d==0.20.0" || "$PY" -m pip install -q open3d
 fi
-"$PY" -c "import open3d, laspy, lazrs, numpy, sys; print('python', sys.version.split()[0], '| open3d', open3d.__version__, '| laspy', laspy.__version__, '| lazrs', lazrs.__version__, '| numpy', numpy.__version__)"
+"$PY" -c "import sys; from importlib.metadata import version as v; print('python', sys.version.split()[0], '| open3d', v('open3d'), '| laspy', v('laspy'), '| lazrs', v('lazrs'), '| numpy', v('numpy'))"
 
 # 2. The inputs.
 mkdir -p "$DATA"
