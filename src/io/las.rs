@@ -226,10 +226,26 @@ pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoEr
         if got == 0 {
             break;
         }
-        for ((x, y), z) in pd.x().zip(pd.y()).zip(pd.z()) {
-            cloud.push(DVec3::new(x, y, z))?;
+        // One pass over the raw records (x, y, z as i32 at bytes 0, 4, 8 and intensity as
+        // u16 at byte 12 in every point format), the same arithmetic as `Transform::direct`.
+        let stride = pd.record_len();
+        if stride < 14 {
+            return Err(IoError::format(
+                path,
+                format!("point records of {stride} bytes are too short"),
+            ));
         }
-        intensity.extend(pd.intensity());
+        let t = *pd.transforms();
+        for rec in pd.raw_bytes().chunks_exact(stride) {
+            let i32_at =
+                |o: usize| i32::from_le_bytes([rec[o], rec[o + 1], rec[o + 2], rec[o + 3]]);
+            cloud.push(DVec3::new(
+                t.x.direct(i32_at(0)),
+                t.y.direct(i32_at(4)),
+                t.z.direct(i32_at(8)),
+            ))?;
+            intensity.push(u16::from_le_bytes([rec[12], rec[13]]));
+        }
         if let (Some(c), Some(rgb)) = (colors.as_mut(), pd.rgb()) {
             c.extend(rgb.map(|(r, g, b)| [r, g, b]));
         }
