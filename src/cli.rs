@@ -48,7 +48,7 @@ pub enum Command {
     /// resume from a splat PLY); writes splats.ply, eval.json, the loss curve and test renders.
     Train(TrainArgs),
     /// Benchmarks that print tables (not tests): `sylva bench train`, `sylva bench load`,
-    /// `sylva bench soak`.
+    /// `sylva bench soak`, `sylva bench geom`.
     Bench(BenchArgs),
     /// A generated plot through the whole service: start the server (SQLite + local files),
     /// upload the plot through the API, follow the job, print the inventory and its accuracy,
@@ -93,7 +93,8 @@ pub struct BenchArgs {
     /// load (job status reads per second and latency of the HTTP API; flags marked `load:`)
     /// or soak (many small jobs through `sylva serve` and `sylva worker` processes with random
     /// cancels and one SIGKILL; jobs per hour, API latency and anything lost; flags marked
-    /// `soak:`, and --jobs).
+    /// `soak:`, and --jobs) or geom (read, voxel, outlier filter, normals and ICP on a real
+    /// point cloud with per-phase peak memory; flags marked `geom:`).
     #[arg(env = "SYLVA_BENCH_WHAT", default_value = "train")]
     pub what: String,
     /// A COLMAP project to train on; without one a synthetic plot is generated.
@@ -118,6 +119,8 @@ pub struct BenchArgs {
     pub load: crate::loadbench::LoadArgs,
     #[command(flatten)]
     pub soak: crate::loadbench::soak::SoakArgs,
+    #[command(flatten)]
+    pub geom: crate::loadbench::geom::GeomBenchArgs,
 }
 
 #[derive(Debug, Args)]
@@ -824,9 +827,14 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             ExitCode::FAILURE
         });
     }
+    if a.what == "geom" {
+        let args = a.geom.clone();
+        tokio::task::spawn_blocking(move || crate::loadbench::geom::run(&args)).await??;
+        return Ok(ExitCode::SUCCESS);
+    }
     if a.what != "train" {
         anyhow::bail!(
-            "unknown benchmark {:?}; available: train, load, soak",
+            "unknown benchmark {:?}; available: train, load, soak, geom",
             a.what
         );
     }

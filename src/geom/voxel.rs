@@ -126,24 +126,26 @@ pub fn voxel_downsample(
         .map(|i| i as u32)
         .collect();
     starts.push(keyed.len() as u32);
-    let runs: Vec<(usize, usize)> = starts
-        .windows(2)
-        .map(|w| (w[0] as usize, w[1] as usize))
-        .collect();
+    // Runs as windows over `starts` (no separate table: 16 bytes a voxel saved, 0.9 GB on
+    // 60 M points).
+    let runs = || {
+        starts
+            .par_windows(2)
+            .map(|w| (w[0] as usize, w[1] as usize))
+    };
 
-    let positions: Vec<Vec3> = runs
-        .par_iter()
-        .map(|&(a, b)| {
+    let positions: Vec<Vec3> = runs()
+        .map(|(a, b)| {
             let s = keyed[a..b]
                 .iter()
                 .fold(DVec3::ZERO, |s, &(_, i)| s + points[i as usize].as_dvec3());
             (s / (b - a) as f64).as_vec3()
         })
         .collect();
-    let counts: Vec<u32> = runs.iter().map(|&(a, b)| (b - a) as u32).collect();
+    let counts: Vec<u32> = starts.windows(2).map(|w| w[1] - w[0]).collect();
     let colours = colours.map(|c| {
-        runs.par_iter()
-            .map(|&(a, b)| {
+        runs()
+            .map(|(a, b)| {
                 let s = keyed[a..b].iter().fold([0u64; 3], |s, &(_, i)| {
                     let q = c[i as usize];
                     [s[0] + q[0] as u64, s[1] + q[1] as u64, s[2] + q[2] as u64]

@@ -16,6 +16,7 @@
 //! a lower bound for a server with cores of its own, and comparable between runs on the same
 //! machine.
 
+pub mod geom;
 pub mod postgres;
 pub mod soak;
 
