@@ -23,6 +23,7 @@ fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
     };
     let total = t.elapsed().as_secs_f64();
     let s = inv.seconds;
+    let g = inv.segment_seconds;
     let acc = field.map_or(String::new(), |f| {
         let c = compare_with_field(&inv.trees, f, 1.0);
         format!(
@@ -33,11 +34,15 @@ fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
         )
     });
     println!(
-        "| {name} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |{acc}",
+        "| {name} | {} | {} | {:.2} | {:.2} ({:.1} k-NN, {:.1} coarse, {:.1} 2-means, {:.1} clean-up) | {:.2} | {:.2} | {:.2} |{acc}",
         cloud.len(),
         inv.trees.len(),
         s.ground,
         s.segment,
+        g.knn,
+        g.coarse,
+        g.kmeans,
+        g.cleanup,
         s.stems,
         s.dbh,
         total

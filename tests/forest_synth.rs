@@ -93,17 +93,15 @@ fn stands_of_five_seeds_meet_the_accuracy_goals() {
             trunk_precision,
         ));
     }
-    // Stems, DBH and ground meet the goals (stems >= 95 %, RMSE <= 1.0 cm, ground
-    // <= 3 cm; measured: 100 %, 0.15-0.28 cm, 1.1-1.7 cm). Wood/leaf against the generator's
-    // labels, where "wood" includes every branch and twig down to 6 mm radius: measured trunk
-    // recall 0.879-0.883 and precision 0.912-0.933 (goal 0.90 / 0.85; the trade-off is
-    // `SegmentParams::grow_linearity`, 0.45 gives 0.89 / 0.86). Asserted at what is reached,
-    // with a small margin, so a regression shows.
+    // The goals, on every seed: stems recall and precision >= 95 %, DBH RMSE
+    // <= 1.0 cm, ground at the stems <= 3 cm, and wood/leaf against the generator's labels
+    // (where "wood" includes every branch down to 6 mm radius) trunk recall >= 0.90
+    // and precision >= 0.85. Measured figures: README, "LiDAR inventory".
     for (line, recall, precision, rmse, ground_err, trunk_recall, trunk_precision) in report {
         assert!(recall >= 0.95 && precision >= 0.95, "{line}");
         assert!(rmse <= 1.0, "{line}");
         assert!(ground_err <= 0.03, "{line}");
-        assert!(trunk_recall >= 0.87, "{line}");
-        assert!(trunk_precision >= 0.90, "{line}");
+        assert!(trunk_recall >= 0.90, "{line}");
+        assert!(trunk_precision >= 0.85, "{line}");
     }
 }

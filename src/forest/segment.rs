@@ -7,11 +7,15 @@
 //! clusters) towards itself although it is not wood, so callers pass a mask and only the
 //! non-ground points are segmented; masked-out points get label leaf (0) and probability 0.
 
+use std::time::Instant;
+
 use glam::Vec3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ForestError;
 use super::components::{GRAPH_K, KnnGraph, relabel_small_components};
+use super::grid::{map_radius_covariance, voxel_centroids};
 use super::kmeans::{distance2_to_centre, kmeans, standardise};
 use crate::geom::{EigenFeatures, PointIndex, covariance, symmetric_eigen3};
 use crate::progress::{Progress, SubProgress};
@@ -47,7 +51,7 @@ pub struct SegmentParams {
     /// [0.3, 0.6, 1.0] (before the stem-guided relabelling; seed 1).
     pub coarse_radii_m: Vec<f32>,
     /// Trunk labels grow along the k-NN graph into leaf-labelled points whose linearity at
-    /// the first coarse scale is at least this, [0, 1] (above 1: no growth). Why: a thin
+    /// the first coarse scale is at least this, [0, 1] (above 1: only the fine line test below). Why: a thin
     /// branch running into a leaf cluster shares its coarse neighbourhood with the leaves
     /// and the 2-means calls it leaf, but it stays a line at 0.3 m and is connected to the
     /// wood it grows from; isolated linear bits of foliage are not. Measured on generated
@@ -56,6 +60,22 @@ pub struct SegmentParams {
     /// 0.89 / 0.86, 0.35: 0.92 / 0.63. 0.5 keeps precision well above 0.85 at the cost of
     /// the last points of recall: below it the growth leaks into the foliage.
     pub grow_linearity: f32,
+    /// Radius of the fine line test of the growth, metres (0 turns it off). A leaf-labelled
+    /// point that fails `grow_linearity` still joins a growing trunk component when the raw
+    /// points within this radius form a thin line: linearity >= `fine_line_linearity` and a
+    /// spread across the line (`sqrt(l2)`) of at most `fine_line_spread_m`. Why: the
+    /// generator's secondary branches (radius 6–10 mm) run through leaf clusters 1.0–1.4 m
+    /// across, so at 0.3 m their neighbourhood is mostly leaves; at 0.1 m (less than the
+    /// 8 cm leaf discs' radius plus the branch's own length) the branch is a line again and
+    /// a leaf disc a plane. Computed lazily, only for the points the growth reaches.
+    pub fine_line_radius_m: f32,
+    /// Least linearity of the fine line test, [0, 1] (above 1: off).
+    pub fine_line_linearity: f32,
+    /// Largest spread across the line of the fine line test, metres: `sqrt(l2)` of a branch
+    /// of radius r with range noise sigma is about `sqrt(r²/2 + sigma²)`, 1.2 cm for r = 8 mm
+    /// and sigma = 1 cm (METHOD.md's handheld-scanner noise); 0.025 m admits branches up to
+    /// about 3 cm radius, thicker ones are lines at 0.3 m already.
+    pub fine_line_spread_m: f32,
     /// Voxel edge of each coarse scale as a share of its radius (0 turns the coarse scales
     /// off). 0.125: eight voxels per radius keep a neighbourhood at a few hundred voxels on a
     /// stem and a few dozen on a branch, whatever the radius; measured on seed 1, 0.1 gave the
@@ -74,6 +94,9 @@ impl Default for SegmentParams {
             coarse_radii_m: vec![0.3, 0.6],
             coarse_voxel_ratio: 0.125,
             grow_linearity: 0.5,
+            fine_line_radius_m: 0.1,
+            fine_line_linearity: 0.8,
+            fine_line_spread_m: 0.025,
         }
     }
 }
@@ -96,6 +119,23 @@ pub struct WoodLeaf {
     pub relabelled: usize,
     /// Lloyd iterations of the 2-means.
     pub iterations: usize,
+    /// Points the growth along lines labelled trunk.
+    pub grown: usize,
+    /// Wall-clock seconds of each step.
+    pub seconds: SegmentSeconds,
+}
+
+/// Wall-clock seconds of the steps of [`segment_wood_leaf`].
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SegmentSeconds {
+    /// k-d tree and k = 20 neighbourhoods (features and the clean-up graph).
+    pub knn: f64,
+    /// Coarse-scale features, all scales.
+    pub coarse: f64,
+    /// Standardisation and the 2-means.
+    pub kmeans: f64,
+    /// Component clean-up and growth along lines.
+    pub cleanup: f64,
 }
 
 /// Segments `points` into wood and leaf. `colors` (8-bit sRGB) are used when given;
@@ -130,6 +170,8 @@ pub fn segment_wood_leaf(
             selected.len()
         )));
     }
+    let mut seconds = SegmentSeconds::default();
+    let clock = Instant::now();
     let sub: Vec<Vec3> = selected.iter().map(|&i| points[i as usize]).collect();
     let index = PointIndex::new(&sub)?;
     progress.set(0.05);
@@ -162,6 +204,8 @@ pub fn segment_wood_leaf(
     )?;
     let (features, neighbours): (Vec<EigenFeatures>, Vec<[u32; GRAPH_K]>) =
         recs.into_iter().unzip();
+    seconds.knn = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
 
     let mut coarse: Vec<Vec<CoarseFeatures>> = Vec::new();
     if params.coarse_voxel_ratio > 0.0 {
@@ -176,6 +220,8 @@ pub fn segment_wood_leaf(
         }
     }
 
+    seconds.coarse = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
     // Feature rows [L, P, S, (coarse L, P, S, verticality), (w r, w g, w b)], standardised
     // column-wise, then the colour weighted.
     let geo = 3 + 4 * coarse.len();
@@ -244,6 +290,8 @@ pub fn segment_wood_leaf(
     if progress.is_cancelled() {
         return Err(ForestError::Cancelled);
     }
+    seconds.kmeans = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
     let before = labels.clone();
     let graph = KnnGraph { neighbours };
     let relabelled = relabel_small_components(&mut labels, &graph, params.tau_c);
@@ -252,12 +300,22 @@ pub fn segment_wood_leaf(
             *p = 1.0 - *p;
         }
     }
+    let mut n_grown = 0;
     if let Some(first) = coarse.first() {
-        let grown = grow_along_lines(&mut labels, &graph, first, params.grow_linearity);
+        let line = FineLine {
+            points: &sub,
+            index: &index,
+            radius: params.fine_line_radius_m,
+            min_linearity: params.fine_line_linearity,
+            max_spread: params.fine_line_spread_m,
+        };
+        let grown = grow_along_lines(&mut labels, &graph, first, params.grow_linearity, &line);
         for &j in &grown {
             prob[j as usize] = prob[j as usize].max(0.5);
         }
+        n_grown = grown.len();
     }
+    seconds.cleanup = clock.elapsed().as_secs_f64();
     progress.set(1.0);
 
     let mut out = WoodLeaf {
@@ -271,6 +329,8 @@ pub fn segment_wood_leaf(
         },
         relabelled,
         iterations: km.iterations,
+        grown: n_grown,
+        seconds,
     };
     for (j, &i) in selected.iter().enumerate() {
         out.labels[i as usize] = labels[j];
@@ -319,88 +379,105 @@ pub fn coarse_features(
             "coarse features need 0 < voxel < radius (voxel {voxel} m, radius {radius} m)"
         )));
     }
-    use std::collections::HashMap;
-    let key = |p: Vec3| {
-        (
-            (p.x / voxel).floor() as i32,
-            (p.y / voxel).floor() as i32,
-            (p.z / voxel).floor() as i32,
-        )
-    };
-    let mut ids: HashMap<(i32, i32, i32), u32> = HashMap::with_capacity(points.len() / 4);
-    let mut sums: Vec<(glam::DVec3, u32)> = Vec::new();
-    let member: Vec<u32> = points
-        .iter()
-        .map(|p| {
-            let id = *ids.entry(key(*p)).or_insert_with(|| {
-                sums.push((glam::DVec3::ZERO, 0));
-                sums.len() as u32 - 1
-            });
-            let s = &mut sums[id as usize];
-            s.0 += p.as_dvec3();
-            s.1 += 1;
-            id
-        })
-        .collect();
-    drop(ids);
-    let centres: Vec<Vec3> = sums
-        .iter()
-        .map(|(s, n)| (*s / (*n).max(1) as f64).as_vec3())
-        .collect();
-    let index = PointIndex::new(&centres)?;
+    let (member, centres) = voxel_centroids(points, voxel);
     let per_voxel: Vec<CoarseFeatures> =
-        index.map_within(&centres, radius, progress, |_, nb| {
-            if nb.len() < 3 {
+        map_radius_covariance(&centres, radius, progress, |n, cov| {
+            if n < 3 {
                 return CoarseFeatures::default();
             }
-            covariance(&centres, nb.iter().map(|m| m.index as usize))
-                .map(|(cov, _)| {
-                    let e = symmetric_eigen3(cov);
-                    CoarseFeatures {
-                        eigen: EigenFeatures::from_eigenvalues(e.values.map(|v| v.max(0.0) as f32)),
-                        verticality: e.vectors[0].z.abs() as f32,
-                        spread_m: e.values[1].max(0.0).sqrt() as f32,
-                        voxels: nb.len() as u32,
-                        extent_m: e.values[0].max(0.0).sqrt() as f32,
-                    }
-                })
-                .unwrap_or_default()
+            let e = symmetric_eigen3(cov);
+            CoarseFeatures {
+                eigen: EigenFeatures::from_eigenvalues(e.values.map(|v| v.max(0.0) as f32)),
+                verticality: e.vectors[0].z.abs() as f32,
+                spread_m: e.values[1].max(0.0).sqrt() as f32,
+                voxels: n as u32,
+                extent_m: e.values[0].max(0.0).sqrt() as f32,
+            }
         })?;
     Ok(member.iter().map(|&v| per_voxel[v as usize]).collect())
 }
 
-/// Breadth-first growth of the trunk label from every trunk point into graph neighbours with
-/// `coarse` linearity >= `min_linearity`; returns the points that became trunk.
+/// The fine line test of the growth (see [`SegmentParams::fine_line_radius_m`]).
+struct FineLine<'a> {
+    points: &'a [Vec3],
+    index: &'a PointIndex,
+    radius: f32,
+    min_linearity: f32,
+    max_spread: f32,
+}
+
+impl FineLine<'_> {
+    fn enabled(&self) -> bool {
+        self.radius > 0.0 && self.min_linearity <= 1.0 && self.max_spread > 0.0
+    }
+
+    /// Whether the points within `radius` of point `i` form a thin line.
+    fn is_line(&self, i: usize) -> bool {
+        let nb = self.index.within(self.points[i], self.radius);
+        if nb.len() < 5 {
+            return false;
+        }
+        covariance(self.points, nb.iter().map(|m| m.index as usize)).is_some_and(|(cov, _)| {
+            let e = symmetric_eigen3(cov);
+            let f = EigenFeatures::from_eigenvalues(e.values.map(|v| v.max(0.0) as f32));
+            f.linearity >= self.min_linearity
+                && (e.values[1].max(0.0).sqrt() as f32) <= self.max_spread
+        })
+    }
+}
+
+/// Growth of the trunk label from every trunk point into graph neighbours that are lines:
+/// `coarse` linearity >= `min_linearity`, or the fine line test. Level by level (all
+/// candidates of one level are tested in parallel, the fine test only where the coarse one
+/// fails); the result is the set of points reachable from a trunk point through points that
+/// pass, so it does not depend on the order. Returns the points that became trunk, sorted.
 fn grow_along_lines(
     labels: &mut [u8],
     graph: &KnnGraph,
     coarse: &[CoarseFeatures],
     min_linearity: f32,
+    line: &FineLine,
 ) -> Vec<u32> {
-    if min_linearity > 1.0 {
+    let fine = line.enabled();
+    if min_linearity > 1.0 && !fine {
         return Vec::new();
     }
-    let mut queue: std::collections::VecDeque<u32> = (0..labels.len() as u32)
+    let n = labels.len();
+    // 0 untested, 1 passed, 2 failed.
+    let mut state = vec![0u8; n];
+    let mut frontier: Vec<u32> = (0..n as u32)
         .filter(|&i| labels[i as usize] == TRUNK)
         .collect();
     let mut grown = Vec::new();
-    while let Some(i) = queue.pop_front() {
-        let Some(nb) = graph.neighbours.get(i as usize) else {
-            continue;
-        };
-        for &j in nb.iter().take_while(|j| **j != u32::MAX) {
-            let ju = j as usize;
-            if ju < labels.len()
-                && labels[ju] != TRUNK
-                && coarse
-                    .get(ju)
+    while !frontier.is_empty() {
+        let mut cand: Vec<u32> = frontier
+            .iter()
+            .filter_map(|&i| graph.neighbours.get(i as usize))
+            .flat_map(|nb| nb.iter().copied().take_while(|j| *j != u32::MAX))
+            .filter(|&j| (j as usize) < n && labels[j as usize] != TRUNK && state[j as usize] == 0)
+            .collect();
+        cand.sort_unstable();
+        cand.dedup();
+        let pass: Vec<bool> = cand
+            .par_iter()
+            .map(|&j| {
+                let j = j as usize;
+                coarse
+                    .get(j)
                     .is_some_and(|c| c.eigen.linearity >= min_linearity)
-            {
-                labels[ju] = TRUNK;
-                grown.push(j);
-                queue.push_back(j);
+                    || (fine && line.is_line(j))
+            })
+            .collect();
+        frontier.clear();
+        for (&j, ok) in cand.iter().zip(pass) {
+            state[j as usize] = if ok { 1 } else { 2 };
+            if ok {
+                labels[j as usize] = TRUNK;
+                frontier.push(j);
             }
         }
+        grown.extend_from_slice(&frontier);
     }
+    grown.sort_unstable();
     grown
 }
