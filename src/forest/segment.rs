@@ -160,9 +160,13 @@ pub fn segment_wood_leaf(
             "colours and mask must have one entry per point".into(),
         ));
     }
-    let selected: Vec<u32> = (0..points.len() as u32)
+    let mut selected: Vec<u32> = (0..points.len() as u32)
         .filter(|&i| include.is_none_or(|m| m[i as usize]))
         .collect();
+    // Work in Morton (Z-order) order of 5 cm cells: consecutive queries are neighbours in
+    // space, so the k-NN search's radius hint and the caches stay warm (the order changes
+    // no feature; the k-means++ seeding and warm-start subsamples are strided over it).
+    spatial_sort(points, &mut selected, 0.05);
     if selected.len() < params.k.max(2) {
         return Err(ForestError::NotEnoughPoints(format!(
             "wood/leaf segmentation needs at least {} points, got {}",
@@ -395,6 +399,37 @@ pub fn coarse_features(
             }
         })?;
     Ok(member.iter().map(|&v| per_voxel[v as usize]).collect())
+}
+
+/// Sorts `indices` by the Morton code of their points' cells of edge `cell` metres (stable:
+/// ties keep their order).
+fn spatial_sort(points: &[Vec3], indices: &mut [u32], cell: f32) {
+    let Some(lo) = indices
+        .iter()
+        .map(|&i| points[i as usize])
+        .reduce(|a, b| a.min(b))
+    else {
+        return;
+    };
+    // Spread the low 21 bits of v so that two zero bits follow each.
+    fn spread(v: u64) -> u64 {
+        let mut x = v & 0x1f_ffff;
+        x = (x | x << 32) & 0x1f_0000_0000_ffff;
+        x = (x | x << 16) & 0x1f_0000_ff00_00ff;
+        x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
+        x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
+        x = (x | x << 2) & 0x1249_2492_4924_9249;
+        x
+    }
+    let code = |i: u32| {
+        let c = ((points[i as usize] - lo) / cell).max(Vec3::ZERO);
+        spread(c.x as u64) | spread(c.y as u64) << 1 | spread(c.z as u64) << 2
+    };
+    let mut keyed: Vec<(u64, u32)> = indices.par_iter().map(|&i| (code(i), i)).collect();
+    keyed.par_sort_by_key(|k| k.0);
+    for (slot, (_, i)) in indices.iter_mut().zip(keyed) {
+        *slot = i;
+    }
 }
 
 /// The fine line test of the growth (see [`SegmentParams::fine_line_radius_m`]).
