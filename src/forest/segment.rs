@@ -76,6 +76,11 @@ pub struct SegmentParams {
     /// and sigma = 1 cm (METHOD.md's handheld-scanner noise); 0.025 m admits branches up to
     /// about 3 cm radius, thicker ones are lines at 0.3 m already.
     pub fine_line_spread_m: f32,
+    /// Largest angle between a candidate's fine line and the principal direction of the
+    /// trunk point it grows from, degrees: a branch is straight over a few centimetres, so
+    /// 30° follows its bends (the generator's bend at most ~20° per segment) and rejects
+    /// leaves that pass the line test beside it at a random angle.
+    pub fine_line_max_angle_deg: f32,
     /// Voxel edge of each coarse scale as a share of its radius (0 turns the coarse scales
     /// off). 0.125: eight voxels per radius keep a neighbourhood at a few hundred voxels on a
     /// stem and a few dozen on a branch, whatever the radius; measured on seed 1, 0.1 gave the
@@ -97,6 +102,7 @@ impl Default for SegmentParams {
             fine_line_radius_m: 0.1,
             fine_line_linearity: 0.8,
             fine_line_spread_m: 0.025,
+            fine_line_max_angle_deg: 30.0,
         }
     }
 }
@@ -312,6 +318,7 @@ pub fn segment_wood_leaf(
             radius: params.fine_line_radius_m,
             min_linearity: params.fine_line_linearity,
             max_spread: params.fine_line_spread_m,
+            min_cos: params.fine_line_max_angle_deg.to_radians().cos(),
         };
         let grown = grow_along_lines(&mut labels, &graph, first, params.grow_linearity, &line);
         for &j in &grown {
@@ -439,6 +446,8 @@ struct FineLine<'a> {
     radius: f32,
     min_linearity: f32,
     max_spread: f32,
+    /// Cosine of the largest angle between a candidate's line and its parent's.
+    min_cos: f32,
 }
 
 impl FineLine<'_> {
@@ -446,25 +455,33 @@ impl FineLine<'_> {
         self.radius > 0.0 && self.min_linearity <= 1.0 && self.max_spread > 0.0
     }
 
-    /// Whether the points within `radius` of point `i` form a thin line.
-    fn is_line(&self, i: usize) -> bool {
+    /// Whether the points within `radius` of point `i` form a thin line, and their principal
+    /// direction (zero when there are too few points).
+    fn line(&self, i: usize) -> (bool, Vec3) {
         let nb = self.index.within(self.points[i], self.radius);
         if nb.len() < 5 {
-            return false;
+            return (false, Vec3::ZERO);
         }
-        covariance(self.points, nb.iter().map(|m| m.index as usize)).is_some_and(|(cov, _)| {
-            let e = symmetric_eigen3(cov);
-            let f = EigenFeatures::from_eigenvalues(e.values.map(|v| v.max(0.0) as f32));
-            f.linearity >= self.min_linearity
-                && (e.values[1].max(0.0).sqrt() as f32) <= self.max_spread
-        })
+        covariance(self.points, nb.iter().map(|m| m.index as usize)).map_or(
+            (false, Vec3::ZERO),
+            |(cov, _)| {
+                let e = symmetric_eigen3(cov);
+                let f = EigenFeatures::from_eigenvalues(e.values.map(|v| v.max(0.0) as f32));
+                let thin = f.linearity >= self.min_linearity
+                    && (e.values[1].max(0.0).sqrt() as f32) <= self.max_spread;
+                (thin, e.vectors[0].as_vec3())
+            },
+        )
     }
 }
 
 /// Growth of the trunk label from every trunk point into graph neighbours that are lines:
-/// `coarse` linearity >= `min_linearity`, or the fine line test. Level by level (all
-/// candidates of one level are tested in parallel, the fine test only where the coarse one
-/// fails); the result is the set of points reachable from a trunk point through points that
+/// `coarse` linearity >= `min_linearity`, or the fine line test with the candidate's line
+/// within the largest angle of its parent's principal direction (a twig goes on straight
+/// through a leaf cluster; a leaf seen edge-on beside it is a line at any angle). Level by
+/// level, all candidates of one level tested in parallel, the fine test only where the
+/// coarse one fails; a candidate that fails only the angle is tried again from each new
+/// parent. The result is the set of points reachable from a trunk point through points that
 /// pass, so it does not depend on the order. Returns the points that became trunk, sorted.
 fn grow_along_lines(
     labels: &mut [u8],
@@ -478,36 +495,86 @@ fn grow_along_lines(
         return Vec::new();
     }
     let n = labels.len();
-    // 0 untested, 1 passed, 2 failed.
+    // 0 untested, 1 passed, 2 failed for good (neither test), 3 a line, angle not yet met.
     let mut state = vec![0u8; n];
+    // Fine-scale principal direction, computed once where needed (NaN: not yet).
+    let mut dir = vec![Vec3::NAN; n];
     let mut frontier: Vec<u32> = (0..n as u32)
         .filter(|&i| labels[i as usize] == TRUNK)
         .collect();
     let mut grown = Vec::new();
     while !frontier.is_empty() {
-        let mut cand: Vec<u32> = frontier
+        // (candidate, parent) pairs.
+        let mut pairs: Vec<(u32, u32)> = frontier
             .iter()
-            .filter_map(|&i| graph.neighbours.get(i as usize))
-            .flat_map(|nb| nb.iter().copied().take_while(|j| *j != u32::MAX))
-            .filter(|&j| (j as usize) < n && labels[j as usize] != TRUNK && state[j as usize] == 0)
-            .collect();
-        cand.sort_unstable();
-        cand.dedup();
-        let pass: Vec<bool> = cand
-            .par_iter()
-            .map(|&j| {
-                let j = j as usize;
-                coarse
-                    .get(j)
-                    .is_some_and(|c| c.eigen.linearity >= min_linearity)
-                    || (fine && line.is_line(j))
+            .filter_map(|&i| graph.neighbours.get(i as usize).map(|nb| (i, nb)))
+            .flat_map(|(i, nb)| {
+                nb.iter()
+                    .copied()
+                    .take_while(|j| *j != u32::MAX)
+                    .map(move |j| (j, i))
+            })
+            .filter(|&(j, _)| {
+                (j as usize) < n
+                    && labels[j as usize] != TRUNK
+                    && matches!(state[j as usize], 0 | 3)
             })
             .collect();
+        pairs.sort_unstable();
+        pairs.dedup();
+        let mut cand: Vec<u32> = pairs.iter().map(|p| p.0).collect();
+        cand.dedup();
+        // Candidates' own tests (state 3 keeps its earlier result).
+        let tests: Vec<(u32, u8, Vec3)> = cand
+            .par_iter()
+            .filter(|&&j| state[j as usize] == 0)
+            .map(|&j| {
+                let ju = j as usize;
+                if coarse
+                    .get(ju)
+                    .is_some_and(|c| c.eigen.linearity >= min_linearity)
+                {
+                    return (j, 1, Vec3::NAN);
+                }
+                if !fine {
+                    return (j, 2, Vec3::NAN);
+                }
+                let (thin, d) = line.line(ju);
+                (j, if thin { 3 } else { 2 }, d)
+            })
+            .collect();
+        for (j, st, d) in tests {
+            state[j as usize] = st;
+            if st == 3 {
+                dir[j as usize] = d;
+            }
+        }
+        // Parents' directions where a line candidate needs them.
+        let mut parents: Vec<u32> = pairs
+            .iter()
+            .filter(|&&(j, i)| state[j as usize] == 3 && dir[i as usize].is_nan())
+            .map(|p| p.1)
+            .collect();
+        parents.sort_unstable();
+        parents.dedup();
+        let pdirs: Vec<Vec3> = parents
+            .par_iter()
+            .map(|&i| line.line(i as usize).1)
+            .collect();
+        for (&i, d) in parents.iter().zip(pdirs) {
+            dir[i as usize] = d;
+        }
         frontier.clear();
-        for (&j, ok) in cand.iter().zip(pass) {
-            state[j as usize] = if ok { 1 } else { 2 };
-            if ok {
-                labels[j as usize] = TRUNK;
+        for &(j, i) in &pairs {
+            let ju = j as usize;
+            let ok = match state[ju] {
+                1 => true,
+                3 => dir[ju].dot(dir[i as usize]).abs() >= line.min_cos,
+                _ => false,
+            };
+            if ok && labels[ju] != TRUNK {
+                state[ju] = 1;
+                labels[ju] = TRUNK;
                 frontier.push(j);
             }
         }
