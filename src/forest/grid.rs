@@ -24,8 +24,12 @@ fn cell(p: Vec3, edge: f32) -> [i32; 3] {
     ]
 }
 
+/// Occupied cells: (cell, start, end) with start..end the range of its points in the sorted
+/// index list.
+type Cells = Vec<([i32; 3], usize, usize)>;
+
 /// Point indices sorted by cell (ties by index) and the cells with their ranges in it.
-fn bucket(points: &[Vec3], edge: f32) -> (Vec<u32>, Vec<([i32; 3], usize, usize)>) {
+fn bucket(points: &[Vec3], edge: f32) -> (Vec<u32>, Cells) {
     let mut keyed: Vec<([i32; 3], u32)> = points
         .par_iter()
         .enumerate()

@@ -139,7 +139,6 @@ pub fn kmeans(
         iterations += lloyd(
             &sample,
             dim,
-            k,
             &mut centres,
             &mut sample_assignment,
             max_iterations,
@@ -155,7 +154,6 @@ pub fn kmeans(
     iterations += lloyd(
         rows,
         dim,
-        k,
         &mut centres,
         &mut assignment,
         max_iterations,
@@ -174,13 +172,13 @@ pub fn kmeans(
 fn lloyd(
     rows: &[f32],
     dim: usize,
-    k: usize,
     centres: &mut [f32],
     assignment: &mut [u8],
     max_iterations: usize,
     settle: usize,
     progress: &dyn Progress,
 ) -> Result<usize, ForestError> {
+    let k = centres.len() / dim.max(1);
     let mut iterations = 0;
     for it in 0..max_iterations.max(1) {
         if progress.is_cancelled() {
