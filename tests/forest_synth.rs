@@ -107,3 +107,31 @@ fn stands_of_five_seeds_meet_the_accuracy_goals() {
         assert!(trunk_precision >= 0.85, "{line}");
     }
 }
+
+/// The 2-means of the wood/leaf split on more rows than its warm-start threshold (400 000):
+/// the subsample pass and the full pass together still put every row with its blob, and the
+/// result is the same on every run.
+#[test]
+fn two_means_warm_start_on_many_rows_separates_the_blobs() {
+    use sylva::forest::kmeans::kmeans;
+    let n = 600_000;
+    let mut state = 1u64;
+    let mut unit = move || {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+    };
+    let mut rows = Vec::with_capacity(n * 3);
+    for i in 0..n {
+        let c = if i % 3 == 0 { 4.0 } else { 0.0 };
+        rows.extend([c + unit(), c + unit(), unit()]);
+    }
+    let a = kmeans(&rows, 3, 2, 100, 7, &NoProgress).expect("kmeans");
+    let b = kmeans(&rows, 3, 2, 100, 7, &NoProgress).expect("kmeans");
+    assert_eq!(a, b);
+    let blob = a.assignment[0];
+    for (i, &l) in a.assignment.iter().enumerate() {
+        assert_eq!(l == blob, i % 3 == 0, "row {i}");
+    }
+}
