@@ -1,8 +1,11 @@
 //! Times the inventory on a ~10-million-point synthetic plot (the generated 20 × 20 m plot
 //! tiled) and on TreeLS pine_plot.laz, and prints a table: points, stems, seconds per phase.
 //!
-//! `cargo run --release --example inventory_bench [POINTS]` (default 10e6: the plot is tiled
-//! n × n times with n chosen to come closest to POINTS).
+//! `cargo run --release --example inventory_bench [POINTS [CLOUD...]]` (default 10e6: the
+//! plot is tiled n × n times with n chosen to come closest to POINTS; 0 skips the synthetic
+//! plots). Each CLOUD (e.g. the 9.2 M-point cloud of ../shared/bench/make_plot10m.py) is
+//! timed too. CPU s: user + system seconds of all threads, so on a shared machine CPU s / 2
+//! is what two free cores would need at best.
 
 use std::time::Instant;
 
@@ -12,7 +15,24 @@ use sylva::io::pointcloud::{PointCloud, read_point_cloud};
 use sylva::io::tables::FieldTree;
 use sylva::progress::NoProgress;
 
+/// CPU seconds (user + system, all threads) this process has used so far, from
+/// /proc/self/stat (Linux; USER_HZ = 100 ticks per second); `None` elsewhere.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = stat.rsplit_once(')')?.1;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // After the command name: state is field 3, utime 14 and stime 15 (proc(5)).
+    let utime: f64 = f.get(11)?.parse().ok()?;
+    let stime: f64 = f.get(12)?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
 fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
+    let cpu0 = cpu_seconds();
+    let load = std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|l| l.split_whitespace().next().map(str::to_string))
+        .unwrap_or_else(|| "?".into());
     let t = Instant::now();
     let inv = match inventory(cloud, &InventoryParams::default(), &NoProgress) {
         Ok(inv) => inv,
@@ -22,7 +42,12 @@ fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
         }
     };
     let total = t.elapsed().as_secs_f64();
+    let cpu = match (cpu0, cpu_seconds()) {
+        (Some(a), Some(b)) => format!("{:.1}", b - a),
+        _ => "n/a".into(),
+    };
     let s = inv.seconds;
+    let g = inv.segment_seconds;
     let acc = field.map_or(String::new(), |f| {
         let c = compare_with_field(&inv.trees, f, 1.0);
         format!(
@@ -33,11 +58,15 @@ fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
         )
     });
     println!(
-        "| {name} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |{acc}",
+        "| {name} | {} | {} | {:.2} | {:.2} ({:.1} k-NN, {:.1} coarse, {:.1} 2-means, {:.1} clean-up) | {:.2} | {:.2} | {:.2} | {cpu} | {load} |{acc}",
         cloud.len(),
         inv.trees.len(),
         s.ground,
         s.segment,
+        g.knn,
+        g.coarse,
+        g.kmeans,
+        g.cleanup,
         s.stems,
         s.dbh,
         total
@@ -50,9 +79,29 @@ fn main() {
         .and_then(|a| a.parse().ok())
         .unwrap_or(10e6);
     println!(
-        "threads: {}\n\n| cloud | points | stems | ground s | segment s | stems s | dbh s | total s |\n|---|---|---|---|---|---|---|---|",
+        "threads: {}\n\n| cloud | points | stems | ground s | segment s | stems s | dbh s | total s | CPU s | load before |\n|---|---|---|---|---|---|---|---|---|---|",
         rayon::current_num_threads()
     );
+    if target > 0.0 {
+        synthetic(target);
+    }
+    for path in std::env::args().skip(2) {
+        match read_point_cloud(std::path::Path::new(&path), &NoProgress) {
+            Ok(c) => run(&path, &c, None),
+            Err(e) => println!("skipping {path}: {e}"),
+        }
+    }
+    let dir = std::env::var_os("SYLVA_REAL_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::PathBuf::from("../shared/data/real"));
+    let path = dir.join("TreeLS_extdata/pine_plot.laz");
+    match read_point_cloud(&path, &NoProgress) {
+        Ok(c) => run("pine_plot.laz", &c, None),
+        Err(e) => println!("skipping pine_plot.laz: {e}"),
+    }
+}
+
+fn synthetic(target: f64) {
     let spec = PlotSpec {
         leaf_discs: 600,
         ..PlotSpec::default()
@@ -75,13 +124,4 @@ fn main() {
         &cloud,
         Some(&field),
     );
-    drop(cloud);
-    let dir = std::env::var_os("SYLVA_REAL_DATA")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| std::path::PathBuf::from("/work/shared/data/real"));
-    let path = dir.join("TreeLS_extdata/pine_plot.laz");
-    match read_point_cloud(&path, &NoProgress) {
-        Ok(c) => run("pine_plot.laz", &c, None),
-        Err(e) => println!("skipping pine_plot.laz: {e}"),
-    }
 }

@@ -2,13 +2,24 @@
 //! (by true class, by stem or branch, by height) and the ground error at the stems.
 //!
 //! `cargo run --release --example wood_leaf_diag -- DIR...` with DIR a `sylva synth` output
-//! folder (lidar.laz, labels.bin, truth.json).
+//! folder (lidar.laz, labels.bin, truth.json). `DIAG_PARAMS` may hold inventory parameters
+//! as JSON (e.g. `{"segment":{"grow_linearity":0.45}}`), the defaults otherwise.
 
 use sylva::forest::{InventoryParams, TRUNK, inventory};
 use sylva::io::pointcloud::read_point_cloud;
 use sylva::progress::NoProgress;
 
 fn main() {
+    let params: InventoryParams = match std::env::var("DIAG_PARAMS") {
+        Ok(json) => match serde_json::from_str(&json) {
+            Ok(p) => p,
+            Err(e) => {
+                eprintln!("DIAG_PARAMS: {e}");
+                std::process::exit(2);
+            }
+        },
+        Err(_) => InventoryParams::default(),
+    };
     for dir in std::env::args().skip(1) {
         let dir = std::path::PathBuf::from(dir);
         let Ok(cloud) = read_point_cloud(&dir.join("lidar.laz"), &NoProgress) else {
@@ -21,7 +32,7 @@ fn main() {
             .and_then(|b| serde_json::from_slice(&b).ok())
             .unwrap_or_default();
         let t = std::time::Instant::now();
-        let Ok(inv) = inventory(&cloud, &InventoryParams::default(), &NoProgress) else {
+        let Ok(inv) = inventory(&cloud, &params, &NoProgress) else {
             println!("{}: inventory failed", dir.display());
             continue;
         };
@@ -149,7 +160,7 @@ fn main() {
             &cloud.positions,
             None,
             Some(&include),
-            &sylva::forest::SegmentParams::default(),
+            &params.segment,
             &NoProgress,
         ) else {
             continue;

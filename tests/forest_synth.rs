@@ -93,17 +93,45 @@ fn stands_of_five_seeds_meet_the_accuracy_goals() {
             trunk_precision,
         ));
     }
-    // Stems, DBH and ground meet the goals (stems >= 95 %, RMSE <= 1.0 cm, ground
-    // <= 3 cm; measured: 100 %, 0.15-0.28 cm, 1.1-1.7 cm). Wood/leaf against the generator's
-    // labels, where "wood" includes every branch and twig down to 6 mm radius: measured trunk
-    // recall 0.879-0.883 and precision 0.912-0.933 (goal 0.90 / 0.85; the trade-off is
-    // `SegmentParams::grow_linearity`, 0.45 gives 0.89 / 0.86). Asserted at what is reached,
-    // with a small margin, so a regression shows.
+    // The goals, on every seed: stems recall and precision >= 95 %, DBH RMSE
+    // <= 1.0 cm, ground at the stems <= 3 cm, and wood/leaf against the generator's labels
+    // (where "wood" includes every branch down to 6 mm radius) trunk recall >= 0.90 and
+    // precision >= 0.85. All are asserted at the goal except trunk recall: measured (seeds
+    // 1-5) 0.904, 0.899, 0.900, 0.901, 0.895, with precision 0.890-0.917, so it is asserted
+    // at 0.89 and the gap to 0.90 is stated in README's "LiDAR inventory" paragraph.
     for (line, recall, precision, rmse, ground_err, trunk_recall, trunk_precision) in report {
         assert!(recall >= 0.95 && precision >= 0.95, "{line}");
         assert!(rmse <= 1.0, "{line}");
         assert!(ground_err <= 0.03, "{line}");
-        assert!(trunk_recall >= 0.87, "{line}");
-        assert!(trunk_precision >= 0.90, "{line}");
+        assert!(trunk_recall >= 0.89, "{line}");
+        assert!(trunk_precision >= 0.85, "{line}");
+    }
+}
+
+/// The 2-means of the wood/leaf split on more rows than its warm-start threshold (400 000):
+/// the subsample pass and the full pass together still put every row with its blob, and the
+/// result is the same on every run.
+#[test]
+fn two_means_warm_start_on_many_rows_separates_the_blobs() {
+    use sylva::forest::kmeans::kmeans;
+    let n = 600_000;
+    let mut state = 1u64;
+    let mut unit = move || {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+    };
+    let mut rows = Vec::with_capacity(n * 3);
+    for i in 0..n {
+        let c = if i % 3 == 0 { 4.0 } else { 0.0 };
+        rows.extend([c + unit(), c + unit(), unit()]);
+    }
+    let a = kmeans(&rows, 3, 2, 100, 7, &NoProgress).expect("kmeans");
+    let b = kmeans(&rows, 3, 2, 100, 7, &NoProgress).expect("kmeans");
+    assert_eq!(a, b);
+    let blob = a.assignment[0];
+    for (i, &l) in a.assignment.iter().enumerate() {
+        assert_eq!(l == blob, i % 3 == 0, "row {i}");
     }
 }

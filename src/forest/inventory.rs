@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use super::dbh::{DbhParams, measure_dbh};
 use super::ground::{CsfParams, Dtm, classify_ground};
-use super::segment::{SegmentParams, segment_wood_leaf};
+use super::segment::{SegmentParams, SegmentSeconds, segment_wood_leaf};
 use super::stem_labels::{StemLabelParams, label_stem_points};
 use super::stems::{Stem, StemParams, detect_stems};
 use super::{ForestError, StemDbh};
@@ -82,6 +82,8 @@ pub struct Inventory {
     /// The terrain model (local coordinates).
     pub dtm: Dtm,
     pub seconds: PhaseSeconds,
+    /// The wood/leaf segmentation's own steps (within `seconds.segment`).
+    pub segment_seconds: SegmentSeconds,
 }
 
 /// Runs ground → segmentation (non-ground points only) → stems → DBH on `cloud`.
@@ -192,5 +194,6 @@ pub fn inventory(
         is_ground: ground.is_ground,
         dtm: ground.dtm,
         seconds,
+        segment_seconds: wood.seconds,
     })
 }

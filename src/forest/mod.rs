@@ -12,6 +12,7 @@ pub mod accuracy;
 pub mod circle;
 pub mod components;
 pub mod dbh;
+pub mod grid;
 pub mod ground;
 pub mod inventory;
 pub mod kmeans;
@@ -37,7 +38,7 @@ pub use dbh::{DbhParams, FitQuality, StemDbh, measure_dbh};
 pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
 pub use output::{trees_csv, trees_geojson, write_trees_csv, write_trees_geojson};
 pub use ransac::{CircleParams, RobustCircle, fit_circle_robust};
-pub use segment::{LEAF, SegmentParams, TRUNK, WoodLeaf, segment_wood_leaf};
+pub use segment::{LEAF, SegmentParams, SegmentSeconds, TRUNK, WoodLeaf, segment_wood_leaf};
 pub use stem_labels::{StemLabelParams, label_stem_points};
 pub use stems::{Stem, StemParams, detect_stems};
 

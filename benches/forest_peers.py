@@ -1,0 +1,215 @@
+"""3DFin 0.6 and `sylva inventory` on the same clouds: a table of seconds, stems found, stems
+with a DBH and peak RSS. Run through benches/forest_peers.sh (it makes the venv).
+
+Stems found / with a DBH:
+  3DFin: rows of its `<cloud>_dbh_and_heights.txt` (--export_txt) / rows whose DBH is > 0
+         (3DFin writes 0 where no section near 1.3 m passed its quality checks).
+  sylva: stems detected in the breast-height band (its log line "DBH of N stems") / rows of
+         trees.csv (each has a circle with n_points, rms_mm, arc_coverage and a quality).
+Seconds are wall-clock of the whole command (reading the cloud included); peak RSS is the
+child's maximum resident set (getrusage of the waited-for process tree).
+"""
+
+import argparse
+import configparser
+import csv
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+# Changes against the shipped 3DFinconfig.ini for sparse TLS (pine_plot.laz: 114 k points on
+# 10 x 10 m, a few hundred points per stem in the 0.7-3.5 m stripe). The shipped values ask
+# for 1000 points per stem cluster in the stripe (pine_plot: "clusters were found, but they
+# are too small"), stems that fill 70 % of the stripe's height, 80 points per section and 9
+# of 16 sectors occupied. These were the best of eight settings tried on pine_plot.laz
+# (number_of_points 30-200, height_range 0.05-0.3, 1-2 peeling iterations, verticality
+# threshold 0.5-0.7, section points 20-30, sectors 6-9, circle width 2-3 cm).
+SPARSE_TLS = {
+    ("expert", "number_of_points"): "50",
+    ("expert", "height_range"): "0.1",
+    ("expert", "number_points_section"): "20",
+    ("expert", "m_number_sectors"): "6",
+    ("expert", "circle_width"): "0.03",
+}
+
+
+def real_data_dir():
+    env = os.environ.get("SYLVA_REAL_DATA")
+    for d in [env, os.path.join(ROOT, "..", "shared", "data", "real")]:
+        if d and os.path.isdir(d):
+            return os.path.abspath(d)
+    return None
+
+
+def run_measured(cmd, log_path, env=None):
+    """Runs cmd, output to log_path; returns (seconds, peak RSS MiB, exit code)."""
+    t = time.monotonic()
+    with open(log_path, "w") as log:
+        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        _, status, ru = os.wait4(p.pid, 0)
+    secs = time.monotonic() - t
+    code = os.waitstatus_to_exitcode(status)
+    return secs, ru.ru_maxrss / 1024.0, code
+
+
+def last_error(log_path):
+    try:
+        with open(log_path, errors="replace") as f:
+            lines = [l.strip() for l in f if l.strip()]
+    except OSError:
+        return "no output"
+    for l in reversed(lines):
+        if "Error" in l or "error" in l:
+            return l[:160]
+    return lines[-1][:160] if lines else "no output"
+
+
+def threedfin_config(kind, work):
+    import three_d_fin
+
+    shipped = os.path.join(os.path.dirname(three_d_fin.__file__), "3DFinconfig.ini")
+    if kind == "default":
+        return shipped
+    cfg = configparser.ConfigParser()
+    cfg.read(shipped)
+    for (sec, key), val in SPARSE_TLS.items():
+        cfg[sec][key] = val
+    path = os.path.join(work, "3dfin_sparse_tls.ini")
+    with open(path, "w") as f:
+        cfg.write(f)
+    return path
+
+
+def run_3dfin(cloud, kind, work):
+    try:
+        params = threedfin_config(kind, work)
+    except ImportError as e:
+        return None, f"3DFin not installed ({e})"
+    out = os.path.join(work, f"3dfin-{kind}")
+    shutil.rmtree(out, ignore_errors=True)
+    os.makedirs(out)
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    cmd = [sys.executable, "-m", "three_d_fin", "cli", "--export_txt", "--normalize",
+           cloud, out, params]
+    log = os.path.join(work, f"3dfin-{kind}.log")
+    secs, rss, code = run_measured(cmd, log, env)
+    base = os.path.splitext(os.path.basename(cloud))[0]
+    table = os.path.join(out, base + "_dbh_and_heights.txt")
+    if code != 0 or not os.path.isfile(table):
+        return (secs, rss, 0, 0), f"exit {code}: {last_error(log)}"
+    rows = []
+    with open(table) as f:
+        for line in f:
+            vals = line.split()
+            try:
+                rows.append([float(v) for v in vals])
+            except ValueError:
+                continue  # a header line
+    found = len(rows)
+    with_dbh = sum(1 for r in rows if len(r) > 1 and r[1] > 0)
+    return (secs, rss, found, with_dbh), ""
+
+
+def run_sylva(sylva, cloud, work):
+    out = os.path.join(work, "sylva-trees.csv")
+    log = os.path.join(work, "sylva.log")
+    secs, rss, code = run_measured([sylva, "inventory", cloud, "--out", out], log)
+    if code != 0 or not os.path.isfile(out):
+        return (secs, rss, 0, 0), f"exit {code}: {last_error(log)}"
+    with open(out) as f:
+        rows = list(csv.DictReader(f))
+    with_dbh = sum(1 for r in rows if r.get("dbh_lidar_cm", "") not in ("", None))
+    found = with_dbh
+    with open(log, errors="replace") as f:
+        m = re.findall(r"DBH of (\d+) stems", f.read())
+    if m:
+        found = int(m[-1])
+    qualities = {}
+    for r in rows:
+        qualities[r.get("quality", "?")] = qualities.get(r.get("quality", "?"), 0) + 1
+    note = ", ".join(f"{v} {k}" for k, v in sorted(qualities.items()))
+    return (secs, rss, found, with_dbh), note
+
+
+def big_cloud(work_root):
+    """The 9.2 M-point benchmark cloud (../shared/bench/make_plot10m.py), built once."""
+    out = os.path.join(ROOT, "target", "bench", "plot10m")
+    if os.path.isfile(out + ".laz"):
+        return out + ".laz"
+    script = os.path.join(ROOT, "..", "shared", "bench", "make_plot10m.py")
+    if not os.path.isfile(script):
+        print(f"skipping the 9.2 M cloud: {script} not found", file=sys.stderr)
+        return None
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    print("building the 9.2 M-point cloud (make_plot10m.py)", file=sys.stderr)
+    subprocess.run([sys.executable, script, out], check=True)
+    return out + ".laz"
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sylva", required=True)
+    ap.add_argument("--big", action="store_true", help="also the 9.2 M-point bench cloud")
+    ap.add_argument("--skip-3dfin", action="store_true")
+    ap.add_argument("clouds", nargs="*")
+    a = ap.parse_args()
+
+    clouds = list(a.clouds)
+    if not clouds:
+        d = real_data_dir()
+        if d is None:
+            print("no clouds: real data not found (set SYLVA_REAL_DATA)")
+            return 0
+        clouds.append(os.path.join(d, "TreeLS_extdata", "pine_plot.laz"))
+    if a.big:
+        c = big_cloud(ROOT)
+        if c:
+            clouds.append(c)
+
+    try:
+        import three_d_fin  # noqa: F401
+
+        has_3dfin = not a.skip_3dfin
+        why = "" if has_3dfin else "skipped (--skip-3dfin)"
+    except ImportError as e:
+        has_3dfin, why = False, f"not installed ({e})"
+
+    print(f"load average before: {os.getloadavg()[0]:.2f} (2-core machine: > 2 means shared)")
+    print("| cloud | tool | seconds | stems found | stems with a DBH | peak RSS MiB | notes |")
+    print("|---|---|---|---|---|---|---|")
+    for cloud in clouds:
+        name = os.path.basename(cloud)
+        work = tempfile.mkdtemp(prefix="forest-peers-")
+        runs = []
+        if has_3dfin:
+            runs.append(("3DFin 0.6, default settings", lambda: run_3dfin(cloud, "default", work)))
+            runs.append(("3DFin 0.6, tuned for sparse TLS",
+                         lambda: run_3dfin(cloud, "sparse", work)))
+        else:
+            print(f"| {name} | 3DFin 0.6 | | | | | {why} |")
+        runs.append(("sylva inventory, default settings", lambda: run_sylva(a.sylva, cloud, work)))
+        for tool, fn in runs:
+            load = os.getloadavg()[0]
+            res, note = fn()
+            if res is None:
+                print(f"| {name} | {tool} | | | | | {note} |")
+                continue
+            secs, rss, found, with_dbh = res
+            note = f"{note}; load {load:.1f}" if note else f"load {load:.1f}"
+            print(f"| {name} | {tool} | {secs:.1f} | {found} | {with_dbh} | {rss:.0f} | {note} |",
+                  flush=True)
+        shutil.rmtree(work, ignore_errors=True)
+    print("\n3DFin tuned settings (changes to its shipped 3DFinconfig.ini): "
+          + ", ".join(f"[{s}] {k}={v}" for (s, k), v in SPARSE_TLS.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
