@@ -8,6 +8,16 @@ use sylva::synth::{Preset, SynthParams};
 
 #[test]
 fn gpu_training_on_a_tiny_plot_beats_the_mean_colour_on_held_out_views() {
+    // lavapipe spreads workgroups over a thread pool, so the backward pass's float atomic adds
+    // land in a different order each run; over 1000 steps, densification decisions amplify
+    // that, and the held-out PSNR of 4 views at 80 px spread from 20.1 to 24.0 dB across six
+    // runs. One lavapipe thread runs the workgroups in a fixed order: the run is reproducible
+    // (23.28 dB twice), so this checks the method, not the draw. A value the caller set wins.
+    if std::env::var_os("LP_NUM_THREADS").is_none() {
+        // SAFETY: this binary holds this one test, and nothing else reads the environment
+        // before the adapter below is created.
+        unsafe { std::env::set_var("LP_NUM_THREADS", "1") };
+    }
     let params = TrainParams {
         steps: 1000,
         resolution: 80,
