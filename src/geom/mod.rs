@@ -14,6 +14,7 @@ pub mod coarse;
 mod error;
 mod icp;
 mod index;
+mod linalg;
 mod normals;
 mod orient;
 mod outliers;

@@ -24,8 +24,13 @@ use glam::{DMat3, DQuat, DVec3, Vec3};
 use serde::{Deserialize, Serialize};
 
 use super::index::par_map_chunked;
+use super::linalg::solve;
 use super::{GeomError, PointIndex, Similarity, covariance, symmetric_eigen3};
 use crate::progress::Progress;
+
+/// Smallest pivot of the refinement's normal equations, relative to their largest diagonal
+/// entry, below which the system is degenerate.
+const PIVOT: f64 = 1e-14;
 
 /// Parameters of [`refine_on_surface`]; lengths in metres.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -208,7 +213,7 @@ fn fit_patch_why(
             }
         }
     }
-    let Some(x) = solve(ata, atb, 6) else {
+    let Some(x) = solve(ata, atb, 6, PIVOT) else {
         return Err(4);
     };
     let sse: f64 = rows
@@ -403,7 +408,7 @@ fn gauss_newton(
             atb[a] = 0.0;
         }
     }
-    let delta = solve(ata, atb, dim).ok_or(GeomError::Degenerate(
+    let delta = solve(ata, atb, dim, PIVOT).ok_or(GeomError::Degenerate(
         "surface refinement is singular: the matched surfaces do not constrain all axes",
     ))?;
     // Standard errors: sigma² (AᵀWA)⁻¹ with the robust residual variance.
@@ -413,7 +418,7 @@ fn gauss_newton(
     for k in 0..dim {
         let mut e = [0.0; 7];
         e[k] = 1.0;
-        if let Some(col) = solve(ata, e, dim) {
+        if let Some(col) = solve(ata, e, dim, PIVOT) {
             std[k] = (sigma2 * col[k].max(0.0)).sqrt();
         }
     }
@@ -506,38 +511,6 @@ fn validate(
         )));
     }
     Ok(())
-}
-
-// Index loops mirror the matrix algebra.
-#[allow(clippy::needless_range_loop)]
-/// Solves the leading `dim`×`dim` system by Gaussian elimination with partial pivoting;
-/// `None` when a pivot is negligible against the largest diagonal entry.
-fn solve(mut a: [[f64; 7]; 7], mut b: [f64; 7], dim: usize) -> Option<[f64; 7]> {
-    let scale = (0..dim).map(|i| a[i][i].abs()).fold(0.0, f64::max);
-    if scale.is_nan() || scale <= 0.0 {
-        return None;
-    }
-    for col in 0..dim {
-        let piv = (col..dim).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[piv][col].abs() <= 1e-14 * scale {
-            return None;
-        }
-        a.swap(col, piv);
-        b.swap(col, piv);
-        for r in col + 1..dim {
-            let f = a[r][col] / a[col][col];
-            for k in col..dim {
-                a[r][k] -= f * a[col][k];
-            }
-            b[r] -= f * b[col];
-        }
-    }
-    let mut x = [0.0; 7];
-    for r in (0..dim).rev() {
-        let s: f64 = (r + 1..dim).map(|k| a[r][k] * x[k]).sum();
-        x[r] = (b[r] - s) / a[r][r];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
 #[cfg(test)]

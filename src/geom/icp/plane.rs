@@ -6,7 +6,12 @@
 use glam::{DQuat, DVec3, Vec3};
 
 use super::Pair;
+use crate::geom::linalg::solve;
 use crate::geom::{GeomError, Similarity};
+
+/// Smallest pivot of the point-to-plane normal equations, relative to their largest diagonal
+/// entry, below which the system is degenerate.
+const PIVOT: f64 = 1e-12;
 
 // Index loops mirror the matrix algebra.
 #[allow(clippy::needless_range_loop, clippy::too_many_arguments)]
@@ -65,7 +70,7 @@ pub(super) fn point_to_plane_step(
             atb[a] = 0.0;
         }
     }
-    let delta = solve(ata, atb, dim).ok_or(GeomError::Degenerate(
+    let delta = solve(ata, atb, dim, PIVOT).ok_or(GeomError::Degenerate(
         "point-to-plane system is singular: the overlapping surfaces do not constrain all axes",
     ))?;
     let omega = DVec3::new(delta[0], delta[1], delta[2]);
@@ -78,36 +83,4 @@ pub(super) fn point_to_plane_step(
         translation: c + tau - r_inc * c * s_inc,
     };
     Ok(t.then(&inc))
-}
-
-// Index loops mirror the matrix algebra.
-#[allow(clippy::needless_range_loop)]
-/// Solves the `dim`×`dim` system by Gaussian elimination with partial pivoting; `None` when
-/// a pivot is negligible against the matrix's largest diagonal entry.
-fn solve(mut a: [[f64; 7]; 7], mut b: [f64; 7], dim: usize) -> Option<[f64; 7]> {
-    let scale = (0..dim).map(|i| a[i][i].abs()).fold(0.0, f64::max);
-    if scale.is_nan() || scale <= 0.0 {
-        return None;
-    }
-    for col in 0..dim {
-        let piv = (col..dim).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[piv][col].abs() <= 1e-12 * scale {
-            return None;
-        }
-        a.swap(col, piv);
-        b.swap(col, piv);
-        for r in col + 1..dim {
-            let f = a[r][col] / a[col][col];
-            for k in col..dim {
-                a[r][k] -= f * a[col][k];
-            }
-            b[r] -= f * b[col];
-        }
-    }
-    let mut x = [0.0; 7];
-    for r in (0..dim).rev() {
-        let s: f64 = (r + 1..dim).map(|k| a[r][k] * x[k]).sum();
-        x[r] = (b[r] - s) / a[r][r];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
 }
