@@ -801,18 +801,6 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Peak resident memory of this process so far, MiB (Linux `VmHWM`; 0 where unknown).
-fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-        })
-        .map_or(0.0, |kb| kb / 1024.0)
-}
-
 async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
     use crate::pipeline::params::{TrainBackend, TrainParams};
     if a.what == "load" {
@@ -917,7 +905,7 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
                 t.loss_ms / steps,
                 t.backward_ms / steps,
                 t.optimizer_ms / steps,
-                peak_rss_mib()
+                crate::loadbench::peak_rss_mib()
             );
         }
         let _ = std::fs::remove_dir_all(&tmp);

@@ -28,6 +28,7 @@ use clap::Args;
 use glam::{DMat3, DVec3, Vec3};
 use serde::Serialize;
 
+use super::peak_rss_mib;
 use crate::geom::{
     IcpMethod, IcpParams, NormalOrientation, NormalParams, OutlierParams, PointIndex, RobustKernel,
     Similarity, VoxelParams, estimate_normals, icp_with_index, statistical_outlier_filter,
@@ -89,18 +90,6 @@ pub fn icp_truth(c: DVec3) -> Similarity {
         rotation,
         translation: c - rotation * c + DVec3::new(0.05, -0.03, 0.02),
     }
-}
-
-/// Peak resident memory of this process so far, MiB (Linux `VmHWM`; 0 where unknown).
-pub fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-        })
-        .map_or(0.0, |kb| kb / 1024.0)
 }
 
 /// CPU time of this process so far (user + system, all threads), seconds.

@@ -440,6 +440,18 @@ pub async fn run(a: &LoadArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Peak resident memory of this process so far, MiB (Linux `VmHWM`; 0 where unknown).
+pub fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
