@@ -11,7 +11,7 @@ use sylva::splat::cameras::View;
 use sylva::splat::gpu::buffers::storage_from;
 use sylva::splat::gpu::chunks::{ChunkPlan, SlotPlan};
 use sylva::splat::gpu::renderer::{BandSpan, plan_bands};
-use sylva::splat::gpu::{GpuBackend, GpuContext, GpuGrads, GpuSplats, Renderer};
+use sylva::splat::gpu::{AtomicMode, GpuBackend, GpuContext, GpuGrads, GpuSplats, Renderer};
 use sylva::splat::model::Gaussians;
 use sylva::splat::packed_image::PackedImage;
 
@@ -162,13 +162,45 @@ fn slotted_and_banded_frame_equals_single_binding() {
     }
     close("densify stat", &b.densify, &a.densify, 1e-4);
     let cam = common::camera(w, h, 0.8 * w as f32);
-    let cpu = sylva::splat::cpu::render(&model, &cam, [0.1, 0.2, 0.3]).expect("cpu render");
+    let bg = [0.1, 0.2, 0.3];
+    let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
     let (rel, bad) = common::compare(&flat(&b.image), &flat(&cpu.image), 1e-3, 1e-4);
     eprintln!("  banded image vs CPU: rel {rel:.2e}, bad {bad:.4}");
     assert!(
         rel < 1e-4 && bad < 0.002,
         "banded image disagrees with the CPU reference"
     );
+    let dl = common::random_dl((w * h) as usize, 77);
+    let (want, want_stat) =
+        sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+    let want = [
+        flat(&want.means),
+        flat(&want.log_scales),
+        flat(&want.rotations),
+        want.opacity_logits,
+        flat(&want.sh),
+    ];
+    for (k, (gb, wc)) in b.grads.iter().zip(&want).enumerate() {
+        let (rel, bad) = common::compare(gb, wc, 2e-3, 2e-4);
+        eprintln!("  banded gradient group {k} vs CPU: rel {rel:.2e}, bad {bad:.4}");
+        assert!(rel < 2e-3 && bad < 0.01, "banded gradient group {k} vs CPU");
+    }
+    let (rel, bad) = common::compare(&b.densify, &want_stat, 2e-3, 2e-4);
+    assert!(
+        rel < 2e-3 && bad < 0.01,
+        "banded densify stat vs CPU: {rel} {bad}"
+    );
+    // The compare-and-swap template, one copy per gradient slot.
+    let Some(mut cas) = common::context_with(Some(AtomicMode::CompareSwap)) else {
+        return;
+    };
+    cas.chunk_cap_bytes = Some(BIG_CAP);
+    let d = render_and_backward(&cas, &model, w, h);
+    assert_eq!((d.bands, d.slots), (b.bands, b.slots));
+    assert_eq!(a.image, d.image, "banded render (CAS build) differs");
+    for (k, (ga, gd)) in a.grads.iter().zip(&d.grads).enumerate() {
+        close(&format!("CAS gradient group {k}"), gd, ga, 1e-4);
+    }
 }
 
 fn view(model: &Gaussians, w: u32, h: u32) -> View {

@@ -18,7 +18,7 @@ use crate::splat::gpu::chunks::{SlotPlan, bind_entries, bind_ranges};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::frame::{Band, Frame};
 use crate::splat::gpu::params::RenderParams;
-use crate::splat::gpu::project::{ProjectKernels, dispatch, dispatch_group, groups_for};
+use crate::splat::gpu::project::{ProjectKernels, dispatch_group, groups_for};
 use crate::splat::gpu::project_bwd::ProjectBwd;
 use crate::splat::gpu::raster_bwd::{GRADS2D_STRIDE, RasterBwd};
 use crate::splat::gpu::raster_fwd::RasterFwd;
