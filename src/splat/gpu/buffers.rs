@@ -105,7 +105,7 @@ pub fn read_buffer_at<T: bytemuck::Pod>(
     if bytes == 0 {
         return Ok(Vec::new());
     }
-    if start % 4 != 0 || start + bytes.div_ceil(4) * 4 > buffer.size() {
+    if !start.is_multiple_of(4) || start + bytes.div_ceil(4) * 4 > buffer.size() {
         return Err(GpuError::Invalid(format!(
             "read of {bytes} bytes at {start} from a buffer of {} bytes",
             buffer.size()
