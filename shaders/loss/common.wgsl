@@ -15,14 +15,18 @@ struct Params {
 @group(0) @binding(1) var<storage, read> rendered: array<f32>;
 // Target image, one RGBA8 per pixel, R in the low byte.
 @group(0) @binding(2) var<storage, read> target_rgba: array<u32>;
-// dL/d(mu_x, E[x²], E[xy]) per channel: 9 floats per pixel (map-major: 3 m + channel).
-@group(0) @binding(3) var<storage, read_write> dmaps: array<f32>;
+// Horizontal blur of (x, y, x², y², xy) per channel: 15 floats per pixel.
+@group(0) @binding(3) var<storage, read_write> stats_h: array<f32>;
+// dL/d(mu_x, E[x²], E[xy]) per channel: 9 floats per pixel.
+@group(0) @binding(4) var<storage, read_write> dmaps: array<f32>;
+// Horizontal blur of dmaps: 9 floats per pixel.
+@group(0) @binding(5) var<storage, read_write> dmaps_h: array<f32>;
 // Per-workgroup (sum |x - y|, sum SSIM) pairs.
-@group(0) @binding(4) var<storage, read_write> partials: array<f32>;
+@group(0) @binding(6) var<storage, read_write> partials: array<f32>;
 // dL/drendered, RGB f32 interleaved.
-@group(0) @binding(5) var<storage, read_write> grad_out: array<f32>;
+@group(0) @binding(7) var<storage, read_write> grad_out: array<f32>;
 // (loss, l1, ssim, 0).
-@group(0) @binding(6) var<storage, read_write> loss_out: array<f32>;
+@group(0) @binding(8) var<storage, read_write> loss_out: array<f32>;
 
 fn load_rendered(i: u32) -> vec3<f32> {
     return vec3<f32>(rendered[3u * i], rendered[3u * i + 1u], rendered[3u * i + 2u]);
@@ -30,6 +34,10 @@ fn load_rendered(i: u32) -> vec3<f32> {
 
 fn load_target(i: u32) -> vec3<f32> {
     return unpack4x8unorm(target_rgba[i]).xyz;
+}
+
+fn load3(buf_value: ptr<function, array<f32, 15>>, o: u32) -> vec3<f32> {
+    return vec3<f32>((*buf_value)[o], (*buf_value)[o + 1u], (*buf_value)[o + 2u]);
 }
 
 // Number of averaged values: pixels × 3 channels.

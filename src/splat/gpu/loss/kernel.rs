@@ -8,14 +8,22 @@ use wgpu::util::DeviceExt;
 pub const LOSS_OUT_BYTES: u64 = 16;
 
 const COMMON: &str = include_str!("../../../../shaders/loss/common.wgsl");
-const PASSES: [(&str, &str); 3] = [
+const PASSES: [(&str, &str); 5] = [
     (
-        "loss ssim tile",
-        include_str!("../../../../shaders/loss/ssim_tile.wgsl"),
+        "loss blur stats",
+        include_str!("../../../../shaders/loss/blur_stats.wgsl"),
     ),
     (
-        "loss grad tile",
-        include_str!("../../../../shaders/loss/grad_tile.wgsl"),
+        "loss ssim map",
+        include_str!("../../../../shaders/loss/ssim_map.wgsl"),
+    ),
+    (
+        "loss blur grad",
+        include_str!("../../../../shaders/loss/blur_grad.wgsl"),
+    ),
+    (
+        "loss grad",
+        include_str!("../../../../shaders/loss/grad.wgsl"),
     ),
     (
         "loss finalize",
@@ -37,7 +45,9 @@ struct Params {
 /// Intermediate buffers for one image size.
 struct Scratch {
     size: (u32, u32),
+    stats_h: wgpu::Buffer,
     dmaps: wgpu::Buffer,
+    dmaps_h: wgpu::Buffer,
     partials: wgpu::Buffer,
 }
 
@@ -48,7 +58,7 @@ pub struct LossKernel {
 }
 
 impl LossKernel {
-    /// Compiles the three passes on `device`.
+    /// Compiles the five passes on `device`.
     pub fn new(device: &wgpu::Device) -> Self {
         let header = shader_header();
         let pipelines = PASSES
@@ -114,9 +124,9 @@ impl LossKernel {
         let limit = limits
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
-        if pixels * 36 > limit {
+        if pixels * 60 > limit {
             return Err(LossError::ImageTooLarge {
-                needed: pixels * 36,
+                needed: pixels * 60,
                 limit,
             });
         }
@@ -140,17 +150,25 @@ impl LossKernel {
             usage: wgpu::BufferUsages::UNIFORM,
         });
         // Bindings of common.wgsl, in order.
-        let all: [&wgpu::Buffer; 7] = [
+        let all: [&wgpu::Buffer; 9] = [
             &params,
             rendered,
             target,
+            &scratch.stats_h,
             &scratch.dmaps,
+            &scratch.dmaps_h,
             &scratch.partials,
             grad_out,
             loss_out,
         ];
-        let used: [&[u32]; 3] = [&[0, 1, 2, 3, 4], &[0, 1, 2, 3, 5], &[0, 4, 6]];
-        let dispatch = [groups, groups, (1, 1)];
+        let used: [&[u32]; 5] = [
+            &[0, 1, 2, 3],
+            &[0, 1, 2, 3, 4, 6],
+            &[0, 4, 5],
+            &[0, 1, 2, 5, 7],
+            &[0, 6, 8],
+        ];
+        let dispatch = [groups, groups, groups, groups, (1, 1)];
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("loss"),
             timestamp_writes: None,
@@ -188,7 +206,9 @@ impl Scratch {
         };
         Scratch {
             size,
+            stats_h: storage("loss stats_h", pixels * 15 * 4),
             dmaps: storage("loss dmaps", pixels * 9 * 4),
+            dmaps_h: storage("loss dmaps_h", pixels * 9 * 4),
             partials: storage("loss partials", u64::from(n_partials) * 8),
         }
     }

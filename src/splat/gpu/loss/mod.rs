@@ -2,21 +2,15 @@
 //! to the rendered image, in WGSL (SPLATTING.md "Loss"; Kerbl et al. 2023: λ = 0.2, 11×11
 //! Gaussian window σ = 1.5, C1 = 0.01², C2 = 0.03², zero-padded "same" convolution).
 //!
-//! Three compute passes, no subgroup operations, no atomics, no readback:
+//! Five compute passes, no subgroup operations, no atomics, no readback:
 //!
-//! 1. per 16×16 tile and channel, x and y with a 5-pixel halo staged in workgroup memory; the
-//!    five moments x, y, x², y², xy blurred horizontally (26 rows, into workgroup memory) then
-//!    vertically; SSIM, its derivatives with respect to the blurred moments, and per-workgroup
-//!    partial sums of |x − y| and SSIM;
-//! 2. per tile and channel, the adjoint blur of those derivatives (the window is symmetric, so
-//!    the adjoint of the zero-padded "same" convolution is itself) the same way, then the
-//!    gradient;
-//! 3. one workgroup reduces the partial sums into `loss_out = [loss, l1, ssim, 0]` (f32).
-//!
-//! Staging a tile reads each input pixel about 2.6 times from global memory ((16 + 10)² / 16²)
-//! instead of 11 per blur direction, and the horizontal blurs no longer round-trip through
-//! 24 floats per pixel of global scratch (was five passes: two blur pairs through `stats_h` and
-//! `dmaps_h`). Summation order per pixel is unchanged.
+//! 1. horizontal blur of x, y, x², y², xy (per channel);
+//! 2. vertical blur, SSIM map, its derivatives with respect to the blurred maps and
+//!    per-workgroup partial sums of |x − y| and SSIM;
+//! 3. horizontal and
+//! 4. vertical adjoint blur of those derivatives (the window is symmetric, so the adjoint of
+//!    the zero-padded "same" convolution is itself), then the gradient;
+//! 5. one workgroup reduces the partial sums into `loss_out = [loss, l1, ssim, 0]` (f32).
 //!
 //! The caller copies `loss_out` whenever it likes (e.g. together with other statistics), so the
 //! loss costs no extra GPU→CPU read.
