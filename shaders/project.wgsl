@@ -1,7 +1,6 @@
 // Projection (SPLATTING.md "Forward", steps 1-8): one thread per Gaussian of one chunk. Writes the
-// screen-space record (3 vec4 per Gaussian) and the number of touched tiles (0 when culled). The
-// parameter buffers are bound as the chunk's sub-range (index `c`), `proj` and `tile_counts`
-// whole (index `i = chunk.x + c`).
+// screen-space record (3 vec4 per Gaussian) and the number of touched tiles (0 when culled). Every
+// buffer but the uniforms is bound as the chunk's sub-range (index `c`; see `chunks.rs`).
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -16,11 +15,11 @@
 // First Gaussian of the chunk, Gaussians in the chunk.
 @group(0) @binding(8) var<uniform> chunk: vec4<u32>;
 
-fn cull(i: u32) {
-    proj[3u * i] = vec4<f32>(0.0);
-    proj[3u * i + 1u] = vec4<f32>(0.0);
-    proj[3u * i + 2u] = vec4<f32>(0.0);
-    tile_counts[i] = 0u;
+fn cull(c: u32) {
+    proj[3u * c] = vec4<f32>(0.0);
+    proj[3u * c + 1u] = vec4<f32>(0.0);
+    proj[3u * c + 2u] = vec4<f32>(0.0);
+    tile_counts[c] = 0u;
 }
 
 @compute @workgroup_size(256)
@@ -30,13 +29,12 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     if c >= chunk.y {
         return;
     }
-    let i = chunk.x + c;
     let p = params;
     let mu = vec3<f32>(means[3u * c], means[3u * c + 1u], means[3u * c + 2u]);
     let w = cam_rot(p);
     let t = w * mu + p.trans.xyz;
     if t.z < NEAR {
-        cull(i);
+        cull(c);
         return;
     }
     let q = vec4<f32>(rotations[4u * c], rotations[4u * c + 1u], rotations[4u * c + 2u],
@@ -56,7 +54,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let s11 = dot(j1, sigma_c * j1) + LOW_PASS;
     let det = s00 * s11 - s01 * s01;
     if !(det > 0.0) {
-        cull(i);
+        cull(c);
         return;
     }
     let conic = vec3<f32>(s11 / det, -s01 / det, s00 / det);
@@ -67,7 +65,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let size = p.lim.zw;
     if mean2d.x + r < 0.0 || mean2d.x - r >= size.x || mean2d.y + r < 0.0
         || mean2d.y - r >= size.y {
-        cull(i);
+        cull(c);
         return;
     }
     // Colour from SH at the active degree.
@@ -81,9 +79,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     }
     rgb = max(rgb, vec3<f32>(0.0));
     let opacity = 1.0 / (1.0 + exp(-opacity_logits[c]));
-    proj[3u * i] = vec4<f32>(mean2d, t.z, bitcast<f32>(u32(r)));
-    proj[3u * i + 1u] = vec4<f32>(conic, opacity);
-    proj[3u * i + 2u] = vec4<f32>(rgb, 0.0);
+    proj[3u * c] = vec4<f32>(mean2d, t.z, bitcast<f32>(u32(r)));
+    proj[3u * c + 1u] = vec4<f32>(conic, opacity);
+    proj[3u * c + 2u] = vec4<f32>(rgb, 0.0);
     let rect = tile_rect(mean2d, r, p.dims.zw);
-    tile_counts[i] = (rect.z - rect.x + 1u) * (rect.w - rect.y + 1u);
+    tile_counts[c] = (rect.z - rect.x + 1u) * (rect.w - rect.y + 1u);
 }

@@ -19,9 +19,8 @@
 // densify[3 i] += |dL/dm| scaled to NDC, densify[3 i + 1] += 1 per view where visible,
 // densify[3 i + 2] = the largest screen radius (pixels) over those views.
 @group(0) @binding(12) var<storage, read_write> densify: array<f32>;
-// First Gaussian of the chunk, Gaussians in the chunk: per-Gaussian buffers (parameters,
-// gradients, densify) are bound as the chunk's sub-range (index `c`); proj and grads2d whole
-// (index `i = chunk.x + c`).
+// First Gaussian of the chunk, Gaussians in the chunk: every other buffer (parameters, proj,
+// grads2d, gradients, densify) is bound as the chunk's sub-range (index `c`).
 @group(0) @binding(13) var<uniform> chunk: vec4<u32>;
 
 // d Y_k / d(x, y, z) for k = 1..15, treating the components as independent.
@@ -69,9 +68,8 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     if c >= chunk.y {
         return;
     }
-    let i = chunk.x + c;
     let p = params;
-    let radius = bitcast<u32>(proj[3u * i].w);
+    let radius = bitcast<u32>(proj[3u * c].w);
     for (var k = 0u; k < 48u; k++) {
         g_sh[48u * c + k] = 0.0;
     }
@@ -86,10 +84,10 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         g_opacity[c] = 0.0;
         return;
     }
-    let v_m = vec2<f32>(grads2d[9u * i], grads2d[9u * i + 1u]);
-    let v_conic = vec3<f32>(grads2d[9u * i + 2u], grads2d[9u * i + 3u], grads2d[9u * i + 4u]);
-    let v_rgb_in = vec3<f32>(grads2d[9u * i + 5u], grads2d[9u * i + 6u], grads2d[9u * i + 7u]);
-    let v_opacity = grads2d[9u * i + 8u];
+    let v_m = vec2<f32>(grads2d[9u * c], grads2d[9u * c + 1u]);
+    let v_conic = vec3<f32>(grads2d[9u * c + 2u], grads2d[9u * c + 3u], grads2d[9u * c + 4u]);
+    let v_rgb_in = vec3<f32>(grads2d[9u * c + 5u], grads2d[9u * c + 6u], grads2d[9u * c + 7u]);
+    let v_opacity = grads2d[9u * c + 8u];
 
     // Densification statistic (reference: NDC gradient = pixel gradient x (w/2, h/2)).
     densify[3u * c] += length(v_m * 0.5 * p.lim.zw);
@@ -97,7 +95,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     densify[3u * c + 2u] = max(densify[3u * c + 2u], f32(radius));
 
     // Opacity: sigmoid derivative.
-    let o = proj[3u * i + 1u].w;
+    let o = proj[3u * c + 1u].w;
     g_opacity[c] = v_opacity * o * (1.0 - o);
 
     // Recompute the forward quantities.

@@ -8,13 +8,27 @@
 // kernel; a larger PIX divides the global atomics by up to PIX, which pays on CPU adapters
 // (lavapipe) where an atomic float add is a locked compare-and-swap loop. No subgroup operations.
 
+// Bindings 1-5 (projected record slots, band): `slots.wgsl`; 11-14: the screen-space gradient
+// slots, same split as the records (`atomic_*.wgsl`, one copy per slot). One dispatch per band of
+// tile rows; `values` and `ranges` index the band's sorted intersections.
 @group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(1) var<storage, read> proj: array<vec4<f32>>;
-@group(0) @binding(2) var<storage, read> values: array<u32>;
-@group(0) @binding(3) var<storage, read> ranges: array<u32>;
-@group(0) @binding(4) var<storage, read> final_t: array<f32>;
-@group(0) @binding(5) var<storage, read> n_contrib: array<u32>;
-@group(0) @binding(6) var<storage, read> dl_dimage: array<f32>;
+@group(0) @binding(6) var<storage, read> values: array<u32>;
+@group(0) @binding(7) var<storage, read> ranges: array<u32>;
+@group(0) @binding(8) var<storage, read> final_t: array<f32>;
+@group(0) @binding(9) var<storage, read> n_contrib: array<u32>;
+@group(0) @binding(10) var<storage, read> dl_dimage: array<f32>;
+
+// Adds v to screen-space gradient k (0..8) of Gaussian g, in g's slot.
+fn add_grad(g: u32, k: u32, v: f32) {
+    let s = min(g / band.z, 3u);
+    let i = 9u * (g - s * band.z) + k;
+    switch s {
+        case 0u: { add_0(i, v); }
+        case 1u: { add_1(i, v); }
+        case 2u: { add_2(i, v); }
+        default: { add_3(i, v); }
+    }
+}
 
 const BATCH: u32 = 256u;
 
@@ -28,7 +42,8 @@ var<workgroup> last_snap: u32;
 @compute @workgroup_size(THREADS)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let p = params;
-    let tile = wg.y * p.dims.z + wg.x;
+    let tile_y = wg.y + band.x;
+    let tile = tile_y * p.dims.z + wg.x;
     if lid == 0u {
         shared_u = vec2<u32>(ranges[2u * tile], ranges[2u * tile + 1u]);
         atomicStore(&max_last, 0u);
@@ -45,7 +60,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     for (var k = 0u; k < PIX; k++) {
         let lp = lid * PIX + k;
         let px = wg.x * TILE + lp % TILE;
-        let py = wg.y * TILE + lp / TILE;
+        let py = tile_y * TILE + lp / TILE;
         pix[k] = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
         t_final[k] = 1.0;
         last[k] = 0u;
@@ -77,11 +92,11 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             let k = b * BATCH + s;
             if k < total {
                 let g = values[range.x + k];
-                let p0 = proj[3u * g];
-                let p1 = proj[3u * g + 1u];
+                let p0 = load_proj(g, 0u);
+                let p1 = load_proj(g, 1u);
                 b_xy_op[s] = vec4<f32>(p0.xy, p1.w, bitcast<f32>(g));
                 b_conic[s] = vec4<f32>(p1.xyz, 0.0);
-                b_rgb[s] = proj[3u * g + 2u];
+                b_rgb[s] = load_proj(g, 2u);
             }
         }
         workgroupBarrier();
@@ -133,16 +148,16 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             }
             if hit {
                 let g = bitcast<u32>(xo.w);
-                add_grad(9u * g + 5u, g_rgb.x);
-                add_grad(9u * g + 6u, g_rgb.y);
-                add_grad(9u * g + 7u, g_rgb.z);
+                add_grad(g, 5u, g_rgb.x);
+                add_grad(g, 6u, g_rgb.y);
+                add_grad(g, 7u, g_rgb.z);
                 if hit_geo {
-                    add_grad(9u * g, g_mean.x);
-                    add_grad(9u * g + 1u, g_mean.y);
-                    add_grad(9u * g + 2u, g_conic.x);
-                    add_grad(9u * g + 3u, g_conic.y);
-                    add_grad(9u * g + 4u, g_conic.z);
-                    add_grad(9u * g + 8u, g_opacity);
+                    add_grad(g, 0u, g_mean.x);
+                    add_grad(g, 1u, g_mean.y);
+                    add_grad(g, 2u, g_conic.x);
+                    add_grad(g, 3u, g_conic.y);
+                    add_grad(g, 4u, g_conic.z);
+                    add_grad(g, 8u, g_opacity);
                 }
             }
         }

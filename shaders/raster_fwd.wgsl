@@ -4,14 +4,15 @@
 // workgroup memory and blended front to back (SPLATTING.md "Per pixel"); a thread reads each
 // staged Gaussian once for all its pixels, and the workgroup stops once every pixel is saturated.
 
+// Bindings 1-5 (projected record slots, band): `slots.wgsl`. One dispatch per band of tile rows;
+// `values` and `ranges` index the band's sorted intersections.
 @group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(1) var<storage, read> proj: array<vec4<f32>>;
-@group(0) @binding(2) var<storage, read> values: array<u32>;
-@group(0) @binding(3) var<storage, read> ranges: array<u32>;
-@group(0) @binding(4) var<storage, read_write> image: array<f32>;
-@group(0) @binding(5) var<storage, read_write> final_t: array<f32>;
+@group(0) @binding(6) var<storage, read> values: array<u32>;
+@group(0) @binding(7) var<storage, read> ranges: array<u32>;
+@group(0) @binding(8) var<storage, read_write> image: array<f32>;
+@group(0) @binding(9) var<storage, read_write> final_t: array<f32>;
 // Per pixel: 1 + position (within the tile's run) of the last Gaussian blended, 0 if none.
-@group(0) @binding(6) var<storage, read_write> n_contrib: array<u32>;
+@group(0) @binding(10) var<storage, read_write> n_contrib: array<u32>;
 
 const BATCH: u32 = 256u;
 
@@ -25,7 +26,8 @@ var<workgroup> done_snap: u32;
 @compute @workgroup_size(THREADS)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let p = params;
-    let tile = wg.y * p.dims.z + wg.x;
+    let tile_y = wg.y + band.x;
+    let tile = tile_y * p.dims.z + wg.x;
     if lid == 0u {
         shared_u = vec2<u32>(ranges[2u * tile], ranges[2u * tile + 1u]);
         atomicStore(&done_count, 0u);
@@ -40,7 +42,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     for (var k = 0u; k < PIX; k++) {
         let lp = lid * PIX + k;
         let px = wg.x * TILE + lp % TILE;
-        let py = wg.y * TILE + lp / TILE;
+        let py = tile_y * TILE + lp / TILE;
         pix[k] = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
         done[k] = !(px < p.dims.x && py < p.dims.y);
         t[k] = 1.0;
@@ -67,11 +69,11 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             let k = range.x + b * BATCH + s;
             if k < range.y {
                 let g = values[k];
-                let p0 = proj[3u * g];
-                let p1 = proj[3u * g + 1u];
+                let p0 = load_proj(g, 0u);
+                let p1 = load_proj(g, 1u);
                 b_xy_op[s] = vec4<f32>(p0.xy, p1.w, 0.0);
                 b_conic[s] = vec4<f32>(p1.xyz, 0.0);
-                b_rgb[s] = proj[3u * g + 2u];
+                b_rgb[s] = load_proj(g, 2u);
             }
         }
         workgroupBarrier();
@@ -108,7 +110,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     for (var k = 0u; k < PIX; k++) {
         let lp = lid * PIX + k;
         let px = wg.x * TILE + lp % TILE;
-        let py = wg.y * TILE + lp / TILE;
+        let py = tile_y * TILE + lp / TILE;
         if px < p.dims.x && py < p.dims.y {
             let o = py * p.dims.x + px;
             let col = c[k] + t[k] * p.bg.xyz;

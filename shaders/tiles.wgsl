@@ -1,7 +1,11 @@
-// Tile bookkeeping. `emit`: one thread per Gaussian writes a (tile id, depth bits, Gaussian id)
-// triple per touched tile at its scanned offset (Gaussian order, so ties in depth keep the index
-// order after the stable sort). `ranges`: one thread per sorted intersection marks where each
-// tile's run starts and ends.
+// Tile bookkeeping, in bands of whole tile rows (`renderer.rs`: a frame whose intersections
+// exceed one storage binding is split into bands, each with its own intersection arrays).
+// `emit`: one thread per Gaussian of one chunk writes a (band-local tile id, depth bits, Gaussian
+// id) triple per touched tile of the band at its scanned offset (Gaussian order, so ties in depth
+// keep the index order after the stable sort). `ranges`: one thread per sorted intersection of a
+// band marks where each tile's run starts and ends. `row_counts`: intersections per tile row (to
+// plan the bands). `band_counts`: per Gaussian, the tiles it touches within the band.
+// Per-Gaussian buffers (proj, offsets, counts) are bound as the chunk's sub-range (index `c`).
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> proj: array<vec4<f32>>;
@@ -9,29 +13,53 @@
 @group(0) @binding(3) var<storage, read_write> keys_hi: array<u32>;
 @group(0) @binding(4) var<storage, read_write> keys_lo: array<u32>;
 @group(0) @binding(5) var<storage, read_write> values: array<u32>;
-// ranges[2 t] = first intersection of tile t, ranges[2 t + 1] = one past its last.
+// ranges[2 t] = first intersection of tile t (in its band's arrays), ranges[2 t + 1] = one past
+// its last.
 @group(0) @binding(6) var<storage, read_write> ranges: array<u32>;
+// First Gaussian of the chunk, Gaussians in the chunk.
+@group(0) @binding(7) var<uniform> chunk: vec4<u32>;
+// First tile row of the band, one past its last, Gaussians per proj slot (unused here),
+// intersections in the band.
+@group(0) @binding(8) var<uniform> band: vec4<u32>;
+@group(0) @binding(9) var<storage, read_write> rows: array<atomic<u32>>;
+@group(0) @binding(10) var<storage, read_write> counts: array<u32>;
+
+// Tile rectangle of chunk Gaussian `c` (x0, y0, x1, y1 inclusive); `ok` false when culled (a
+// visible Gaussian has a radius of at least 2 px, `project.wgsl`).
+struct Rect {
+    r: vec4<u32>,
+    ok: bool,
+}
+
+fn rect_of(c: u32) -> Rect {
+    let p0 = proj[3u * c];
+    let radius = bitcast<u32>(p0.w);
+    if radius == 0u {
+        return Rect(vec4<u32>(0u), false);
+    }
+    return Rect(tile_rect(p0.xy, f32(radius), params.dims.zw), true);
+}
 
 @compute @workgroup_size(256)
 fn emit(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = linear_id(wg, nwg, lid);
-    if i >= params.counts.x {
+    let c = linear_id(wg, nwg, lid);
+    if c >= chunk.y {
         return;
     }
-    let count = offsets[i + 1u] - offsets[i];
-    if count == 0u {
+    let rc = rect_of(c);
+    let y0 = max(rc.r.y, band.x);
+    let y1 = min(rc.r.w + 1u, band.y);
+    if !rc.ok || y0 >= y1 {
         return;
     }
-    let p0 = proj[3u * i];
-    let r = f32(bitcast<u32>(p0.w));
-    let rect = tile_rect(p0.xy, r, params.dims.zw);
+    let i = chunk.x + c;
     // Depth > NEAR > 0, so its IEEE bits order like the value.
-    let depth_bits = bitcast<u32>(p0.z);
-    var k = offsets[i];
-    for (var ty = rect.y; ty <= rect.w; ty++) {
-        for (var tx = rect.x; tx <= rect.z; tx++) {
-            keys_hi[k] = ty * params.dims.z + tx;
+    let depth_bits = bitcast<u32>(proj[3u * c].z);
+    var k = offsets[c];
+    for (var ty = y0; ty < y1; ty++) {
+        for (var tx = rc.r.x; tx <= rc.r.z; tx++) {
+            keys_hi[k] = (ty - band.x) * params.dims.z + tx;
             keys_lo[k] = depth_bits;
             values[k] = i;
             k++;
@@ -43,15 +71,50 @@ fn emit(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
 fn ranges_main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                @builtin(local_invocation_index) lid: u32) {
     let k = linear_id(wg, nwg, lid);
-    let n = params.counts.z;
+    let n = band.w;
     if k >= n {
         return;
     }
-    let tile = keys_hi[k];
-    if k == 0u || keys_hi[k - 1u] != tile {
+    let local = keys_hi[k];
+    let tile = band.x * params.dims.z + local;
+    if k == 0u || keys_hi[k - 1u] != local {
         ranges[2u * tile] = k;
     }
-    if k + 1u == n || keys_hi[k + 1u] != tile {
+    if k + 1u == n || keys_hi[k + 1u] != local {
         ranges[2u * tile + 1u] = k + 1u;
     }
+}
+
+@compute @workgroup_size(256)
+fn row_counts(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+              @builtin(local_invocation_index) lid: u32) {
+    let c = linear_id(wg, nwg, lid);
+    if c >= chunk.y {
+        return;
+    }
+    let rc = rect_of(c);
+    if !rc.ok {
+        return;
+    }
+    let width = rc.r.z - rc.r.x + 1u;
+    for (var ty = rc.r.y; ty <= rc.r.w; ty++) {
+        atomicAdd(&rows[ty], width);
+    }
+}
+
+@compute @workgroup_size(256)
+fn band_counts(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+               @builtin(local_invocation_index) lid: u32) {
+    let c = linear_id(wg, nwg, lid);
+    if c >= chunk.y {
+        return;
+    }
+    let rc = rect_of(c);
+    let y0 = max(rc.r.y, band.x);
+    let y1 = min(rc.r.w + 1u, band.y);
+    var n = 0u;
+    if rc.ok && y0 < y1 {
+        n = (rc.r.z - rc.r.x + 1u) * (y1 - y0);
+    }
+    counts[c] = n;
 }

@@ -1,6 +1,7 @@
-//! Per-Gaussian chunking: with a small planning cap (`GpuContext::chunk_cap_bytes`) a model of a
-//! thousand Gaussians splits into many chunks (the last one partial); renders, gradients,
-//! densification statistics and a few training steps must equal the one-chunk run.
+//! Per-Gaussian chunking, projected-record slots and intersection bands: with a small planning
+//! cap (`GpuContext::chunk_cap_bytes`) a model of a few thousand Gaussians splits into many
+//! chunks (the last one partial), several slots and several bands of tile rows; renders,
+//! gradients, densification statistics and a few training steps must equal the one-binding run.
 
 use crate::common;
 
@@ -8,13 +9,18 @@ use sylva::splat::adam::{AdamState, LearningRates};
 use sylva::splat::backend::Backend;
 use sylva::splat::cameras::View;
 use sylva::splat::gpu::buffers::storage_from;
-use sylva::splat::gpu::chunks::ChunkPlan;
-use sylva::splat::gpu::{GpuBackend, GpuContext, GpuGrads, GpuSplats, Renderer};
+use sylva::splat::gpu::chunks::{ChunkPlan, SlotPlan};
+use sylva::splat::gpu::renderer::{BandSpan, plan_bands};
+use sylva::splat::gpu::{AtomicMode, GpuBackend, GpuContext, GpuGrads, GpuSplats, Renderer};
 use sylva::splat::model::Gaussians;
 use sylva::splat::packed_image::PackedImage;
 
 /// 128 Gaussians per chunk when the offset alignment is 256 bytes (64-Gaussian units).
 const CAP: u64 = 2 * 64 * 192;
+
+/// 256 Gaussians per chunk, 1024 per projected-record slot, 12,288 intersections per band (with
+/// 256-byte offset alignment).
+const BIG_CAP: u64 = 4 * 64 * 192;
 
 fn chunked(ctx: &GpuContext) -> GpuContext {
     let mut c = ctx.clone();
@@ -56,10 +62,33 @@ fn plan_splits_into_aligned_whole_gaussian_chunks() {
     assert!(err.to_string().contains("SH"), "{err}");
 }
 
+#[test]
+fn slot_and_band_plans() {
+    let Some(ctx) = common::context() else { return };
+    let c = chunked(&ctx);
+    let slots = SlotPlan::new(&c, 1000).expect("slots");
+    assert_eq!(slots.per_slot as u64 % (ctx.offset_alignment / 4), 0);
+    assert!(slots.per_slot as u64 * 48 <= CAP);
+    assert_eq!(slots.used(), 1000u32.div_ceil(slots.per_slot));
+    assert!(slots.used() >= 2, "{slots:?}");
+    // More than four slots' worth is a clear error naming the projected records.
+    let err = SlotPlan::new(&c, 4 * slots.per_slot + 1).expect_err("too many");
+    assert!(err.to_string().contains("projected"), "{err}");
+    let band = |row0, rows, count| BandSpan { row0, rows, count };
+    let bands = plan_bands(&[3, 4, 0, 5, 2, 7], 7).expect("bands");
+    assert_eq!(bands, [band(0, 3, 7), band(3, 2, 7), band(5, 1, 7)]);
+    assert_eq!(plan_bands(&[1, 2], 100).expect("one"), [band(0, 2, 3)]);
+    let err = plan_bands(&[1, 9, 1], 8).expect_err("row too large");
+    assert!(err.to_string().contains("one row"), "{err}");
+}
+
 struct Pass {
     image: Vec<[f32; 3]>,
     grads: Vec<Vec<f32>>,
     densify: Vec<f32>,
+    bands: usize,
+    slots: u32,
+    intersections: u32,
 }
 
 fn render_and_backward(ctx: &GpuContext, model: &Gaussians, w: u32, h: u32) -> Pass {
@@ -78,6 +107,9 @@ fn render_and_backward(ctx: &GpuContext, model: &Gaussians, w: u32, h: u32) -> P
     let g = grads.download(ctx).expect("download");
     let s = grads.download_stats(ctx).expect("stats");
     Pass {
+        bands: frame.bands.len(),
+        slots: frame.slots.used(),
+        intersections: frame.intersections,
         image: frame.read_image(ctx).expect("image"),
         grads: vec![
             flat(&g.means),
@@ -104,6 +136,71 @@ fn chunked_render_and_backward_equal_unchunked() {
         close(&format!("gradient group {k}"), gb, ga, 1e-4);
     }
     close("densify stat", &b.densify, &a.densify, 1e-4);
+}
+
+/// A frame with more Gaussians and intersections than one (capped) binding holds: three slots
+/// of projected records and screen gradients, several bands of tile rows, against the
+/// one-binding run and the CPU reference.
+#[test]
+fn slotted_and_banded_frame_equals_single_binding() {
+    let Some(ctx) = common::context() else { return };
+    let mut c = ctx.clone();
+    c.chunk_cap_bytes = Some(BIG_CAP);
+    let model = common::scene(34, 3000, 3, 1.2);
+    let (w, h) = (128, 96);
+    let a = render_and_backward(&ctx, &model, w, h);
+    let b = render_and_backward(&c, &model, w, h);
+    eprintln!(
+        "{} intersections: one binding {} band(s), {} slot(s); capped {} bands, {} slots",
+        a.intersections, a.bands, a.slots, b.bands, b.slots
+    );
+    assert_eq!((a.bands, a.slots), (1, 1));
+    assert!(b.bands >= 2 && b.slots >= 3, "capped run not split");
+    assert_eq!(a.image, b.image, "banded render differs");
+    for (k, (ga, gb)) in a.grads.iter().zip(&b.grads).enumerate() {
+        close(&format!("gradient group {k}"), gb, ga, 1e-4);
+    }
+    close("densify stat", &b.densify, &a.densify, 1e-4);
+    let cam = common::camera(w, h, 0.8 * w as f32);
+    let bg = [0.1, 0.2, 0.3];
+    let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
+    let (rel, bad) = common::compare(&flat(&b.image), &flat(&cpu.image), 1e-3, 1e-4);
+    eprintln!("  banded image vs CPU: rel {rel:.2e}, bad {bad:.4}");
+    assert!(
+        rel < 1e-4 && bad < 0.002,
+        "banded image disagrees with the CPU reference"
+    );
+    let dl = common::random_dl((w * h) as usize, 77);
+    let (want, want_stat) =
+        sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+    let want = [
+        flat(&want.means),
+        flat(&want.log_scales),
+        flat(&want.rotations),
+        want.opacity_logits,
+        flat(&want.sh),
+    ];
+    for (k, (gb, wc)) in b.grads.iter().zip(&want).enumerate() {
+        let (rel, bad) = common::compare(gb, wc, 2e-3, 2e-4);
+        eprintln!("  banded gradient group {k} vs CPU: rel {rel:.2e}, bad {bad:.4}");
+        assert!(rel < 2e-3 && bad < 0.01, "banded gradient group {k} vs CPU");
+    }
+    let (rel, bad) = common::compare(&b.densify, &want_stat, 2e-3, 2e-4);
+    assert!(
+        rel < 2e-3 && bad < 0.01,
+        "banded densify stat vs CPU: {rel} {bad}"
+    );
+    // The compare-and-swap template, one copy per gradient slot.
+    let Some(mut cas) = common::context_with(Some(AtomicMode::CompareSwap)) else {
+        return;
+    };
+    cas.chunk_cap_bytes = Some(BIG_CAP);
+    let d = render_and_backward(&cas, &model, w, h);
+    assert_eq!((d.bands, d.slots), (b.bands, b.slots));
+    assert_eq!(a.image, d.image, "banded render (CAS build) differs");
+    for (k, (ga, gd)) in a.grads.iter().zip(&d.grads).enumerate() {
+        close(&format!("CAS gradient group {k}"), gd, ga, 1e-4);
+    }
 }
 
 fn view(model: &Gaussians, w: u32, h: u32) -> View {

@@ -90,13 +90,24 @@ pub fn read_buffer<T: bytemuck::Pod>(
     buffer: &wgpu::Buffer,
     count: usize,
 ) -> Result<Vec<T>, GpuError> {
+    read_buffer_at(ctx, buffer, 0, count)
+}
+
+/// Copies `count` elements of `buffer` from element `first` on back to the CPU (blocking).
+pub fn read_buffer_at<T: bytemuck::Pod>(
+    ctx: &GpuContext,
+    buffer: &wgpu::Buffer,
+    first: usize,
+    count: usize,
+) -> Result<Vec<T>, GpuError> {
     let bytes = (count * size_of::<T>()) as u64;
+    let start = (first * size_of::<T>()) as u64;
     if bytes == 0 {
         return Ok(Vec::new());
     }
-    if bytes > buffer.size() {
+    if !start.is_multiple_of(4) || start + bytes.div_ceil(4) * 4 > buffer.size() {
         return Err(GpuError::Invalid(format!(
-            "read of {bytes} bytes from a buffer of {} bytes",
+            "read of {bytes} bytes at {start} from a buffer of {} bytes",
             buffer.size()
         )));
     }
@@ -107,7 +118,7 @@ pub fn read_buffer<T: bytemuck::Pod>(
         mapped_at_creation: false,
     });
     let mut enc = ctx.device.create_command_encoder(&Default::default());
-    enc.copy_buffer_to_buffer(buffer, 0, &staging, 0, staging.size());
+    enc.copy_buffer_to_buffer(buffer, start, &staging, 0, staging.size());
     ctx.queue.submit([enc.finish()]);
     let (tx, rx) = std::sync::mpsc::channel();
     staging.map_async(wgpu::MapMode::Read, .., move |r| {

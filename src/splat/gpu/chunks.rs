@@ -11,10 +11,13 @@
 //! 699,008 Gaussians.
 //!
 //! Buffers read at random by Gaussian id (the projected records and the screen-space gradients,
-//! read and written by the rasteriser through the sorted intersections) and the intersection
-//! arrays (sorted by a radix sort's scatter) are bound whole; they are 48, 36 and 4 × 3 bytes per
-//! Gaussian or intersection and fail with [`GpuError::BufferTooLarge`] past one binding (≈ 2.8M
-//! Gaussians or 11M intersections on lavapipe).
+//! read and written by the rasteriser through the sorted intersections) are bound as up to
+//! [`SLOTS`] sub-ranges ("slots") of whole Gaussians ([`SlotPlan`]); the shader picks the slot
+//! from the id (`shaders/slots.wgsl`). The kernels that run per Gaussian (projection, emission,
+//! projection backward) bind them in the chunks above. The intersection arrays are split into
+//! bands of tile rows, each within one binding (`renderer.rs`). On lavapipe (128 MiB bindings)
+//! that allows 4 × 2,796,160 Gaussians and any number of intersections as long as one row of
+//! 16-pixel tiles holds at most 33.5M.
 
 use std::num::NonZeroU64;
 
@@ -111,6 +114,93 @@ pub fn bind_ranges(
         .enumerate()
         .map(|(i, b)| wgpu::BindGroupEntry {
             binding: i as u32,
+            resource: wgpu::BindingResource::Buffer(b.clone()),
+        })
+        .collect();
+    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: None,
+        layout: &layout,
+        entries: &entries,
+    })
+}
+
+/// Storage bindings through which the rasterisers reach the projected records, and as many for
+/// the screen-space gradients (`shaders/slots.wgsl`): with the 9 other buffers of the backward
+/// raster that is 13 storage bindings per stage, within the 16 this crate asks for.
+pub const SLOTS: u32 = 4;
+
+/// Bytes per Gaussian of the widest slotted buffer: the projected record, 3 × `vec4<f32>`.
+pub const SLOT_BYTES: u64 = 48;
+
+/// How `count` Gaussians split into at most [`SLOTS`] slots of `per_slot` for random access.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SlotPlan {
+    /// Number of Gaussians.
+    pub count: u32,
+    /// Gaussians per slot (a multiple of the alignment unit, at least 1).
+    pub per_slot: u32,
+}
+
+impl SlotPlan {
+    /// Plans slots of `count` Gaussians under [`GpuContext::chunk_binding_bytes`]; fails with
+    /// [`GpuError::BufferTooLarge`] when [`SLOTS`] bindings cannot hold the projected records.
+    pub fn new(ctx: &GpuContext, count: u32) -> Result<Self, GpuError> {
+        let cap = ctx.chunk_binding_bytes();
+        let unit = (ctx.offset_alignment / 4).max(1);
+        let per = (cap / SLOT_BYTES) / unit * unit;
+        if per == 0 || count as u64 > per * SLOTS as u64 {
+            return Err(GpuError::BufferTooLarge {
+                what: "projected Gaussians (48 bytes each, read at random through 4 bindings)",
+                bytes: count as u64 * SLOT_BYTES,
+                limit: per * SLOTS as u64 * SLOT_BYTES,
+            });
+        }
+        Ok(SlotPlan {
+            count,
+            per_slot: u32::try_from(per).unwrap_or(u32::MAX),
+        })
+    }
+
+    /// Slots in use (0 for an empty model).
+    pub fn used(&self) -> u32 {
+        self.count.div_ceil(self.per_slot)
+    }
+
+    /// The [`SLOTS`] sub-ranges of `buffer` (`floats` f32 per Gaussian) in slot order; a slot
+    /// past the model binds `dummy` (any small storage buffer, never read or written).
+    pub fn bindings<'a>(
+        &self,
+        buffer: &'a wgpu::Buffer,
+        floats: u32,
+        dummy: &'a wgpu::Buffer,
+    ) -> Vec<wgpu::BufferBinding<'a>> {
+        (0..SLOTS)
+            .map(|s| {
+                let base = s as u64 * self.per_slot as u64;
+                if base >= self.count as u64 {
+                    return dummy.as_entire_buffer_binding();
+                }
+                let chunk = Chunk {
+                    base: base as u32,
+                    len: (self.count as u64 - base).min(self.per_slot as u64) as u32,
+                };
+                chunk.range(buffer, floats)
+            })
+            .collect()
+    }
+}
+
+/// Binds each `(binding, range)` of `pipeline`'s group 0 (for entry points that use a subset).
+pub fn bind_entries(
+    ctx: &GpuContext,
+    pipeline: &wgpu::ComputePipeline,
+    bindings: &[(u32, wgpu::BufferBinding)],
+) -> wgpu::BindGroup {
+    let layout = pipeline.get_bind_group_layout(0);
+    let entries: Vec<wgpu::BindGroupEntry> = bindings
+        .iter()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: *i,
             resource: wgpu::BindingResource::Buffer(b.clone()),
         })
         .collect();

@@ -16,9 +16,8 @@ pub enum GpuError {
     Device(String),
     /// A buffer would exceed what one storage binding may hold on this adapter.
     #[error(
-        "{what} needs {bytes} bytes but one storage binding may hold at most {limit} bytes on this \
-         adapter (it is bound whole: the rasteriser or the sort reads it at random); render fewer \
-         Gaussians or a smaller image"
+        "{what} needs {bytes} bytes but at most {limit} bytes can be bound for it on this adapter \
+         (storage binding limits); render fewer Gaussians or a smaller image"
     )]
     BufferTooLarge {
         what: &'static str,
@@ -86,9 +85,10 @@ pub struct GpuContext {
     /// Alignment of a bound sub-range's offset, bytes (`min_storage_buffer_offset_alignment`;
     /// 256 by the WebGPU default).
     pub offset_alignment: u64,
-    /// Caps the binding size used to plan per-Gaussian chunks, bytes (`None`: the adapter's
-    /// `max_binding_bytes`). Only for tests and experiments: a small cap splits even a small
-    /// model into many chunks.
+    /// Caps the binding size used to plan per-Gaussian chunks, the rasterisers' projected-record
+    /// slots and the bands of intersections, bytes (`None`: the adapter's `max_binding_bytes`).
+    /// Only for tests and experiments: a small cap splits even a small model into many chunks,
+    /// slots and bands.
     pub chunk_cap_bytes: Option<u64>,
     /// Pixels per thread of both rasters (1, 2, 4, 8 or 16; see `raster_bwd.wgsl`):
     /// [`RASTER_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, or `SYLVA_RASTER_PIXELS`.

@@ -2,8 +2,27 @@
 //! loss kernel needs.
 
 use crate::splat::gpu::buffers::read_buffer;
+use crate::splat::gpu::chunks::SlotPlan;
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::params::RenderParams;
+
+/// A band of whole tile rows with its own sorted intersection arrays (each within one storage
+/// binding): one band per frame unless the frame's intersections exceed one binding.
+pub struct Band {
+    /// First tile row.
+    pub row0: u32,
+    /// Tile rows.
+    pub rows: u32,
+    /// Intersections of the band's tiles.
+    pub count: u32,
+    /// Sorted intersections: band-local tile id (row − `row0`) · tiles_x + column, depth bits,
+    /// Gaussian id.
+    pub keys_hi: wgpu::Buffer,
+    pub keys_lo: wgpu::Buffer,
+    pub values: wgpu::Buffer,
+    /// `vec4<u32>(row0, row0 + rows, Gaussians per slot, count)`, `band` in the shaders.
+    pub uniform: wgpu::Buffer,
+}
 
 /// Buffers of one forward render (kept for its backward pass).
 pub struct Frame {
@@ -11,15 +30,17 @@ pub struct Frame {
     pub params: RenderParams,
     pub params_buf: wgpu::Buffer,
     /// Per Gaussian, 3 × vec4: (mean2d px, depth m, radius px as u32 bits), (conic a, b, c,
-    /// opacity), (r, g, b, 0). All zero for culled Gaussians.
+    /// opacity), (r, g, b, 0). All zero for culled Gaussians. Bound in chunks and `slots`.
     pub proj: wgpu::Buffer,
+    /// How the rasterisers bind `proj` and the screen-space gradients (random access by id).
+    pub slots: SlotPlan,
+    /// Bound in place of projected-record slots past the model (16 bytes, never read).
+    pub dummy: wgpu::Buffer,
     /// Exclusive prefix sum of the touched-tile counts, `count + 1` entries (last = total).
     pub offsets: wgpu::Buffer,
-    /// Sorted intersections: tile id, depth bits, Gaussian id.
-    pub keys_hi: wgpu::Buffer,
-    pub keys_lo: wgpu::Buffer,
-    pub values: wgpu::Buffer,
-    /// Per tile: first and one-past-last intersection.
+    /// The bands of tile rows, top to bottom, covering every row.
+    pub bands: Vec<Band>,
+    /// Per tile: first and one-past-last intersection in its band's arrays.
     pub ranges: wgpu::Buffer,
     /// The rendered image incl. background: `w·h·3` f32, interleaved RGB, row-major.
     pub image: wgpu::Buffer,

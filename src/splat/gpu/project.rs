@@ -1,5 +1,6 @@
 //! Projection and tile bookkeeping kernels: `project.wgsl` (per-Gaussian screen record and
-//! touched-tile count) and `tiles.wgsl` (emit one sort key per touched tile; per-tile ranges).
+//! touched-tile count) and `tiles.wgsl` (emit one sort key per touched tile; per-tile ranges;
+//! intersections per tile row and per band).
 
 use crate::splat::gpu::buffers::{bind, grid, pipeline};
 use crate::splat::gpu::context::GpuContext;
@@ -49,6 +50,10 @@ pub struct ProjectKernels {
     pub emit: wgpu::ComputePipeline,
     /// Per sorted intersection: tile run boundaries.
     pub ranges: wgpu::ComputePipeline,
+    /// Per Gaussian: add its intersections to each touched tile row.
+    pub row_counts: wgpu::ComputePipeline,
+    /// Per Gaussian: its intersections within one band of tile rows.
+    pub band_counts: wgpu::ComputePipeline,
 }
 
 impl ProjectKernels {
@@ -60,6 +65,8 @@ impl ProjectKernels {
             project: pipeline(ctx, "project", &project, "main"),
             emit: pipeline(ctx, "emit", &tiles, "emit"),
             ranges: pipeline(ctx, "ranges", &tiles, "ranges_main"),
+            row_counts: pipeline(ctx, "row counts", &tiles, "row_counts"),
+            band_counts: pipeline(ctx, "band counts", &tiles, "band_counts"),
         }
     }
 }

@@ -5,6 +5,7 @@ use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::GpuContext;
 use crate::splat::gpu::frame::Frame;
 use crate::splat::gpu::project::{dispatch_group, groups_for, with_common};
+use crate::splat::gpu::raster_bwd::GRADS2D_STRIDE;
 use crate::splat::model::SH_FLOATS;
 
 /// SH floats per Gaussian, as the `u32` that sub-range bindings take.
@@ -48,8 +49,8 @@ impl ProjectBwd {
                     chunk.range(&splats.log_scales, 3),
                     chunk.range(&splats.rotations, 4),
                     chunk.range(&splats.sh, SH),
-                    frame.proj.as_entire_buffer_binding(),
-                    grads2d.as_entire_buffer_binding(),
+                    chunk.range(&frame.proj, 12),
+                    chunk.range(grads2d, GRADS2D_STRIDE as u32),
                     chunk.range(&grads.means, 3),
                     chunk.range(&grads.log_scales, 3),
                     chunk.range(&grads.rotations, 4),

@@ -2,9 +2,14 @@
 //! the compare-and-swap fallback (`atomic_float.wgsl` / `atomic_cas.wgsl`).
 
 use crate::splat::gpu::buffers::pipeline;
+use crate::splat::gpu::chunks::{SLOTS, bind_ranges};
 use crate::splat::gpu::context::{AtomicMode, GpuContext};
 use crate::splat::gpu::frame::Frame;
-use crate::splat::gpu::project::{dispatch, with_common};
+use crate::splat::gpu::project::{dispatch_group, with_common};
+use crate::splat::gpu::raster_fwd::SLOTS_WGSL;
+
+/// Binding of the first screen-space gradient slot (`raster_bwd.wgsl`).
+const GRADS2D_BINDING: u32 = 11;
 
 /// Screen-space gradient floats per Gaussian: mean2d (2), conic (3), rgb (3), opacity (1).
 pub const GRADS2D_STRIDE: u64 = 9;
@@ -21,9 +26,17 @@ impl RasterBwd {
             AtomicMode::Float => include_str!("../../../shaders/atomic_float.wgsl"),
             AtomicMode::CompareSwap => include_str!("../../../shaders/atomic_cas.wgsl"),
         };
+        let atomics: String = (0..SLOTS)
+            .map(|s| {
+                atomics
+                    .replace("SLOT", &s.to_string())
+                    .replace("BINDING", &(GRADS2D_BINDING + s).to_string())
+            })
+            .collect::<Vec<_>>()
+            .join("\n");
         let pix = ctx.raster_pixels.clamp(1, 16).next_power_of_two();
         let src = with_common(&format!(
-            "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{atomics}\n{}",
+            "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{SLOTS_WGSL}\n{atomics}\n{}",
             256 / pix,
             include_str!("../../../shaders/raster_bwd.wgsl")
         ));
@@ -33,7 +46,8 @@ impl RasterBwd {
     }
 
     /// Records the raster backward of `frame` given dL/dimage (w·h·3 f32, interleaved RGB),
-    /// accumulating into `grads2d` (which must be zero beforehand, 9 floats per Gaussian).
+    /// accumulating into `grads2d` (which must be zero beforehand, 9 floats per Gaussian, bound
+    /// in the frame's slots), one dispatch per band of tile rows.
     pub fn encode(
         &self,
         ctx: &GpuContext,
@@ -42,22 +56,46 @@ impl RasterBwd {
         dl_dimage: &wgpu::Buffer,
         grads2d: &wgpu::Buffer,
     ) {
-        let (tx, ty) = frame.params.tiles();
-        dispatch(
-            ctx,
-            enc,
-            &self.pipeline,
-            &[
-                &frame.params_buf,
-                &frame.proj,
-                &frame.values,
-                &frame.ranges,
-                &frame.final_t,
-                &frame.n_contrib,
-                dl_dimage,
-                grads2d,
-            ],
-            (tx, ty),
-        );
+        let (tx, _) = frame.params.tiles();
+        // Empty gradient slots bind their own dummy each: writable bindings must not alias.
+        let dummies: Vec<wgpu::Buffer> = (0..SLOTS)
+            .map(|_| {
+                ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("empty gradient slot"),
+                    size: 16,
+                    usage: wgpu::BufferUsages::STORAGE,
+                    mapped_at_creation: false,
+                })
+            })
+            .collect();
+        let g2d: Vec<wgpu::BufferBinding> = frame
+            .slots
+            .bindings(grads2d, GRADS2D_STRIDE as u32, &frame.dummy)
+            .into_iter()
+            .zip(&dummies)
+            .enumerate()
+            .map(|(s, (b, d))| {
+                if (s as u32) < frame.slots.used() {
+                    b
+                } else {
+                    d.as_entire_buffer_binding()
+                }
+            })
+            .collect();
+        for band in &frame.bands {
+            let mut b = vec![frame.params_buf.as_entire_buffer_binding()];
+            b.extend(frame.slots.bindings(&frame.proj, 12, &frame.dummy));
+            b.extend([
+                band.uniform.as_entire_buffer_binding(),
+                band.values.as_entire_buffer_binding(),
+                frame.ranges.as_entire_buffer_binding(),
+                frame.final_t.as_entire_buffer_binding(),
+                frame.n_contrib.as_entire_buffer_binding(),
+                dl_dimage.as_entire_buffer_binding(),
+            ]);
+            b.extend(g2d.iter().cloned());
+            let bg = bind_ranges(ctx, &self.pipeline, &b);
+            dispatch_group(enc, &self.pipeline, &bg, (tx, band.rows));
+        }
     }
 }

@@ -1,10 +1,14 @@
 //! Forward rasterisation kernel (`raster_fwd.wgsl`): one workgroup per 16×16 tile,
-//! [`GpuContext::raster_pixels`] pixels per thread.
+//! [`GpuContext::raster_pixels`] pixels per thread, one dispatch per band of tile rows.
 
 use crate::splat::gpu::buffers::pipeline;
+use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::GpuContext;
 use crate::splat::gpu::frame::Frame;
-use crate::splat::gpu::project::{dispatch, with_common};
+use crate::splat::gpu::project::{dispatch_group, with_common};
+
+/// `slots.wgsl`: the projected-record slots and the band uniform of both rasterisers.
+pub(crate) const SLOTS_WGSL: &str = include_str!("../../../shaders/slots.wgsl");
 
 /// The forward raster pipeline.
 pub struct RasterFwd {
@@ -16,7 +20,7 @@ impl RasterFwd {
     pub fn new(ctx: &GpuContext) -> Self {
         let pix = ctx.raster_pixels.clamp(1, 16).next_power_of_two();
         let src = with_common(&format!(
-            "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{}",
+            "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{SLOTS_WGSL}\n{}",
             256 / pix,
             include_str!("../../../shaders/raster_fwd.wgsl")
         ));
@@ -28,21 +32,20 @@ impl RasterFwd {
     /// Records the rasterisation of `frame` (sorted, with tile ranges) into its image,
     /// final transmittance and contributor buffers.
     pub fn encode(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, frame: &Frame) {
-        let (tx, ty) = frame.params.tiles();
-        dispatch(
-            ctx,
-            enc,
-            &self.pipeline,
-            &[
-                &frame.params_buf,
-                &frame.proj,
-                &frame.values,
-                &frame.ranges,
-                &frame.image,
-                &frame.final_t,
-                &frame.n_contrib,
-            ],
-            (tx, ty),
-        );
+        let (tx, _) = frame.params.tiles();
+        for band in &frame.bands {
+            let mut b = vec![frame.params_buf.as_entire_buffer_binding()];
+            b.extend(frame.slots.bindings(&frame.proj, 12, &frame.dummy));
+            b.extend([
+                band.uniform.as_entire_buffer_binding(),
+                band.values.as_entire_buffer_binding(),
+                frame.ranges.as_entire_buffer_binding(),
+                frame.image.as_entire_buffer_binding(),
+                frame.final_t.as_entire_buffer_binding(),
+                frame.n_contrib.as_entire_buffer_binding(),
+            ]);
+            let bg = bind_ranges(ctx, &self.pipeline, &b);
+            dispatch_group(enc, &self.pipeline, &bg, (tx, band.rows));
+        }
     }
 }

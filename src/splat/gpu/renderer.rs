@@ -1,16 +1,24 @@
 //! The rasteriser: forward (projection → tile counts → scan → emit → sort → ranges → raster) and
 //! backward (raster backward → projection backward), with optional per-pass CPU timing.
+//!
+//! When a frame's tile intersections exceed one storage binding (4 bytes each per array), the
+//! tiles are split into bands of whole rows ([`plan_bands`], from a read-back of the
+//! intersections per row): each band gets its own per-Gaussian tile counts and offsets, emission,
+//! sort and ranges, and both rasterisers run once per band. A tile's run lies in one band, so
+//! blending and its backward are unchanged.
 
 use std::time::Instant;
 
 use crate::splat::camera::Camera;
 
-use crate::splat::gpu::buffers::{read_buffer, storage_zeroed, uniform_from};
-use crate::splat::gpu::chunks::bind_ranges;
+use crate::splat::gpu::buffers::{
+    chunked_zeroed, read_buffer, read_buffer_at, storage_zeroed, uniform_from,
+};
+use crate::splat::gpu::chunks::{SlotPlan, bind_entries, bind_ranges};
 use crate::splat::gpu::context::{GpuContext, GpuError};
-use crate::splat::gpu::frame::Frame;
+use crate::splat::gpu::frame::{Band, Frame};
 use crate::splat::gpu::params::RenderParams;
-use crate::splat::gpu::project::{ProjectKernels, dispatch, dispatch_group, groups_for};
+use crate::splat::gpu::project::{ProjectKernels, dispatch_group, groups_for};
 use crate::splat::gpu::project_bwd::ProjectBwd;
 use crate::splat::gpu::raster_bwd::{GRADS2D_STRIDE, RasterBwd};
 use crate::splat::gpu::raster_fwd::RasterFwd;
@@ -81,9 +89,9 @@ impl Renderer {
                 cam.width, cam.height, cam.fx, cam.fy
             )));
         }
-        if ctx.device.limits().max_storage_buffers_per_shader_stage < 12 {
+        if ctx.device.limits().max_storage_buffers_per_shader_stage < 13 {
             return Err(GpuError::Invalid(
-                "the adapter allows fewer than 12 storage buffers per shader stage".into(),
+                "the adapter allows fewer than 13 storage buffers per shader stage".into(),
             ));
         }
         let mut times = PassTimings::default();
@@ -96,9 +104,10 @@ impl Renderer {
             clock.last = Instant::now();
         }
         let n = splats.count;
+        let slots = SlotPlan::new(ctx, n)?;
         let mut params = RenderParams::new(cam, background, n, splats.sh_degree);
         let params_buf = uniform_from(ctx, "render params", &params);
-        let proj = storage_zeroed(ctx, "projected", n as u64 * 48)?;
+        let proj = chunked_zeroed(ctx, "projected", n as u64 * 48)?;
         let offsets = storage_zeroed(ctx, "tile offsets", (n as u64 + 1) * 4)?;
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         let p = &self.project;
@@ -115,8 +124,8 @@ impl Renderer {
                     chunk.range(&s.rotations, 4),
                     chunk.range(&s.opacity_logits, 1),
                     chunk.range(&s.sh, SH_FLOATS as u32),
-                    proj.as_entire_buffer_binding(),
-                    offsets.as_entire_buffer_binding(),
+                    chunk.range(&proj, 12),
+                    chunk.range(&offsets, 1),
                     cu.as_entire_buffer_binding(),
                 ],
             );
@@ -125,8 +134,10 @@ impl Renderer {
         self.scanner.encode(ctx, &mut enc, &offsets, n + 1)?;
         ctx.queue.submit([enc.finish()]);
         // The one read-back of the forward pass: the total number of intersections.
-        let total = read_buffer::<u32>(ctx, &offsets, n as usize + 1)?;
-        let isect = total.last().copied().unwrap_or(0);
+        let isect = read_buffer_at::<u32>(ctx, &offsets, n as usize, 1)?
+            .first()
+            .copied()
+            .unwrap_or(0);
         times.project_ms =
             clock.submit(ctx, ctx.device.create_command_encoder(&Default::default()))?;
 
@@ -135,43 +146,125 @@ impl Renderer {
             .write_buffer(&params_buf, 0, bytemuck::bytes_of(&params));
         let (tx, ty) = params.tiles();
         let tiles = tx * ty;
-        let m = isect as u64 * 4;
-        let keys_hi = storage_zeroed(ctx, "keys hi (tile)", m)?;
-        let keys_lo = storage_zeroed(ctx, "keys lo (depth)", m)?;
-        let values = storage_zeroed(ctx, "sorted ids", m)?;
+        // Intersections per band: one binding of each intersection array.
+        let cap = (ctx.chunk_binding_bytes() / 4).max(1);
+        let spans = if u64::from(isect) <= cap {
+            vec![BandSpan {
+                row0: 0,
+                rows: ty,
+                count: isect,
+            }]
+        } else {
+            plan_bands(&self.row_counts(ctx, splats, &params_buf, &proj, ty)?, cap)?
+        };
         let ranges = storage_zeroed(ctx, "tile ranges", tiles as u64 * 8)?;
         let pixels = cam.width as u64 * cam.height as u64;
         let image = storage_zeroed(ctx, "image", pixels * 12)?;
         let final_t = storage_zeroed(ctx, "final T", pixels * 4)?;
         let n_contrib = storage_zeroed(ctx, "n contrib", pixels * 4)?;
+        // Several bands: per-band tile counts and offsets, one band after the other.
+        let band_offsets = if spans.len() > 1 {
+            Some(storage_zeroed(
+                ctx,
+                "band tile offsets",
+                (n as u64 + 1) * 4,
+            )?)
+        } else {
+            None
+        };
         let mut enc = ctx.device.create_command_encoder(&Default::default());
-        let emit_bufs = [&params_buf, &proj, &offsets, &keys_hi, &keys_lo, &values];
-        dispatch(ctx, &mut enc, &p.emit, &emit_bufs, groups_for(n));
-        self.sorter.encode(
-            ctx,
-            &mut enc,
-            &keys_hi,
-            &keys_lo,
-            &values,
-            isect,
-            bits_for(tiles - 1),
-        )?;
-        let rbg = crate::splat::gpu::buffers::bind_indexed(
-            ctx,
-            &p.ranges,
-            &[(0, &params_buf), (3, &keys_hi), (6, &ranges)],
-        );
-        dispatch_group(&mut enc, &p.ranges, &rbg, groups_for(isect));
+        let mut bands = Vec::with_capacity(spans.len());
+        for span in spans {
+            let uniform = uniform_from(
+                ctx,
+                "band",
+                &[span.row0, span.row0 + span.rows, slots.per_slot, span.count],
+            );
+            let m = span.count as u64 * 4;
+            let keys_hi = storage_zeroed(ctx, "keys hi (tile)", m)?;
+            let keys_lo = storage_zeroed(ctx, "keys lo (depth)", m)?;
+            let values = storage_zeroed(ctx, "sorted ids", m)?;
+            let offs = match &band_offsets {
+                Some(b) => {
+                    for chunk in s.plan.chunks() {
+                        let cu = chunk.uniform(ctx);
+                        let bg = bind_entries(
+                            ctx,
+                            &p.band_counts,
+                            &[
+                                (0, params_buf.as_entire_buffer_binding()),
+                                (1, chunk.range(&proj, 12)),
+                                (7, cu.as_entire_buffer_binding()),
+                                (8, uniform.as_entire_buffer_binding()),
+                                (10, chunk.range(b, 1)),
+                            ],
+                        );
+                        dispatch_group(&mut enc, &p.band_counts, &bg, groups_for(chunk.len));
+                    }
+                    self.scanner.encode(ctx, &mut enc, b, n + 1)?;
+                    b
+                }
+                None => &offsets,
+            };
+            for chunk in s.plan.chunks() {
+                let cu = chunk.uniform(ctx);
+                let bg = bind_entries(
+                    ctx,
+                    &p.emit,
+                    &[
+                        (0, params_buf.as_entire_buffer_binding()),
+                        (1, chunk.range(&proj, 12)),
+                        (2, chunk.range(offs, 1)),
+                        (3, keys_hi.as_entire_buffer_binding()),
+                        (4, keys_lo.as_entire_buffer_binding()),
+                        (5, values.as_entire_buffer_binding()),
+                        (7, cu.as_entire_buffer_binding()),
+                        (8, uniform.as_entire_buffer_binding()),
+                    ],
+                );
+                dispatch_group(&mut enc, &p.emit, &bg, groups_for(chunk.len));
+            }
+            self.sorter.encode(
+                ctx,
+                &mut enc,
+                &keys_hi,
+                &keys_lo,
+                &values,
+                span.count,
+                bits_for((span.rows * tx).max(1) - 1),
+            )?;
+            let rbg = bind_entries(
+                ctx,
+                &p.ranges,
+                &[
+                    (0, params_buf.as_entire_buffer_binding()),
+                    (3, keys_hi.as_entire_buffer_binding()),
+                    (6, ranges.as_entire_buffer_binding()),
+                    (8, uniform.as_entire_buffer_binding()),
+                ],
+            );
+            dispatch_group(&mut enc, &p.ranges, &rbg, groups_for(span.count));
+            bands.push(Band {
+                row0: span.row0,
+                rows: span.rows,
+                count: span.count,
+                keys_hi,
+                keys_lo,
+                values,
+                uniform,
+            });
+        }
         times.sort_ms = clock.submit(ctx, enc)?;
 
+        let dummy = storage_zeroed(ctx, "empty slot", 16)?;
         let frame = Frame {
             params,
             params_buf,
             proj,
+            slots,
+            dummy,
             offsets,
-            keys_hi,
-            keys_lo,
-            values,
+            bands,
             ranges,
             image,
             final_t,
@@ -183,6 +276,36 @@ impl Renderer {
         self.raster_fwd.encode(ctx, &mut enc, &frame);
         times.raster_ms = clock.submit(ctx, enc)?;
         Ok((frame, times))
+    }
+
+    /// Intersections per tile row (`ty` rows), read back: the plan of the bands.
+    fn row_counts(
+        &self,
+        ctx: &GpuContext,
+        splats: &GpuSplats,
+        params_buf: &wgpu::Buffer,
+        proj: &wgpu::Buffer,
+        ty: u32,
+    ) -> Result<Vec<u32>, GpuError> {
+        let rows = storage_zeroed(ctx, "intersections per tile row", ty as u64 * 4)?;
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        let p = &self.project;
+        for chunk in splats.plan.chunks() {
+            let cu = chunk.uniform(ctx);
+            let bg = bind_entries(
+                ctx,
+                &p.row_counts,
+                &[
+                    (0, params_buf.as_entire_buffer_binding()),
+                    (1, chunk.range(proj, 12)),
+                    (7, cu.as_entire_buffer_binding()),
+                    (9, rows.as_entire_buffer_binding()),
+                ],
+            );
+            dispatch_group(&mut enc, &p.row_counts, &bg, groups_for(chunk.len));
+        }
+        ctx.queue.submit([enc.finish()]);
+        read_buffer(ctx, &rows, ty as usize)
     }
 
     /// Records the backward pass of `frame` into `enc`: `dl_dimage` is dL/d(image), w·h·3 f32
@@ -250,7 +373,7 @@ impl Renderer {
                 frame.pixels() * 12
             )));
         }
-        let grads2d = storage_zeroed(ctx, "grads 2d", frame.count as u64 * GRADS2D_STRIDE * 4)?;
+        let grads2d = chunked_zeroed(ctx, "grads 2d", frame.count as u64 * GRADS2D_STRIDE * 4)?;
         let mut times = PassTimings::default();
         if let Some(enc) = enc_in {
             self.raster_bwd.encode(ctx, enc, frame, dl_dimage, &grads2d);
@@ -278,4 +401,55 @@ impl Renderer {
         times.project_bwd_ms = clock.submit(ctx, enc)?;
         Ok(times)
     }
+}
+
+/// Tile rows and intersections of one band.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BandSpan {
+    /// First tile row.
+    pub row0: u32,
+    /// Tile rows.
+    pub rows: u32,
+    /// Intersections in those rows.
+    pub count: u32,
+}
+
+/// Splits tile rows with `row_counts` intersections each into consecutive bands of at most `cap`
+/// intersections (greedy, top to bottom; every row in exactly one band). Fails with
+/// [`GpuError::BufferTooLarge`] when one row alone exceeds `cap`.
+pub fn plan_bands(row_counts: &[u32], cap: u64) -> Result<Vec<BandSpan>, GpuError> {
+    let mut out: Vec<BandSpan> = Vec::new();
+    let mut cur: Option<BandSpan> = None;
+    for (y, &c) in row_counts.iter().enumerate() {
+        let y = u32::try_from(y).unwrap_or(u32::MAX);
+        if u64::from(c) > cap {
+            return Err(GpuError::BufferTooLarge {
+                what: "the tile intersections of one row of 16-pixel tiles",
+                bytes: u64::from(c) * 4,
+                limit: cap * 4,
+            });
+        }
+        cur = match cur {
+            Some(b) if u64::from(b.count) + u64::from(c) <= cap => Some(BandSpan {
+                rows: b.rows + 1,
+                count: b.count + c,
+                ..b
+            }),
+            Some(b) => {
+                out.push(b);
+                Some(BandSpan {
+                    row0: y,
+                    rows: 1,
+                    count: c,
+                })
+            }
+            None => Some(BandSpan {
+                row0: y,
+                rows: 1,
+                count: c,
+            }),
+        };
+    }
+    out.extend(cur);
+    Ok(out)
 }
