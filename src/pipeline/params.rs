@@ -78,11 +78,16 @@ pub struct RegisterParams {
     /// it is experimental and does not yet reach the accuracy of control points; without it
     /// a job with no control points stops with a clear request for them).
     pub automatic: bool,
-    /// The automatic coarse alignment must reach this confidence in [0, 1], or the stage
-    /// refuses and asks for control points (default 0.5).
+    /// The automatic alignment must reach this confidence in [0, 1], or the stage refuses
+    /// and asks for control points (default 0.5). The confidence comes from ICP run from each
+    /// coarse candidate: how many SfM points, and how many of those standing above the
+    /// ground, then lie on the LiDAR cloud, and by how much the best candidate beats the best
+    /// distinct other (`pipeline::register::verify_candidates`).
     pub min_confidence: f64,
-    /// After an automatic coarse alignment, ICP must pair at least this share of the SfM
-    /// points with LiDAR points, or the stage refuses (default 0.5).
+    /// After the automatic alignment's ICP, at least this share of the SfM points must lie
+    /// within 6 cm of the thinned LiDAR cloud, or the stage refuses (default 0.3: a floor
+    /// only; right alignments of `stand` reach 0.52, but flat ground lets wrong ones on
+    /// `tiny` reach 0.42-0.66 too, so the confidence does the discriminating).
     pub min_fitness: f64,
     /// Finish with the surface refinement of [`crate::geom::surface`]: the similarity that
     /// puts the SfM points on quadric patches of the LiDAR surface (ground, stems, stones;
@@ -131,7 +136,7 @@ impl Default for RegisterParams {
             target_voxel_m: 0.05,
             automatic: false,
             min_confidence: 0.5,
-            min_fitness: 0.5,
+            min_fitness: 0.3,
             refine: true,
             refine_voxel_m: 0.01,
             refine_radius_m: 0.08,
