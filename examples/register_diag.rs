@@ -2,7 +2,7 @@
 //! recovered `sfm_to_lidar` of stage `register` against the generator's truth.
 //!
 //! `cargo run --profile test --example register_diag -- PRESET SEEDS [auto|analyse]`, e.g.
-//! `-- tiny 1-5` or `-- stand 1-5 auto` (which also prints the automatic coarse alignment's
+//! `-- tiny 1-5` or `-- stand 1-5 auto` (`light-stand` for the light stand of the tests) (which also prints the automatic coarse alignment's
 //! own errors). `analyse` prints where the SfM points lie on the LiDAR's classes, why points
 //! get no surface patch, and the surface refinement started from the true pose with its
 //! standard errors (`REG_DIAG_LOG=1` shows its iterations). Plots are cached under `$REG_DIAG_DIR` (default
@@ -29,7 +29,15 @@ fn errors(est: &Similarity, truth: &Similarity, centre: DVec3) -> (f64, f64, f64
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let preset = Preset::from_name(args.first().map_or("tiny", String::as_str)).ok_or("preset")?;
+    // "light-stand": the lighter stand of tests/register.rs (30 photos of 320×180, 800 k LiDAR
+    // points, 5000 SfM points).
+    let name = args.first().map_or("tiny", String::as_str);
+    let light = name == "light-stand";
+    let preset = if light {
+        Preset::Stand
+    } else {
+        Preset::from_name(name).ok_or("preset")?
+    };
     let seeds: Vec<u64> = match args
         .get(1)
         .map(String::as_str)
@@ -54,10 +62,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for seed in seeds {
-        let out = root.join(format!("{}-{seed}", preset.name()));
+        let out = root.join(format!("{name}-{seed}"));
         if !out.join("truth.json").exists() {
             let mut p = SynthParams::new(preset);
             p.seed = seed;
+            if light {
+                p.images = Some(30);
+                p.width = Some(320);
+                p.height = Some(180);
+                p.lidar_points = Some(800_000);
+                p.points3d = Some(5_000);
+            }
             sylva::synth::generate(&p, &out, &NoProgress)?;
         }
         let work = out.join("work");

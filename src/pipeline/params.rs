@@ -86,8 +86,9 @@ pub struct RegisterParams {
     pub min_confidence: f64,
     /// After the automatic alignment's ICP, at least this share of the SfM points must lie
     /// within 6 cm of the thinned LiDAR cloud, or the stage refuses (default 0.3: a floor
-    /// only; right alignments of `stand` reach 0.52, but flat ground lets wrong ones on
-    /// `tiny` reach 0.42-0.66 too, so the confidence does the discriminating).
+    /// only; after ICP and one surface pass right alignments of `stand` reach 0.58-0.71, but
+    /// flat ground lets wrong ones on `tiny` reach 0.44-0.66 too, so the confidence does the
+    /// discriminating).
     pub min_fitness: f64,
     /// Finish with the surface refinement of [`crate::geom::surface`]: the similarity that
     /// puts the SfM points on quadric patches of the LiDAR surface (ground, stems, stones;
