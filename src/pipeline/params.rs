@@ -74,9 +74,10 @@ pub struct RegisterParams {
     /// The LiDAR cloud is thinned to this voxel size (metres) as the ICP target (default
     /// 0.05 m: well below SfM point noise, and fast).
     pub target_voxel_m: f64,
-    /// Try the automatic coarse alignment when no control points are given (default false:
-    /// it is experimental and does not yet reach the accuracy of control points; without it
-    /// a job with no control points stops with a clear request for them).
+    /// Try the automatic alignment when no control points are given (default false: it
+    /// reaches the goals on `stand` but refuses on small plots such as `tiny`, README
+    /// registration results; without it a job with no control points stops with a clear
+    /// request for them).
     pub automatic: bool,
     /// The automatic alignment must reach this confidence in [0, 1], or the stage refuses
     /// and asks for control points (default 0.5). The confidence comes from ICP run from each
@@ -86,7 +87,8 @@ pub struct RegisterParams {
     pub min_confidence: f64,
     /// After the automatic alignment's ICP, at least this share of the SfM points must lie
     /// within 6 cm of the thinned LiDAR cloud, or the stage refuses (default 0.3: a floor
-    /// only; after ICP and one surface pass right alignments of `stand` reach 0.58-0.71, but
+    /// only; after ICP and the surface passes right alignments of `stand` reach 0.69-0.72 and
+    /// the light stand of the tests 0.37, but
     /// flat ground lets wrong ones on `tiny` reach 0.44-0.66 too, so the confidence does the
     /// discriminating).
     pub min_fitness: f64,
