@@ -85,12 +85,11 @@ pub struct RegisterParams {
     /// ground, then lie on the LiDAR cloud, and by how much the best candidate beats the best
     /// distinct other (`pipeline::register::verify_candidates`).
     pub min_confidence: f64,
-    /// After the automatic alignment's ICP, at least this share of the SfM points must lie
-    /// within 6 cm of the thinned LiDAR cloud, or the stage refuses (default 0.3: a floor
-    /// only; after ICP and the surface passes right alignments of `stand` reach 0.69-0.72 and
-    /// the light stand of the tests 0.37, but
-    /// flat ground lets wrong ones on `tiny` reach 0.44-0.66 too, so the confidence does the
-    /// discriminating).
+    /// After the automatic alignment's ICP and surface passes, at least this share of the
+    /// SfM points must lie within 6 cm of the thinned LiDAR cloud, or the stage refuses
+    /// (default 0.3: a floor only; right alignments of `stand` reach 0.69-0.72 and the light
+    /// stand of the tests 0.37, but flat ground lets wrong ones on `tiny` reach 0.44-0.66
+    /// too, so the confidence does the discriminating).
     pub min_fitness: f64,
     /// Finish with the surface refinement of [`crate::geom::surface`]: the similarity that
     /// puts the SfM points on quadric patches of the LiDAR surface (ground, stems, stones;

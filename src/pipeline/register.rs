@@ -231,9 +231,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             ));
             if v.best_fit < p.min_fitness {
                 return Err(StageError::Input(format!(
-                    "automatic registration rejected: after ICP only {:.0}% of the SfM points \
-                     lie on the LiDAR cloud (< {:.0}%); the photos and the scan may not \
-                     overlap; supply control points (at least 4 pairs)",
+                    "automatic registration rejected: after ICP and the surface refinement only \
+                     {:.0}% of the SfM points lie on the LiDAR cloud (< {:.0}%); the photos \
+                     and the scan may not overlap; supply control points (at least 4 pairs)",
                     v.best_fit * 100.0,
                     p.min_fitness * 100.0
                 )));
@@ -598,7 +598,9 @@ const ON_CLOUD_M: f64 = 0.06;
 /// metres: above the `tiny`/`stand` terrain relief within the ground window.
 const ELEVATED_M: f64 = 0.5;
 
-/// Lowest point of the cloud per 0.5 m cell, then the lowest within ±1 m: the local ground.
+/// Lowest point of the cloud per 0.5 m cell, then the lowest within ±1 m: the local ground
+/// (none for a cloud over 4 km across: no point then counts as elevated, and the automatic
+/// alignment gets no confidence).
 struct GroundGrid {
     x0: f64,
     y0: f64,
