@@ -2,7 +2,7 @@
 //! recovered `sfm_to_lidar` of stage `register` against the generator's truth.
 //!
 //! `cargo run --profile test --example register_diag -- PRESET SEEDS [auto|analyse]`, e.g.
-//! `-- tiny 1-5` or `-- stand 1-5 auto` (which also prints the automatic coarse alignment's
+//! `-- tiny 1-5` or `-- stand 1-5 auto` (`light-stand` for the light stand of the tests) (which also prints the automatic coarse alignment's
 //! own errors). `analyse` prints where the SfM points lie on the LiDAR's classes, why points
 //! get no surface patch, and the surface refinement started from the true pose with its
 //! standard errors (`REG_DIAG_LOG=1` shows its iterations). Plots are cached under `$REG_DIAG_DIR` (default
@@ -29,7 +29,15 @@ fn errors(est: &Similarity, truth: &Similarity, centre: DVec3) -> (f64, f64, f64
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let preset = Preset::from_name(args.first().map_or("tiny", String::as_str)).ok_or("preset")?;
+    // "light-stand": the lighter stand of tests/register.rs (30 photos of 320×180, 800 k LiDAR
+    // points, 5000 SfM points).
+    let name = args.first().map_or("tiny", String::as_str);
+    let light = name == "light-stand";
+    let preset = if light {
+        Preset::Stand
+    } else {
+        Preset::from_name(name).ok_or("preset")?
+    };
     let seeds: Vec<u64> = match args
         .get(1)
         .map(String::as_str)
@@ -54,10 +62,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for seed in seeds {
-        let out = root.join(format!("{}-{seed}", preset.name()));
+        let out = root.join(format!("{name}-{seed}"));
         if !out.join("truth.json").exists() {
             let mut p = SynthParams::new(preset);
             p.seed = seed;
+            if light {
+                p.images = Some(30);
+                p.width = Some(320);
+                p.height = Some(180);
+                p.lidar_points = Some(800_000);
+                p.points3d = Some(5_000);
+            }
             sylva::synth::generate(&p, &out, &NoProgress)?;
         }
         let work = out.join("work");
@@ -78,7 +93,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             coarse_only(&out)?;
         }
         let t0 = Instant::now();
-        let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &NoProgress);
+        let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &Printer);
         let secs = t0.elapsed().as_secs_f64();
         let truth: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
@@ -101,6 +116,30 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let offset = DVec3::from_array(serde_json::from_value(report["lidar_offset"].clone())?);
         let mut coarse = get("coarse")?;
         coarse.translation += offset;
+        if let Some(cands) = report["candidates"].as_array() {
+            for (k, c) in cands.iter().enumerate() {
+                let sim = |key: &str| {
+                    pipeline::register::similarity_from_json(&c[key]).map(|mut s| {
+                        s.translation += offset;
+                        errors(&s, &truth_sim, centre)
+                    })
+                };
+                if let (Some(a), Some(b)) = (sim("coarse"), sim("final")) {
+                    println!(
+                        "  candidate {k}: coarse {:.2}° {:.2}% {:.2} m -> ICP {:.3}° {:.3}% {:.3} m; on-cloud {:.3}, elevated {:.3} of {}",
+                        a.0,
+                        a.1 * 100.0,
+                        a.2,
+                        b.0,
+                        b.1 * 100.0,
+                        b.2,
+                        c["on_cloud"].as_f64().unwrap_or(f64::NAN),
+                        c["elevated_on_cloud"].as_f64().unwrap_or(f64::NAN),
+                        c["elevated_points"]
+                    );
+                }
+            }
+        }
         let (cr, cs, ct) = errors(&coarse, &truth_sim, centre);
         let (r, s, tr) = errors(&get("sfm_to_lidar")?, &truth_sim, centre);
         println!(
@@ -127,27 +166,36 @@ fn coarse_only(out: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> 
     let (truth, centre) = truth_of(out)?;
     let sfm: Vec<DVec3> = model.points.iter().map(|q| q.xyz).collect();
     let rays = pipeline::register::camera_rays(&model);
-    match sylva::geom::coarse::align(
+    if let Ok(up) = sylva::geom::coarse::up_from_cameras(&rays) {
+        let true_up = truth.rotation.transpose() * DVec3::Z;
+        println!(
+            "  up from the cameras: {:.2}° from the true up",
+            up.angle_between(true_up).to_degrees()
+        );
+    }
+    match sylva::geom::coarse::align_candidates(
         &sfm,
         &rays,
         &cloud.positions,
         &Default::default(),
         &NoProgress,
     ) {
-        Ok(c) => {
-            let est = Similarity {
-                translation: c.transform.translation + cloud.offset,
-                ..c.transform
-            };
-            let (r, s, t) = errors(&est, &truth, centre);
-            println!(
-                "  coarse alone: rot {r:.2}°, scale {:.2}%, {:.2} m at the centre; confidence {:.2}, score {:.3}, runner-up {:.3}",
-                s * 100.0,
-                t,
-                c.confidence,
-                c.score,
-                c.runner_up
-            );
+        Ok(cands) => {
+            for (k, c) in cands.iter().enumerate() {
+                let est = Similarity {
+                    translation: c.transform.translation + cloud.offset,
+                    ..c.transform
+                };
+                let (r, s, t) = errors(&est, &truth, centre);
+                println!(
+                    "  coarse candidate {k}: rot {r:.2}°, scale {:.2}%, {:.2} m at the centre; confidence {:.2}, score {:.3}, runner-up {:.3}",
+                    s * 100.0,
+                    t,
+                    c.confidence,
+                    c.score,
+                    c.runner_up
+                );
+            }
         }
         Err(e) => println!("  coarse alone: {e}"),
     }

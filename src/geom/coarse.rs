@@ -9,11 +9,14 @@
 //!    canopy-height model (highest point minus the local lowest) and the detrended terrain
 //!    (local lowest point). Normalised cross-correlation on a coarse grid over every yaw and
 //!    a log-spaced range of scales (from the ratio of robust horizontal and vertical
-//!    extents), then a fine grid around the best hypotheses.
-//! 4. The vertical offset comes from the terrain rasters; the confidence from how clearly
-//!    the best hypothesis beats the best distinct other one and from its correlation.
+//!    extents); the best few distinct hypotheses are then refined on rasters of a third and
+//!    a ninth of the coarse cell.
+//! 4. The vertical offset comes from the terrain rasters; each hypothesis carries a raster
+//!    confidence (how clearly it beats the best distinct other one, and its correlation).
 //!
-//! ICP then refines the result (stage `register`).
+//! The raster confidence cannot tell a right alignment from a wrong one reliably, so stage
+//! `register` runs ICP and the surface refinement from every candidate and decides on how
+//! well the SfM points then lie on the LiDAR cloud (`pipeline::register::verify_candidates`).
 
 use glam::{DMat3, DVec3, Vec3};
 use serde::{Deserialize, Serialize};
@@ -35,6 +38,10 @@ pub struct CoarseParams {
     /// Fraction of the smaller cloud's valid raster cells that must overlap the other's for
     /// a hypothesis to count (default 0.6).
     pub min_overlap: f64,
+    /// Distinct hypotheses kept from the coarse search, refined and returned by
+    /// [`align_candidates`] (default 4: each costs one ICP and one surface pass in stage
+    /// `register`; on `sylva synth` `stand` the right one was always the first).
+    pub candidates: usize,
 }
 
 impl Default for CoarseParams {
@@ -45,6 +52,7 @@ impl Default for CoarseParams {
             scale_margin: 1.35,
             coarse_cells: 24,
             min_overlap: 0.6,
+            candidates: 4,
         }
     }
 }
@@ -137,6 +145,7 @@ fn rasterise(
     cell: f64,
     nx: usize,
     ny: usize,
+    half: usize,
 ) -> Rasters {
     let mut hi = vec![f64::NAN; nx * ny];
     let mut lo = vec![f64::NAN; nx * ny];
@@ -150,28 +159,46 @@ fn rasterise(
         hi[k] = if hi[k].is_nan() { p.z } else { hi[k].max(p.z) };
         lo[k] = if lo[k].is_nan() { p.z } else { lo[k].min(p.z) };
     }
-    // Local ground: lowest point within the 5×5 neighbourhood.
-    let mut ground = vec![f64::NAN; nx * ny];
-    for j in 0..ny {
-        for i in 0..nx {
-            let mut m = f64::NAN;
-            for b in j.saturating_sub(2)..(j + 3).min(ny) {
-                for a in i.saturating_sub(2)..(i + 3).min(nx) {
-                    let v = lo[b * nx + a];
-                    if !v.is_nan() && (m.is_nan() || v < m) {
-                        m = v;
-                    }
-                }
-            }
-            ground[j * nx + i] = m;
-        }
-    }
+    // Local ground: lowest point within the (2h+1)² neighbourhood (separable min filter).
+    let ground = min_filter(&lo, nx, ny, half);
     let chm: Vec<f64> = hi.iter().zip(&ground).map(|(h, g)| h - g).collect();
     // Detrend the terrain by its mean so only its shape counts.
     let valid: Vec<f64> = ground.iter().copied().filter(|v| !v.is_nan()).collect();
     let mean = valid.iter().sum::<f64>() / valid.len().max(1) as f64;
     let dtm = ground.iter().map(|g| g - mean).collect();
     Rasters { nx, ny, chm, dtm }
+}
+
+/// Lowest non-NaN value within `half` cells in x and y of each cell (NaN where none).
+fn min_filter(v: &[f64], nx: usize, ny: usize, half: usize) -> Vec<f64> {
+    let nanmin = |a: f64, b: f64| {
+        if a.is_nan() || (!b.is_nan() && b < a) {
+            b
+        } else {
+            a
+        }
+    };
+    let mut rows = vec![f64::NAN; nx * ny];
+    for j in 0..ny {
+        for i in 0..nx {
+            let mut m = f64::NAN;
+            for a in i.saturating_sub(half)..(i + half + 1).min(nx) {
+                m = nanmin(m, v[j * nx + a]);
+            }
+            rows[j * nx + i] = m;
+        }
+    }
+    let mut out = vec![f64::NAN; nx * ny];
+    for j in 0..ny {
+        for i in 0..nx {
+            let mut m = f64::NAN;
+            for b in j.saturating_sub(half)..(j + half + 1).min(ny) {
+                m = nanmin(m, rows[b * nx + i]);
+            }
+            out[j * nx + i] = m;
+        }
+    }
+    out
 }
 
 /// A view of one raster: values row-major, `ny` rows of `nx`.
@@ -240,6 +267,8 @@ struct Scene<'a> {
     /// Valid cells of the LiDAR rasters.
     valid: usize,
     min_overlap: f64,
+    /// Half-width of the local-ground window, cells.
+    half: usize,
 }
 
 impl Scene<'_> {
@@ -275,7 +304,15 @@ impl Scene<'_> {
             return None;
         }
         let (anx, any) = (anx as usize, any as usize);
-        let a = rasterise(moved.iter().copied(), lo.x, lo.y, self.cell, anx, any);
+        let a = rasterise(
+            moved.iter().copied(),
+            lo.x,
+            lo.y,
+            self.cell,
+            anx,
+            any,
+            self.half,
+        );
         let b = &self.lidar;
         // Overlap is measured against the smaller footprint: a handheld scan often reaches
         // far beyond the photographed area, or the photos beyond the walk.
@@ -325,7 +362,7 @@ impl Scene<'_> {
 }
 
 /// Finds the similarity mapping `sfm` points onto `lidar` (local frame, z up) from the
-/// camera poses and the two clouds' shapes.
+/// camera poses and the two clouds' shapes: the best of [`align_candidates`].
 pub fn align(
     sfm: &[DVec3],
     cameras: &[(DVec3, DVec3)],
@@ -333,6 +370,27 @@ pub fn align(
     params: &CoarseParams,
     progress: &dyn Progress,
 ) -> Result<CoarseAlignment, GeomError> {
+    align_candidates(sfm, cameras, lidar, params, progress)?
+        .into_iter()
+        .next()
+        .ok_or(GeomError::Degenerate(
+            "the clouds never overlap enough to compare",
+        ))
+}
+
+/// Up to `params.candidates` distinct hypotheses of the similarity mapping `sfm` points onto
+/// `lidar` (local frame, z up), best raster score first. Each comes from the coarse search
+/// over every yaw and scale, refined on two finer rasters (a third and a ninth of the coarse
+/// cell). Raster scores alone do not tell a right alignment from a wrong one reliably
+/// (README, registration results): the caller verifies each candidate (stage `register`
+/// runs ICP from each and compares how well the SfM points then lie on the LiDAR cloud).
+pub fn align_candidates(
+    sfm: &[DVec3],
+    cameras: &[(DVec3, DVec3)],
+    lidar: &[Vec3],
+    params: &CoarseParams,
+    progress: &dyn Progress,
+) -> Result<Vec<CoarseAlignment>, GeomError> {
     if sfm.len() < 10 || lidar.len() < 10 {
         return Err(GeomError::Empty(
             "too few points for automatic registration",
@@ -388,10 +446,14 @@ pub fn align(
     }
     let side = (hi.x - lo.x).max(hi.y - lo.y).max(1e-3);
     let coarse_cell = side / params.coarse_cells as f64;
+    // The local ground is the lowest point within two coarse cells at every level, so the
+    // canopy heights of the finer rasters mean the same as the coarse one's.
+    let ground_radius = 2.0 * coarse_cell;
     let make = |cell: f64| {
         let nx = ((hi.x - lo.x) / cell).ceil() as usize + 1;
         let ny = ((hi.y - lo.y) / cell).ceil() as usize + 1;
-        let r = rasterise(lid.iter().copied(), lo.x, lo.y, cell, nx, ny);
+        let half = (ground_radius / cell).round().max(1.0) as usize;
+        let r = rasterise(lid.iter().copied(), lo.x, lo.y, cell, nx, ny, half);
         let valid = r.chm.iter().filter(|v| !v.is_nan()).count();
         Scene {
             level: &level,
@@ -401,6 +463,7 @@ pub fn align(
             cell,
             valid,
             min_overlap: params.min_overlap,
+            half,
         }
     };
 
@@ -416,7 +479,7 @@ pub fn align(
         if progress.is_cancelled() {
             return Err(GeomError::Cancelled);
         }
-        progress.set(0.7 * (k * scales.len()) as f64 / total as f64);
+        progress.set(0.5 * (k * scales.len()) as f64 / total as f64);
         let found: Vec<Hypothesis> = {
             use rayon::prelude::*;
             scales
@@ -427,102 +490,137 @@ pub fn align(
         hyps.extend(found);
     }
     hyps.sort_by(|a, b| b.score.total_cmp(&a.score));
-    let Some(best) = hyps.first().copied() else {
+    if hyps.is_empty() {
         return Err(GeomError::Degenerate(
             "the clouds never overlap enough to compare",
         ));
-    };
+    }
     let distinct = |h: &Hypothesis, b: &Hypothesis| {
         let dyaw = ((h.yaw - b.yaw + 540.0) % 360.0 - 180.0).abs();
         let dt = ((h.t[0] - b.t[0]).powi(2) + (h.t[1] - b.t[1]).powi(2)).sqrt();
         dyaw > 20.0 || dt > 3.0 * coarse_cell
     };
-    let runner_up = hyps
-        .iter()
-        .find(|h| distinct(h, &best))
-        .map(|h| h.score)
-        .unwrap_or(0.0);
-
-    // Fine search around the few best distinct hypotheses.
-    let fine_cell = coarse_cell / 4.0;
-    let fine = make(fine_cell);
     let mut seeds: Vec<Hypothesis> = Vec::new();
     for h in &hyps {
-        if seeds.len() >= 3 {
+        if seeds.len() >= params.candidates.max(1) {
             break;
         }
         if seeds.iter().all(|s| distinct(h, s)) {
             seeds.push(*h);
         }
     }
-    let mut refined = best;
-    refined.score = f64::MIN;
-    for (k, seed) in seeds.iter().enumerate() {
-        progress.set(0.7 + 0.3 * k as f64 / seeds.len() as f64);
-        let mut cands = Vec::new();
-        for dy in -4..=4 {
-            for ds in -2..=2 {
-                cands.push((
-                    seed.yaw + dy as f64 * params.yaw_step_deg / 4.0,
-                    seed.scale * params.scale_step.powf(ds as f64 / 2.0),
-                ));
+
+    // Refine every seed on two finer rasters: yaw ±1 coarse step, scale ±1 coarse step,
+    // offsets ±2 coarse cells; then yaw ±1/4 step, scale ±1/4 step, offsets ±4/9 cell.
+    let levels = [
+        (
+            3.0,
+            params.yaw_step_deg / 4.0,
+            params.scale_step.sqrt(),
+            6i64,
+        ),
+        (
+            9.0,
+            params.yaw_step_deg / 16.0,
+            params.scale_step.powf(0.125),
+            4i64,
+        ),
+    ];
+    let mut finest = None;
+    for (li, &(div, ystep, sstep, radius)) in levels.iter().enumerate() {
+        let fine = make(coarse_cell / div);
+        for (k, seed) in seeds.iter_mut().enumerate() {
+            if progress.is_cancelled() {
+                return Err(GeomError::Cancelled);
+            }
+            progress.set(
+                0.5 + 0.5 * (li * params.candidates.max(1) + k) as f64
+                    / (levels.len() * params.candidates.max(1)) as f64,
+            );
+            let mut cands = Vec::new();
+            for dy in -4..=4 {
+                for ds in -2..=2 {
+                    cands.push((seed.yaw + dy as f64 * ystep, seed.scale * sstep.powi(ds)));
+                }
+            }
+            use rayon::prelude::*;
+            let best = cands
+                .par_iter()
+                .filter_map(|&(y, s)| fine.evaluate(y, s, Some((seed.t, radius))))
+                .max_by(|a, b| a.score.total_cmp(&b.score));
+            if let Some(b) = best {
+                *seed = b;
             }
         }
-        use rayon::prelude::*;
-        let found: Vec<Hypothesis> = cands
-            .par_iter()
-            .filter_map(|&(y, s)| fine.evaluate(y, s, Some((seed.t, 6))))
-            .collect();
-        for h in found {
-            if h.score > refined.score {
-                refined = h;
-            }
-        }
+        finest = Some(fine);
     }
-    if refined.score == f64::MIN {
-        refined = best;
+    let Some(fine) = finest else {
+        return Err(GeomError::Degenerate("no raster level"));
+    };
+    seeds.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let mut kept: Vec<Hypothesis> = Vec::new();
+    for h in seeds {
+        if kept.iter().all(|s| distinct(&h, s)) {
+            kept.push(h);
+        }
     }
 
-    // Compose, then the vertical offset from the terrain.
-    let (sn, cs) = refined.yaw.to_radians().sin_cos();
-    let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
-    let partial = Similarity {
-        scale: refined.scale,
-        rotation: rz * r_up,
-        translation: DVec3::new(refined.t[0], refined.t[1], 0.0),
-    };
-    let moved: Vec<DVec3> = sfm.iter().map(|p| partial.apply(*p)).collect();
-    let (nx, ny) = (fine.lidar.nx, fine.lidar.ny);
-    let ground_a = rasterise_ground(&moved, fine.x0, fine.y0, fine.cell, nx, ny);
-    let ground_b = rasterise_ground(&lid, fine.x0, fine.y0, fine.cell, nx, ny);
-    let mut dz: Vec<f64> = ground_a
-        .iter()
-        .zip(&ground_b)
-        .filter(|(x, y)| !x.is_nan() && !y.is_nan())
-        .map(|(x, y)| y - x)
-        .collect();
-    let offset_z = if dz.is_empty() {
-        let mut za: Vec<f64> = moved.iter().map(|p| p.z).collect();
-        let mut zb: Vec<f64> = lid.iter().map(|p| p.z).collect();
-        percentile(&mut zb, 0.02) - percentile(&mut za, 0.02)
-    } else {
-        percentile(&mut dz, 0.5)
-    };
-    let transform = Similarity {
-        translation: partial.translation + DVec3::new(0.0, 0.0, offset_z),
-        ..partial
-    };
-    let margin = ((refined.score.max(best.score) - runner_up) / 0.15).clamp(0.0, 1.0);
-    let level_score = (refined.score.max(best.score) / 1.0).clamp(0.0, 1.0);
+    let ground_b = rasterise_ground(
+        &lid,
+        fine.x0,
+        fine.y0,
+        fine.cell,
+        fine.lidar.nx,
+        fine.lidar.ny,
+    );
+    let mut out = Vec::with_capacity(kept.len());
+    for (k, h) in kept.iter().enumerate() {
+        // Compose, then the vertical offset from the terrain.
+        let (sn, cs) = h.yaw.to_radians().sin_cos();
+        let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
+        let partial = Similarity {
+            scale: h.scale,
+            rotation: rz * r_up,
+            translation: DVec3::new(h.t[0], h.t[1], 0.0),
+        };
+        let moved: Vec<DVec3> = sfm.iter().map(|p| partial.apply(*p)).collect();
+        let (nx, ny) = (fine.lidar.nx, fine.lidar.ny);
+        let ground_a = rasterise_ground(&moved, fine.x0, fine.y0, fine.cell, nx, ny);
+        let mut dz: Vec<f64> = ground_a
+            .iter()
+            .zip(&ground_b)
+            .filter(|(x, y)| !x.is_nan() && !y.is_nan())
+            .map(|(x, y)| y - x)
+            .collect();
+        let offset_z = if dz.is_empty() {
+            let mut za: Vec<f64> = moved.iter().map(|p| p.z).collect();
+            let mut zb: Vec<f64> = lid.iter().map(|p| p.z).collect();
+            percentile(&mut zb, 0.02) - percentile(&mut za, 0.02)
+        } else {
+            percentile(&mut dz, 0.5)
+        };
+        let transform = Similarity {
+            translation: partial.translation + DVec3::new(0.0, 0.0, offset_z),
+            ..partial
+        };
+        let runner_up = kept
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != k)
+            .map(|(_, o)| o.score)
+            .fold(0.0, f64::max);
+        let margin = ((h.score - runner_up) / 0.15).clamp(0.0, 1.0);
+        out.push(CoarseAlignment {
+            transform,
+            confidence: margin.min(h.score.clamp(0.0, 1.0)),
+            score: h.score,
+            runner_up,
+            yaw_deg: h.yaw,
+            scale: h.scale,
+        });
+    }
     progress.set(1.0);
-    Ok(CoarseAlignment {
-        transform,
-        confidence: margin.min(level_score),
-        score: refined.score.max(best.score),
-        runner_up,
-        yaw_deg: refined.yaw,
-        scale: refined.scale,
-    })
+    Ok(out)
 }
 
 /// The lowest point of each cell (NaN when empty), metres.
