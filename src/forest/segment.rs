@@ -658,3 +658,72 @@ fn grow_along_lines(
     grown.sort_unstable();
     grown
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A twig (a 4 mm-noisy line) beside a leaf disc (a plane) and a blob, all labelled
+    /// leaf: the lone-line test relabels the twig's inner points and none of the others.
+    #[test]
+    fn lone_lines_take_a_thin_twig_and_leave_planes_and_blobs() {
+        let mut state = 7u64;
+        let mut unit = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+        };
+        let mut pts = Vec::new();
+        // Twig along x, 1 m long, 600 points, ±4 mm across.
+        for i in 0..600 {
+            let x = i as f32 / 600.0;
+            pts.push(Vec3::new(x, 0.008 * unit(), 0.008 * unit()));
+        }
+        // Leaf disc: 0.3 m square in the plane z = 0, 1 m away.
+        for i in 0..900 {
+            pts.push(Vec3::new(
+                2.0 + 0.01 * (i % 30) as f32 + 0.002 * unit(),
+                0.01 * (i / 30) as f32,
+                0.003 * unit(),
+            ));
+        }
+        // Blob: 0.1 m cube of 500 points.
+        for _ in 0..500 {
+            pts.push(Vec3::new(0.1 * unit(), 2.0 + 0.1 * unit(), 0.1 * unit()));
+        }
+        let index = PointIndex::new(&pts).expect("index");
+        let params = SegmentParams::default();
+        let line = FineLine {
+            points: &pts,
+            index: &index,
+            radius: params.fine_line_radius_m,
+            min_linearity: params.fine_line_linearity,
+            max_spread: params.fine_line_spread_m,
+            min_cos: 1.0,
+        };
+        let labels = vec![LEAF; pts.len()];
+        let coarse = vec![CoarseFeatures::default(); pts.len()];
+        let lone = lone_lines(
+            &labels,
+            &coarse,
+            &line,
+            params.lone_line_linearity,
+            params.lone_line_spread_m,
+            params.lone_line_min_coarse_linearity,
+        );
+        // Away from its ends (where the 0.1 m ball holds half a line) the twig passes.
+        let inner = (60u32..540).filter(|i| lone.binary_search(i).is_ok()).count();
+        assert!(inner >= 470, "{inner} of 480 inner twig points");
+        assert!(
+            lone.iter().all(|&j| j < 600),
+            "a plane or blob point passed"
+        );
+        // Off: nothing.
+        let off = lone_lines(&labels, &coarse, &line, 1.1, 0.015, 0.0);
+        assert!(off.is_empty());
+        // Already trunk: not returned.
+        let trunk = vec![TRUNK; pts.len()];
+        assert!(lone_lines(&trunk, &coarse, &line, 0.9, 0.015, 0.0).is_empty());
+    }
+}
