@@ -713,7 +713,9 @@ mod tests {
             params.lone_line_min_coarse_linearity,
         );
         // Away from its ends (where the 0.1 m ball holds half a line) the twig passes.
-        let inner = (60u32..540).filter(|i| lone.binary_search(i).is_ok()).count();
+        let inner = (60u32..540)
+            .filter(|i| lone.binary_search(i).is_ok())
+            .count();
         assert!(inner >= 470, "{inner} of 480 inner twig points");
         assert!(
             lone.iter().all(|&j| j < 600),
