@@ -152,6 +152,26 @@ fn main() {
             }
         }
         println!("\n  worst ground error {:.1} cm", worst * 100.0);
+        // DIAG_DUMP=1: per point x, y, z, trunk probability (f32) and truth label, predicted
+        // label, ground flag (u8) to DIR/diag_dump.bin for analysis outside (16 bytes/point).
+        if std::env::var_os("DIAG_DUMP").is_some() {
+            let mut buf = Vec::with_capacity(cloud.len() * 16);
+            for (i, p) in cloud.positions.iter().enumerate() {
+                for v in [p.x, p.y, p.z, inv.trunk_probability[i]] {
+                    buf.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+            for (i, _) in cloud.positions.iter().enumerate() {
+                buf.extend([
+                    labels.get(i).copied().unwrap_or(255),
+                    inv.labels[i],
+                    u8::from(inv.is_ground[i]),
+                ]);
+            }
+            if let Err(e) = std::fs::write(dir.join("diag_dump.bin"), buf) {
+                println!("  dump: {e}");
+            }
+        }
         if std::env::var_os("DIAG_FEATURES").is_none() {
             continue;
         }

@@ -96,14 +96,13 @@ fn stands_of_five_seeds_meet_the_accuracy_goals() {
     // The issue's goals, on every seed: stems recall and precision >= 95 %, DBH RMSE
     // <= 1.0 cm, ground at the stems <= 3 cm, and wood/leaf against the generator's labels
     // (where "wood" includes every branch down to 6 mm radius) trunk recall >= 0.90 and
-    // precision >= 0.85. All are asserted at the goal except trunk recall: measured (seeds
-    // 1-5) 0.904, 0.899, 0.900, 0.901, 0.895, with precision 0.890-0.917, so it is asserted
-    // at 0.89 and the gap to 0.90 is stated in README's "LiDAR inventory" paragraph.
+    // precision >= 0.85, all asserted at the goal (measured values in README's "LiDAR
+    // inventory" paragraph).
     for (line, recall, precision, rmse, ground_err, trunk_recall, trunk_precision) in report {
         assert!(recall >= 0.95 && precision >= 0.95, "{line}");
         assert!(rmse <= 1.0, "{line}");
         assert!(ground_err <= 0.03, "{line}");
-        assert!(trunk_recall >= 0.89, "{line}");
+        assert!(trunk_recall >= 0.90, "{line}");
         assert!(trunk_precision >= 0.85, "{line}");
     }
 }

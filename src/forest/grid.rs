@@ -3,8 +3,8 @@
 //!
 //! Why not the k-d tree of `geom`: the coarse scales ask one radius query per voxel with a
 //! few hundred neighbours each and need only their moments. Bucketing the centroids in cells
-//! of edge = radius and scanning the 27 cells around each query cell, with the moments summed
-//! on the fly, needs no per-query allocation or sorting and visits the points of a cell in
+//! of edge = radius and scanning those of the 27 cells around each query cell that the radius
+//! reaches, with the moments summed on the fly, needs no per-query allocation or sorting and visits the points of a cell in
 //! memory order.
 
 use std::collections::HashMap;
@@ -103,13 +103,15 @@ where
             if progress.is_cancelled() {
                 return Vec::new();
             }
-            let mut ranges: Vec<(usize, usize)> = Vec::with_capacity(27);
+            // Neighbour cells: box min corner and range in `order`.
+            let mut ranges: Vec<(Vec3, usize, usize)> = Vec::with_capacity(27);
             for dx in -1..=1 {
                 for dy in -1..=1 {
                     for dz in -1..=1 {
                         let k = [key[0] + dx, key[1] + dy, key[2] + dz];
                         if let Some(&c) = lookup.get(&k) {
-                            ranges.push((cells[c].1, cells[c].2));
+                            let lo = Vec3::new(k[0] as f32, k[1] as f32, k[2] as f32) * radius;
+                            ranges.push((lo, cells[c].1, cells[c].2));
                         }
                     }
                 }
@@ -120,7 +122,13 @@ where
                     let p = points[q as usize];
                     // Moments about the query point (small numbers, no cancellation).
                     let (mut n, mut m1, mut m2) = (0usize, [0.0f64; 3], [0.0f64; 6]);
-                    for &(a, b) in &ranges {
+                    for &(lo, a, b) in &ranges {
+                        // A cell whose box lies beyond the radius (with a margin for
+                        // rounding) holds no neighbour: about half of the 27 for a query.
+                        let gap = (lo - p).max(p - (lo + Vec3::splat(radius))).max(Vec3::ZERO);
+                        if gap.length_squared() > r2 * 1.0001 {
+                            continue;
+                        }
                         for &j in &order[a..b] {
                             let d = points[j as usize] - p;
                             if d.length_squared() <= r2 {

@@ -17,6 +17,7 @@
 //! crown, a fork, the top of the scan).
 
 use glam::{Vec2, Vec3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ransac::{CircleParams, fit_circle_robust};
@@ -95,9 +96,14 @@ pub fn label_stem_points(
         .filter(|&i| !is_ground[i as usize] && heights[i as usize] >= -0.2)
         .collect();
     let buckets = Buckets::new(points, &candidates, 0.5);
+    // Stems are followed in parallel, their points labelled in stem order.
+    let surfaces: Vec<Vec<u32>> = stems
+        .par_iter()
+        .map(|stem| stem_surface(points, heights, &buckets, stem, params))
+        .collect();
     let mut changed = 0;
-    for stem in stems {
-        for i in stem_surface(points, heights, &buckets, stem, params) {
+    for surface in surfaces {
+        for i in surface {
             let i = i as usize;
             if labels[i] != TRUNK {
                 labels[i] = TRUNK;

@@ -14,6 +14,7 @@
 //! reach of that first axis, so a leaning stem is followed below and above the band.
 
 use glam::{Vec2, Vec3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ForestError;
@@ -161,28 +162,39 @@ pub fn detect_stems(
         })
         .collect();
     let buckets = Buckets::new(points, &candidates, 0.5);
+    // Each cluster is followed on its own (in parallel); ids in cluster order.
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let found: Vec<Option<Stem>> = clusters
+        .par_iter()
+        .map(|cluster| {
+            if progress.is_cancelled() {
+                return None;
+            }
+            let stem = stem_from_cluster(points, heights, cluster, &buckets, dtm, params);
+            let c = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress.set(0.2 + 0.8 * c as f64 / clusters.len().max(1) as f64);
+            stem
+        })
+        .collect();
+    if progress.is_cancelled() {
+        return Err(ForestError::Cancelled);
+    }
     let mut stems = Vec::new();
-    for (c, cluster) in clusters.iter().enumerate() {
-        if progress.is_cancelled() {
-            return Err(ForestError::Cancelled);
-        }
-        progress.set(0.2 + 0.8 * c as f64 / clusters.len().max(1) as f64);
-        if let Some(stem) = stem_from_cluster(points, heights, cluster, &buckets, dtm, params) {
-            stems.push(Stem {
-                id: stems.len() as u32 + 1,
-                ..stem
-            });
-        }
+    for stem in found.into_iter().flatten() {
+        stems.push(Stem {
+            id: stems.len() as u32 + 1,
+            ..stem
+        });
     }
     let mut stems = merge_duplicates(stems);
     let ground: Vec<u32> = (0..n as u32).filter(|&i| is_ground[i as usize]).collect();
     let ground = Buckets::new(points, &ground, 0.5);
-    for (k, s) in stems.iter_mut().enumerate() {
+    stems.par_iter_mut().enumerate().for_each(|(k, s)| {
         s.id = k as u32 + 1;
         if let Some(base) = base_on_local_ground(points, &ground, dtm, s, params) {
             s.base = base;
         }
-    }
+    });
     progress.set(1.0);
     Ok(stems)
 }
