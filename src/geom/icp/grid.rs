@@ -10,11 +10,12 @@
 //! Results are exact: the nearest target point within the radius (ties by either).
 
 use glam::Vec3;
+use rayon::prelude::*;
 
 /// Target points per column on average over the x, y bounding box: a few points per
 /// column keep the ring walk short; tall columns (stems) are cut by the height window.
-/// Chosen on the 82 k-point tile of `sylva bench geom` (4 to 16 give the same speed within
-/// noise).
+/// Chosen on the 82 k-point tile of `sylva bench geom`: 2 (5 cm columns there) took about
+/// 25 % more CPU than 8 (10 cm columns).
 const POINTS_PER_COLUMN: f32 = 8.0;
 
 /// Rings walked before a query is handed to the k-d tree.
@@ -83,17 +84,18 @@ impl ColumnGrid {
             (cx + nx * cy) as usize
         };
         let ncol = (nx * ny) as usize;
+        let cols: Vec<u32> = points.par_iter().map(|p| col(p) as u32).collect();
         let mut starts = vec![0u32; ncol + 1];
-        for p in points {
-            starts[col(p) + 1] += 1;
+        for &c in &cols {
+            starts[c as usize + 1] += 1;
         }
         for c in 0..ncol {
             starts[c + 1] += starts[c];
         }
         let mut fill = starts.clone();
         let mut entries = vec![Entry::default(); points.len()];
-        for (i, p) in points.iter().enumerate() {
-            let c = col(p);
+        for (i, (p, &c)) in points.iter().zip(&cols).enumerate() {
+            let c = c as usize;
             entries[fill[c] as usize] = Entry {
                 x: p.x,
                 y: p.y,
@@ -102,12 +104,20 @@ impl ColumnGrid {
             };
             fill[c] += 1;
         }
+        // Each column by height, columns in parallel.
+        let mut columns: Vec<&mut [Entry]> = Vec::new();
+        let mut rest = entries.as_mut_slice();
         for c in 0..ncol {
-            let s = &mut entries[starts[c] as usize..starts[c + 1] as usize];
-            if s.len() > 1 {
-                s.sort_unstable_by(|a, b| a.z.total_cmp(&b.z));
+            let (column, tail) = rest.split_at_mut((starts[c + 1] - starts[c]) as usize);
+            if column.len() > 1 {
+                columns.push(column);
             }
+            rest = tail;
         }
+        columns
+            .par_iter_mut()
+            .with_min_len(256)
+            .for_each(|c| c.sort_unstable_by(|a, b| a.z.total_cmp(&b.z)));
         let mut slot = vec![0u32; points.len()];
         for (k, e) in entries.iter().enumerate() {
             slot[e.index as usize] = k as u32;
@@ -207,24 +217,32 @@ impl ColumnGrid {
                 *reach = d2.sqrt() * 1.0001 + 1e-7;
             }
         };
-        // Heights from which to walk up (and, from the hint, down): the hint lies within the
-        // window, so walking out from it visits the whole window.
-        let up_from = if (a..b).contains(&hint) {
-            for e in col[..hint - a].iter().rev() {
-                if e.z < q.z - reach {
-                    break;
-                }
-                visit(e, &mut reach);
-            }
+        // Walk down and up from the hint (within the window) or from q's height, nearer
+        // height first so the bound shrinks early; each side stops at the window's edge.
+        let mid = if (a..b).contains(&hint) {
             hint - a
         } else {
-            col.partition_point(|e| e.z < q.z - reach)
+            col.partition_point(|e| e.z < q.z)
         };
-        for e in &col[up_from..] {
-            if e.z > q.z + reach {
-                break;
+        let (mut down, mut up) = (mid, mid); // next: col[down - 1] and col[up]
+        loop {
+            let dn = (down > 0 && col[down - 1].z >= q.z - reach).then(|| q.z - col[down - 1].z);
+            let un = (up < col.len() && col[up].z <= q.z + reach).then(|| col[up].z - q.z);
+            match (dn, un) {
+                (None, None) => break,
+                (Some(d), Some(u)) if d.abs() <= u.abs() => {
+                    down -= 1;
+                    visit(&col[down], &mut reach);
+                }
+                (Some(_), None) => {
+                    down -= 1;
+                    visit(&col[down], &mut reach);
+                }
+                _ => {
+                    visit(&col[up], &mut reach);
+                    up += 1;
+                }
             }
-            visit(e, &mut reach);
         }
     }
 }
