@@ -95,6 +95,37 @@ def icp_truth(c):
     return m
 
 
+def icp_point_to_plane(o3d, source, target):
+    """The benchmark's registration: 0.2 m, identity start, Open3D's default criteria."""
+    return o3d.pipelines.registration.registration_icp(
+        source, target, 0.2, np.eye(4),
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50))
+
+
+def icp_iterations(o3d, source, target):
+    """Iterations Open3D's ICP ran (its RegistrationResult does not say): the same run again,
+    not timed, with the Debug log (one "ICP Iteration #k" line per iteration) sent to a file
+    (the log is written by C++ to file descriptor 1)."""
+    import os
+    import tempfile
+
+    with tempfile.TemporaryFile(mode="w+") as log:
+        sys.stdout.flush()
+        saved = os.dup(1)
+        os.dup2(log.fileno(), 1)
+        try:
+            o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Debug)
+            icp_point_to_plane(o3d, source, target)
+        finally:
+            o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Warning)
+            sys.stdout.flush()
+            os.dup2(saved, 1)
+            os.close(saved)
+        log.seek(0)
+        return sum(1 for line in log if "ICP Iteration #" in line)
+
+
 def run_o3d(in_path, json_path):
     import open3d as o3d
 
@@ -157,16 +188,14 @@ def run_o3d(in_path, json_path):
     src = tile_pts[::4] @ inv[:3, :3].T + inv[:3, 3]
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
     t = Clock()
-    res = o3d.pipelines.registration.registration_icp(
-        source, target, 0.2, np.eye(4),
-        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50))
+    res = icp_point_to_plane(o3d, source, target)
     secs = t.read()
+    its = icp_iterations(o3d, source, target)
     m = np.asarray(res.transformation)
     rot_err = math.degrees(np.abs(m[:3, :3] @ truth[:3, :3].T - np.eye(3)).max())
     t_err = np.linalg.norm(m[:3, 3] - truth[:3, 3]) * 1000
     row("icp point-to-plane, tile", len(tile_pts), len(src), secs,
-        f"fitness {res.fitness:.3f}, rmse {res.inlier_rmse:.4f} m, "
+        f"{its} its, fitness {res.fitness:.3f}, rmse {res.inlier_rmse:.4f} m, "
         f"rot err {rot_err:.4f} deg, t err {t_err:.2f} mm")
     with open(json_path, "w") as f:
         json.dump(dict(open3d=o3d.__version__, rows=rows), f, indent=1)

@@ -11,13 +11,19 @@
 //! Robust weights: trimming keeps the best fraction of residuals (weight 1, others 0); Huber
 //! weights are min(1, delta / r). The result mirrors Open3D's `RegistrationResult`.
 
+use std::sync::OnceLock;
+
 use glam::{DVec3, Vec3};
 use serde::{Deserialize, Serialize};
 
-use super::index::par_map_chunked;
+use rayon::prelude::*;
+
+use super::index::CHUNK;
+use super::index::Neighbour;
 use super::similarity::fit_similarity;
 use super::{GeomError, NormalOrientation, NormalParams, PointIndex, Similarity};
 use crate::progress::{Progress, SubProgress};
+use grid::{ColumnGrid, NONE};
 use plane::point_to_plane_step;
 
 /// The ICP objective.
@@ -151,32 +157,48 @@ pub fn icp(
     params: &IcpParams,
     progress: &dyn Progress,
 ) -> Result<IcpResult, GeomError> {
-    let index = PointIndex::new(target)?;
-    let estimated;
-    let normals = match (params.method, target_normals) {
-        (IcpMethod::PointToPlane, None) => {
-            let np = NormalParams {
-                k: params.normal_k,
-                orientation: NormalOrientation::None,
-            };
-            estimated = super::estimate_normals_with_index(
-                target,
-                &index,
-                &np,
-                &SubProgress::new(progress, 0.0, 0.3),
-            )?;
-            Some(estimated.normals.as_slice())
-        }
-        (_, n) => n,
-    };
-    icp_with_index(
+    if target.len() >= u32::MAX as usize {
+        return Err(GeomError::InvalidParameter(format!(
+            "{} target points exceed the index limit of 2^32 - 1",
+            target.len()
+        )));
+    }
+    if !target.par_iter().all(|p| p.is_finite()) {
+        return Err(GeomError::NonFinite("point positions"));
+    }
+    if let (IcpMethod::PointToPlane, None) = (params.method, target_normals) {
+        let index = PointIndex::new(target)?;
+        let np = NormalParams {
+            k: params.normal_k,
+            orientation: NormalOrientation::None,
+        };
+        let estimated = super::estimate_normals_with_index(
+            target,
+            &index,
+            &np,
+            &SubProgress::new(progress, 0.0, 0.3),
+        )?;
+        return run(
+            source,
+            target,
+            Some(&index),
+            Some(&estimated.normals),
+            IcpWeights::default(),
+            initial,
+            params,
+            &SubProgress::new(progress, 0.3, 0.7),
+        );
+    }
+    // The k-d tree is built only if the column grid hands a query back (a far outlier).
+    run(
         source,
         target,
-        &index,
-        normals,
+        None,
+        target_normals,
+        IcpWeights::default(),
         initial,
         params,
-        &SubProgress::new(progress, 0.3, 0.7),
+        progress,
     )
 }
 
@@ -215,7 +237,39 @@ pub fn icp_weighted(
     params: &IcpParams,
     progress: &dyn Progress,
 ) -> Result<IcpResult, GeomError> {
-    validate(source, target, index, target_normals, initial, params)?;
+    if index.len() != target.len() {
+        return Err(GeomError::LengthMismatch {
+            what: "index vs target",
+            left: index.len(),
+            right: target.len(),
+        });
+    }
+    run(
+        source,
+        target,
+        Some(index),
+        target_normals,
+        weights,
+        initial,
+        params,
+        progress,
+    )
+}
+
+/// The ICP loop over finite target points (checked by the callers: `PointIndex::new` or
+/// [`icp`]); `index`, when given, indexes exactly `target`, else it is built on first need.
+#[allow(clippy::too_many_arguments)]
+fn run(
+    source: &[Vec3],
+    target: &[Vec3],
+    index: Option<&PointIndex>,
+    target_normals: Option<&[Vec3]>,
+    weights: IcpWeights<'_>,
+    initial: &Similarity,
+    params: &IcpParams,
+    progress: &dyn Progress,
+) -> Result<IcpResult, GeomError> {
+    validate(source, target, target_normals, initial, params)?;
     validate_weights(weights.source, source.len(), "source weights")?;
     validate_weights(weights.target, target.len(), "target weights")?;
     let plane = params.method == IcpMethod::PointToPlane;
@@ -225,12 +279,21 @@ pub fn icp_weighted(
     let mut prev_rmse: Option<f64> = None;
     let mut converged = false;
     let mut iterations = 0;
+    // Correspondence search: the column grid, seeded with each source point's previous
+    // correspondence; the k-d tree for queries the grid hands back.
+    let search = Search {
+        target,
+        index,
+        lazy: OnceLock::new(),
+        grid: ColumnGrid::new(target),
+    };
+    let mut prev = vec![NONE; source.len()];
     while iterations < params.max_iterations {
         if progress.is_cancelled() {
             return Err(GeomError::Cancelled);
         }
         let at_floor = dist <= params.min_distance;
-        let mut pairs = correspond(source, index, weights, &t, dist, |q, j| {
+        let mut pairs = correspond(source, &search, &mut prev, weights, &t, dist, |q, j| {
             if plane {
                 (q - target[j].as_dvec3()).dot(normals[j].as_dvec3()).abs()
             } else {
@@ -293,9 +356,15 @@ pub fn icp_weighted(
         }
         dist = (dist * params.shrink).max(params.min_distance);
     }
-    let final_pairs = correspond(source, index, IcpWeights::default(), &t, dist, |q, j| {
-        (q - target[j].as_dvec3()).length()
-    })?;
+    let final_pairs = correspond(
+        source,
+        &search,
+        &mut prev,
+        IcpWeights::default(),
+        &t,
+        dist,
+        |q, j| (q - target[j].as_dvec3()).length(),
+    )?;
     let inlier_rmse = if final_pairs.is_empty() {
         0.0
     } else {
@@ -322,7 +391,6 @@ pub fn icp_weighted(
 fn validate(
     source: &[Vec3],
     target: &[Vec3],
-    index: &PointIndex,
     target_normals: Option<&[Vec3]>,
     initial: &Similarity,
     p: &IcpParams,
@@ -331,13 +399,6 @@ fn validate(
         return Err(GeomError::Empty(
             "ICP needs non-empty source and target clouds",
         ));
-    }
-    if index.len() != target.len() {
-        return Err(GeomError::LengthMismatch {
-            what: "index vs target",
-            left: index.len(),
-            right: target.len(),
-        });
     }
     if p.method == IcpMethod::PointToPlane {
         match target_normals {
@@ -412,37 +473,121 @@ fn validate_weights(w: Option<&[f32]>, n: usize, what: &'static str) -> Result<(
     }
 }
 
+/// The correspondence search over one target.
+struct Search<'a> {
+    target: &'a [Vec3],
+    /// The caller's k-d tree over `target`, if any.
+    index: Option<&'a PointIndex>,
+    /// Else one built on the first query the grid hands back (`None`: the build failed).
+    lazy: OnceLock<Option<PointIndex>>,
+    grid: Option<ColumnGrid>,
+}
+
+impl Search<'_> {
+    /// The nearest target point to `q` with squared distance at most `max_d2` (m²), starting
+    /// from the closer of two hints (target indices or [`NONE`]: the point's previous
+    /// correspondence and the previous query's); exact either way.
+    fn nearest(&self, q: Vec3, max_d2: f32, hints: [u32; 2]) -> Option<Neighbour> {
+        let mut start = (max_d2, NONE);
+        for hint in hints {
+            if let Some(p) = self.target.get(hint as usize) {
+                let e = *p - q;
+                let d2 = e.x * e.x + e.y * e.y + e.z * e.z;
+                if d2 < start.0 || (d2 == start.0 && start.1 == NONE) {
+                    start = (d2, hint);
+                }
+            }
+        }
+        match self.grid.as_ref().and_then(|g| g.nearest(q, start)) {
+            Some((dist2, index)) => (index != NONE).then_some(Neighbour { index, dist2 }),
+            None => {
+                let index = match self.index {
+                    Some(i) => Some(i),
+                    None => self
+                        .lazy
+                        .get_or_init(|| PointIndex::new(self.target).ok())
+                        .as_ref(),
+                };
+                let m = match index {
+                    Some(i) => i.nearest(q),
+                    None => self.brute(q),
+                };
+                m.filter(|m| m.dist2 <= max_d2)
+            }
+        }
+    }
+
+    /// The nearest target point by a full scan (only if no k-d tree could be built).
+    fn brute(&self, q: Vec3) -> Option<Neighbour> {
+        self.target
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let e = *p - q;
+                Neighbour {
+                    index: i as u32,
+                    dist2: e.x * e.x + e.y * e.y + e.z * e.z,
+                }
+            })
+            .min_by(|a, b| a.dist2.total_cmp(&b.dist2))
+    }
+}
+
 /// Nearest target point of every transformed source point within `max_dist` whose prior
-/// weight is positive, in parallel.
+/// weight is positive, in parallel chunks. `prev` holds each source point's correspondence
+/// of the last call (the search's starting bound) and is updated.
 fn correspond(
     source: &[Vec3],
-    index: &PointIndex,
+    search: &Search<'_>,
+    prev: &mut [u32],
     weights: IcpWeights<'_>,
     t: &Similarity,
     max_dist: f64,
     residual: impl Fn(DVec3, usize) -> f64 + Sync,
 ) -> Result<Vec<Pair>, GeomError> {
-    let nearest: Vec<Option<Pair>> =
-        par_map_chunked(source.len(), &crate::progress::NoProgress, |i, _| {
-            let ws = weights.source.map_or(1.0, |w| w[i] as f64);
-            if ws <= 0.0 {
-                return None;
+    let max2 = max_dist * max_dist;
+    // The f32 bound just above max_dist^2; pairs are then checked in f64 as before.
+    let max_d2 = (max2 as f32).next_up();
+    let parts: Vec<Vec<Pair>> = source
+        .par_chunks(CHUNK)
+        .zip(prev.par_chunks_mut(CHUNK))
+        .enumerate()
+        .map(|(c, (src, prv))| {
+            let mut out = Vec::with_capacity(src.len());
+            // Consecutive source points are usually close: the last match is a second hint.
+            let mut last = NONE;
+            for (k, (p, pv)) in src.iter().zip(prv.iter_mut()).enumerate() {
+                let i = c * CHUNK + k;
+                let ws = weights.source.map_or(1.0, |w| w[i] as f64);
+                if ws <= 0.0 {
+                    *pv = NONE;
+                    continue;
+                }
+                let q = t.apply(p.as_dvec3());
+                let Some(m) = search.nearest(q.as_vec3(), max_d2, [*pv, last]) else {
+                    *pv = NONE;
+                    continue;
+                };
+                *pv = m.index;
+                last = m.index;
+                if (m.dist2 as f64) > max2 {
+                    continue;
+                }
+                let prior = ws * weights.target.map_or(1.0, |w| w[m.index as usize] as f64);
+                if prior > 0.0 {
+                    out.push(Pair {
+                        src: i as u32,
+                        tgt: m.index,
+                        residual: residual(q, m.index as usize),
+                        prior,
+                        weight: prior,
+                    });
+                }
             }
-            let q = t.apply(source[i].as_dvec3());
-            let m = index.nearest(q.as_vec3())?;
-            if (m.dist2 as f64) > max_dist * max_dist {
-                return None;
-            }
-            let prior = ws * weights.target.map_or(1.0, |w| w[m.index as usize] as f64);
-            (prior > 0.0).then(|| Pair {
-                src: i as u32,
-                tgt: m.index,
-                residual: residual(q, m.index as usize),
-                prior,
-                weight: prior,
-            })
-        })?;
-    Ok(nearest.into_iter().flatten().collect())
+            out
+        })
+        .collect();
+    Ok(parts.concat())
 }
 
 /// Sets each pair's weight: its prior times the robust weight.
@@ -478,6 +623,7 @@ fn weigh(pairs: &mut [Pair], kernel: RobustKernel) {
     }
 }
 
+mod grid;
 mod plane;
 
 #[cfg(test)]

@@ -4,8 +4,10 @@
 //! source points, so that the unknowns are well conditioned and decoupled.
 
 use glam::{DQuat, DVec3, Vec3};
+use rayon::prelude::*;
 
 use super::Pair;
+use crate::geom::index::CHUNK;
 use crate::geom::linalg::solve;
 use crate::geom::{GeomError, Similarity};
 
@@ -26,31 +28,58 @@ pub(super) fn point_to_plane_step(
     with_rotation: bool,
 ) -> Result<Similarity, GeomError> {
     let dim = if with_scale { 7 } else { 6 };
-    let (mut sw, mut c) = (0.0, DVec3::ZERO);
-    for p in pairs.iter().filter(|p| p.weight > 0.0) {
-        let q = t.apply(source[p.src as usize].as_dvec3());
-        sw += p.weight;
-        c += q * p.weight;
-    }
+    // Sums over fixed chunks of pairs in parallel, added in chunk order: the same result on
+    // any number of threads.
+    let parts: Vec<(f64, DVec3)> = pairs
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let (mut sw, mut c) = (0.0, DVec3::ZERO);
+            for p in chunk.iter().filter(|p| p.weight > 0.0) {
+                let q = t.apply(source[p.src as usize].as_dvec3());
+                sw += p.weight;
+                c += q * p.weight;
+            }
+            (sw, c)
+        })
+        .collect();
+    let (sw, mut c) = parts
+        .iter()
+        .fold((0.0, DVec3::ZERO), |(s, c), (ps, pc)| (s + ps, c + *pc));
     if sw.is_nan() || sw <= 0.0 {
         return Err(GeomError::Degenerate(
             "no correspondence has a positive weight",
         ));
     }
     c /= sw;
+    let parts: Vec<([[f64; 7]; 7], [f64; 7])> = pairs
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut ata = [[0.0f64; 7]; 7];
+            let mut atb = [0.0f64; 7];
+            for p in chunk.iter().filter(|p| p.weight > 0.0) {
+                let q = t.apply(source[p.src as usize].as_dvec3());
+                let n = normals[p.tgt as usize].as_dvec3();
+                let x = q - c;
+                let r0 = (q - target[p.tgt as usize].as_dvec3()).dot(n);
+                let xn = x.cross(n);
+                let row = [xn.x, xn.y, xn.z, n.x, n.y, n.z, x.dot(n)];
+                for a in 0..dim {
+                    atb[a] -= p.weight * row[a] * r0;
+                    for b in a..dim {
+                        ata[a][b] += p.weight * row[a] * row[b];
+                    }
+                }
+            }
+            (ata, atb)
+        })
+        .collect();
     let mut ata = [[0.0f64; 7]; 7];
     let mut atb = [0.0f64; 7];
-    for p in pairs.iter().filter(|p| p.weight > 0.0) {
-        let q = t.apply(source[p.src as usize].as_dvec3());
-        let n = normals[p.tgt as usize].as_dvec3();
-        let x = q - c;
-        let r0 = (q - target[p.tgt as usize].as_dvec3()).dot(n);
-        let xn = x.cross(n);
-        let row = [xn.x, xn.y, xn.z, n.x, n.y, n.z, x.dot(n)];
+    for (pa, pb) in &parts {
         for a in 0..dim {
-            atb[a] -= p.weight * row[a] * r0;
+            atb[a] += pb[a];
             for b in a..dim {
-                ata[a][b] += p.weight * row[a] * row[b];
+                ata[a][b] += pa[a][b];
             }
         }
     }

@@ -163,3 +163,71 @@ fn real_las_and_laz_files_read_fully() {
         6
     );
 }
+
+/// The parallel reader (several groups, partial last chunk, every record layout with colour)
+/// gives the same cloud as the `las` crate's sequential reader.
+#[test]
+fn parallel_reader_matches_sequential_reader() {
+    let dir = tempfile::tempdir().unwrap();
+    // 123,457 points: three LAZ chunks of 50,000, the last one partial.
+    let n = 123_457u32;
+    for (name, version, format, compress) in [
+        ("f0.laz", (1, 2), 0u8, true),
+        ("f3.laz", (1, 2), 3, true),
+        ("f2.las", (1, 2), 2, false),
+        ("f7.laz", (1, 4), 7, true),
+        ("f8.las", (1, 4), 8, false),
+    ] {
+        let path = dir.path().join(name);
+        let mut b = Builder::from(version);
+        let mut fmt = Format::new(format).unwrap();
+        fmt.is_compressed = compress;
+        b.point_format = fmt;
+        b.transforms = Vector {
+            x: Transform {
+                scale: 0.001,
+                offset: 500_000.0,
+            },
+            y: Transform {
+                scale: 0.001,
+                offset: 6_000_000.0,
+            },
+            z: Transform {
+                scale: 0.001,
+                offset: 0.0,
+            },
+        };
+        let mut w = ::las::Writer::new(
+            BufWriter::new(File::create(&path).unwrap()),
+            b.into_header().unwrap(),
+        )
+        .unwrap();
+        for i in 0..n {
+            let f = f64::from(i);
+            let p = Point {
+                x: 500_010.0 + (f * 0.37).sin() * 20.0,
+                y: 6_000_020.0 + (f * 0.11).cos() * 15.0,
+                z: 100.0 + (i % 997) as f64 * 0.013,
+                intensity: (i % 65_521) as u16,
+                gps_time: fmt.has_gps_time.then_some(f * 1e-3),
+                color: fmt
+                    .has_color
+                    .then(|| Color::new((i % 65_536) as u16, (i * 7 % 65_536) as u16, 300)),
+                nir: fmt.has_nir.then_some(42),
+                ..Default::default()
+            };
+            w.write_point(p).unwrap();
+        }
+        w.close().unwrap();
+        let info = inspect_las(&path).unwrap();
+        let fast = read_las(&path, &NoProgress).unwrap();
+        let slow = read_las_sequential(&path, &info, &NoProgress).unwrap();
+        assert_eq!(fast.len(), n as usize, "{name}");
+        assert_eq!(fast.offset, slow.offset, "{name}");
+        assert_eq!(fast.positions, slow.positions, "{name}");
+        assert_eq!(fast.intensity, slow.intensity, "{name}");
+        assert_eq!(fast.colors, slow.colors, "{name}");
+        assert_eq!(fast.colors.is_some(), fmt.has_color, "{name}");
+        assert_eq!(fast.format, slow.format, "{name}");
+    }
+}
