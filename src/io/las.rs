@@ -196,30 +196,8 @@ fn open_reader(path: &Path, compressed: bool) -> Result<::las::Reader, IoError> 
 /// Reads a LAS or LAZ file. Colour is kept when the point format has RGB, intensity when any
 /// point has a non-zero intensity. The local origin is the header's minimum corner rounded
 /// down to whole metres (or the first points' minimum when the header bounds are wrong).
-///
-/// Records are decoded in parallel from raw bytes (module `fast`); files that path does not
-/// handle (LAZ without a chunk table) go through the `las` crate's reader instead, with the
-/// same result.
 pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoError> {
     let info = inspect_las(path)?;
-    let mut read = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
-    let raw = ::las::raw::Header::read_from(&mut read).map_err(|e| las_err(path, e))?;
-    read.seek(SeekFrom::Start(0))
-        .map_err(|e| IoError::io(path, e))?;
-    let header = ::las::Header::new(&mut read).map_err(|e| las_err(path, e))?;
-    let start = u64::from(raw.offset_to_point_data);
-    match fast::read(path, &info, &header, start, read.into_inner(), progress)? {
-        Some(cloud) => Ok(cloud),
-        None => read_las_sequential(path, &info, progress),
-    }
-}
-
-/// [`read_las`] through the `las` crate's point reader, batch by batch.
-fn read_las_sequential(
-    path: &Path,
-    info: &LasInfo,
-    progress: &dyn Progress,
-) -> Result<PointCloud, IoError> {
     let mut reader = open_reader(path, info.compressed)?;
     let total = reader.header().number_of_points();
     let mut pd = PointDataBuilder::new().for_header(reader.header()).build();
@@ -346,8 +324,6 @@ pub fn write_las(path: &Path, cloud: &PointCloud, compress: bool) -> Result<(), 
     }
     writer.close().map_err(write_err)
 }
-
-mod fast;
 
 #[cfg(test)]
 mod tests;

@@ -103,21 +103,6 @@ pub(crate) struct CloudBuilder {
     count: u64,
 }
 
-/// The local origin of a cloud whose first points span `lo`..`hi` (file coordinates,
-/// metres): the header's minimum corner `hint.0` when those points lie within the header
-/// bounds (1 m slack), else `lo`, rounded down to whole metres.
-pub(crate) fn local_origin(hint: Option<(DVec3, DVec3)>, lo: DVec3, hi: DVec3) -> DVec3 {
-    let corner = match hint {
-        Some((hlo, hhi))
-            if (hlo - DVec3::ONE).cmple(lo).all() && hi.cmple(hhi + DVec3::ONE).all() =>
-        {
-            hlo
-        }
-        _ => lo,
-    };
-    corner.floor()
-}
-
 impl CloudBuilder {
     /// A builder that chooses the origin itself, optionally guided by header bounds (metres).
     pub(crate) fn new(path: &Path, hint: Option<(DVec3, DVec3)>, capacity: u64) -> Self {
@@ -194,7 +179,15 @@ impl CloudBuilder {
             .pending
             .iter()
             .fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
-        let offset = local_origin(self.hint, lo, hi);
+        let corner = match self.hint {
+            Some((hlo, hhi))
+                if (hlo - DVec3::ONE).cmple(lo).all() && hi.cmple(hhi + DVec3::ONE).all() =>
+            {
+                hlo
+            }
+            _ => lo,
+        };
+        let offset = corner.floor();
         self.offset = Some(offset);
         for p in std::mem::take(&mut self.pending) {
             self.positions.push((p - offset).as_vec3());
