@@ -216,8 +216,9 @@ fn automatic_alignment_on_tiny_refuses_rather_than_misaligns() {
     }
 }
 
-/// Without control points the light stand (as the control-point test above) is aligned
-/// automatically, confidently and to the goals.
+/// Without control points the light stand (as the control-point test above, but with 10 000
+/// SfM points) is aligned automatically, confidently and to the goals. With 5000 SfM
+/// points it ended 0.0489° off, too near the 0.05° goal to test; 10 000 give 0.0171° (README).
 #[test]
 fn automatic_alignment_reaches_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -227,7 +228,7 @@ fn automatic_alignment_reaches_the_goals_on_a_stand() {
     p.width = Some(320);
     p.height = Some(180);
     p.lidar_points = Some(800_000);
-    p.points3d = Some(5_000);
+    p.points3d = Some(10_000);
     let out = generate(dir.path(), p);
     let report = register(
         &dir.path().join("work"),
