@@ -3,7 +3,8 @@
   open3d_compare.py tile SRC.laz OUT.laz NT      the make_plot10m.py recipe with NT x NT copies,
                                                   written copy by copy (bounded memory)
   open3d_compare.py prefix IN.laz OUT.laz N       the first N points of IN, file order kept
-  open3d_compare.py o3d IN.laz OUT.json           laspy read + Open3D phases, rows as JSON
+  open3d_compare.py o3d IN.laz OUT.json [EDGE]    laspy read + Open3D phases, rows as JSON;
+                                                  EDGE: the ICP tile's edge, m (default 10)
   open3d_compare.py table O3D.json SYLVA.json     prints operation, Open3D s, sylva s, ratio
 
 The tiling recipe is the one in the docstring of ../shared/bench/make_plot10m.py (TreeLS
@@ -23,7 +24,7 @@ import numpy as np
 
 STEP = 10.5
 JIT = 0.004
-ICP_TILE_M = 10.0
+ICP_TILE_M = 10.0  # default; sylva bench geom --icp-tile-m
 
 
 def splitmix64(s):
@@ -126,7 +127,7 @@ def icp_iterations(o3d, source, target):
         return sum(1 for line in log if "ICP Iteration #" in line)
 
 
-def run_o3d(in_path, json_path):
+def run_o3d(in_path, json_path, edge=ICP_TILE_M):
     import open3d as o3d
 
     print(f"open3d {o3d.__version__}, laspy {laspy.__version__} (lazrs parallel)")
@@ -157,10 +158,10 @@ def run_o3d(in_path, json_path):
     del las
     row("read", len(xyz), len(xyz), secs, "laspy.read, lazrs parallel")
 
-    # ICP tile: x, y in [floor(min), floor(min) + 10) m, coordinates relative to that corner.
+    # ICP tile: x, y in [floor(min), floor(min) + edge) m, coordinates relative to that corner.
     corner = np.array([math.floor(xyz[:, 0].min()), math.floor(xyz[:, 1].min()), 0.0])
-    sel = ((xyz[:, 0] >= corner[0]) & (xyz[:, 0] < corner[0] + ICP_TILE_M)
-           & (xyz[:, 1] >= corner[1]) & (xyz[:, 1] < corner[1] + ICP_TILE_M))
+    sel = ((xyz[:, 0] >= corner[0]) & (xyz[:, 0] < corner[0] + edge)
+           & (xyz[:, 1] >= corner[1]) & (xyz[:, 1] < corner[1] + edge))
     tile_pts = xyz[sel] - corner
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
@@ -183,7 +184,7 @@ def run_o3d(in_path, json_path):
 
     target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tile_pts))
     target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))  # input, not timed
-    truth = icp_truth(np.array([ICP_TILE_M / 2, ICP_TILE_M / 2, 0.0]))
+    truth = icp_truth(np.array([edge / 2, edge / 2, 0.0]))
     inv = np.linalg.inv(truth)
     src = tile_pts[::4] @ inv[:3, :3].T + inv[:3, 3]
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
@@ -203,7 +204,7 @@ def run_o3d(in_path, json_path):
 
 KEYS = [("read", "read the LAZ"), ("voxel", "voxel_down_sample(0.02)"),
         ("statistical", "statistical outlier (16, 2.5)"), ("estimate", "normals (KNN 20)"),
-        ("icp", "ICP point-to-plane, 10 m tile")]
+        ("icp", "ICP point-to-plane (target points in)")]
 
 
 def table(o3d_json, sylva_json):
@@ -237,7 +238,7 @@ def main():
     elif cmd == "prefix":
         prefix(sys.argv[2], sys.argv[3], int(sys.argv[4]))
     elif cmd == "o3d":
-        run_o3d(sys.argv[2], sys.argv[3])
+        run_o3d(sys.argv[2], sys.argv[3], float(sys.argv[4]) if len(sys.argv) > 4 else ICP_TILE_M)
     elif cmd == "table":
         table(sys.argv[2], sys.argv[3])
     else:
