@@ -140,7 +140,10 @@ pub fn run(a: &GeomBenchArgs) -> anyhow::Result<Vec<GeomRow>> {
         .context("sylva bench geom needs --input FILE (a LAS/LAZ point cloud)")?;
     let phases: Vec<&str> = a.phases.split(',').map(str::trim).collect();
     if !(a.icp_tile_m.is_finite() && a.icp_tile_m > 0.0) {
-        anyhow::bail!("--icp-tile-m must be a positive number of metres, not {}", a.icp_tile_m);
+        anyhow::bail!(
+            "--icp-tile-m must be a positive number of metres, not {}",
+            a.icp_tile_m
+        );
     }
     for p in &phases {
         if !["read", "voxel", "outlier", "normals", "icp"].contains(p) {
