@@ -20,6 +20,19 @@ fn plot(dir: &Path, seed: u64) -> std::path::PathBuf {
     generate(dir, p)
 }
 
+/// The light stand of the stand tests (seed 1): 30 photos of 320×180 and 800 k LiDAR points,
+/// with `points3d` SfM points.
+fn light_stand(dir: &Path, points3d: usize) -> std::path::PathBuf {
+    let mut p = SynthParams::new(Preset::Stand);
+    p.seed = 1;
+    p.images = Some(30);
+    p.width = Some(320);
+    p.height = Some(180);
+    p.lidar_points = Some(800_000);
+    p.points3d = Some(points3d);
+    generate(dir, p)
+}
+
 fn generate(dir: &Path, p: SynthParams) -> std::path::PathBuf {
     let out = dir.join(format!("{}-{}", p.preset.name(), p.seed));
     sylva::synth::generate(&p, &out, &NoProgress).expect("synth");
@@ -145,14 +158,7 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
 #[test]
 fn control_points_reach_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut p = SynthParams::new(Preset::Stand);
-    p.seed = 1;
-    p.images = Some(30);
-    p.width = Some(320);
-    p.height = Some(180);
-    p.lidar_points = Some(800_000);
-    p.points3d = Some(5_000);
-    let out = generate(dir.path(), p);
+    let out = light_stand(dir.path(), 5_000);
     let report = register(
         &dir.path().join("work"),
         &out.join("lidar.laz"),
@@ -222,14 +228,7 @@ fn automatic_alignment_on_tiny_refuses_rather_than_misaligns() {
 #[test]
 fn automatic_alignment_reaches_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut p = SynthParams::new(Preset::Stand);
-    p.seed = 1;
-    p.images = Some(30);
-    p.width = Some(320);
-    p.height = Some(180);
-    p.lidar_points = Some(800_000);
-    p.points3d = Some(10_000);
-    let out = generate(dir.path(), p);
+    let out = light_stand(dir.path(), 10_000);
     let report = register(
         &dir.path().join("work"),
         &out.join("lidar.laz"),
