@@ -73,7 +73,9 @@ pub struct IcpParams {
     /// mismatched points that LiDAR does not see).
     pub robust: RobustKernel,
     /// Converged once the max distance is at its floor and the weighted RMSE changes by less
-    /// than this fraction between iterations. Default 1e-6 (Open3D's relative_rmse).
+    /// than this fraction between iterations. Default 1e-6, the value of Open3D's
+    /// `relative_rmse` (which Open3D compares with the absolute change, together with the
+    /// fitness's).
     pub relative_rmse_tolerance: f64,
     /// Neighbours for target normals when point-to-plane is asked for without normals.
     /// Default 20 (as [`NormalParams`]).
