@@ -39,6 +39,13 @@ fn generate(dir: &Path, p: SynthParams) -> std::path::PathBuf {
     out
 }
 
+/// The registration goals: rotation < 0.05°, scale < 0.1 %, translation < 1 cm.
+fn assert_goals(rot_err: f64, scale_err: f64, trans_err: f64) {
+    assert!(rot_err < 0.05, "rotation error {rot_err}°");
+    assert!(scale_err < 0.001, "scale error {scale_err}");
+    assert!(trans_err < 0.01, "translation error {trans_err} m");
+}
+
 /// Rotation (degrees), relative scale and translation at the plot centre (metres) errors of
 /// the report's `sfm_to_lidar` against truth.json's `sfm_to_world`.
 fn errors(report: &serde_json::Value, out: &Path) -> (f64, f64, f64) {
@@ -173,9 +180,7 @@ fn control_points_reach_the_goals_on_a_stand() {
         scale_err * 100.0,
         trans_err * 100.0
     );
-    assert!(rot_err < 0.05, "rotation error {rot_err}°");
-    assert!(scale_err < 0.001, "scale error {scale_err}");
-    assert!(trans_err < 0.01, "translation error {trans_err} m");
+    assert_goals(rot_err, scale_err, trans_err);
 }
 
 /// Without control points on `tiny` (1-3 trees, 1500 SfM points mostly on ground) the
@@ -246,9 +251,7 @@ fn automatic_alignment_reaches_the_goals_on_a_stand() {
     );
     assert_eq!(report["method"], "automatic");
     assert!(report["confidence"].as_f64().is_some_and(|c| c >= 0.5));
-    assert!(rot_err < 0.05, "rotation error {rot_err}°");
-    assert!(scale_err < 0.001, "scale error {scale_err}");
-    assert!(trans_err < 0.01, "translation error {trans_err} m");
+    assert_goals(rot_err, scale_err, trans_err);
 }
 
 #[test]
