@@ -23,7 +23,7 @@ use super::index::Neighbour;
 use super::similarity::fit_similarity;
 use super::{GeomError, NormalOrientation, NormalParams, PointIndex, Similarity};
 use crate::progress::{Progress, SubProgress};
-use grid::{ColumnGrid, NONE};
+use grid::{ColumnGrid, KNN, Knn, NONE};
 use plane::point_to_plane_step;
 
 /// The ICP objective.
@@ -73,7 +73,8 @@ pub struct IcpParams {
     /// mismatched points that LiDAR does not see).
     pub robust: RobustKernel,
     /// Converged once the max distance is at its floor and the weighted RMSE changes by less
-    /// than this fraction between iterations. Default 1e-6, the value of Open3D's
+    /// than this fraction between iterations (or by less than a nanometre, see
+    /// `RMSE_FLOOR_M`). Default 1e-6, the value of Open3D's
     /// `relative_rmse` (which Open3D compares with the absolute change, together with the
     /// fitness's).
     pub relative_rmse_tolerance: f64,
@@ -111,6 +112,8 @@ pub struct IcpResult {
     pub inlier_rmse: f64,
     /// Final max correspondence distance (metres).
     pub max_distance: f64,
+    /// Iterations run, counting those on the subsample of a large source (see
+    /// `COARSE_MIN_SOURCE`).
     pub iterations: usize,
     /// True when the RMSE change fell below the tolerance before the iteration cap.
     pub converged: bool,
@@ -138,12 +141,16 @@ pub struct IcpWeights<'a> {
     pub target: Option<&'a [f32]>,
 }
 
-/// One correspondence: source index, target index, residual (metres), prior weight and
-/// final weight (prior times robust weight).
+/// One correspondence: source index, the moved source point, the target point and normal,
+/// residual (metres), prior weight and final weight (prior times robust weight).
 #[derive(Debug, Clone, Copy, Default)]
 struct Pair {
     src: u32,
-    tgt: u32,
+    /// The source point moved by the current transform.
+    q: DVec3,
+    /// The target point and its normal (zero for point-to-point).
+    tp: Vec3,
+    n: Vec3,
     residual: f64,
     prior: f64,
     weight: f64,
@@ -258,6 +265,27 @@ pub fn icp_weighted(
     )
 }
 
+/// RMSE changes below this many metres count as settled whatever the relative change: a
+/// nanometre, far below any survey's precision and above the f64 rounding of plot
+/// coordinates (identical clouds otherwise never settle on rounding noise).
+const RMSE_FLOOR_M: f64 = 1e-9;
+
+/// Sources of at least this many points run their first iterations on every
+/// [`COARSE_STRIDE`]-th point (in Z order, so spread evenly) until those converge, then go on
+/// with all points from there. The early iterations move points by centimetres, which makes
+/// every full-size search a fresh one; on the subsample they cost a sixteenth. Chosen on
+/// `sylva bench geom --icp-tile-m 100` (256 k source points); SfM clouds are usually smaller
+/// and run every iteration on all points.
+const COARSE_MIN_SOURCE: usize = 65_536;
+
+/// Stride of the coarse subsample (see [`COARSE_MIN_SOURCE`]).
+const COARSE_STRIDE: usize = 16;
+
+/// The subsample's iterations stop once its weighted RMSE changes by at most this fraction
+/// (or the caller's tolerance, if looser), or after half the iteration cap: its optimum is
+/// only near the full one, which the iterations on all points then settle.
+const COARSE_TOLERANCE: f64 = 1e-4;
+
 /// The ICP loop over finite target points (checked by the callers: `PointIndex::new` or
 /// [`icp`]); `index`, when given, indexes exactly `target`, else it is built on first need.
 #[allow(clippy::too_many_arguments)]
@@ -274,34 +302,159 @@ fn run(
     validate(source, target, target_normals, initial, params)?;
     validate_weights(weights.source, source.len(), "source weights")?;
     validate_weights(weights.target, target.len(), "target weights")?;
-    let plane = params.method == IcpMethod::PointToPlane;
-    let normals = target_normals.unwrap_or(&[]);
-    let mut t = *initial;
-    let mut dist = params.start_distance;
-    let mut prev_rmse: Option<f64> = None;
-    let mut converged = false;
-    let mut iterations = 0;
+    // The source in Z order: consecutive queries then touch neighbouring grid columns and
+    // cache lines. Nothing outside this function sees source indices.
+    let order = z_order(source);
+    let source: Vec<Vec3> = order.iter().map(|&i| source[i as usize]).collect();
+    let source_weights: Option<Vec<f32>> = weights
+        .source
+        .map(|w| order.iter().map(|&i| w[i as usize]).collect());
+    let weights = IcpWeights {
+        source: source_weights.as_deref(),
+        target: weights.target,
+    };
     // Correspondence search: the column grid, seeded with each source point's previous
     // correspondence; the k-d tree for queries the grid hands back.
     let search = Search {
         target,
+        normals: target_normals.unwrap_or(&[]),
         index,
         lazy: OnceLock::new(),
         grid: ColumnGrid::new(target),
     };
+    let mut state = LoopState {
+        t: *initial,
+        dist: params.start_distance,
+        iterations: 0,
+        converged: false,
+    };
+    if source.len() >= COARSE_MIN_SOURCE {
+        let sub: Vec<Vec3> = source.iter().step_by(COARSE_STRIDE).copied().collect();
+        let sub_w: Option<Vec<f32>> = weights
+            .source
+            .map(|w| w.iter().step_by(COARSE_STRIDE).copied().collect());
+        let sub_weights = IcpWeights {
+            source: sub_w.as_deref(),
+            target: weights.target,
+        };
+        let mut sub_prev = vec![NONE; sub.len()];
+        // Points move by centimetres per iteration here: cached neighbourhoods would not
+        // hold, so every query walks the grid from its previous match.
+        let mut sub_cache = Cache(Vec::new());
+        progress.log(&format!(
+            "ICP: first iterations on {} of the {} source points",
+            sub.len(),
+            source.len()
+        ));
+        iterate(
+            &sub,
+            &search,
+            &mut sub_prev,
+            &mut sub_cache,
+            sub_weights,
+            params,
+            (
+                params.relative_rmse_tolerance.max(COARSE_TOLERANCE),
+                params.max_iterations / 2,
+            ),
+            &mut state,
+            progress,
+        )?;
+        state.converged = false;
+    }
     let mut prev = vec![NONE; source.len()];
-    while iterations < params.max_iterations {
+    let mut cache = Cache::new(source.len());
+    iterate(
+        &source,
+        &search,
+        &mut prev,
+        &mut cache,
+        weights,
+        params,
+        (params.relative_rmse_tolerance, params.max_iterations),
+        &mut state,
+        progress,
+    )?;
+    let final_pairs = correspond(
+        &source,
+        &search,
+        &mut prev,
+        &mut cache,
+        IcpWeights::default(),
+        &state.t,
+        state.dist,
+        |q, tp, _| (q - tp).length(),
+    )?;
+    let inlier_rmse = if final_pairs.is_empty() {
+        0.0
+    } else {
+        (final_pairs
+            .iter()
+            .map(|p| p.residual * p.residual)
+            .sum::<f64>()
+            / final_pairs.len() as f64)
+            .sqrt()
+    };
+    progress.set(1.0);
+    let t = state.t;
+    Ok(IcpResult {
+        rotation: t.rotation,
+        translation: t.translation,
+        scale: t.scale,
+        fitness: final_pairs.len() as f64 / source.len() as f64,
+        inlier_rmse,
+        max_distance: state.dist,
+        iterations: state.iterations,
+        converged: state.converged,
+    })
+}
+
+/// Where the ICP loop stands: pose, max distance (metres), iterations done, converged.
+struct LoopState {
+    t: Similarity,
+    dist: f64,
+    iterations: usize,
+    converged: bool,
+}
+
+/// Iterates on `source` from `state` until the weighted RMSE changes by at most `tolerance`
+/// (relative) at the distance floor, or `state.iterations` reaches `cap`.
+#[allow(clippy::too_many_arguments)]
+fn iterate(
+    source: &[Vec3],
+    search: &Search<'_>,
+    prev: &mut [u32],
+    cache: &mut Cache,
+    weights: IcpWeights<'_>,
+    params: &IcpParams,
+    (tolerance, cap): (f64, usize),
+    state: &mut LoopState,
+    progress: &dyn Progress,
+) -> Result<(), GeomError> {
+    let plane = params.method == IcpMethod::PointToPlane;
+    let mut prev_rmse: Option<f64> = None;
+    while state.iterations < cap {
         if progress.is_cancelled() {
             return Err(GeomError::Cancelled);
         }
+        let dist = state.dist;
         let at_floor = dist <= params.min_distance;
-        let mut pairs = correspond(source, &search, &mut prev, weights, &t, dist, |q, j| {
-            if plane {
-                (q - target[j].as_dvec3()).dot(normals[j].as_dvec3()).abs()
-            } else {
-                (q - target[j].as_dvec3()).length()
-            }
-        })?;
+        let mut pairs = correspond(
+            source,
+            search,
+            prev,
+            cache,
+            weights,
+            &state.t,
+            dist,
+            |q, tp, n| {
+                if plane {
+                    (q - tp).dot(n).abs()
+                } else {
+                    (q - tp).length()
+                }
+            },
+        )?;
         let min_pairs = if plane { 7 } else { 3 };
         if pairs.len() < min_pairs {
             return Err(GeomError::Empty(
@@ -316,78 +469,65 @@ fn run(
             .sum::<f64>()
             / sw.max(1e-300))
         .sqrt();
-        t = if plane {
-            point_to_plane_step(
-                source,
-                target,
-                normals,
-                &pairs,
-                &t,
-                params.estimate_scale,
-                params.estimate_rotation,
-            )?
+        let t = &state.t;
+        state.t = if plane {
+            point_to_plane_step(&pairs, t, params.estimate_scale, params.estimate_rotation)?
         } else {
             fit_similarity(
                 pairs.len(),
                 |k| {
                     let p = pairs[k];
-                    (
-                        source[p.src as usize].as_dvec3(),
-                        target[p.tgt as usize].as_dvec3(),
-                        p.weight,
-                    )
+                    (source[p.src as usize].as_dvec3(), p.tp.as_dvec3(), p.weight)
                 },
                 params.estimate_scale,
             )?
         };
-        iterations += 1;
+        state.iterations += 1;
         progress.log(&format!(
-            "ICP iteration {iterations}: max distance {dist:.4} m, {} correspondences, weighted RMSE {rmse:.5} m, scale {:.6}",
+            "ICP iteration {}: max distance {dist:.4} m, {} correspondences, weighted RMSE {rmse:.5} m, scale {:.6}",
+            state.iterations,
             pairs.len(),
-            t.scale
+            state.t.scale
         ));
-        progress.set(iterations as f64 / params.max_iterations as f64);
+        progress.set(state.iterations as f64 / params.max_iterations as f64);
         if at_floor {
             if let Some(prev) = prev_rmse
-                && (rmse == 0.0 || (prev - rmse).abs() <= params.relative_rmse_tolerance * prev)
+                && (rmse == 0.0 || (prev - rmse).abs() <= tolerance * prev + RMSE_FLOOR_M)
             {
-                converged = true;
-                break;
+                state.converged = true;
+                return Ok(());
             }
             prev_rmse = Some(rmse);
         }
-        dist = (dist * params.shrink).max(params.min_distance);
+        state.dist = (dist * params.shrink).max(params.min_distance);
     }
-    let final_pairs = correspond(
-        source,
-        &search,
-        &mut prev,
-        IcpWeights::default(),
-        &t,
-        dist,
-        |q, j| (q - target[j].as_dvec3()).length(),
-    )?;
-    let inlier_rmse = if final_pairs.is_empty() {
-        0.0
-    } else {
-        (final_pairs
-            .iter()
-            .map(|p| p.residual * p.residual)
-            .sum::<f64>()
-            / final_pairs.len() as f64)
-            .sqrt()
+    Ok(())
+}
+
+/// Indices of `points` (finite) sorted by their Morton key on a 2^21 grid over the bounding
+/// cube.
+fn z_order(points: &[Vec3]) -> Vec<u32> {
+    let Some(first) = points.first() else {
+        return Vec::new();
     };
-    progress.set(1.0);
-    Ok(IcpResult {
-        rotation: t.rotation,
-        translation: t.translation,
-        scale: t.scale,
-        fitness: final_pairs.len() as f64 / source.len() as f64,
-        inlier_rmse,
-        max_distance: dist,
-        iterations,
-        converged,
-    })
+    let (lo, hi) = points
+        .iter()
+        .fold((*first, *first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+    let extent = (hi - lo).max_element().max(1e-6);
+    let inv = ((1u32 << 21) - 1) as f32 / extent;
+    let mut keyed: Vec<(u64, u32)> = points
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let c = ((*p - lo) * inv).clamp(Vec3::ZERO, Vec3::splat(((1u32 << 21) - 1) as f32));
+            (
+                super::voxel::morton3(c.x as u64, c.y as u64, c.z as u64),
+                i as u32,
+            )
+        })
+        .collect();
+    keyed.par_sort_unstable();
+    keyed.into_iter().map(|(_, i)| i).collect()
 }
 
 fn validate(
@@ -475,9 +615,63 @@ fn validate_weights(w: Option<&[f32]>, n: usize, what: &'static str) -> Result<(
     }
 }
 
+/// Relative and absolute (metres) margins of the cache certificate, above the f32 rounding
+/// of distances between points of a plot-sized local frame (about 1e-5 m at 100 m).
+const CACHE_REL: f32 = 1e-5;
+const CACHE_ABS_M: f32 = 5e-5;
+
+/// Largest cache [`icp`] keeps (bytes): about 3.6 M source points; larger sources search
+/// the grid afresh every iteration.
+const CACHE_MAX_BYTES: usize = 512 << 20;
+
+/// One source point's cached neighbourhood: the [`KNN`] target points nearest to `anchor`
+/// (its transformed position when they were found) and the clearance, the distance from
+/// `anchor` within which they are all the target points there are. After the point moves
+/// to q, |q - anchor| = m, every other target point lies at least `clear - m` from q
+/// (triangle inequality), so the nearest cached point is the nearest of all when its
+/// distance (or the max distance, if less) is at most `clear - m`. ICP's late iterations
+/// move points by millimetres against clearances of centimetres: most queries are then a
+/// few distance computations instead of a grid walk. Exact, like the walk.
+#[derive(Debug, Clone, Copy)]
+struct Slot {
+    anchor: Vec3,
+    /// Metres; 0: nothing cached.
+    clear: f32,
+    n: u32,
+    index: [u32; KNN],
+    pos: [Vec3; KNN],
+}
+
+impl Default for Slot {
+    fn default() -> Self {
+        Self {
+            anchor: Vec3::ZERO,
+            clear: 0.0,
+            n: 0,
+            index: [NONE; KNN],
+            pos: [Vec3::ZERO; KNN],
+        }
+    }
+}
+
+/// One [`Slot`] per source point, or none when that would exceed [`CACHE_MAX_BYTES`].
+struct Cache(Vec<Slot>);
+
+impl Cache {
+    fn new(n: usize) -> Self {
+        if n.saturating_mul(std::mem::size_of::<Slot>()) <= CACHE_MAX_BYTES {
+            Cache(vec![Slot::default(); n])
+        } else {
+            Cache(Vec::new())
+        }
+    }
+}
+
 /// The correspondence search over one target.
 struct Search<'a> {
     target: &'a [Vec3],
+    /// Target normals (empty for point-to-point).
+    normals: &'a [Vec3],
     /// The caller's k-d tree over `target`, if any.
     index: Option<&'a PointIndex>,
     /// Else one built on the first query the grid hands back (`None`: the build failed).
@@ -519,6 +713,61 @@ impl Search<'_> {
         }
     }
 
+    /// As [`Search::nearest`], answered from the source point's cached neighbours when
+    /// their clearance certifies it (see [`Slot`]), else by a fresh k-nearest query that
+    /// refills the cache (or by [`Search::nearest`] when the grid hands the query back).
+    fn nearest_cached(
+        &self,
+        q: Vec3,
+        max_d2: f32,
+        hints: [u32; 2],
+        slot: &mut Slot,
+        scratch: &mut Knn,
+    ) -> Option<(Neighbour, Vec3)> {
+        if slot.clear > 0.0 {
+            let mut best = (f32::INFINITY, NONE, Vec3::ZERO);
+            for (p, &i) in slot.pos.iter().zip(&slot.index).take(slot.n as usize) {
+                let e = *p - q;
+                let d2 = e.x * e.x + e.y * e.y + e.z * e.z;
+                if d2 < best.0 {
+                    best = (d2, i, *p);
+                }
+            }
+            let reach = best.0.min(max_d2).sqrt();
+            let moved = (q - slot.anchor).length();
+            if (reach + moved) * (1.0 + CACHE_REL) + CACHE_ABS_M <= slot.clear {
+                return (best.1 != NONE && best.0 <= max_d2).then_some((
+                    Neighbour {
+                        index: best.1,
+                        dist2: best.0,
+                    },
+                    best.2,
+                ));
+            }
+        }
+        if let Some(clear2) = self
+            .grid
+            .as_ref()
+            .and_then(|g| g.nearest_k(q, max_d2, scratch))
+        {
+            slot.anchor = q;
+            slot.clear = clear2.sqrt();
+            slot.n = scratch.n as u32;
+            slot.index = scratch.index;
+            slot.pos = scratch.pos;
+            return (scratch.n > 0 && scratch.d2[0] <= max_d2).then_some((
+                Neighbour {
+                    index: scratch.index[0],
+                    dist2: scratch.d2[0],
+                },
+                scratch.pos[0],
+            ));
+        }
+        slot.clear = 0.0;
+        self.nearest(q, max_d2, hints)
+            .map(|m| (m, self.target[m.index as usize]))
+    }
+
     /// The nearest target point by a full scan (only if no k-d tree could be built).
     fn brute(&self, q: Vec3) -> Option<Neighbour> {
         self.target
@@ -537,25 +786,35 @@ impl Search<'_> {
 
 /// Nearest target point of every transformed source point within `max_dist` whose prior
 /// weight is positive, in parallel chunks. `prev` holds each source point's correspondence
-/// of the last call (the search's starting bound) and is updated.
+/// of the last call (the search's starting bound) and `cache` its cached neighbourhood (see
+/// [`Slot`]; empty: none); both are updated.
+#[allow(clippy::too_many_arguments)]
 fn correspond(
     source: &[Vec3],
     search: &Search<'_>,
     prev: &mut [u32],
+    cache: &mut Cache,
     weights: IcpWeights<'_>,
     t: &Similarity,
     max_dist: f64,
-    residual: impl Fn(DVec3, usize) -> f64 + Sync,
+    residual: impl Fn(DVec3, DVec3, DVec3) -> f64 + Sync,
 ) -> Result<Vec<Pair>, GeomError> {
     let max2 = max_dist * max_dist;
     // The f32 bound just above max_dist^2; pairs are then checked in f64 as before.
     let max_d2 = (max2 as f32).next_up();
+    let mut slots: Vec<Option<&mut [Slot]>> = if cache.0.len() == source.len() {
+        cache.0.chunks_mut(CHUNK).map(Some).collect()
+    } else {
+        (0..source.len().div_ceil(CHUNK)).map(|_| None).collect()
+    };
     let parts: Vec<Vec<Pair>> = source
         .par_chunks(CHUNK)
         .zip(prev.par_chunks_mut(CHUNK))
+        .zip(slots.par_iter_mut())
         .enumerate()
-        .map(|(c, (src, prv))| {
+        .map(|(c, ((src, prv), slots))| {
             let mut out = Vec::with_capacity(src.len());
+            let mut scratch = Knn::default();
             // Consecutive source points are usually close: the last match is a second hint.
             let mut last = NONE;
             for (k, (p, pv)) in src.iter().zip(prv.iter_mut()).enumerate() {
@@ -566,7 +825,19 @@ fn correspond(
                     continue;
                 }
                 let q = t.apply(p.as_dvec3());
-                let Some(m) = search.nearest(q.as_vec3(), max_d2, [*pv, last]) else {
+                let found = match slots.as_deref_mut() {
+                    Some(s) => search.nearest_cached(
+                        q.as_vec3(),
+                        max_d2,
+                        [*pv, last],
+                        &mut s[k],
+                        &mut scratch,
+                    ),
+                    None => search
+                        .nearest(q.as_vec3(), max_d2, [*pv, last])
+                        .map(|m| (m, search.target[m.index as usize])),
+                };
+                let Some((m, tp)) = found else {
                     *pv = NONE;
                     continue;
                 };
@@ -577,10 +848,17 @@ fn correspond(
                 }
                 let prior = ws * weights.target.map_or(1.0, |w| w[m.index as usize] as f64);
                 if prior > 0.0 {
+                    let n = search
+                        .normals
+                        .get(m.index as usize)
+                        .copied()
+                        .unwrap_or(Vec3::ZERO);
                     out.push(Pair {
                         src: i as u32,
-                        tgt: m.index,
-                        residual: residual(q, m.index as usize),
+                        q,
+                        tp,
+                        n,
+                        residual: residual(q, tp.as_dvec3(), n.as_dvec3()),
                         prior,
                         weight: prior,
                     });

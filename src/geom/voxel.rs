@@ -164,7 +164,7 @@ pub fn voxel_downsample(
 }
 
 /// Interleaves the low 21 bits of x, y, z into a 63-bit Morton (Z-order) key.
-fn morton3(x: u64, y: u64, z: u64) -> u64 {
+pub(super) fn morton3(x: u64, y: u64, z: u64) -> u64 {
     spread3(x) | (spread3(y) << 1) | (spread3(z) << 2)
 }
 

@@ -24,6 +24,66 @@ pub(super) const FALLBACK_RINGS: i64 = 3;
 /// No point.
 pub(super) const NONE: u32 = u32::MAX;
 
+/// Neighbours kept per query by [`ColumnGrid::nearest_k`]: on a surface the clearance is
+/// then about two point spacings, well beyond ICP's sub-millimetre late steps (see
+/// `icp::Slot`). Chosen on `sylva bench geom --icp-tile-m 100`: 2, 4 and 8 took 0.39–0.47,
+/// 0.51 and 0.72 CPU s (shared cores); 4 leaves room for SfM noise off the surface.
+pub(super) const KNN: usize = 4;
+
+/// Rings [`ColumnGrid::nearest_k`] walks before handing a query back.
+pub(super) const KNN_RINGS: i64 = 4;
+
+/// Up to [`KNN`] neighbours, nearest first: squared distance (m²), target index, position.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Knn {
+    pub(super) n: usize,
+    pub(super) d2: [f32; KNN],
+    pub(super) index: [u32; KNN],
+    pub(super) pos: [Vec3; KNN],
+}
+
+impl Default for Knn {
+    fn default() -> Self {
+        Self {
+            n: 0,
+            d2: [0.0; KNN],
+            index: [NONE; KNN],
+            pos: [Vec3::ZERO; KNN],
+        }
+    }
+}
+
+impl Knn {
+    /// Squared distance a point must beat to enter: the last kept one's when full.
+    fn bound(&self, max_d2: f32) -> f32 {
+        if self.n == KNN {
+            self.d2[KNN - 1]
+        } else {
+            max_d2
+        }
+    }
+
+    /// Inserts a point at squared distance `d2` if it is within `max_d2` and beats the
+    /// bound; true when it entered.
+    fn offer(&mut self, d2: f32, index: u32, pos: Vec3, max_d2: f32) -> bool {
+        if d2 > max_d2 || (self.n == KNN && d2 >= self.d2[KNN - 1]) {
+            return false;
+        }
+        let mut k = self.n.min(KNN - 1);
+        while k > 0 && self.d2[k - 1] > d2 {
+            self.d2[k] = self.d2[k - 1];
+            self.index[k] = self.index[k - 1];
+            self.pos[k] = self.pos[k - 1];
+            k -= 1;
+        }
+        self.d2[k] = d2;
+        self.index[k] = index;
+        self.pos[k] = pos;
+        self.n = (self.n + 1).min(KNN);
+        true
+    }
+}
+
 /// One target point in column order: position and its index in the target slice.
 #[derive(Debug, Clone, Copy, Default)]
 struct Entry {
@@ -193,6 +253,101 @@ impl ColumnGrid {
         }
     }
 
+    /// The up to [`KNN`] nearest points to `q` within `sqrt(max_d2)`, nearest first, into
+    /// `out`, and the clearance: the squared distance (m²) from `q` within which `out` holds
+    /// every point (the last one's, or `max_d2` when fewer were found, where no other point
+    /// lies within `max_d2`). `None` when the walk reached [`KNN_RINGS`] rings without
+    /// settling (`out` is then incomplete): ask the tree.
+    pub(super) fn nearest_k(&self, q: Vec3, max_d2: f32, out: &mut Knn) -> Option<f32> {
+        out.n = 0;
+        let fx = ((q.x - self.x0) * self.inv_h).floor();
+        let fy = ((q.y - self.y0) * self.inv_h).floor();
+        if !(fx.is_finite() && fy.is_finite()) || fx.abs() > 1e9 || fy.abs() > 1e9 {
+            return None;
+        }
+        let (cx, cy) = (fx as i64, fy as i64);
+        let mut k = 0i64;
+        loop {
+            let bound = out.bound(max_d2);
+            if k >= 1 {
+                let gap = (k - 1) as f32 * self.h * 0.999;
+                if gap * gap > bound {
+                    break;
+                }
+                if cx - (k - 1) <= 0
+                    && cx + (k - 1) >= self.nx - 1
+                    && cy - (k - 1) <= 0
+                    && cy + (k - 1) >= self.ny - 1
+                {
+                    break;
+                }
+            }
+            if k > KNN_RINGS {
+                return None;
+            }
+            let mut visit = |x: i64, y: i64| {
+                if x >= 0 && x < self.nx && y >= 0 && y < self.ny {
+                    self.scan_k(x, y, q, max_d2, out);
+                }
+            };
+            if k == 0 {
+                visit(cx, cy);
+            } else {
+                for x in cx - k..=cx + k {
+                    visit(x, cy - k);
+                    visit(x, cy + k);
+                }
+                for y in cy - k + 1..cy + k {
+                    visit(cx - k, y);
+                    visit(cx + k, y);
+                }
+            }
+            k += 1;
+        }
+        Some(out.bound(max_d2))
+    }
+
+    /// Adds the points of column (x, y) closer than `out`'s bound to `out`.
+    fn scan_k(&self, x: i64, y: i64, q: Vec3, max_d2: f32, out: &mut Knn) {
+        let bx0 = self.x0 + x as f32 * self.h;
+        let by0 = self.y0 + y as f32 * self.h;
+        let dx = (bx0 - q.x).max(q.x - (bx0 + self.h)).max(0.0) * 0.999;
+        let dy = (by0 - q.y).max(q.y - (by0 + self.h)).max(0.0) * 0.999;
+        if dx * dx + dy * dy > out.bound(max_d2) {
+            return;
+        }
+        let c = (x + self.nx * y) as usize;
+        let col = &self.entries[self.starts[c] as usize..self.starts[c + 1] as usize];
+        let reach = |out: &Knn| out.bound(max_d2).sqrt() * 1.0001 + 1e-7;
+        let mid = col.partition_point(|e| e.z < q.z);
+        let (mut down, mut up) = (mid, mid);
+        let mut r = reach(out);
+        loop {
+            let dn = (down > 0 && col[down - 1].z >= q.z - r).then(|| q.z - col[down - 1].z);
+            let un = (up < col.len() && col[up].z <= q.z + r).then(|| col[up].z - q.z);
+            let e = match (dn, un) {
+                (None, None) => break,
+                (Some(d), Some(u)) if d <= u => {
+                    down -= 1;
+                    &col[down]
+                }
+                (Some(_), None) => {
+                    down -= 1;
+                    &col[down]
+                }
+                _ => {
+                    up += 1;
+                    &col[up - 1]
+                }
+            };
+            let p = Vec3::new(e.x, e.y, e.z);
+            let d = p - q;
+            if out.offer(d.x * d.x + d.y * d.y + d.z * d.z, e.index, p, max_d2) {
+                r = reach(out);
+            }
+        }
+    }
+
     /// Scans column (x, y) for points closer than the best so far; `hint` is the position
     /// in `entries` of a point within the best distance (or `usize::MAX`).
     fn scan(&self, x: i64, y: i64, q: Vec3, hint: usize, bd2: &mut f32, bi: &mut u32) {
@@ -261,6 +416,67 @@ mod tests {
             })
             .filter(|d2| *d2 <= max_d2)
             .min_by(f32::total_cmp)
+    }
+
+    /// k nearest within a radius against brute force: the same distances, nearest first,
+    /// and no point left out inside the clearance.
+    #[test]
+    fn nearest_k_matches_brute_force_and_its_clearance_holds() {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let mut pts: Vec<Vec3> = (0..4000)
+            .map(|_| {
+                let (x, y) = (rng.random::<f32>() * 4.0, rng.random::<f32>() * 4.0);
+                Vec3::new(x, y, 0.1 * (x * 2.0).sin())
+            })
+            .collect();
+        for i in 0..600 {
+            let a = i as f32 * 0.9;
+            pts.push(Vec3::new(
+                2.0 + 0.1 * a.cos(),
+                2.0 + 0.1 * a.sin(),
+                i as f32 * 0.01,
+            ));
+        }
+        pts.extend_from_within(0..50);
+        let grid = ColumnGrid::new(&pts).unwrap();
+        let mut out = Knn::default();
+        for qi in 0..1500 {
+            let q = if qi % 2 == 0 {
+                pts[rng.random_range(0..pts.len())] + Vec3::splat(0.004)
+            } else {
+                Vec3::new(
+                    rng.random::<f32>() * 5.0 - 0.5,
+                    rng.random::<f32>() * 5.0 - 0.5,
+                    rng.random::<f32>() * 7.0 - 0.5,
+                )
+            };
+            for max_d in [0.02f32, 0.1, 0.3] {
+                let max_d2 = max_d * max_d;
+                let Some(clear2) = grid.nearest_k(q, max_d2, &mut out) else {
+                    continue;
+                };
+                let mut all: Vec<(f32, u32)> = pts
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| ((*p - q).length_squared(), i as u32))
+                    .filter(|(d2, _)| *d2 <= max_d2)
+                    .collect();
+                all.sort_by(|a, b| a.0.total_cmp(&b.0));
+                assert_eq!(out.n, all.len().min(KNN), "query {q} within {max_d}");
+                for k in 0..out.n {
+                    assert!((out.d2[k] - all[k].0).abs() <= 1e-9);
+                    assert_eq!(out.pos[k], pts[out.index[k] as usize]);
+                }
+                if out.n < KNN {
+                    assert_eq!(clear2, max_d2);
+                }
+                for (i, p) in pts.iter().enumerate() {
+                    if !out.index[..out.n].contains(&(i as u32)) {
+                        assert!((*p - q).length_squared() >= clear2 * 0.9999);
+                    }
+                }
+            }
+        }
     }
 
     /// Random stems and ground with duplicates; queries near and far, with and without a

@@ -3,7 +3,7 @@
 //! omega, translation tau and log-scale sigma about the weighted centroid c of the moved
 //! source points, so that the unknowns are well conditioned and decoupled.
 
-use glam::{DQuat, DVec3, Vec3};
+use glam::{DQuat, DVec3};
 use rayon::prelude::*;
 
 use super::Pair;
@@ -17,11 +17,9 @@ const PIVOT: f64 = 1e-12;
 
 // Index loops mirror the matrix algebra.
 #[allow(clippy::needless_range_loop, clippy::too_many_arguments)]
-/// One Gauss-Newton step of point-to-plane (similarity) ICP; returns the updated transform.
+/// One Gauss-Newton step of point-to-plane (similarity) ICP from the pairs found under `t`
+/// (each holds its source point moved by `t`); returns the updated transform.
 pub(super) fn point_to_plane_step(
-    source: &[Vec3],
-    target: &[Vec3],
-    normals: &[Vec3],
     pairs: &[Pair],
     t: &Similarity,
     with_scale: bool,
@@ -35,7 +33,7 @@ pub(super) fn point_to_plane_step(
         .map(|chunk| {
             let (mut sw, mut c) = (0.0, DVec3::ZERO);
             for p in chunk.iter().filter(|p| p.weight > 0.0) {
-                let q = t.apply(source[p.src as usize].as_dvec3());
+                let q = p.q;
                 sw += p.weight;
                 c += q * p.weight;
             }
@@ -57,10 +55,10 @@ pub(super) fn point_to_plane_step(
             let mut ata = [[0.0f64; 7]; 7];
             let mut atb = [0.0f64; 7];
             for p in chunk.iter().filter(|p| p.weight > 0.0) {
-                let q = t.apply(source[p.src as usize].as_dvec3());
-                let n = normals[p.tgt as usize].as_dvec3();
+                let q = p.q;
+                let n = p.n.as_dvec3();
                 let x = q - c;
-                let r0 = (q - target[p.tgt as usize].as_dvec3()).dot(n);
+                let r0 = (q - p.tp.as_dvec3()).dot(n);
                 let xn = x.cross(n);
                 let row = [xn.x, xn.y, xn.z, n.x, n.y, n.z, x.dot(n)];
                 for a in 0..dim {

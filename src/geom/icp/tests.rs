@@ -338,5 +338,129 @@ fn icp_stops_on_cancel_and_rejects_bad_input() {
     ));
     // Identical clouds: exact identity, full fitness.
     let res = icp(&target, &target, None, &id, &p, &NoProgress).unwrap();
-    assert!(res.fitness == 1.0 && res.inlier_rmse < 1e-9 && res.converged);
+    assert!(
+        res.fitness == 1.0 && res.inlier_rmse < 1e-9 && res.converged,
+        "{res:?}"
+    );
+}
+
+/// The cached search answers exactly what a brute-force search does while a query wanders
+/// by sub-millimetre steps (cache hits), centimetre steps and jumps (refills), also where
+/// no target point lies within the max distance.
+#[test]
+fn cached_neighbours_answer_exactly_as_brute_force() {
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let target = scene(&mut rng, 0.0, 12.0, 20_000, 2_000);
+    let search = Search {
+        target: &target,
+        normals: &[],
+        index: None,
+        lazy: OnceLock::new(),
+        grid: ColumnGrid::new(&target),
+    };
+    let brute = |q: Vec3, max_d2: f32| {
+        target
+            .iter()
+            .map(|p| {
+                let e = *p - q;
+                e.x * e.x + e.y * e.y + e.z * e.z
+            })
+            .filter(|d2| *d2 <= max_d2)
+            .min_by(f32::total_cmp)
+    };
+    let (mut hits, mut total) = (0, 0);
+    for walk in 0..60 {
+        let mut slot = Slot::default();
+        let mut scratch = Knn::default();
+        // Mostly near the surface; every fourth walk starts 0.4 m above it.
+        let lift = if walk % 4 == 3 { 0.4 } else { 0.005 };
+        let mut q = target[rng.random_range(0..target.len())] + Vec3::new(0.0, 0.0, lift);
+        let max_d = [0.05f32, 0.2, 1.0][walk % 3];
+        let max_d2 = max_d * max_d;
+        for step in 0..40 {
+            let size = match step % 10 {
+                9 => 0.5,
+                6..=8 => 0.02,
+                _ => 0.0005,
+            };
+            q += Vec3::new(
+                rng.random_range(-size..size),
+                rng.random_range(-size..size),
+                rng.random_range(-size..size),
+            );
+            let cached = slot.clear > 0.0;
+            let anchor = slot.anchor;
+            let got = search.nearest_cached(q, max_d2, [NONE, NONE], &mut slot, &mut scratch);
+            let want = brute(q, max_d2);
+            match (got, want) {
+                (None, None) => {}
+                (Some((m, pos)), Some(w)) => {
+                    assert_eq!(pos, target[m.index as usize]);
+                    let e = pos - q;
+                    assert!((e.length_squared() - w).abs() <= 1e-9, "{m:?} vs {w}");
+                }
+                _ => panic!("walk {walk} step {step}: got {got:?}, want {want:?}"),
+            }
+            // The first small steps near the surface: answered from the cache (the anchor
+            // stays).
+            if step < 6 && lift < 0.1 && cached {
+                total += 1;
+                hits += usize::from(slot.anchor == anchor);
+            }
+        }
+    }
+    assert!(hits * 10 > total * 8, "{hits} cache answers of {total}");
+}
+
+/// A source past [`COARSE_MIN_SOURCE`] points converges on its subsample first, then on all
+/// points, to the truth.
+#[test]
+fn large_sources_refine_a_subsample_then_all_points() {
+    struct Log(std::sync::Mutex<Vec<String>>);
+    impl Progress for Log {
+        fn set(&self, _: f64) {}
+        fn log(&self, m: &str) {
+            if let Ok(mut l) = self.0.lock() {
+                l.push(m.to_string());
+            }
+        }
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(32);
+    let target = scene(&mut rng, 0.0, 12.0, 100_000, 20_000);
+    let sub = scene(&mut rng, 3.0, 14.0, 60_000, 3_000);
+    assert!(sub.len() >= COARSE_MIN_SOURCE);
+    let normals = estimate_normals(&target, &NormalParams::default(), &NoProgress).unwrap();
+    let t = truth(1.01);
+    let source = source_from(&sub, &t, &mut rng, 0.0005);
+    let params = IcpParams {
+        method: IcpMethod::PointToPlane,
+        robust: RobustKernel::Trimmed { keep_fraction: 0.7 },
+        min_distance: 0.03,
+        ..IcpParams::default()
+    };
+    let log = Log(std::sync::Mutex::new(Vec::new()));
+    let res = icp(
+        &source,
+        &target,
+        Some(&normals.normals),
+        &Similarity::IDENTITY,
+        &params,
+        &log,
+    )
+    .unwrap();
+    assert_close(&res, &t, "point-to-plane, large source");
+    assert!(res.inlier_rmse < 0.02, "{res:?}");
+    let lines = log.0.lock().map(|l| l.clone()).unwrap_or_default();
+    let n_coarse = sub.len().div_ceil(COARSE_STRIDE);
+    let coarse = format!("on {n_coarse} of the {}", sub.len());
+    assert!(lines.iter().any(|l| l.contains(&coarse)), "{lines:?}");
+    // The last iteration ran on all points: more correspondences than the subsample has.
+    let last = lines
+        .iter()
+        .rev()
+        .find(|l| l.starts_with("ICP iteration"))
+        .and_then(|l| l.split(", ").nth(1))
+        .and_then(|c| c.split(' ').next())
+        .and_then(|c| c.parse::<usize>().ok());
+    assert!(last.is_some_and(|n| n > 2 * n_coarse), "{lines:?}");
 }
