@@ -10,6 +10,13 @@
 //!
 //! Robust weights: trimming keeps the best fraction of residuals (weight 1, others 0); Huber
 //! weights are min(1, delta / r). The result mirrors Open3D's `RegistrationResult`.
+//!
+//! Correspondences are exact nearest neighbours within the max distance, found fast three
+//! ways: the source is visited in Z order; each source point keeps its few nearest target
+//! points and their clearance, which answers the next iteration's query without a search
+//! while the point has moved less than the clearance allows (`Slot`); and a source of
+//! `COARSE_MIN_SOURCE` points or more first iterates on an even subsample until that
+//! settles, so the searches on all points start where points barely move.
 
 use std::sync::OnceLock;
 
