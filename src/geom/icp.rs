@@ -88,6 +88,11 @@ pub struct IcpParams {
     /// Neighbours for target normals when point-to-plane is asked for without normals.
     /// Default 20 (as [`NormalParams`]).
     pub normal_k: usize,
+    /// Let a source of 65,536 points or more (`COARSE_MIN_SOURCE`) iterate first on every
+    /// 16th point until that settles, then on all points. Default true: the same fixed point
+    /// for a fraction of the searches (see the module docs). false: every iteration uses
+    /// every point, as Open3D's `registration_icp` does.
+    pub coarse_start: bool,
 }
 
 impl Default for IcpParams {
@@ -103,6 +108,7 @@ impl Default for IcpParams {
             robust: RobustKernel::Trimmed { keep_fraction: 0.8 },
             relative_rmse_tolerance: 1e-6,
             normal_k: 20,
+            coarse_start: true,
         }
     }
 }
@@ -335,7 +341,7 @@ fn run(
         iterations: 0,
         converged: false,
     };
-    if source.len() >= COARSE_MIN_SOURCE {
+    if params.coarse_start && source.len() >= COARSE_MIN_SOURCE {
         let sub: Vec<Vec3> = source.iter().step_by(COARSE_STRIDE).copied().collect();
         let sub_w: Option<Vec<f32>> = weights
             .source
