@@ -198,6 +198,22 @@ fn open_reader(path: &Path, compressed: bool) -> Result<::las::Reader, IoError> 
 /// down to whole metres (or the first points' minimum when the header bounds are wrong).
 pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoError> {
     let info = inspect_las(path)?;
+    #[cfg(unix)]
+    if info.compressed
+        && let Some(cloud) = fused::read_laz_fused(path, &info, progress)?
+    {
+        return Ok(cloud);
+    }
+    read_las_crate(path, &info, progress)
+}
+
+/// The `las`-crate path of [`read_las`]: LAS, and LAZ that the fused reader leaves
+/// (no chunk table, unchunked compression, header bounds that miss the points).
+fn read_las_crate(
+    path: &Path,
+    info: &LasInfo,
+    progress: &dyn Progress,
+) -> Result<PointCloud, IoError> {
     let mut reader = open_reader(path, info.compressed)?;
     let total = reader.header().number_of_points();
     let mut pd = PointDataBuilder::new().for_header(reader.header()).build();
@@ -325,5 +341,7 @@ pub fn write_las(path: &Path, cloud: &PointCloud, compress: bool) -> Result<(), 
     writer.close().map_err(write_err)
 }
 
+#[cfg(unix)]
+mod fused;
 #[cfg(test)]
 mod tests;

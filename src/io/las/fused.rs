@@ -1,0 +1,402 @@
+//! Chunk-parallel LAZ reader that decodes and converts in one pass.
+//!
+//! LAZ splits the point records into chunks (50,000 points each by default) that decode
+//! independently; the chunk table at the end of the point data gives each chunk's compressed
+//! size (and, for variable-size chunks, its point count). This reader makes one rayon task per
+//! chunk: it reads the chunk's compressed bytes with a positioned read, runs the laz-rs record
+//! decompressor over them point by point and writes each point straight into the output
+//! columns at the chunk's point offset (disjoint slices of columns allocated once for the
+//! header's point count). Rayon's work stealing balances the chunks over the cores, there is
+//! no barrier until the last chunk, no flat buffer of raw records and no sequential
+//! conversion pass. For the layered point formats 6–10 only the layers we keep are decoded
+//! (x, y, z, intensity and RGB), the laz-rs `DecompressionSelection`.
+//!
+//! The result is the same cloud as the `las`-crate path of [`super::read_las`] (same origin
+//! rule, same arithmetic, same colour and intensity rules); anything this reader does not
+//! handle makes it return `Ok(None)` so that the caller takes that path: files without a
+//! chunk table, point-wise (unchunked) compression, unknown compressor versions, header
+//! bounds that do not contain the first points, a chunk table whose counts do not add up to
+//! the header's point count.
+
+use std::fs::File;
+use std::io::{BufReader, Cursor, Seek, SeekFrom};
+use std::os::unix::fs::FileExt;
+use std::path::Path;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+use ::las::Transform;
+use glam::{DVec3, Vec3};
+use laz::las::selective::DecompressionSelection;
+use laz::laszip::{ChunkTable, ChunkTableEntry};
+use laz::record::{
+    LayeredPointRecordDecompressor, RecordDecompressor, SequentialPointRecordDecompressor,
+};
+use laz::{LazItem, LazVlr};
+use rayon::prelude::*;
+
+use super::super::pointcloud::{CloudFormat, PointCloud, colors_to_u8};
+use super::super::{IoError, PROGRESS_STEP, check_cancel};
+use super::LasInfo;
+use crate::progress::Progress;
+
+/// LASzip compressor type codes (first u16 of the LASzip VLR): 2 = point-wise chunked,
+/// 3 = layered chunked (LASzip's `laszip.hpp`; laz-rs `CompressorType`). Type 1 (one chunk
+/// without a table) is left to the `las` crate.
+const POINTWISE_CHUNKED: u16 = 2;
+const LAYERED_CHUNKED: u16 = 3;
+
+/// Byte offset of RGB in a point record: 20 in formats 2 (after the 20-byte core), 28 in
+/// formats 3 and 5 (after GPS time), 30 in formats 7, 8 and 10 (ASPRS LAS 1.4 R15, tables 9–19).
+fn rgb_offset(fmt: &::las::point::Format) -> usize {
+    if fmt.is_extended {
+        30
+    } else if fmt.has_gps_time {
+        28
+    } else {
+        20
+    }
+}
+
+/// One chunk's work: where its compressed bytes are and where its points go.
+struct Job<'a> {
+    /// First point of the chunk (index into the cloud).
+    first: u64,
+    /// Absolute file position of the compressed bytes.
+    pos: u64,
+    /// Compressed length, bytes.
+    bytes: usize,
+    positions: &'a mut [std::mem::MaybeUninit<Vec3>],
+    intensity: &'a mut [u16],
+    colors: Option<&'a mut [[u16; 3]]>,
+}
+
+/// What a chunk reports back besides its columns.
+struct ChunkOut {
+    /// Any non-zero intensity in the chunk.
+    any_intensity: bool,
+    /// File-coordinate box of the chunk's points among the first [`PROGRESS_STEP`] of the
+    /// cloud (the points the origin rule looks at).
+    head_box: Option<(DVec3, DVec3)>,
+}
+
+/// Everything the per-chunk decoder needs, shared by all tasks.
+struct Shared<'a> {
+    path: &'a Path,
+    file: &'a File,
+    items: &'a Vec<LazItem>,
+    layered: bool,
+    selection: DecompressionSelection,
+    record_len: usize,
+    rgb_at: Option<usize>,
+    transforms: ::las::Vector<Transform>,
+    offset: DVec3,
+    progress: &'a dyn Progress,
+    done: AtomicU64,
+    total: u64,
+    /// Set once a chunk fails: the other tasks then stop early.
+    failed: AtomicBool,
+    /// The first chunk error (the one returned).
+    first_err: Mutex<Option<IoError>>,
+}
+
+/// Reads a LAZ file chunk-parallel; `Ok(None)` when the file needs the `las`-crate path.
+/// `info` is the already checked header ([`super::inspect_las`]).
+pub(super) fn read_laz_fused(
+    path: &Path,
+    info: &LasInfo,
+    progress: &dyn Progress,
+) -> Result<Option<PointCloud>, IoError> {
+    let total = info.declared_points;
+    if total == 0 {
+        return Ok(None);
+    }
+    let file = File::open(path).map_err(|e| IoError::io(path, e))?;
+    let mut read = BufReader::new(&file);
+    let Ok(raw) = ::las::raw::Header::read_from(&mut read) else {
+        return Ok(None);
+    };
+    if read.seek(SeekFrom::Start(0)).is_err() {
+        return Ok(None);
+    }
+    let Ok(header) = ::las::Header::new(&mut read) else {
+        return Ok(None);
+    };
+    let fmt = *header.point_format();
+    let Some(vlr_data) = header
+        .vlrs()
+        .iter()
+        .find(|v| {
+            v.user_id.trim_end_matches('\0') == LazVlr::USER_ID && v.record_id == LazVlr::RECORD_ID
+        })
+        .map(|v| v.data.as_slice())
+    else {
+        return Ok(None);
+    };
+    let compressor = vlr_data.get(0..2).map(|b| u16::from_le_bytes([b[0], b[1]]));
+    let layered = match compressor {
+        Some(POINTWISE_CHUNKED) => false,
+        Some(LAYERED_CHUNKED) => true,
+        _ => return Ok(None),
+    };
+    let Ok(vlr) = LazVlr::from_buffer(vlr_data) else {
+        return Ok(None);
+    };
+    let versions_ok = vlr.items().iter().all(|item| match item.version() {
+        1 | 2 => !layered,
+        3 | 4 => layered,
+        _ => false,
+    });
+    let record_len = usize::from(raw.point_data_record_length);
+    if vlr.items().is_empty()
+        || !versions_ok
+        || vlr.items_size() != u64::from(raw.point_data_record_length)
+        || record_len < 14
+    {
+        return Ok(None);
+    }
+    let rgb_at = fmt.has_color.then(|| rgb_offset(&fmt));
+    if rgb_at.is_some_and(|at| at + 6 > record_len) {
+        return Ok(None);
+    }
+
+    // Chunk table (read_from leaves the reader just after the 8-byte table offset).
+    let data_start = u64::from(raw.offset_to_point_data);
+    if read.seek(SeekFrom::Start(data_start)).is_err() {
+        return Ok(None);
+    }
+    let Ok(table) = ChunkTable::read_from(&mut read, &vlr) else {
+        return Ok(None);
+    };
+    let mut entries: Vec<ChunkTableEntry> = table.as_ref().to_vec();
+    if entries.is_empty() {
+        return Ok(None);
+    }
+    if !vlr.uses_variable_size_chunks() {
+        // Fixed-size tables repeat the chunk size; the last chunk holds the remainder.
+        let cs = u64::from(vlr.chunk_size());
+        let before = (entries.len() as u64 - 1) * cs;
+        if total <= before || total > before + cs {
+            return Ok(None); // inspect_las reports this; never reached after it
+        }
+        if let Some(last) = entries.last_mut() {
+            last.point_count = total - before;
+        }
+    }
+    if entries.iter().map(|e| e.point_count).sum::<u64>() != total
+        || entries.iter().any(|e| e.point_count == 0)
+    {
+        return Ok(None);
+    }
+    let points_start = data_start + ChunkTable::OFFSET_SIZE as u64;
+    let chunk_bytes: u64 = entries.iter().map(|e| e.byte_count).sum();
+    let file_len = file.metadata().map_err(|e| IoError::io(path, e))?.len();
+    if points_start + chunk_bytes > file_len {
+        return Err(IoError::format(
+            path,
+            format!(
+                "file is truncated: the LAZ chunk table lists {chunk_bytes} bytes of points but \
+                 only {} follow the point data offset",
+                file_len.saturating_sub(points_start)
+            ),
+        ));
+    }
+
+    // Origin: the header's minimum corner floored to whole metres, valid only when the header
+    // box holds the first points (checked after decoding; else the las-crate path decides).
+    let (hlo, hhi) = (
+        DVec3::from_array(info.bounds_min),
+        DVec3::from_array(info.bounds_max),
+    );
+    if !(hlo.is_finite() && hhi.is_finite() && hlo.cmple(hhi).all()) {
+        return Ok(None);
+    }
+    let t = *header.transforms();
+    let finite = |t: &Transform| t.direct(i32::MIN).is_finite() && t.direct(i32::MAX).is_finite();
+    if !(finite(&t.x) && finite(&t.y) && finite(&t.z)) {
+        return Ok(None);
+    }
+    let offset = hlo.floor();
+
+    // Output columns, split into one disjoint slice per chunk.
+    let n = usize::try_from(total).map_err(|_| IoError::format(path, "too many points"))?;
+    let mut positions: Vec<Vec3> = Vec::with_capacity(n);
+    let mut intensity = vec![0u16; n];
+    let mut colors = rgb_at.map(|_| vec![[0u16; 3]; n]);
+    let mut jobs = Vec::with_capacity(entries.len());
+    {
+        let mut pos_rest = &mut positions.spare_capacity_mut()[..n];
+        let mut int_rest = intensity.as_mut_slice();
+        let mut col_rest = colors.as_deref_mut();
+        let (mut first, mut pos) = (0u64, points_start);
+        for e in &entries {
+            let k = e.point_count as usize;
+            let (p, pr) = pos_rest.split_at_mut(k);
+            let (i, ir) = int_rest.split_at_mut(k);
+            let (c, cr) = match col_rest {
+                Some(c) => {
+                    let (c, cr) = c.split_at_mut(k);
+                    (Some(c), Some(cr))
+                }
+                None => (None, None),
+            };
+            (pos_rest, int_rest, col_rest) = (pr, ir, cr);
+            jobs.push(Job {
+                first,
+                pos,
+                bytes: usize::try_from(e.byte_count)
+                    .map_err(|_| IoError::format(path, "LAZ chunk too large"))?,
+                positions: p,
+                intensity: i,
+                colors: c,
+            });
+            first += e.point_count;
+            pos += e.byte_count;
+        }
+    }
+
+    let mut selection = DecompressionSelection::base()
+        .decompress_z()
+        .decompress_intensity();
+    if rgb_at.is_some() {
+        selection = selection.decompress_rgb();
+    }
+    let shared = Shared {
+        path,
+        file: &file,
+        items: vlr.items(),
+        layered,
+        selection,
+        record_len,
+        rgb_at,
+        transforms: t,
+        offset,
+        progress,
+        done: AtomicU64::new(0),
+        total,
+        failed: AtomicBool::new(false),
+        first_err: Mutex::new(None),
+    };
+    let outs: Option<Vec<ChunkOut>> = jobs
+        .into_par_iter()
+        .map_init(Vec::new, |buf, job| {
+            if shared.failed.load(Ordering::Relaxed) {
+                return None;
+            }
+            match decode_chunk(&shared, job, buf) {
+                Ok(out) => Some(out),
+                Err(e) => {
+                    shared.failed.store(true, Ordering::Relaxed);
+                    if let Ok(mut first) = shared.first_err.lock() {
+                        first.get_or_insert(e);
+                    }
+                    None
+                }
+            }
+        })
+        .collect();
+    if let Some(e) = shared.first_err.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    let Some(outs) = outs else {
+        return Err(IoError::format(path, "LAZ decoding stopped early"));
+    };
+
+    // The origin rule of `CloudBuilder`: the header corner only when the header box (± 1 m)
+    // holds the first PROGRESS_STEP points.
+    let head = outs
+        .iter()
+        .filter_map(|o| o.head_box)
+        .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
+    match head {
+        Some((lo, hi))
+            if (hlo - DVec3::ONE).cmple(lo).all() && hi.cmple(hhi + DVec3::ONE).all() => {}
+        _ => return Ok(None),
+    }
+    // SAFETY: the jobs covered `spare_capacity_mut()[..n]` with disjoint slices, and every job
+    // returned Ok (`outs` holds one result per job), which means it wrote every element of its
+    // slice: the `decode_chunk` loop writes one element per point and only returns Ok after
+    // all of them.
+    unsafe { positions.set_len(n) };
+    let any_intensity = outs.iter().any(|o| o.any_intensity);
+    Ok(Some(PointCloud {
+        offset,
+        positions,
+        colors: colors.map(|c| colors_to_u8(&c)),
+        intensity: any_intensity.then_some(intensity),
+        format: CloudFormat::Laz,
+    }))
+}
+
+/// Maps a decoder error: running out of bytes or invalid data is a `Format` error naming the
+/// chunk.
+fn chunk_err(path: &Path, first: u64, e: impl std::fmt::Display) -> IoError {
+    IoError::format(
+        path,
+        format!("bad point data in the LAZ chunk starting at point {first}: {e}"),
+    )
+}
+
+/// Decodes one chunk into its slices. `buf` is the task's reusable buffer of compressed bytes.
+fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Vec<u8>) -> Result<ChunkOut, IoError> {
+    check_cancel(s.progress)?;
+    let Job {
+        first,
+        pos,
+        bytes,
+        positions,
+        intensity,
+        mut colors,
+    } = job;
+    let n = positions.len() as u64;
+    buf.resize(bytes, 0);
+    s.file
+        .read_exact_at(buf, pos)
+        .map_err(|e| IoError::read(s.path, e, "LAZ chunk"))?;
+    let src = Cursor::new(buf.as_slice());
+    let mut dec: Box<dyn RecordDecompressor<Cursor<&[u8]>> + Send + Sync> = if s.layered {
+        Box::new(LayeredPointRecordDecompressor::new(src))
+    } else {
+        Box::new(SequentialPointRecordDecompressor::new(src))
+    };
+    dec.set_fields_from(s.items)
+        .map_err(|e| chunk_err(s.path, first, e))?;
+    dec.set_selection(s.selection);
+    let mut rec = vec![0u8; s.record_len];
+    let t = &s.transforms;
+    // Points of this chunk that fall among the cloud's first PROGRESS_STEP.
+    let head = (PROGRESS_STEP as u64).saturating_sub(first) as usize;
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    let mut any_intensity = false;
+    for (k, (slot, inten)) in positions.iter_mut().zip(intensity.iter_mut()).enumerate() {
+        dec.decompress_next(&mut rec)
+            .map_err(|e| chunk_err(s.path, first, e))?;
+        // x, y, z as i32 at bytes 0, 4, 8 and intensity as u16 at byte 12 in every format;
+        // the same arithmetic as `Transform::direct` and `CloudBuilder::push`.
+        let i32_at = |o: usize| i32::from_le_bytes([rec[o], rec[o + 1], rec[o + 2], rec[o + 3]]);
+        let p = DVec3::new(
+            t.x.direct(i32_at(0)),
+            t.y.direct(i32_at(4)),
+            t.z.direct(i32_at(8)),
+        );
+        if k < head {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+        slot.write((p - s.offset).as_vec3());
+        let i = u16::from_le_bytes([rec[12], rec[13]]);
+        any_intensity |= i != 0;
+        *inten = i;
+        if let (Some(c), Some(at)) = (colors.as_deref_mut(), s.rgb_at) {
+            let u16_at = |o: usize| u16::from_le_bytes([rec[o], rec[o + 1]]);
+            c[k] = [u16_at(at), u16_at(at + 2), u16_at(at + 4)];
+        }
+    }
+    let done = s.done.fetch_add(n, Ordering::Relaxed) + n;
+    s.progress.set(done as f64 / s.total as f64);
+    Ok(ChunkOut {
+        any_intensity,
+        head_box: (head > 0).then_some((lo, hi)),
+    })
+}
