@@ -374,23 +374,38 @@ fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Vec<u8>) -> Result<Chunk
             .map_err(|e| chunk_err(s.path, first, e))?;
         // x, y, z as i32 at bytes 0, 4, 8 and intensity as u16 at byte 12 in every format;
         // the same arithmetic as `Transform::direct` and `CloudBuilder::push`.
-        let i32_at = |o: usize| i32::from_le_bytes([rec[o], rec[o + 1], rec[o + 2], rec[o + 3]]);
+        let Some(&[x0, x1, x2, x3, y0, y1, y2, y3, z0, z1, z2, z3, i0, i1]) =
+            rec.first_chunk::<14>()
+        else {
+            return Err(chunk_err(
+                s.path,
+                first,
+                "point record shorter than 14 bytes",
+            ));
+        };
         let p = DVec3::new(
-            t.x.direct(i32_at(0)),
-            t.y.direct(i32_at(4)),
-            t.z.direct(i32_at(8)),
+            t.x.direct(i32::from_le_bytes([x0, x1, x2, x3])),
+            t.y.direct(i32::from_le_bytes([y0, y1, y2, y3])),
+            t.z.direct(i32::from_le_bytes([z0, z1, z2, z3])),
         );
         if k < head {
             lo = lo.min(p);
             hi = hi.max(p);
         }
         slot.write((p - s.offset).as_vec3());
-        let i = u16::from_le_bytes([rec[12], rec[13]]);
+        let i = u16::from_le_bytes([i0, i1]);
         any_intensity |= i != 0;
         *inten = i;
         if let (Some(c), Some(at)) = (colors.as_deref_mut(), s.rgb_at) {
-            let u16_at = |o: usize| u16::from_le_bytes([rec[o], rec[o + 1]]);
-            c[k] = [u16_at(at), u16_at(at + 2), u16_at(at + 4)];
+            if let Some(&[r0, r1, g0, g1, b0, b1]) =
+                rec.get(at..).and_then(|r| r.first_chunk::<6>())
+            {
+                c[k] = [
+                    u16::from_le_bytes([r0, r1]),
+                    u16::from_le_bytes([g0, g1]),
+                    u16::from_le_bytes([b0, b1]),
+                ];
+            }
         }
     }
     let done = s.done.fetch_add(n, Ordering::Relaxed) + n;
