@@ -396,16 +396,15 @@ fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Vec<u8>) -> Result<Chunk
         let i = u16::from_le_bytes([i0, i1]);
         any_intensity |= i != 0;
         *inten = i;
-        if let (Some(c), Some(at)) = (colors.as_deref_mut(), s.rgb_at) {
-            if let Some(&[r0, r1, g0, g1, b0, b1]) =
+        if let (Some(c), Some(at)) = (colors.as_deref_mut(), s.rgb_at)
+            && let Some(&[r0, r1, g0, g1, b0, b1]) =
                 rec.get(at..).and_then(|r| r.first_chunk::<6>())
-            {
-                c[k] = [
-                    u16::from_le_bytes([r0, r1]),
-                    u16::from_le_bytes([g0, g1]),
-                    u16::from_le_bytes([b0, b1]),
-                ];
-            }
+        {
+            c[k] = [
+                u16::from_le_bytes([r0, r1]),
+                u16::from_le_bytes([g0, g1]),
+                u16::from_le_bytes([b0, b1]),
+            ];
         }
     }
     let done = s.done.fetch_add(n, Ordering::Relaxed) + n;

@@ -291,7 +291,7 @@ fn fused_laz_reader_matches_the_las_crate_on_layered_format_7() {
             z: 300.0 + (f * 0.29) % 25.0,
             intensity: (i % 4_000) as u16,
             gps_time: Some(f * 0.5),
-            classification: ::las::point::Classification::new((i % 20) as u8).unwrap(),
+            classification: ::las::point::Classification::new((i % 10) as u8).unwrap(),
             color: Some(Color::new(
                 (i % 65_536) as u16,
                 (i * 3 % 65_536) as u16,
