@@ -180,9 +180,7 @@ pub(super) fn read_laz_fused(
             last.point_count = total - before;
         }
     }
-    if entries.iter().map(|e| e.point_count).sum::<u64>() != total
-        || entries.iter().any(|e| e.point_count == 0)
-    {
+    if entries.iter().map(|e| e.point_count).sum::<u64>() != total {
         return Ok(None);
     }
     let points_start = data_start + ChunkTable::OFFSET_SIZE as u64;
@@ -227,6 +225,11 @@ pub(super) fn read_laz_fused(
         let mut col_rest = colors.as_deref_mut();
         let (mut first, mut pos) = (0u64, points_start);
         for e in &entries {
+            if e.point_count == 0 {
+                // An empty chunk (laz-rs's writer ends variable-size files with one): skip it.
+                pos += e.byte_count;
+                continue;
+            }
             let k = e.point_count as usize;
             let (p, pr) = pos_rest.split_at_mut(k);
             let (i, ir) = int_rest.split_at_mut(k);

@@ -167,17 +167,26 @@ fn real_las_and_laz_files_read_fully() {
 /// Re-encodes an uncompressed LAS 1.2 file as LAZ with fixed chunks of `chunk` points (the
 /// `las` writer always uses 50,000), through laz-rs's own compressor.
 fn recompress_with_chunks(las: &[u8], chunk: u32) -> Vec<u8> {
+    recompress(las, Err(chunk))
+}
+
+/// Re-encodes an uncompressed LAS 1.2 file as LAZ: variable-size chunks of the given point
+/// counts (`Ok`) or fixed chunks (`Err(points per chunk)`).
+fn recompress(las: &[u8], chunks: Result<&[usize], u32>) -> Vec<u8> {
     let u16_at = |o: usize| u16::from_le_bytes([las[o], las[o + 1]]);
     let u32_at = |o: usize| u32::from_le_bytes([las[o], las[o + 1], las[o + 2], las[o + 3]]);
     let start = u32_at(96) as usize;
     let fmt = las[104] & 0x3f;
     let rec_len = u16_at(105);
     let base = Format::new(fmt).unwrap().len();
-    let vlr = laz::LazVlrBuilder::default()
+    let builder = laz::LazVlrBuilder::default()
         .with_point_format(fmt, rec_len - base)
-        .unwrap()
-        .with_fixed_chunk_size(chunk)
-        .build();
+        .unwrap();
+    let vlr = match chunks {
+        Ok(_) => builder.with_variable_chunk_size(),
+        Err(chunk) => builder.with_fixed_chunk_size(chunk),
+    }
+    .build();
     let mut data = Vec::new();
     vlr.write_to(&mut data).unwrap();
     let mut out = las[..start].to_vec();
@@ -195,7 +204,19 @@ fn recompress_with_chunks(las: &[u8], chunk: u32) -> Vec<u8> {
     let mut cursor = std::io::Cursor::new(out);
     cursor.set_position(cursor.get_ref().len() as u64);
     let mut c = laz::LasZipCompressor::new(cursor, vlr).unwrap();
-    c.compress_many(&las[start..]).unwrap();
+    match chunks {
+        Ok(sizes) => {
+            let mut rest = &las[start..];
+            for &k in sizes {
+                let (chunk, r) = rest.split_at(k * usize::from(rec_len));
+                c.compress_many(chunk).unwrap();
+                c.finish_current_chunk().unwrap();
+                rest = r;
+            }
+            assert!(rest.is_empty(), "chunk sizes must cover every point");
+        }
+        Err(_) => c.compress_many(&las[start..]).unwrap(),
+    }
     c.done().unwrap();
     c.into_inner().into_inner()
 }
@@ -255,6 +276,23 @@ fn fused_laz_reader_matches_the_las_crate_on_small_partial_chunks() {
     assert_identical(&a, &crate_path(&path), "chunks of 5,000");
     assert_identical(&a, &read_las(&path, &NoProgress).unwrap(), "read_las");
     assert_eq!(a.offset, truth.offset);
+    assert_close(&truth, &a);
+}
+
+#[test]
+fn fused_laz_reader_matches_the_las_crate_on_variable_size_chunks() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = big_sample(66_500);
+    let las = dir.path().join("src.las");
+    write_las(&las, &truth, false).unwrap();
+    let bytes = std::fs::read(&las).unwrap();
+    // Point counts come from the chunk table; the origin rule's first 65,536 points end
+    // inside the last chunk.
+    let path = dir.path().join("var.laz");
+    let sizes = [7_000, 13, 30_000, 1, 29_486];
+    std::fs::write(&path, recompress(&bytes, Ok(&sizes))).unwrap();
+    let a = fused(&path);
+    assert_identical(&a, &crate_path(&path), "variable-size chunks");
     assert_close(&truth, &a);
 }
 
