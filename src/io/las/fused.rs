@@ -44,6 +44,11 @@ use crate::progress::Progress;
 const POINTWISE_CHUNKED: u16 = 2;
 const LAYERED_CHUNKED: u16 = 3;
 
+/// Most points per compressed byte the fused reader preallocates for: real LAZ holds 0.1–0.5
+/// points per byte (`plot10m.laz`: 0.16), so 16 only turns away forged counts and degenerate
+/// files of near-identical points, which the `las`-crate path still reads.
+const MAX_POINTS_PER_BYTE: u64 = 16;
+
 /// Byte offset of RGB in a point record: 20 in formats 2 (after the 20-byte core), 28 in
 /// formats 3 and 5 (after GPS time), 30 in formats 7, 8 and 10 (ASPRS LAS 1.4 R15, tables 9–19).
 fn rgb_offset(fmt: &::las::point::Format) -> usize {
@@ -184,9 +189,12 @@ pub(super) fn read_laz_fused(
         return Ok(None);
     }
     let points_start = data_start + ChunkTable::OFFSET_SIZE as u64;
-    let chunk_bytes: u64 = entries.iter().map(|e| e.byte_count).sum();
+    let chunk_bytes = entries
+        .iter()
+        .try_fold(0u64, |sum, e| sum.checked_add(e.byte_count))
+        .unwrap_or(u64::MAX);
     let file_len = file.metadata().map_err(|e| IoError::io(path, e))?.len();
-    if points_start + chunk_bytes > file_len {
+    if points_start.saturating_add(chunk_bytes) > file_len {
         return Err(IoError::format(
             path,
             format!(
@@ -195,6 +203,12 @@ pub(super) fn read_laz_fused(
                 file_len.saturating_sub(points_start)
             ),
         ));
+    }
+    // The columns are allocated up front for the declared count: leave implausibly dense
+    // files (more than MAX_POINTS_PER_BYTE points per compressed byte) to the `las` crate,
+    // which allocates only as points decode, so a forged count cannot claim the memory.
+    if total > chunk_bytes.saturating_mul(MAX_POINTS_PER_BYTE) {
+        return Ok(None);
     }
 
     // Origin: the header's minimum corner floored to whole metres, valid only when the header
