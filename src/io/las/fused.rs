@@ -167,6 +167,13 @@ pub(super) fn read_laz_fused(
     if read.seek(SeekFrom::Start(data_start)).is_err() {
         return Ok(None);
     }
+    // laz-rs reserves the table for its declared chunk count before reading it: leave counts
+    // the file cannot hold (each chunk starts with one raw record) to the `las` crate.
+    let file_len = file.metadata().map_err(|e| IoError::io(path, e))?.len();
+    match declared_chunks(&file, data_start) {
+        Some(chunks) if chunks <= file_len / record_len as u64 => {}
+        _ => return Ok(None),
+    }
     let Ok(table) = ChunkTable::read_from(&mut read, &vlr) else {
         return Ok(None);
     };
@@ -185,7 +192,11 @@ pub(super) fn read_laz_fused(
             last.point_count = total - before;
         }
     }
-    if entries.iter().map(|e| e.point_count).sum::<u64>() != total {
+    if entries
+        .iter()
+        .try_fold(0u64, |sum, e| sum.checked_add(e.point_count))
+        != Some(total)
+    {
         return Ok(None);
     }
     let points_start = data_start + ChunkTable::OFFSET_SIZE as u64;
@@ -193,7 +204,6 @@ pub(super) fn read_laz_fused(
         .iter()
         .try_fold(0u64, |sum, e| sum.checked_add(e.byte_count))
         .unwrap_or(u64::MAX);
-    let file_len = file.metadata().map_err(|e| IoError::io(path, e))?.len();
     if points_start.saturating_add(chunk_bytes) > file_len {
         return Err(IoError::format(
             path,
@@ -339,6 +349,26 @@ pub(super) fn read_laz_fused(
         intensity: any_intensity.then_some(intensity),
         format: CloudFormat::Laz,
     }))
+}
+
+/// The chunk count in the chunk table's header, located as laz-rs does: the i64 at the start
+/// of the point data, or the file's last 8 bytes when that one does not point past it.
+fn declared_chunks(file: &File, data_start: u64) -> Option<u64> {
+    let mut word = [0u8; 8];
+    file.read_exact_at(&mut word, data_start).ok()?;
+    let mut table = i64::from_le_bytes(word);
+    if table <= data_start as i64 {
+        let len = file.metadata().ok()?.len();
+        file.read_exact_at(&mut word, len.checked_sub(8)?).ok()?;
+        table = i64::from_le_bytes(word);
+        if table <= data_start as i64 {
+            return None;
+        }
+    }
+    file.read_exact_at(&mut word, table as u64).ok()?;
+    Some(u64::from(u32::from_le_bytes([
+        word[4], word[5], word[6], word[7],
+    ])))
 }
 
 /// Maps a decoder error: running out of bytes or invalid data is a `Format` error naming the
