@@ -1,4 +1,6 @@
-//! LAS 1.0–1.4 (point formats 0–10, 64-bit point counts) and LAZ, through the `las` crate.
+//! LAS 1.0–1.4 (point formats 0–10, 64-bit point counts) and LAZ, through the `las` crate;
+//! LAZ with a chunk table goes through the fused chunk-parallel reader of `las/fused.rs`
+//! instead (decoding and conversion in one rayon task per chunk), which gives the same cloud.
 //!
 //! Before any point is decoded the declared point count is checked against the file: for
 //! uncompressed LAS the point-record region must hold exactly the declared number of
@@ -196,8 +198,26 @@ fn open_reader(path: &Path, compressed: bool) -> Result<::las::Reader, IoError> 
 /// Reads a LAS or LAZ file. Colour is kept when the point format has RGB, intensity when any
 /// point has a non-zero intensity. The local origin is the header's minimum corner rounded
 /// down to whole metres (or the first points' minimum when the header bounds are wrong).
+/// Chunked LAZ is read by the fused chunk-parallel reader (`las/fused.rs`), everything else
+/// (and LAZ that reader leaves) by the `las` crate.
 pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoError> {
     let info = inspect_las(path)?;
+    #[cfg(unix)]
+    if info.compressed
+        && let Some(cloud) = fused::read_laz_fused(path, &info, progress)?
+    {
+        return Ok(cloud);
+    }
+    read_las_crate(path, &info, progress)
+}
+
+/// The `las`-crate path of [`read_las`]: LAS, and LAZ that the fused reader leaves
+/// (no chunk table, unchunked compression, header bounds that miss the points).
+fn read_las_crate(
+    path: &Path,
+    info: &LasInfo,
+    progress: &dyn Progress,
+) -> Result<PointCloud, IoError> {
     let mut reader = open_reader(path, info.compressed)?;
     let total = reader.header().number_of_points();
     let mut pd = PointDataBuilder::new().for_header(reader.header()).build();
@@ -325,5 +345,7 @@ pub fn write_las(path: &Path, cloud: &PointCloud, compress: bool) -> Result<(), 
     writer.close().map_err(write_err)
 }
 
+#[cfg(unix)]
+mod fused;
 #[cfg(test)]
 mod tests;

@@ -163,3 +163,292 @@ fn real_las_and_laz_files_read_fully() {
         6
     );
 }
+
+/// Re-encodes an uncompressed LAS 1.2 file as LAZ with fixed chunks of `chunk` points (the
+/// `las` writer always uses 50,000), through laz-rs's own compressor.
+fn recompress_with_chunks(las: &[u8], chunk: u32) -> Vec<u8> {
+    recompress(las, Err(chunk))
+}
+
+/// Re-encodes an uncompressed LAS 1.2 file as LAZ: variable-size chunks of the given point
+/// counts (`Ok`) or fixed chunks (`Err(points per chunk)`).
+fn recompress(las: &[u8], chunks: Result<&[usize], u32>) -> Vec<u8> {
+    let u16_at = |o: usize| u16::from_le_bytes([las[o], las[o + 1]]);
+    let u32_at = |o: usize| u32::from_le_bytes([las[o], las[o + 1], las[o + 2], las[o + 3]]);
+    let start = u32_at(96) as usize;
+    let fmt = las[104] & 0x3f;
+    let rec_len = u16_at(105);
+    let base = Format::new(fmt).unwrap().len();
+    let builder = laz::LazVlrBuilder::default()
+        .with_point_format(fmt, rec_len - base)
+        .unwrap();
+    let vlr = match chunks {
+        Ok(_) => builder.with_variable_chunk_size(),
+        Err(chunk) => builder.with_fixed_chunk_size(chunk),
+    }
+    .build();
+    let mut data = Vec::new();
+    vlr.write_to(&mut data).unwrap();
+    let mut out = las[..start].to_vec();
+    out[104] |= 0x80;
+    out[100..104].copy_from_slice(&(u32_at(100) + 1).to_le_bytes());
+    out[96..100].copy_from_slice(&(start as u32 + 54 + data.len() as u32).to_le_bytes());
+    out.extend_from_slice(&0u16.to_le_bytes());
+    let mut user = [0u8; 16];
+    user[..14].copy_from_slice(b"laszip encoded");
+    out.extend_from_slice(&user);
+    out.extend_from_slice(&22204u16.to_le_bytes());
+    out.extend_from_slice(&(data.len() as u16).to_le_bytes());
+    out.extend_from_slice(&[0u8; 32]);
+    out.extend_from_slice(&data);
+    let mut cursor = std::io::Cursor::new(out);
+    cursor.set_position(cursor.get_ref().len() as u64);
+    let mut c = laz::LasZipCompressor::new(cursor, vlr).unwrap();
+    match chunks {
+        Ok(sizes) => {
+            let mut rest = &las[start..];
+            for &k in sizes {
+                let (chunk, r) = rest.split_at(k * usize::from(rec_len));
+                c.compress_many(chunk).unwrap();
+                c.finish_current_chunk().unwrap();
+                rest = r;
+            }
+            assert!(rest.is_empty(), "chunk sizes must cover every point");
+        }
+        Err(_) => c.compress_many(&las[start..]).unwrap(),
+    }
+    c.done().unwrap();
+    c.into_inner().into_inner()
+}
+
+/// A cloud of `n` points on a slanted sheet, colour and intensity varying per point.
+fn big_sample(n: usize) -> PointCloud {
+    PointCloud {
+        offset: DVec3::new(431_200.0, 5_300_100.0, 212.0),
+        positions: (0..n)
+            .map(|i| {
+                let f = i as f32;
+                Vec3::new((f * 0.37) % 61.0, (f * 0.011) % 47.0, (f * 0.003) % 9.0)
+            })
+            .collect(),
+        colors: Some(
+            (0..n)
+                .map(|i| [(i % 251) as u8, (i / 7 % 256) as u8, 255 - (i % 13) as u8])
+                .collect(),
+        ),
+        intensity: Some((0..n).map(|i| (i * 37 % 65_536) as u16).collect()),
+        format: CloudFormat::Las,
+    }
+}
+
+/// The fused reader's cloud, which must exist (the file is one it handles).
+fn fused(path: &Path) -> PointCloud {
+    let info = inspect_las(path).unwrap();
+    fused::read_laz_fused(path, &info, &NoProgress)
+        .unwrap()
+        .expect("the fused reader takes this file")
+}
+
+fn crate_path(path: &Path) -> PointCloud {
+    read_las_crate(path, &inspect_las(path).unwrap(), &NoProgress).unwrap()
+}
+
+fn assert_identical(a: &PointCloud, b: &PointCloud, what: &str) {
+    assert_eq!(a.offset, b.offset, "{what}");
+    assert_eq!(a.len(), b.len(), "{what}");
+    assert!(a.positions == b.positions, "{what}: positions differ");
+    assert_eq!(a.colors, b.colors, "{what}");
+    assert_eq!(a.intensity, b.intensity, "{what}");
+    assert_eq!(a.format, b.format, "{what}");
+}
+
+#[test]
+fn fused_laz_reader_matches_the_las_crate_on_small_partial_chunks() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = big_sample(70_500);
+    let las = dir.path().join("src.las");
+    write_las(&las, &truth, false).unwrap();
+    let bytes = std::fs::read(&las).unwrap();
+    // 70,500 points in chunks of 5,000: 15 chunks, the last one holding 500.
+    let path = dir.path().join("c5000.laz");
+    std::fs::write(&path, recompress_with_chunks(&bytes, 5_000)).unwrap();
+    let a = fused(&path);
+    assert_identical(&a, &crate_path(&path), "chunks of 5,000");
+    assert_identical(&a, &read_las(&path, &NoProgress).unwrap(), "read_las");
+    assert_eq!(a.offset, truth.offset);
+    assert_close(&truth, &a);
+}
+
+#[test]
+fn fused_laz_reader_matches_the_las_crate_on_variable_size_chunks() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = big_sample(66_500);
+    let las = dir.path().join("src.las");
+    write_las(&las, &truth, false).unwrap();
+    let bytes = std::fs::read(&las).unwrap();
+    // Point counts come from the chunk table; the origin rule's first 65,536 points end
+    // inside the last chunk.
+    let path = dir.path().join("var.laz");
+    let sizes = [7_000, 13, 30_000, 1, 29_486];
+    std::fs::write(&path, recompress(&bytes, Ok(&sizes))).unwrap();
+    let a = fused(&path);
+    assert_identical(&a, &crate_path(&path), "variable-size chunks");
+    assert_close(&truth, &a);
+}
+
+#[test]
+fn fused_laz_reader_matches_the_las_crate_on_layered_format_7() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("f7.laz");
+    let mut b = Builder::from((1, 4));
+    let mut fmt = Format::new(7).unwrap();
+    fmt.is_compressed = true;
+    b.point_format = fmt;
+    let t = |offset: f64| Transform {
+        scale: 0.001,
+        offset,
+    };
+    b.transforms = Vector {
+        x: t(640_000.0),
+        y: t(4_100_000.0),
+        z: t(0.0),
+    };
+    let mut w = ::las::Writer::new(
+        BufWriter::new(File::create(&path).unwrap()),
+        b.into_header().unwrap(),
+    )
+    .unwrap();
+    // 120,000 points: chunks of 50,000, the last one partial; GPS time and classification
+    // vary so that the skipped layers hold data.
+    let n = 120_000;
+    for i in 0..n {
+        let f = f64::from(i);
+        w.write_point(Point {
+            x: 640_000.0 + (f * 0.013) % 80.0,
+            y: 4_100_000.0 + (f * 0.0007) % 90.0,
+            z: 300.0 + (f * 0.29) % 25.0,
+            intensity: (i % 4_000) as u16,
+            gps_time: Some(f * 0.5),
+            classification: ::las::point::Classification::new((i % 10) as u8).unwrap(),
+            color: Some(Color::new(
+                (i % 65_536) as u16,
+                (i * 3 % 65_536) as u16,
+                (i * 7 % 65_536) as u16,
+            )),
+            ..Default::default()
+        })
+        .unwrap();
+    }
+    w.close().unwrap();
+    let a = fused(&path);
+    assert_eq!(a.len(), n as usize);
+    assert!(a.colors.is_some() && a.intensity.is_some());
+    assert_identical(&a, &crate_path(&path), "point format 7");
+}
+
+#[test]
+fn fused_laz_reader_matches_the_las_crate_on_real_files() {
+    let Some(dir) = real_data_dir() else {
+        println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+        return;
+    };
+    for file in [
+        "TreeLS_extdata/pine.laz",
+        "TreeLS_extdata/pine_plot.laz",
+        "TreeLS_extdata/spruce.laz",
+        "lidR_extdata/Megaplot.laz",
+        "lidR_extdata/MixedConifer.laz",
+        "lidR_extdata/Topography.laz",
+        "lidR_extdata/dbh.laz",
+    ] {
+        let path = dir.join(file);
+        assert_identical(&fused(&path), &crate_path(&path), file);
+    }
+}
+
+#[test]
+fn fused_laz_reader_leaves_wrong_header_bounds_to_the_las_crate() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("b.laz");
+    write_las(&path, &big_sample(2_000), true).unwrap();
+    let mut bytes = std::fs::read(&path).unwrap();
+    bytes[179..227].fill(0); // max/min x, y, z = 0: a valid box that misses every point
+    std::fs::write(&path, &bytes).unwrap();
+    let info = inspect_las(&path).unwrap();
+    assert!(
+        fused::read_laz_fused(&path, &info, &NoProgress)
+            .unwrap()
+            .is_none()
+    );
+    let c = read_las(&path, &NoProgress).unwrap();
+    assert_eq!(c.offset, DVec3::new(431_200.0, 5_300_100.0, 212.0));
+    assert_close(&big_sample(2_000), &c);
+}
+
+#[test]
+fn truncated_laz_is_a_format_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let las = dir.path().join("src.las");
+    write_las(&las, &big_sample(20_000), false).unwrap();
+    let full = recompress_with_chunks(&std::fs::read(&las).unwrap(), 2_000);
+    let path = dir.path().join("t.laz");
+    // Cut in the middle: the chunk table at the end is gone.
+    std::fs::write(&path, &full[..full.len() / 2]).unwrap();
+    let e = read_las(&path, &NoProgress).unwrap_err();
+    assert!(matches!(e, IoError::Format { .. }), "{e}");
+    assert!(e.to_string().contains("truncated"), "{e}");
+    // Chunk bytes missing but the table intact: cut 20,000 bytes from the point data and
+    // move the table offset back by as much.
+    let start = u32::from_le_bytes(full[96..100].try_into().unwrap()) as usize;
+    let table = i64::from_le_bytes(full[start..start + 8].try_into().unwrap());
+    let mut cut = full[..start + 8].to_vec();
+    cut[start..start + 8].copy_from_slice(&(table - 20_000).to_le_bytes());
+    cut.extend_from_slice(&full[start + 8 + 20_000..]);
+    std::fs::write(&path, &cut).unwrap();
+    let e = read_las(&path, &NoProgress).unwrap_err();
+    assert!(matches!(e, IoError::Format { .. }), "{e}");
+    assert!(e.to_string().contains("truncated"), "{e}");
+}
+
+/// Counts progress calls and cancels after the first.
+#[derive(Default)]
+struct CancelAfterFirst {
+    calls: std::sync::atomic::AtomicUsize,
+    last: std::sync::Mutex<f64>,
+}
+
+impl Progress for CancelAfterFirst {
+    fn set(&self, fraction: f64) {
+        self.calls
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if let Ok(mut l) = self.last.lock() {
+            *l = l.max(fraction);
+        }
+    }
+    fn is_cancelled(&self) -> bool {
+        self.calls.load(std::sync::atomic::Ordering::Relaxed) > 0
+    }
+}
+
+#[test]
+fn fused_laz_reader_reports_progress_and_stops_on_cancel() {
+    let dir = tempfile::tempdir().unwrap();
+    let las = dir.path().join("src.las");
+    write_las(&las, &big_sample(20_000), false).unwrap();
+    let path = dir.path().join("p.laz");
+    std::fs::write(
+        &path,
+        recompress_with_chunks(&std::fs::read(&las).unwrap(), 1_000),
+    )
+    .unwrap();
+    let p = CancelAfterFirst::default();
+    assert!(matches!(read_las(&path, &p), Err(IoError::Cancelled)));
+    // 20 chunks; cancelled after the first one finished, so at most one per core more ran.
+    let calls = p.calls.load(std::sync::atomic::Ordering::Relaxed);
+    assert!(
+        (1..=1 + rayon::current_num_threads()).contains(&calls),
+        "{calls} chunks ran"
+    );
+    let last = p.last.lock().map(|l| *l).unwrap_or(0.0);
+    assert!(last > 0.0 && last < 1.0, "{last}");
+}
