@@ -195,62 +195,93 @@ impl ColumnGrid {
         })
     }
 
-    /// The nearest point to `q` closer than `best.0` (squared metres; equal counts while
-    /// `best.1` is [`NONE`]), as (squared distance, target index), or `best` when none is.
-    /// `None` when the walk reached [`FALLBACK_RINGS`] rings without settling: ask the tree.
-    pub(super) fn nearest(&self, q: Vec3, best: (f32, u32)) -> Option<(f32, u32)> {
-        let (mut bd2, mut bi) = best;
-        // The hint's place in its column: that column's scan starts there, no search.
-        let hint = self
-            .slot
-            .get(bi as usize)
-            .map_or(usize::MAX, |&k| k as usize);
+    /// Walks the columns ring by ring outwards from `q`'s column, calling `visit(state, x, y)`
+    /// for each column in the grid, until no column left can hold a point within
+    /// `bound(state)` (squared metres) of `q` (true), or past `rings` rings or for a
+    /// non-finite or far-off `q` (false: unsettled).
+    fn walk_rings<S>(
+        &self,
+        q: Vec3,
+        rings: i64,
+        state: &mut S,
+        bound: impl Fn(&S) -> f32,
+        mut visit: impl FnMut(&mut S, i64, i64),
+    ) -> bool {
         let fx = ((q.x - self.x0) * self.inv_h).floor();
         let fy = ((q.y - self.y0) * self.inv_h).floor();
         if !(fx.is_finite() && fy.is_finite()) || fx.abs() > 1e9 || fy.abs() > 1e9 {
-            return None;
+            return false;
         }
         let (cx, cy) = (fx as i64, fy as i64);
         let mut k = 0i64;
         loop {
-            // Points of ring k lie more than (k - 1) h away horizontally.
             if k >= 1 {
+                // Points of ring k lie more than (k - 1) h away horizontally.
                 let gap = (k - 1) as f32 * self.h * 0.999;
-                if gap * gap > bd2 {
-                    return Some((bd2, bi));
+                if gap * gap > bound(state) {
+                    return true;
+                }
+                // Rings 0..k cover the whole grid: nothing is left.
+                if cx - (k - 1) <= 0
+                    && cx + (k - 1) >= self.nx - 1
+                    && cy - (k - 1) <= 0
+                    && cy + (k - 1) >= self.ny - 1
+                {
+                    return true;
                 }
             }
-            // Rings 0..k cover the whole grid: nothing is left.
-            if k >= 1
-                && cx - (k - 1) <= 0
-                && cx + (k - 1) >= self.nx - 1
-                && cy - (k - 1) <= 0
-                && cy + (k - 1) >= self.ny - 1
-            {
-                return Some((bd2, bi));
+            if k > rings {
+                return false;
             }
-            if k > FALLBACK_RINGS {
-                return None;
-            }
-            let mut visit = |x: i64, y: i64| {
+            let mut cell = |x: i64, y: i64| {
                 if x >= 0 && x < self.nx && y >= 0 && y < self.ny {
-                    self.scan(x, y, q, hint, &mut bd2, &mut bi);
+                    visit(state, x, y);
                 }
             };
             if k == 0 {
-                visit(cx, cy);
+                cell(cx, cy);
             } else {
                 for x in cx - k..=cx + k {
-                    visit(x, cy - k);
-                    visit(x, cy + k);
+                    cell(x, cy - k);
+                    cell(x, cy + k);
                 }
                 for y in cy - k + 1..cy + k {
-                    visit(cx - k, y);
-                    visit(cx + k, y);
+                    cell(cx - k, y);
+                    cell(cx + k, y);
                 }
             }
             k += 1;
         }
+    }
+
+    /// Squared horizontal distance from `q` to column (x, y)'s box (shrunk by 0.1 % so
+    /// rounding never prunes a column that holds a point within the bound).
+    fn column_gap2(&self, x: i64, y: i64, q: Vec3) -> f32 {
+        let bx0 = self.x0 + x as f32 * self.h;
+        let by0 = self.y0 + y as f32 * self.h;
+        let dx = (bx0 - q.x).max(q.x - (bx0 + self.h)).max(0.0) * 0.999;
+        let dy = (by0 - q.y).max(q.y - (by0 + self.h)).max(0.0) * 0.999;
+        dx * dx + dy * dy
+    }
+
+    /// The nearest point to `q` closer than `best.0` (squared metres; equal counts while
+    /// `best.1` is [`NONE`]), as (squared distance, target index), or `best` when none is.
+    /// `None` when the walk reached [`FALLBACK_RINGS`] rings without settling: ask the tree.
+    pub(super) fn nearest(&self, q: Vec3, best: (f32, u32)) -> Option<(f32, u32)> {
+        // The hint's place in its column: that column's scan starts there, no search.
+        let hint = self
+            .slot
+            .get(best.1 as usize)
+            .map_or(usize::MAX, |&k| k as usize);
+        let mut best = best;
+        let settled = self.walk_rings(
+            q,
+            FALLBACK_RINGS,
+            &mut best,
+            |b| b.0,
+            |b, x, y| self.scan(x, y, q, hint, &mut b.0, &mut b.1),
+        );
+        settled.then_some(best)
     }
 
     /// The up to [`KNN`] nearest points to `q` within `sqrt(max_d2)`, nearest first, into
@@ -260,60 +291,19 @@ impl ColumnGrid {
     /// settling (`out` is then incomplete): ask the tree.
     pub(super) fn nearest_k(&self, q: Vec3, max_d2: f32, out: &mut Knn) -> Option<f32> {
         out.n = 0;
-        let fx = ((q.x - self.x0) * self.inv_h).floor();
-        let fy = ((q.y - self.y0) * self.inv_h).floor();
-        if !(fx.is_finite() && fy.is_finite()) || fx.abs() > 1e9 || fy.abs() > 1e9 {
-            return None;
-        }
-        let (cx, cy) = (fx as i64, fy as i64);
-        let mut k = 0i64;
-        loop {
-            let bound = out.bound(max_d2);
-            if k >= 1 {
-                let gap = (k - 1) as f32 * self.h * 0.999;
-                if gap * gap > bound {
-                    break;
-                }
-                if cx - (k - 1) <= 0
-                    && cx + (k - 1) >= self.nx - 1
-                    && cy - (k - 1) <= 0
-                    && cy + (k - 1) >= self.ny - 1
-                {
-                    break;
-                }
-            }
-            if k > KNN_RINGS {
-                return None;
-            }
-            let mut visit = |x: i64, y: i64| {
-                if x >= 0 && x < self.nx && y >= 0 && y < self.ny {
-                    self.scan_k(x, y, q, max_d2, out);
-                }
-            };
-            if k == 0 {
-                visit(cx, cy);
-            } else {
-                for x in cx - k..=cx + k {
-                    visit(x, cy - k);
-                    visit(x, cy + k);
-                }
-                for y in cy - k + 1..cy + k {
-                    visit(cx - k, y);
-                    visit(cx + k, y);
-                }
-            }
-            k += 1;
-        }
-        Some(out.bound(max_d2))
+        let settled = self.walk_rings(
+            q,
+            KNN_RINGS,
+            out,
+            |o| o.bound(max_d2),
+            |o, x, y| self.scan_k(x, y, q, max_d2, o),
+        );
+        settled.then(|| out.bound(max_d2))
     }
 
     /// Adds the points of column (x, y) closer than `out`'s bound to `out`.
     fn scan_k(&self, x: i64, y: i64, q: Vec3, max_d2: f32, out: &mut Knn) {
-        let bx0 = self.x0 + x as f32 * self.h;
-        let by0 = self.y0 + y as f32 * self.h;
-        let dx = (bx0 - q.x).max(q.x - (bx0 + self.h)).max(0.0) * 0.999;
-        let dy = (by0 - q.y).max(q.y - (by0 + self.h)).max(0.0) * 0.999;
-        if dx * dx + dy * dy > out.bound(max_d2) {
+        if self.column_gap2(x, y, q) > out.bound(max_d2) {
             return;
         }
         let c = (x + self.nx * y) as usize;
@@ -351,12 +341,7 @@ impl ColumnGrid {
     /// Scans column (x, y) for points closer than the best so far; `hint` is the position
     /// in `entries` of a point within the best distance (or `usize::MAX`).
     fn scan(&self, x: i64, y: i64, q: Vec3, hint: usize, bd2: &mut f32, bi: &mut u32) {
-        // Horizontal distance from q to the column's box.
-        let bx0 = self.x0 + x as f32 * self.h;
-        let by0 = self.y0 + y as f32 * self.h;
-        let dx = (bx0 - q.x).max(q.x - (bx0 + self.h)).max(0.0) * 0.999;
-        let dy = (by0 - q.y).max(q.y - (by0 + self.h)).max(0.0) * 0.999;
-        if dx * dx + dy * dy > *bd2 {
+        if self.column_gap2(x, y, q) > *bd2 {
             return;
         }
         let c = (x + self.nx * y) as usize;
@@ -403,11 +388,12 @@ impl ColumnGrid {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
 
-    fn brute(points: &[Vec3], q: Vec3, max_d2: f32) -> Option<f32> {
+    /// The smallest squared distance from `q` to `points` within `max_d2`, by brute force.
+    pub(in crate::geom::icp) fn brute(points: &[Vec3], q: Vec3, max_d2: f32) -> Option<f32> {
         points
             .iter()
             .map(|p| {

@@ -358,16 +358,6 @@ fn cached_neighbours_answer_exactly_as_brute_force() {
         lazy: OnceLock::new(),
         grid: ColumnGrid::new(&target),
     };
-    let brute = |q: Vec3, max_d2: f32| {
-        target
-            .iter()
-            .map(|p| {
-                let e = *p - q;
-                e.x * e.x + e.y * e.y + e.z * e.z
-            })
-            .filter(|d2| *d2 <= max_d2)
-            .min_by(f32::total_cmp)
-    };
     let (mut hits, mut total) = (0, 0);
     for walk in 0..60 {
         let mut slot = Slot::default();
@@ -391,7 +381,7 @@ fn cached_neighbours_answer_exactly_as_brute_force() {
             let cached = slot.clear > 0.0;
             let anchor = slot.anchor;
             let got = search.nearest_cached(q, max_d2, [NONE, NONE], &mut slot, &mut scratch);
-            let want = brute(q, max_d2);
+            let want = grid::tests::brute(&target, q, max_d2);
             match (got, want) {
                 (None, None) => {}
                 (Some((m, pos)), Some(w)) => {
