@@ -350,21 +350,17 @@ fn run(
             source: sub_w.as_deref(),
             target: weights.target,
         };
-        let mut sub_prev = vec![NONE; sub.len()];
         // Points move by centimetres per iteration here: cached neighbourhoods would not
         // hold, so every query walks the grid from its previous match.
-        let mut sub_cache = Cache(Vec::new());
+        let mut sub_side = Side::new(&sub, sub_weights, false);
         progress.log(&format!(
             "ICP: first iterations on {} of the {} source points",
             sub.len(),
             source.len()
         ));
         iterate(
-            &sub,
+            &mut sub_side,
             &search,
-            &mut sub_prev,
-            &mut sub_cache,
-            sub_weights,
             params,
             (
                 params.relative_rmse_tolerance.max(COARSE_TOLERANCE),
@@ -375,25 +371,19 @@ fn run(
         )?;
         state.converged = false;
     }
-    let mut prev = vec![NONE; source.len()];
-    let mut cache = Cache::new(source.len());
+    let mut side = Side::new(&source, weights, true);
     iterate(
-        &source,
+        &mut side,
         &search,
-        &mut prev,
-        &mut cache,
-        weights,
         params,
         (params.relative_rmse_tolerance, params.max_iterations),
         &mut state,
         progress,
     )?;
     let final_pairs = correspond(
-        &source,
+        &mut side,
         &search,
-        &mut prev,
-        &mut cache,
-        IcpWeights::default(),
+        false,
         &state.t,
         state.dist,
         |q, tp, _| (q - tp).length(),
@@ -432,13 +422,9 @@ struct LoopState {
 
 /// Iterates on `source` from `state` until the weighted RMSE changes by at most `tolerance`
 /// (relative) at the distance floor, or `state.iterations` reaches `cap`.
-#[allow(clippy::too_many_arguments)]
 fn iterate(
-    source: &[Vec3],
+    side: &mut Side<'_>,
     search: &Search<'_>,
-    prev: &mut [u32],
-    cache: &mut Cache,
-    weights: IcpWeights<'_>,
     params: &IcpParams,
     (tolerance, cap): (f64, usize),
     state: &mut LoopState,
@@ -452,22 +438,13 @@ fn iterate(
         }
         let dist = state.dist;
         let at_floor = dist <= params.min_distance;
-        let mut pairs = correspond(
-            source,
-            search,
-            prev,
-            cache,
-            weights,
-            &state.t,
-            dist,
-            |q, tp, n| {
-                if plane {
-                    (q - tp).dot(n).abs()
-                } else {
-                    (q - tp).length()
-                }
-            },
-        )?;
+        let mut pairs = correspond(side, search, true, &state.t, dist, |q, tp, n| {
+            if plane {
+                (q - tp).dot(n).abs()
+            } else {
+                (q - tp).length()
+            }
+        })?;
         let min_pairs = if plane { 7 } else { 3 };
         if pairs.len() < min_pairs {
             return Err(GeomError::Empty(
@@ -490,7 +467,11 @@ fn iterate(
                 pairs.len(),
                 |k| {
                     let p = pairs[k];
-                    (source[p.src as usize].as_dvec3(), p.tp.as_dvec3(), p.weight)
+                    (
+                        side.points[p.src as usize].as_dvec3(),
+                        p.tp.as_dvec3(),
+                        p.weight,
+                    )
                 },
                 params.estimate_scale,
             )?
@@ -667,15 +648,30 @@ impl Default for Slot {
     }
 }
 
-/// One [`Slot`] per source point, or none when that would exceed [`CACHE_MAX_BYTES`].
-struct Cache(Vec<Slot>);
+/// One source cloud (in Z order) with its prior weights and its search state, kept from
+/// one iteration to the next: each point's last correspondence (the next search's starting
+/// bound) and its [`Slot`].
+struct Side<'a> {
+    points: &'a [Vec3],
+    weights: IcpWeights<'a>,
+    prev: Vec<u32>,
+    /// One per point, or none: not asked for, or over [`CACHE_MAX_BYTES`].
+    slots: Vec<Slot>,
+}
 
-impl Cache {
-    fn new(n: usize) -> Self {
-        if n.saturating_mul(std::mem::size_of::<Slot>()) <= CACHE_MAX_BYTES {
-            Cache(vec![Slot::default(); n])
-        } else {
-            Cache(Vec::new())
+impl<'a> Side<'a> {
+    fn new(points: &'a [Vec3], weights: IcpWeights<'a>, cached: bool) -> Self {
+        let n = points.len();
+        let fits = n.saturating_mul(std::mem::size_of::<Slot>()) <= CACHE_MAX_BYTES;
+        Side {
+            points,
+            weights,
+            prev: vec![NONE; n],
+            slots: if cached && fits {
+                vec![Slot::default(); n]
+            } else {
+                Vec::new()
+            },
         }
     }
 }
@@ -797,17 +793,13 @@ impl Search<'_> {
     }
 }
 
-/// Nearest target point of every transformed source point within `max_dist` whose prior
-/// weight is positive, in parallel chunks. `prev` holds each source point's correspondence
-/// of the last call (the search's starting bound) and `cache` its cached neighbourhood (see
-/// [`Slot`]; empty: none); both are updated.
-#[allow(clippy::too_many_arguments)]
+/// Nearest target point of every source point moved by `t` within `max_dist`, in parallel
+/// chunks, updating the side's search state; with `priors`, only points whose prior weight
+/// is positive, and each pair weighted by its priors (else every point, weight 1).
 fn correspond(
-    source: &[Vec3],
+    side: &mut Side<'_>,
     search: &Search<'_>,
-    prev: &mut [u32],
-    cache: &mut Cache,
-    weights: IcpWeights<'_>,
+    priors: bool,
     t: &Similarity,
     max_dist: f64,
     residual: impl Fn(DVec3, DVec3, DVec3) -> f64 + Sync,
@@ -815,14 +807,20 @@ fn correspond(
     let max2 = max_dist * max_dist;
     // The f32 bound just above max_dist^2; pairs are then checked in f64 as before.
     let max_d2 = (max2 as f32).next_up();
-    let mut slots: Vec<Option<&mut [Slot]>> = if cache.0.len() == source.len() {
-        cache.0.chunks_mut(CHUNK).map(Some).collect()
+    let source = side.points;
+    let weights = if priors {
+        side.weights
+    } else {
+        IcpWeights::default()
+    };
+    let mut slots: Vec<Option<&mut [Slot]>> = if side.slots.len() == source.len() {
+        side.slots.chunks_mut(CHUNK).map(Some).collect()
     } else {
         (0..source.len().div_ceil(CHUNK)).map(|_| None).collect()
     };
     let parts: Vec<Vec<Pair>> = source
         .par_chunks(CHUNK)
-        .zip(prev.par_chunks_mut(CHUNK))
+        .zip(side.prev.par_chunks_mut(CHUNK))
         .zip(slots.par_iter_mut())
         .enumerate()
         .map(|(c, ((src, prv), slots))| {
