@@ -5,7 +5,8 @@
 //! `-- tiny 1-5` or `-- stand 1-5 auto` (`light-stand` for the light stand of the tests) (which also prints the automatic coarse alignment's
 //! own errors). `analyse` prints where the SfM points lie on the LiDAR's classes, why points
 //! get no surface patch, and the surface refinement started from the true pose with its
-//! standard errors (`REG_DIAG_LOG=1` shows its iterations). Plots are cached under `$REG_DIAG_DIR` (default
+//! standard errors (`REG_DIAG_LOG=1` shows its iterations). `REG_DIAG_POINTS3D` and
+//! `REG_DIAG_LIDAR_POINTS` override the preset's SfM and LiDAR point counts. Plots are cached under `$REG_DIAG_DIR` (default
 //! `/tmp/sylva-register-diag`); `REG_PARAMS` may hold a JSON object of register parameters.
 
 use std::path::PathBuf;
@@ -62,10 +63,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for seed in seeds {
-        let out = root.join(format!("{name}-{seed}"));
+        let env_count = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<usize>().ok());
+        let (points3d, lidar_points) = (
+            env_count("REG_DIAG_POINTS3D"),
+            env_count("REG_DIAG_LIDAR_POINTS"),
+        );
+        let mut dir = format!("{name}-{seed}");
+        if let Some(n) = points3d {
+            dir += &format!("-sfm{n}");
+        }
+        if let Some(n) = lidar_points {
+            dir += &format!("-lidar{n}");
+        }
+        let out = root.join(dir);
         if !out.join("truth.json").exists() {
             let mut p = SynthParams::new(preset);
             p.seed = seed;
+            p.points3d = points3d;
+            p.lidar_points = lidar_points;
             if light {
                 p.images = Some(30);
                 p.width = Some(320);
@@ -285,13 +300,54 @@ fn analyse_seed(
     }
     println!("  patch status by label (ok, few, line, off-centre, singular, rms): {why:?}");
     let sfm_local: Vec<DVec3> = model.points.iter().map(|q| q.xyz).collect();
-    for (name, keep, with_cp) in [
-        ("all", [true, true, true, true], false),
-        ("all + control points", [true, true, true, true], true),
-        ("ground+wood+other", [true, true, false, true], false),
-        ("ground", [true, false, false, false], false),
+    let radius: Vec<f64> = source
+        .iter()
+        .map(|q| (q.as_dvec3() - c_local).truncate().length())
+        .collect();
+    for (name, keep, with_cp, within) in [
+        ("all", [true, true, true, true], false, (0.0, f64::INFINITY)),
+        (
+            "all + control points",
+            [true, true, true, true],
+            true,
+            (0.0, f64::INFINITY),
+        ),
+        (
+            "ground+wood+other",
+            [true, true, false, true],
+            false,
+            (0.0, f64::INFINITY),
+        ),
+        (
+            "ground",
+            [true, false, false, false],
+            false,
+            (0.0, f64::INFINITY),
+        ),
+        (
+            "ground within 5 m",
+            [true, false, false, false],
+            false,
+            (0.0, 5.0),
+        ),
+        (
+            "ground beyond 5 m",
+            [true, false, false, false],
+            false,
+            (5.0, f64::INFINITY),
+        ),
+        (
+            "all within 5 m",
+            [true, true, true, true],
+            false,
+            (0.0, 5.0),
+        ),
     ] {
-        let w: Vec<f64> = lab.iter().map(|l| f64::from(u8::from(keep[*l]))).collect();
+        let w: Vec<f64> = lab
+            .iter()
+            .zip(&radius)
+            .map(|(l, r)| f64::from(u8::from(keep[*l] && (within.0..within.1).contains(r))))
+            .collect();
         match sylva::geom::surface::refine_on_surface(
             &sfm_local,
             Some(&w),

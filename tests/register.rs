@@ -39,6 +39,14 @@ fn generate(dir: &Path, p: SynthParams) -> std::path::PathBuf {
     out
 }
 
+/// Trees the generator planted (`truth.json`).
+fn trees_in(out: &Path) -> usize {
+    let truth: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("truth.json")).expect("truth"))
+            .expect("truth json");
+    truth["trees"].as_array().map_or(0, Vec::len)
+}
+
 /// The registration goals: rotation < 0.05°, scale < 0.1 %, translation < 1 cm.
 fn assert_goals(rot_err: f64, scale_err: f64, trans_err: f64) {
     assert!(rot_err < 0.05, "rotation error {rot_err}°");
@@ -124,19 +132,21 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
             trans_err * 100.0,
             report["fitness"]
         );
-        // Measured (README, registration results): rotation 0.014-0.118°, scale
-        // 0.014-0.096 %, translation 0.19-1.04 cm. The goals (0.05°, 0.1 %, 1 cm)
-        // are met on `stand` (test below) but not on every `tiny` seed: the surface
-        // refinement's own standard errors put the yaw of these plots (1500 SfM points with
-        // 1 cm noise, mostly on smooth ground, one to three stems, six stones) at 0.04-0.09°
-        // (1 sigma), so no estimator can promise 0.05° on five seeds. Asserted: the measured
-        // level, and that the error agrees with the reported standard error.
-        assert!(rot_err < 0.15, "seed {seed}: rotation error {rot_err}°");
-        assert!(scale_err < 0.0012, "seed {seed}: scale error {scale_err}");
-        assert!(
-            trans_err < 0.012,
-            "seed {seed}: translation error {trans_err} m"
-        );
+        // Measured (README, registration results): rotation 0.005-0.025° on the seeds with
+        // two or three stems, 0.085° on seed 2 (one stem), scale 0.006-0.059 %, translation
+        // 0.06-0.20 cm. A single round stem does not hold the yaw about itself, so on seed 2
+        // only the ground relief and six stones do: the refinement's own standard error of
+        // its yaw is 0.026° there, and no estimator can promise 0.05°. Asserted: the
+        // issue's goals wherever two stems stand, and an error consistent with the reported
+        // standard error on a single-stem plot.
+        let stems = trees_in(&out);
+        if stems >= 2 {
+            assert_goals(rot_err, scale_err, trans_err);
+        } else {
+            assert!(rot_err < 0.15, "seed {seed}: rotation error {rot_err}°");
+            assert!(scale_err < 0.001, "seed {seed}: scale error {scale_err}");
+            assert!(trans_err < 0.01, "seed {seed}: translation {trans_err} m");
+        }
         assert!(
             rot_err < 4.0 * std_rot && scale_err < 4.0 * std_scale,
             "seed {seed}: errors beyond four reported standard errors"
@@ -183,16 +193,16 @@ fn control_points_reach_the_goals_on_a_stand() {
     assert_goals(rot_err, scale_err, trans_err);
 }
 
-/// Without control points on `tiny` (1-3 trees, 1500 SfM points mostly on ground) the
-/// automatic alignment must either refuse with a request for control points or be right:
-/// an accepted alignment is held to the accuracy control points reach on these plots (test
-/// above). Measured (README): all five seeds are refused; seeds 3 and 5 for low confidence
-/// (0.11, 0.20), seeds 1, 2 and 4 find the plot (confidence 0.77-0.98) but the surface
-/// refinement pins their rotation only to 0.05-0.09° (one standard error), and seeds 2 and
-/// 4 did end 0.61° and 0.37° off when accepted anyway.
+/// Without control points on `tiny` the automatic alignment must either refuse with a
+/// request for control points or reach the goals. Measured (README): seeds 1, 3, 4
+/// and 5 are accepted (confidence 0.79-1.00) and end 0.008-0.025° off; seed 2, one stem,
+/// is refused because the SfM points pin its yaw only to 0.026° (at most 0.02° is
+/// accepted without control points). With the preset's former 1500 SfM points and 200 k
+/// LiDAR points every seed was refused.
 #[test]
-fn automatic_alignment_on_tiny_refuses_rather_than_misaligns() {
+fn automatic_alignment_on_tiny_reaches_the_goals_or_refuses() {
     let dir = tempfile::tempdir().expect("tempdir");
+    let mut accepted = 0;
     for seed in 1..=5 {
         let out = plot(dir.path(), seed);
         let work = dir.path().join(format!("work-{seed}"));
@@ -212,12 +222,8 @@ fn automatic_alignment_on_tiny_refuses_rather_than_misaligns() {
                     trans_err * 100.0
                 );
                 assert_eq!(report["method"], "automatic");
-                assert!(rot_err < 0.15, "seed {seed}: accepted {rot_err}° off");
-                assert!(
-                    scale_err < 0.0012,
-                    "seed {seed}: accepted scale {scale_err} off"
-                );
-                assert!(trans_err < 0.012, "seed {seed}: accepted {trans_err} m off");
+                assert_goals(rot_err, scale_err, trans_err);
+                accepted += 1;
             }
             Err(e) => {
                 println!("seed {seed}: refused: {e}");
@@ -225,6 +231,7 @@ fn automatic_alignment_on_tiny_refuses_rather_than_misaligns() {
             }
         }
     }
+    assert!(accepted >= 4, "only {accepted} of five tiny plots aligned");
 }
 
 /// Without control points the light stand (as the control-point test above, but with 10 000

@@ -389,7 +389,15 @@ fn gauss_newton(
     for &(q, g, r, w) in &obs {
         let x = q - c;
         let xg = x.cross(g);
-        let row = [xg.x, xg.y, xg.z, g.x, g.y, g.z, x.dot(g)];
+        // Scale column: the noise lies in the source points, and a similarity scales it with
+        // them, so plain least squares on target-frame distances prefers to shrink the source
+        // (every residual holds its point's noise, and shrinking scales that noise down by s).
+        // The estimate then falls short by about sigma² / var((x - c) · g): -0.2 to -1 % on a
+        // `tiny` plot whose points lie mostly on flat ground (README, registration). Measuring
+        // the residual in source units, r / s, removes the bias; at the current estimate its
+        // derivative in ln s is the foot's lever arm (x - r g - c) · g = x · g - r instead of
+        // x · g (rotation and translation columns change only by the common factor 1 / s).
+        let row = [xg.x, xg.y, xg.z, g.x, g.y, g.z, x.dot(g) - r];
         for a in 0..dim {
             atb[a] -= w * row[a] * r;
             for b in 0..dim {
@@ -616,15 +624,67 @@ mod tests {
             shift * 1000.0,
             r.fitness
         );
-        // Measured: rotation 0.011° (standard error 0.02°), translation 0.3 mm, scale
-        // 0.075 % from a start 0.3 % off, 2.5 times its standard error of 0.03 %: either the
-        // three default rounds leave part of the scale offset on this scene or the stems'
-        // curvature biases it slightly (not resolved yet); asserted at the measured level.
+        // Measured: rotation 0.011° (standard error 0.02°), translation 0.4 mm, scale 0.046 %
+        // from a start 0.3 % off, 1.5 times its standard error of 0.03 % (0.075 % before the
+        // scale column was freed of the points' noise: test below).
         assert!(rot < 0.02, "rotation error {rot}°");
         assert!(scale < 1e-3, "scale error {scale}");
         assert!(shift < 0.005, "translation error {shift} m");
         assert!(r.std_rotation_deg.iter().all(|s| *s > 0.0 && *s < 0.02));
         assert!(r.fitness > 0.8, "fitness {}", r.fitness);
+    }
+
+    /// Noisy points on gently rolling ground, refined from the true pose: least squares on
+    /// target-frame distances shrinks the source (sigma² / var((x - c) · n) per step, and the
+    /// rounds compound it): -4.2 % against a standard error of 0.2 % before the scale column
+    /// used the foot's lever arm, -0.016 % after. The estimate must stay within three of its
+    /// own standard errors of the truth.
+    #[test]
+    fn scale_is_not_biased_by_the_source_points_noise() {
+        let ground = |x: f64, y: f64| 0.15 * (0.8 * x).sin() + 0.1 * (0.6 * y).cos();
+        let mut rng = Stream::new(11, 0, 0);
+        let n = 300;
+        let mut lidar = Vec::with_capacity(n * n);
+        for i in 0..n {
+            for j in 0..n {
+                let (x, y) = (
+                    -3.0 + 6.0 * i as f64 / n as f64,
+                    -3.0 + 6.0 * j as f64 / n as f64,
+                );
+                let z = ground(x, y) + 0.003 * rng.normal();
+                lidar.push(Vec3::new(x as f32, y as f32, z as f32));
+            }
+        }
+        let sfm: Vec<DVec3> = (0..8000)
+            .map(|_| {
+                let (x, y) = (rng.range(-2.8, 2.8), rng.range(-2.8, 2.8));
+                let noise = DVec3::new(rng.normal(), rng.normal(), rng.normal()) * 0.01;
+                DVec3::new(x, y, ground(x, y)) + noise
+            })
+            .collect();
+        let index = PointIndex::new(&lidar).expect("index");
+        let r = refine_on_surface(
+            &sfm,
+            None,
+            &lidar,
+            &index,
+            &Similarity::IDENTITY,
+            None,
+            &SurfaceParams::default(),
+            &NoProgress,
+        )
+        .expect("refine");
+        let err = r.transform.scale - 1.0;
+        println!(
+            "scale error {:.4} % (std {:.4} %)",
+            err * 100.0,
+            r.std_scale * 100.0
+        );
+        assert!(
+            err.abs() < 3.0 * r.std_scale && err.abs() < 6e-3,
+            "scale error {err} (std {})",
+            r.std_scale
+        );
     }
 
     #[test]

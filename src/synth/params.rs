@@ -27,9 +27,9 @@ pub struct SynthParams {
     pub leafless: bool,
     /// PNG images instead of JPEG (quality 92).
     pub png: bool,
-    /// LiDAR points delivered (tiny 200 000, plot 3 000 000, stand 5 200 000).
+    /// LiDAR points delivered (tiny 400 000, plot 3 000 000, stand 5 200 000).
     pub lidar_points: Option<usize>,
-    /// Target number of points3D (tiny 1 500, plot 15 000, stand 20 000).
+    /// Target number of points3D (tiny 12 000, plot 15 000, stand 20 000).
     pub points3d: Option<usize>,
     /// Number of trees (preset: tiny 1–3, plot 1, stand 17).
     pub trees: Option<usize>,
