@@ -60,7 +60,10 @@ pub(super) fn point_to_plane_step(
                 let x = q - c;
                 let r0 = (q - p.tp.as_dvec3()).dot(n);
                 let xn = x.cross(n);
-                let row = [xn.x, xn.y, xn.z, n.x, n.y, n.z, x.dot(n)];
+                // Scale column from the foot of the point on the plane, (x - r0 n) · n: with
+                // x · n the source noise along n, scaled with the points, would pay for a
+                // smaller scale (the bias explained in `geom::surface::gauss_newton`).
+                let row = [xn.x, xn.y, xn.z, n.x, n.y, n.z, x.dot(n) - r0];
                 for a in 0..dim {
                     atb[a] -= p.weight * row[a] * r0;
                     for b in a..dim {
