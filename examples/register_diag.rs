@@ -304,44 +304,19 @@ fn analyse_seed(
         .iter()
         .map(|q| (q.as_dvec3() - c_local).truncate().length())
         .collect();
+    // Subsets: the labels kept (ground, wood, leaf, other), the control points as extra
+    // observations, and the range of horizontal distances from the plot centre (metres).
+    const ALL: [bool; 4] = [true; 4];
+    const GROUND: [bool; 4] = [true, false, false, false];
+    let any = (0.0, f64::INFINITY);
     for (name, keep, with_cp, within) in [
-        ("all", [true, true, true, true], false, (0.0, f64::INFINITY)),
-        (
-            "all + control points",
-            [true, true, true, true],
-            true,
-            (0.0, f64::INFINITY),
-        ),
-        (
-            "ground+wood+other",
-            [true, true, false, true],
-            false,
-            (0.0, f64::INFINITY),
-        ),
-        (
-            "ground",
-            [true, false, false, false],
-            false,
-            (0.0, f64::INFINITY),
-        ),
-        (
-            "ground within 5 m",
-            [true, false, false, false],
-            false,
-            (0.0, 5.0),
-        ),
-        (
-            "ground beyond 5 m",
-            [true, false, false, false],
-            false,
-            (5.0, f64::INFINITY),
-        ),
-        (
-            "all within 5 m",
-            [true, true, true, true],
-            false,
-            (0.0, 5.0),
-        ),
+        ("all", ALL, false, any),
+        ("all + control points", ALL, true, any),
+        ("ground+wood+other", [true, true, false, true], false, any),
+        ("ground", GROUND, false, any),
+        ("ground within 5 m", GROUND, false, (0.0, 5.0)),
+        ("ground beyond 5 m", GROUND, false, (5.0, f64::INFINITY)),
+        ("all within 5 m", ALL, false, (0.0, 5.0)),
     ] {
         let w: Vec<f64> = lab
             .iter()
