@@ -1,7 +1,7 @@
 //! ICP tests on a structured synthetic plot: rolling ground plus a few stems.
 
 use super::*;
-use crate::geom::estimate_normals;
+use crate::geom::{Normals, estimate_normals};
 use crate::progress::NoProgress;
 use glam::{DMat3, DQuat};
 use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
@@ -86,6 +86,25 @@ fn source_from(
         .collect()
 }
 
+/// Point-to-plane-capable ICP of `source` onto `target` with its `normals`, without progress.
+fn icp_on(
+    source: &[Vec3],
+    target: &[Vec3],
+    normals: &Normals,
+    initial: &Similarity,
+    params: &IcpParams,
+) -> IcpResult {
+    icp(
+        source,
+        target,
+        Some(&normals.normals),
+        initial,
+        params,
+        &NoProgress,
+    )
+    .unwrap()
+}
+
 fn assert_close(got: &IcpResult, want: &Similarity, what: &str) {
     let dr = DQuat::from_mat3(&(got.rotation * want.rotation.transpose()));
     let angle = dr.angle_between(DQuat::IDENTITY).to_degrees();
@@ -156,15 +175,7 @@ fn point_to_plane_recovers_similarity_from_independent_samples() {
             min_distance: 0.03,
             ..IcpParams::default()
         };
-        let res = icp(
-            &source,
-            &target,
-            Some(&normals.normals),
-            &Similarity::IDENTITY,
-            &params,
-            &NoProgress,
-        )
-        .unwrap();
+        let res = icp_on(&source, &target, &normals, &Similarity::IDENTITY, &params);
         assert_close(&res, &t, &format!("point-to-plane {robust:?}"));
         assert!(res.inlier_rmse < 0.02, "{res:?}");
     }
@@ -287,15 +298,7 @@ fn a_fixed_rotation_refines_translation_only() {
         robust: RobustKernel::Huber { scale: 0.02 },
         ..IcpParams::default()
     };
-    let res = icp(
-        &source,
-        &target,
-        Some(&normals.normals),
-        &initial,
-        &params,
-        &NoProgress,
-    )
-    .unwrap();
+    let res = icp_on(&source, &target, &normals, &initial, &params);
     assert_eq!(res.rotation, t.rotation, "the rotation must not move");
     assert_close(&res, &t, "translation-only point-to-plane");
     // Point-to-point has no translation-only step.
@@ -486,15 +489,7 @@ fn point_to_plane_scale_is_not_biased_by_the_source_noise() {
         robust: RobustKernel::Huber { scale: 0.05 },
         ..IcpParams::default()
     };
-    let res = icp(
-        &source,
-        &target,
-        Some(&normals.normals),
-        &t,
-        &params,
-        &NoProgress,
-    )
-    .unwrap();
+    let res = icp_on(&source, &target, &normals, &t, &params);
     let ds = res.scale / t.scale - 1.0;
     println!("scale error {:.4} %", ds * 100.0);
     assert!(ds.abs() < 5e-3, "scale error {ds}; {res:?}");
