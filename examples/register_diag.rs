@@ -62,12 +62,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "| seed | method | coarse rot ° | coarse scale % | coarse cm | rot ° | scale % | cm | fitness | rmse m | iters | confidence | s |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let env_count = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<usize>().ok());
+    let (points3d, lidar_points) = (
+        env_count("REG_DIAG_POINTS3D"),
+        env_count("REG_DIAG_LIDAR_POINTS"),
+    );
     for seed in seeds {
-        let env_count = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<usize>().ok());
-        let (points3d, lidar_points) = (
-            env_count("REG_DIAG_POINTS3D"),
-            env_count("REG_DIAG_LIDAR_POINTS"),
-        );
         let mut dir = format!("{name}-{seed}");
         if let Some(n) = points3d {
             dir += &format!("-sfm{n}");
