@@ -59,13 +59,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     params.register.automatic = automatic;
     println!(
-        "| seed | method | coarse rot ° | coarse scale % | coarse cm | rot ° | scale % | cm | fitness | rmse m | iters | confidence | s |"
+        "| seed | method | coarse rot ° | coarse scale % | coarse cm | rot ° | scale % | cm | fitness | rmse m | iters | confidence | rot std ° (normal matrix / split half) | s |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     let env_count = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<usize>().ok());
     let (points3d, lidar_points) = (
         env_count("REG_DIAG_POINTS3D"),
         env_count("REG_DIAG_LIDAR_POINTS"),
+    );
+    let env_cm = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
+    let (lidar_noise, sfm_noise) = (
+        env_cm("REG_DIAG_LIDAR_NOISE_CM"),
+        env_cm("REG_DIAG_SFM_NOISE_CM"),
     );
     for seed in seeds {
         let mut dir = format!("{name}-{seed}");
@@ -75,12 +80,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(n) = lidar_points {
             dir += &format!("-lidar{n}");
         }
+        if let Some(cm) = lidar_noise {
+            dir += &format!("-lnoise{cm}");
+        }
+        if let Some(cm) = sfm_noise {
+            dir += &format!("-snoise{cm}");
+        }
         let out = root.join(dir);
         if !out.join("truth.json").exists() {
             let mut p = SynthParams::new(preset);
             p.seed = seed;
             p.points3d = points3d;
             p.lidar_points = lidar_points;
+            if let Some(cm) = lidar_noise {
+                p.noise_cm = cm;
+            }
+            if let Some(cm) = sfm_noise {
+                p.sfm_noise_cm = cm;
+            }
             if light {
                 p.images = Some(30);
                 p.width = Some(320);
@@ -158,7 +175,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let (cr, cs, ct) = errors(&coarse, &truth_sim, centre);
         let (r, s, tr) = errors(&get("sfm_to_lidar")?, &truth_sim, centre);
         println!(
-            "| {seed} | {} | {cr:.4} | {:.4} | {:.2} | {r:.4} | {:.4} | {:.2} | {:.3} | {:.4} | {} | {:.2} | {secs:.1} |",
+            "| {seed} | {} | {cr:.4} | {:.4} | {:.2} | {r:.4} | {:.4} | {:.2} | {:.3} | {:.4} | {} | {:.2} | {:.4} / {:.4} | {secs:.1} |",
             report["method"].as_str().unwrap_or("?"),
             cs * 100.0,
             ct * 100.0,
@@ -168,9 +185,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             report["rmse_m"].as_f64().unwrap_or(f64::NAN),
             report["icp_iterations"],
             report["confidence"].as_f64().unwrap_or(f64::NAN),
+            norm3(&report["uncertainty"]["normal_matrix"]["rotation_deg"]),
+            norm3(&report["uncertainty"]["split_half"]["std_rotation_deg"]),
         );
     }
     Ok(())
+}
+
+/// Norm of a JSON array of three numbers (NaN when absent).
+fn norm3(v: &serde_json::Value) -> f64 {
+    v.as_array().map_or(f64::NAN, |a| {
+        a.iter()
+            .map(|x| x.as_f64().unwrap_or(f64::NAN).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    })
 }
 
 /// The automatic coarse alignment alone against the truth (printed before the stage's row).
@@ -354,6 +383,71 @@ fn analyse_seed(
             }
             Err(e) => println!("  {name}: {e}"),
         }
+    }
+    // Monte Carlo: REG_DIAG_MC refinements from the truth on all points, each with extra
+    // isotropic SfM noise of REG_DIAG_MC_CM centimetres (default 1), to compare the spread
+    // of the estimates with the refinement's own standard errors.
+    let runs = std::env::var("REG_DIAG_MC")
+        .ok()
+        .and_then(|v| v.parse::<u64>().ok())
+        .unwrap_or(0);
+    let cm = std::env::var("REG_DIAG_MC_CM")
+        .ok()
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or(1.0);
+    let mut yaw = Vec::new();
+    let mut std_yaw = Vec::new();
+    for k in 0..runs {
+        let mut rng = sylva::synth::rng::Stream::new(k, 0x6d63, 0);
+        let sigma = cm / 100.0 / truth.scale;
+        let noisy: Vec<DVec3> = sfm_local
+            .iter()
+            .map(|q| *q + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * sigma)
+            .collect();
+        // Start off the truth by REG_DIAG_MC_START_DEG about the vertical through the plot
+        // centre, alternating in sign, as a coarse alignment would.
+        let start_deg = std::env::var("REG_DIAG_MC_START_DEG")
+            .ok()
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(0.0);
+        let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+        let turn = DMat3::from_rotation_z((sign * start_deg).to_radians());
+        let start = Similarity {
+            rotation: turn * local.rotation,
+            translation: c_local + turn * (local.translation - c_local),
+            ..local
+        };
+        let r = sylva::geom::surface::refine_on_surface(
+            &noisy,
+            None,
+            &thin,
+            &tindex,
+            &start,
+            None,
+            &sp,
+            &NoProgress,
+        )?;
+        let t = local.inverse().then(&r.transform);
+        let (er, es, _) = errors(&t, &Similarity::IDENTITY, c_local);
+        // Signed rotation about the vertical (degrees).
+        let z = DQuat::from_mat3(&t.rotation)
+            .to_scaled_axis()
+            .z
+            .to_degrees();
+        println!(
+            "  mc {k}: rot {er:.4}°, yaw {z:+.4}°, scale {:+.4}%, std yaw {:.4}°",
+            es * 100.0,
+            r.std_rotation_deg[2]
+        );
+        yaw.push(z);
+        std_yaw.push(r.std_rotation_deg[2]);
+    }
+    if runs > 1 {
+        let n = yaw.len() as f64;
+        let mean = yaw.iter().sum::<f64>() / n;
+        let sd = (yaw.iter().map(|y| (y - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let rep = std_yaw.iter().sum::<f64>() / n;
+        println!("  mc yaw: mean {mean:+.4}°, spread {sd:.4}°, reported std {rep:.4}°");
     }
     Ok(())
 }

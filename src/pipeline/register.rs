@@ -312,9 +312,42 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             r.std_rotation_deg,
             r.std_scale * 100.0
         ));
-        let std_rot = r.std_rotation_deg.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let split = if p.uncertainty_splits > 0 {
+            Some(geom::surface::split_half_spread(
+                &sfm,
+                &surface.thin,
+                &surface.index,
+                &r.transform,
+                &surface_params(p),
+                p.uncertainty_splits as usize,
+                &SubProgress::new(ctx.progress, 0.98, 0.02),
+            )?)
+        } else {
+            None
+        };
+        // Per parameter, the larger of the normal-matrix and the split-half standard error.
+        let wider = |a: f64, b: Option<f64>| b.map_or(a, |b| a.max(b));
+        let std_rotation_deg: [f64; 3] = std::array::from_fn(|k| {
+            wider(r.std_rotation_deg[k], split.map(|s| s.std_rotation_deg[k]))
+        });
+        let std_translation_m: [f64; 3] = std::array::from_fn(|k| {
+            wider(
+                r.std_translation_m[k],
+                split.map(|s| s.std_translation_m[k]),
+            )
+        });
+        let std_scale = wider(r.std_scale, split.map(|s| s.std_scale));
+        if let Some(s) = &split {
+            ctx.progress.log(&format!(
+                "split-half check ({} splits): standard errors rotation {:.4?} deg, scale {:.4}%",
+                s.splits,
+                s.std_rotation_deg,
+                s.std_scale * 100.0
+            ));
+        }
+        let std_rot = std_rotation_deg.iter().map(|v| v * v).sum::<f64>().sqrt();
         if method == "automatic"
-            && (std_rot > AUTOMATIC_MAX_STD_ROTATION_DEG || r.std_scale > AUTOMATIC_MAX_STD_SCALE)
+            && (std_rot > AUTOMATIC_MAX_STD_ROTATION_DEG || std_scale > AUTOMATIC_MAX_STD_SCALE)
         {
             return Err(StageError::Input(format!(
                 "automatic registration is not precise enough: the SfM points pin the \
@@ -322,15 +355,21 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                  at most {AUTOMATIC_MAX_STD_ROTATION_DEG}° and {:.2}% are accepted without \
                  control points), so the alignment may be tenths of a degree off; supply \
                  control points (at least 4 pairs, CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)",
-                r.std_scale * 100.0,
+                std_scale * 100.0,
                 AUTOMATIC_MAX_STD_SCALE * 100.0
             )));
         }
         let u = json!({
-            "rotation_deg": r.std_rotation_deg,
-            "scale": r.std_scale,
-            "translation_m": r.std_translation_m,
+            "rotation_deg": std_rotation_deg,
+            "scale": std_scale,
+            "translation_m": std_translation_m,
             "points_on_surfaces": r.used,
+            "normal_matrix": {
+                "rotation_deg": r.std_rotation_deg,
+                "scale": r.std_scale,
+                "translation_m": r.std_translation_m,
+            },
+            "split_half": split,
         });
         (
             r.transform,
