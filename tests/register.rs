@@ -135,8 +135,8 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
         // Measured (README, registration results): rotation 0.005-0.025° on the seeds with
         // two or three stems, 0.085° on seed 2 (one stem), scale 0.006-0.059 %, translation
         // 0.06-0.20 cm. A single round stem does not hold the yaw about itself, so on seed 2
-        // only the ground relief and six stones do: the refinement's own standard error of
-        // its yaw is 0.026° there, and no estimator can promise 0.05°. Asserted: the
+        // only the ground relief and six stones do: its yaw spreads 0.050° over 20 draws of
+        // the SfM noise (README, Monte Carlo), and no estimator can promise 0.05°. Asserted: the
         // issue's goals wherever two stems stand, and an error consistent with the reported
         // standard error on a single-stem plot.
         let stems = trees_in(&out);
