@@ -764,26 +764,19 @@ mod tests {
             (yaw.iter().map(|y| (y - mean).powi(2)).sum::<f64>() / (draws - 1) as f64).sqrt();
         let sfm = draw(0);
         let fit = refine(&sfm);
-        let split = split_half_spread(
-            &sfm,
-            &lidar,
-            &index,
-            &fit.transform,
-            &params,
-            8,
-            &NoProgress,
-        )
-        .expect("split half");
-        let again = split_half_spread(
-            &sfm,
-            &lidar,
-            &index,
-            &fit.transform,
-            &params,
-            8,
-            &NoProgress,
-        )
-        .expect("split half");
+        let measure = || {
+            split_half_spread(
+                &sfm,
+                &lidar,
+                &index,
+                &fit.transform,
+                &params,
+                8,
+                &NoProgress,
+            )
+            .expect("split half")
+        };
+        let (split, again) = (measure(), measure());
         println!(
             "yaw spread over {draws} draws {spread:.4}°, split half {:.4}°, normal matrix {:.4}°",
             split.std_rotation_deg[2], fit.std_rotation_deg[2]

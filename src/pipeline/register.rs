@@ -328,6 +328,8 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             None
         };
         // Per parameter, the larger of the normal-matrix and the split-half standard error.
+        // The halves leave the control pairs out, so with control points this is the SfM
+        // points' own spread: an upper bound there.
         let wider = |a: f64, b: Option<f64>| b.map_or(a, |b| a.max(b));
         let std_rotation_deg: [f64; 3] = std::array::from_fn(|k| {
             wider(r.std_rotation_deg[k], split.map(|s| s.std_rotation_deg[k]))
