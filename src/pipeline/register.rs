@@ -302,7 +302,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             } else {
                 1
             },
-            &SubProgress::new(ctx.progress, 0.9, 0.08),
+            &SubProgress::new(ctx.progress, 0.9, 0.06),
         )?;
         ctx.progress.log(&format!(
             "surface refinement: {} SfM points on LiDAR surfaces ({:.0}%), robust RMS {:.4} m, \
@@ -322,7 +322,8 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                 &r.transform,
                 &surface_params(p),
                 p.uncertainty_splits as usize,
-                &SubProgress::new(ctx.progress, 0.98, 0.02),
+                // Ends short of 1.0: the stage reports 1.0 only once its model is written.
+                &SubProgress::new(ctx.progress, 0.96, 0.03),
             )?)
         } else {
             None
