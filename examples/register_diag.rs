@@ -395,21 +395,21 @@ fn analyse_seed(
         .ok()
         .and_then(|v| v.parse::<f64>().ok())
         .unwrap_or(1.0);
+    // Start off the truth by REG_DIAG_MC_START_DEG about the vertical through the plot
+    // centre, alternating in sign, as a coarse alignment would.
+    let start_deg = std::env::var("REG_DIAG_MC_START_DEG")
+        .ok()
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or(0.0);
+    let sigma = cm / 100.0 / truth.scale;
     let mut yaw = Vec::new();
     let mut std_yaw = Vec::new();
     for k in 0..runs {
         let mut rng = sylva::synth::rng::Stream::new(k, 0x6d63, 0);
-        let sigma = cm / 100.0 / truth.scale;
         let noisy: Vec<DVec3> = sfm_local
             .iter()
             .map(|q| *q + DVec3::new(rng.normal(), rng.normal(), rng.normal()) * sigma)
             .collect();
-        // Start off the truth by REG_DIAG_MC_START_DEG about the vertical through the plot
-        // centre, alternating in sign, as a coarse alignment would.
-        let start_deg = std::env::var("REG_DIAG_MC_START_DEG")
-            .ok()
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0);
         let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
         let turn = DMat3::from_rotation_z((sign * start_deg).to_radians());
         let start = Similarity {

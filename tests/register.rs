@@ -196,12 +196,12 @@ fn control_points_reach_the_goals_on_a_stand() {
 /// Without control points on `tiny` the automatic alignment must either refuse with a
 /// request for control points or reach the goals. Measured (README): seeds 1, 3 and
 /// 5 are accepted (confidence 0.79-1.00) and end 0.008-0.025° off; seeds 2 (one stem) and 4
-/// are refused because the SfM points pin their yaw only to 0.031° and 0.029° (the larger of
-/// the normal-matrix and split-half standard errors; at most 0.02° is accepted without
-/// control points). Seed 4 was accepted, and ended 0.005° off, while the gate read the
-/// normal matrix alone (0.020°), but 20 draws of its SfM noise spread its yaw by 0.028°:
-/// about one plot in thirteen like it would have missed the goal. With the preset's former 1500 SfM
-/// points and 200 k LiDAR points every seed was refused.
+/// are refused because the SfM points pin their rotation only to 0.036° and 0.037° (the
+/// larger of the normal-matrix and split-half standard errors; at most 0.025° is accepted
+/// without control points). Seed 4 was accepted, and ended 0.005° off, while the gate read
+/// the normal matrix alone (0.020°), but 20 draws of its SfM noise spread its yaw by 0.028°:
+/// about one plot in thirteen like it would have missed the goal. With the preset's former
+/// 1500 SfM points and 200 k LiDAR points every seed was refused.
 #[test]
 fn automatic_alignment_on_tiny_reaches_the_goals_or_refuses() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -27,6 +27,7 @@ use super::index::par_map_chunked;
 use super::linalg::solve;
 use super::{GeomError, PointIndex, Similarity, covariance, symmetric_eigen3};
 use crate::progress::Progress;
+use crate::splat::rng::SplitMix64;
 
 /// Smallest pivot of the refinement's normal equations, relative to their largest diagonal
 /// entry, below which the system is degenerate.
@@ -349,7 +350,7 @@ pub struct SplitHalfSpread {
 /// where the ground relief holds the yaw, 20 Monte Carlo draws of the SfM noise spread the
 /// yaw 1.3-1.9 times wider than the normal matrix says (README, registration).
 ///
-/// The halves are drawn from a fixed hash of the point index and the split number, so the
+/// The halves are drawn from a SplitMix64 stream seeded with the split number, so the
 /// result is repeatable. Control pairs are left out: both halves would share them.
 pub fn split_half_spread(
     source: &[DVec3],
@@ -371,9 +372,8 @@ pub fn split_half_spread(
         if progress.is_cancelled() {
             return Err(GeomError::Cancelled);
         }
-        let half: Vec<bool> = (0..source.len())
-            .map(|i| splitmix64(((k as u64) << 40) ^ i as u64) & 1 == 1)
-            .collect();
+        let mut rng = SplitMix64::new(k as u64);
+        let half: Vec<bool> = source.iter().map(|_| rng.next_u64() & 1 == 1).collect();
         let refine = |side: bool| {
             let w: Vec<f64> = half
                 .iter()
@@ -414,14 +414,6 @@ pub fn split_half_spread(
         std_translation_m: [std[3], std[4], std[5]],
         std_scale: std[6],
     })
-}
-
-/// SplitMix64 (Steele, Lea and Flood 2014): a well-mixed 64-bit hash of `x`.
-fn splitmix64(x: u64) -> u64 {
-    let mut z = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
 }
 
 struct Step {
@@ -705,9 +697,9 @@ mod tests {
     }
 
     /// The split-half standard errors must agree with the spread of the refinement over
-    /// independent draws of the SfM noise (the quantity they stand for), and must not fall
-    /// below the normal matrix's. Ground points only, on the rolling terrain, so the yaw
-    /// rests on the relief as on a one-stem `tiny` plot.
+    /// independent draws of the SfM noise (the quantity they stand for) and be repeatable.
+    /// Ground points only, on the rolling terrain, so the yaw rests on the relief as on a
+    /// one-stem `tiny` plot.
     #[test]
     fn split_half_spread_matches_the_spread_over_noise_draws() {
         let (lidar, _, _) = scene();

@@ -609,14 +609,16 @@ const AUTOMATIC_REFINE_PASSES: usize = 5;
 
 /// Without control points the surface refinement must pin the rotation to this standard
 /// error (degrees, the norm over the three axes; the larger of the normal-matrix and the
-/// split-half error per axis) or the stage refuses: 0.02° puts the goal of 0.05° (issue 4)
-/// at 2.5 sigma. Measured (README): `stand` 0.003-0.006°, `tiny` 0.015-0.031°; with the
-/// normal matrix alone `tiny` seed 4 read 0.020° where 20 draws of its SfM noise spread the
-/// yaw by 0.028°.
-const AUTOMATIC_MAX_STD_ROTATION_DEG: f64 = 0.02;
-/// The same for the scale (relative): 0.04 % puts the goal of 0.1 % at 2.5 sigma (measured:
-/// `stand` 0.004 %, light stand 0.02 %, `tiny` 0.06-0.13 %).
-const AUTOMATIC_MAX_STD_SCALE: f64 = 0.0004;
+/// split-half error per axis) or the stage refuses: 0.025° puts the goal of 0.05° (issue 4)
+/// at 2 sigma, a 95 % chance of meeting it. When the gate read the normal matrix alone it
+/// stood at 2.5 sigma, because that matrix read the yaw 1.3-1.9 times too tight on `tiny`
+/// (20 draws of seed 4's SfM noise spread its yaw by 0.028° where it said 0.020°); the
+/// split halves measure the spread on the data (README, registration). Measured: `stand`
+/// 0.003-0.006°, `tiny` 0.018-0.039°.
+const AUTOMATIC_MAX_STD_ROTATION_DEG: f64 = 0.025;
+/// The same for the scale (relative): 0.05 % puts the goal of 0.1 % at 2 sigma (measured:
+/// `stand` 0.004 %, light stand 0.02 %, `tiny` 0.017-0.028 %).
+const AUTOMATIC_MAX_STD_SCALE: f64 = 0.0005;
 
 /// The automatic alignment chosen among the coarse candidates.
 pub struct Verified {
