@@ -13,8 +13,8 @@
 use rayon::prelude::*;
 
 use super::ForestError;
-use super::ransac::SplitMix;
 use crate::progress::Progress;
+use crate::splat::rng::SplitMix64;
 
 /// Rows per parallel chunk (and per cancellation check).
 const CHUNK: usize = 16_384;
@@ -102,13 +102,13 @@ pub fn kmeans(
         .step_by(stride)
         .map(|r| &rows[r * dim..][..dim])
         .collect();
-    let mut rng = SplitMix::new(seed);
-    let mut centres: Vec<f32> = sample[rng.below(sample.len())].to_vec();
+    let mut rng = SplitMix64::new(seed);
+    let mut centres: Vec<f32> = sample[rng.below(sample.len() as u64) as usize].to_vec();
     let mut d2: Vec<f32> = sample.iter().map(|r| dist2(r, &centres[..dim])).collect();
     while centres.len() < k * dim {
         let total: f64 = d2.iter().map(|v| *v as f64).sum();
         let pick = if total > 0.0 {
-            let target = rng.unit() * total;
+            let target = rng.uniform() * total;
             let mut acc = 0.0;
             d2.iter()
                 .position(|v| {
@@ -117,7 +117,7 @@ pub fn kmeans(
                 })
                 .unwrap_or(sample.len() - 1)
         } else {
-            rng.below(sample.len())
+            rng.below(sample.len() as u64) as usize
         };
         let c = sample[pick].to_vec();
         for (slot, r) in d2.iter_mut().zip(&sample) {

@@ -7,6 +7,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::splat::rng::SplitMix64;
+
 use super::circle::{CircleFit, arc_coverage, fit_circle_weighted, refine_circle_geometric};
 
 /// Parameters of [`fit_circle_robust`].
@@ -60,30 +62,6 @@ pub struct RobustCircle {
     pub converged: bool,
 }
 
-/// SplitMix64: a tiny, well-mixed deterministic generator for sampling.
-pub(crate) struct SplitMix(u64);
-
-impl SplitMix {
-    pub(crate) fn new(seed: u64) -> Self {
-        SplitMix(seed)
-    }
-    pub(crate) fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, n) (n > 0).
-    pub(crate) fn below(&mut self, n: usize) -> usize {
-        ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64 * n as f64) as usize % n.max(1)
-    }
-    /// Uniform in [0, 1).
-    pub(crate) fn unit(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
 /// Circle through three points; `None` when they are (nearly) collinear.
 fn circle_through(a: [f64; 2], b: [f64; 2], c: [f64; 2]) -> Option<([f64; 2], f64)> {
     let (bx, by) = (b[0] - a[0], b[1] - a[1]);
@@ -124,10 +102,11 @@ pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<R
     }
     let thr = params.inlier_threshold_m.max(1e-6);
     let radius_ok = |r: f64| r >= params.min_radius_m && r <= params.max_radius_m;
-    let mut rng = SplitMix::new(params.seed ^ (n as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
+    let mut rng = SplitMix64::new(params.seed ^ (n as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
     let mut best: Option<(usize, f64, [f64; 2], f64)> = None;
     for _ in 0..params.iterations.max(1) {
-        let (i, j, k) = (rng.below(n), rng.below(n), rng.below(n));
+        let mut pick = || rng.below(n as u64) as usize;
+        let (i, j, k) = (pick(), pick(), pick());
         if i == j || j == k || i == k {
             continue;
         }

@@ -11,8 +11,8 @@
 
 use glam::{DVec3, Vec2, Vec3};
 
-use super::ransac::SplitMix;
 use crate::io::pointcloud::{CloudFormat, PointCloud};
+use crate::splat::rng::SplitMix64;
 
 /// What to generate.
 #[derive(Debug, Clone, PartialEq)]
@@ -128,19 +128,19 @@ impl TruthTree {
     }
 }
 
-fn gauss(rng: &mut SplitMix) -> f32 {
-    let u1 = rng.unit().max(1e-12);
-    let u2 = rng.unit();
+fn gauss(rng: &mut SplitMix64) -> f32 {
+    let u1 = rng.uniform().max(1e-12);
+    let u2 = rng.uniform();
     ((-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()) as f32
 }
 
-fn range(rng: &mut SplitMix, lo: f32, hi: f32) -> f32 {
-    lo + (hi - lo) * rng.unit() as f32
+fn range(rng: &mut SplitMix64, lo: f32, hi: f32) -> f32 {
+    lo + (hi - lo) * rng.uniform() as f32
 }
 
 /// Generates the plot described by `spec`.
 pub fn synthetic_plot(spec: &PlotSpec) -> SyntheticPlot {
-    let mut rng = SplitMix::new(spec.seed);
+    let mut rng = SplitMix64::new(spec.seed);
     let size = spec.size_m;
     // Trees at least 2.5 m apart, 1.5 m inside the edge.
     let mut trees: Vec<TruthTree> = Vec::new();
@@ -260,7 +260,7 @@ pub fn synthetic_plot(spec: &PlotSpec) -> SyntheticPlot {
         }
     }
     // Leaves: small discs (radius 1.5–2.5 cm, 5 points, 20 per shoot) in a crown ellipsoid; bushes likewise.
-    let disc = |rng: &mut SplitMix, c: Vec3, push: &mut dyn FnMut(Vec3, bool, bool)| {
+    let disc = |rng: &mut SplitMix64, c: Vec3, push: &mut dyn FnMut(Vec3, bool, bool)| {
         let nrm = Vec3::new(gauss(rng), gauss(rng), gauss(rng)).normalize_or(Vec3::Z);
         let (e1, e2) = (
             nrm.any_orthonormal_vector(),
@@ -270,7 +270,7 @@ pub fn synthetic_plot(spec: &PlotSpec) -> SyntheticPlot {
         for _ in 0..5 {
             let (a, q) = (
                 range(rng, 0.0, std::f32::consts::TAU),
-                rng.unit().sqrt() as f32 * r,
+                rng.uniform().sqrt() as f32 * r,
             );
             let p = c + (e1 * a.cos() + e2 * a.sin()) * q + nrm * spec.noise_m * gauss(rng);
             push(p, false, false);
@@ -326,8 +326,8 @@ pub fn synthetic_plot(spec: &PlotSpec) -> SyntheticPlot {
     let n = (size / spec.ground_spacing_m) as usize;
     for i in 0..n {
         for j in 0..n {
-            let x = (i as f32 + rng.unit() as f32) * spec.ground_spacing_m;
-            let y = (j as f32 + rng.unit() as f32) * spec.ground_spacing_m;
+            let x = (i as f32 + rng.uniform() as f32) * spec.ground_spacing_m;
+            let y = (j as f32 + rng.uniform() as f32) * spec.ground_spacing_m;
             if trees
                 .iter()
                 .any(|t| t.base.truncate().distance(Vec2::new(x, y)) < t.dbh_cm / 200.0)

@@ -2,17 +2,17 @@
 
 use super::circle::{arc_coverage, refine_circle_geometric};
 use super::kmeans::{kmeans, standardise};
-use super::ransac::SplitMix;
 use super::*;
 use crate::io::tables::FieldTree;
 use crate::progress::NoProgress;
+use crate::splat::rng::SplitMix64;
 
 fn ring(c: [f64; 2], r: f64, from_deg: f64, to_deg: f64, n: usize, noise: f64) -> Vec<[f64; 2]> {
-    let mut rng = SplitMix::new(3);
+    let mut rng = SplitMix64::new(3);
     (0..n)
         .map(|i| {
             let a = (from_deg + (to_deg - from_deg) * i as f64 / n as f64).to_radians();
-            let rr = r + noise * (rng.unit() - 0.5) * 2.0;
+            let rr = r + noise * (rng.uniform() - 0.5) * 2.0;
             [c[0] + rr * a.cos(), c[1] + rr * a.sin()]
         })
         .collect()
@@ -57,9 +57,9 @@ fn gauss_newton_removes_the_algebraic_bias_on_a_noisy_partial_arc() {
 #[test]
 fn ransac_ignores_gross_outliers_and_reports_quality() {
     let mut pts = ring([1.0, 1.0], 0.2, 0.0, 360.0, 120, 0.004);
-    let mut rng = SplitMix::new(9);
+    let mut rng = SplitMix64::new(9);
     for _ in 0..80 {
-        pts.push([1.0 + rng.unit() - 0.5, 1.0 + rng.unit() - 0.5]);
+        pts.push([1.0 + rng.uniform() - 0.5, 1.0 + rng.uniform() - 0.5]);
     }
     let fit = fit_circle_robust(&pts, &CircleParams::default()).expect("fit");
     assert!((fit.fit.radius - 0.2).abs() < 0.003, "{fit:?}");
@@ -75,14 +75,14 @@ fn ransac_ignores_gross_outliers_and_reports_quality() {
 
 #[test]
 fn two_means_separates_two_blobs_deterministically() {
-    let mut rng = SplitMix::new(1);
+    let mut rng = SplitMix64::new(1);
     let mut rows = Vec::new();
     for i in 0..2000 {
         let c = if i % 2 == 0 { 0.0 } else { 5.0 };
         rows.extend([
-            c + rng.unit() as f32,
-            c + rng.unit() as f32,
-            rng.unit() as f32,
+            c + rng.uniform() as f32,
+            c + rng.uniform() as f32,
+            rng.uniform() as f32,
         ]);
     }
     standardise(&mut rows, 3);
