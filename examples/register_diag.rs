@@ -62,15 +62,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "| seed | method | coarse rot ° | coarse scale % | coarse cm | rot ° | scale % | cm | fitness | rmse m | iters | confidence | rot std ° (normal matrix / split half) | s |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-    let env_count = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<usize>().ok());
     let (points3d, lidar_points) = (
-        env_count("REG_DIAG_POINTS3D"),
-        env_count("REG_DIAG_LIDAR_POINTS"),
+        env_parse::<usize>("REG_DIAG_POINTS3D"),
+        env_parse::<usize>("REG_DIAG_LIDAR_POINTS"),
     );
-    let env_cm = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
     let (lidar_noise, sfm_noise) = (
-        env_cm("REG_DIAG_LIDAR_NOISE_CM"),
-        env_cm("REG_DIAG_SFM_NOISE_CM"),
+        env_parse::<f64>("REG_DIAG_LIDAR_NOISE_CM"),
+        env_parse::<f64>("REG_DIAG_SFM_NOISE_CM"),
     );
     for seed in seeds {
         let mut dir = format!("{name}-{seed}");
@@ -190,6 +188,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     Ok(())
+}
+
+/// The environment variable `key` parsed as `T` (None when unset or unparsable).
+fn env_parse<T: std::str::FromStr>(key: &str) -> Option<T> {
+    std::env::var(key).ok().and_then(|v| v.parse().ok())
 }
 
 /// Norm of a JSON array of three numbers (NaN when absent).
@@ -387,20 +390,11 @@ fn analyse_seed(
     // Monte Carlo: REG_DIAG_MC refinements from the truth on all points, each with extra
     // isotropic SfM noise of REG_DIAG_MC_CM centimetres (default 1), to compare the spread
     // of the estimates with the refinement's own standard errors.
-    let runs = std::env::var("REG_DIAG_MC")
-        .ok()
-        .and_then(|v| v.parse::<u64>().ok())
-        .unwrap_or(0);
-    let cm = std::env::var("REG_DIAG_MC_CM")
-        .ok()
-        .and_then(|v| v.parse::<f64>().ok())
-        .unwrap_or(1.0);
+    let runs = env_parse::<u64>("REG_DIAG_MC").unwrap_or(0);
+    let cm = env_parse::<f64>("REG_DIAG_MC_CM").unwrap_or(1.0);
     // Start off the truth by REG_DIAG_MC_START_DEG about the vertical through the plot
     // centre, alternating in sign, as a coarse alignment would.
-    let start_deg = std::env::var("REG_DIAG_MC_START_DEG")
-        .ok()
-        .and_then(|v| v.parse::<f64>().ok())
-        .unwrap_or(0.0);
+    let start_deg = env_parse::<f64>("REG_DIAG_MC_START_DEG").unwrap_or(0.0);
     let sigma = cm / 100.0 / truth.scale;
     let mut yaw = Vec::new();
     let mut std_yaw = Vec::new();

@@ -344,11 +344,12 @@ pub struct SplitHalfSpread {
 /// have twice the variance of the whole, so their difference has four times it:
 /// σ² = mean(d²) / 4 per parameter.
 ///
-/// Why: the normal-matrix errors of [`SurfaceResult`] hold for one linearisation at the
-/// final pose, but the LiDAR patches are refitted where the points move and carry the range
-/// noise in their normals, which the normal matrix counts as information. On `tiny` plots
-/// where the ground relief holds the yaw, 20 Monte Carlo draws of the SfM noise spread the
-/// yaw 1.3-1.9 times wider than the normal matrix says (README, registration).
+/// Why: the normal-matrix errors of [`SurfaceResult`] hold for one linearisation on fixed
+/// patches, but the refinement refits its patches where the points move (from any start it
+/// could really have) and the patch normals carry the LiDAR's range noise, which the normal
+/// matrix counts as information. On `tiny` plots where the ground relief holds the yaw, 20
+/// Monte Carlo draws of the SfM noise spread the yaw 1.3-1.9 times wider than the normal
+/// matrix says, from the truth or from 0.2° off alike (README, registration).
 ///
 /// The halves are drawn from a SplitMix64 stream seeded with the split number, so the
 /// result is repeatable. Control pairs are left out: both halves would share them.
