@@ -23,7 +23,7 @@ if [ ! -f "$work/plot/truth.json" ]; then
   "$bin" synth --preset "$preset" --seed "$seed" --out "$work/plot"
 fi
 outs=()
-for variant in "sfm off" "lidar off" "lidar on"; do
+for variant in "sfm off" "lidar off" "lidar paper" "lidar bind"; do
   set -- $variant
   out="$work/$1-semantic-$2-$steps-$res"
   outs+=("$out")

@@ -4,10 +4,17 @@
 //            the targets; writes 2 vec4 per Gaussian: (a_nn.xyz, s_target), (w, 0, 0, 0),
 //            w = 0 outside the candidate set S;
 //   reduce — one workgroup sums w and w * term: W and L_geo = sum(w term) / W;
-// Each pass is the text before the first `#ifdef` plus its own `#ifdef NAME` … `#endif` block
-// (src/splat/gpu/semantic.rs splits the file; WGSL itself has no preprocessor).
-//   apply  — adds gamma * w / W * (2 (mu - a) / N_pos^2, 2 (s - s_target)) to the gradients.
-// The CPU twin is src/splat/semantic.rs (geo_targets, geo_loss_and_grad).
+// Each pass is the text before the first `#ifdef` plus its blocks `#ifdef NAME` … `#endif`
+// (GRID then QUERY, or GRID then BIND; src/splat/gpu/semantic.rs splits the file; WGSL itself
+// has no preprocessor).
+//   apply  — adds gamma * w / W * (2 (mu - a) / N_pos^2, 2 (s - s_target)) to the gradients;
+// and Sylva's binding (src/splat/bind.rs), one pass after Adam:
+//   bind   — per bound Gaussian (P >= bind_min_prob): nearest trunk anchor a with normal n; the
+//            offset (mu - a).n clamped to +-band, the local z axis turned onto +-n, the z
+//            log-scale capped.
+// GRID holds the anchors and their ring search, shared by QUERY and BIND.
+// The CPU twins are src/splat/semantic.rs (geo_targets, geo_loss_and_grad) and
+// src/splat/bind.rs (project).
 
 struct GeoParams {
     n: u32,
@@ -30,6 +37,10 @@ struct GeoParams {
     gamma: f32,
     leaf_cutoff: f32,      // leaf search stops once rings reach d_t + this (q saturates)
     _p2: f32,
+    bind_band: f32,        // largest |offset| along the normal, metres
+    bind_log_scale: f32,   // cap of the z log-scale
+    bind_min_prob: f32,    // Gaussians with P at or above this are bound
+    _p3: f32,
 }
 
 const MAX_K: u32 = 16u;
@@ -40,15 +51,11 @@ fn gid(wg: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return (wg.y * nwg.x + wg.x) * 256u + lid;
 }
 
-#ifdef QUERY
-@group(0) @binding(1) var<storage, read> means: array<f32>;
-@group(0) @binding(2) var<storage, read> opacity_logits: array<f32>;
-@group(0) @binding(3) var<storage, read> trunk_prob: array<f32>;
+#ifdef GRID
 // Cell starts of the trunk grid, then of the leaf grid (each with its closing entry).
 @group(0) @binding(4) var<storage, read> starts: array<u32>;
 // Trunk anchors sorted by cell, then leaf anchors sorted by cell (xyz, unused w).
 @group(0) @binding(5) var<storage, read> anchors: array<vec4<f32>>;
-@group(0) @binding(6) var<storage, read_write> geo: array<vec4<f32>>;
 
 var<private> best_d2: array<f32, 16>;
 var<private> best_id: array<u32, 16>;
@@ -120,6 +127,14 @@ fn max_ring(c: vec3<i32>, dims: vec3<u32>) -> i32 {
 fn sigmoid(x: f32) -> f32 {
     return 1.0 / (1.0 + exp(-x));
 }
+
+#endif
+
+#ifdef QUERY
+@group(0) @binding(1) var<storage, read> means: array<f32>;
+@group(0) @binding(2) var<storage, read> opacity_logits: array<f32>;
+@group(0) @binding(3) var<storage, read> trunk_prob: array<f32>;
+@group(0) @binding(6) var<storage, read_write> geo: array<vec4<f32>>;
 
 @compute @workgroup_size(256)
 fn query(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
@@ -271,5 +286,67 @@ fn apply(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec
         grad_means[3u * i + a] += g * 2.0 * (means[3u * i + a] - t[a]) * gp.inv_npos2;
         grad_log_scales[3u * i + a] += g * 2.0 * (log_scales[3u * i + a] - t.w);
     }
+}
+#endif
+
+#ifdef BIND
+@group(0) @binding(1) var<storage, read_write> means: array<f32>;
+@group(0) @binding(2) var<storage, read_write> log_scales: array<f32>;
+@group(0) @binding(3) var<storage, read> trunk_prob: array<f32>;
+@group(0) @binding(6) var<storage, read_write> rotations: array<vec4<f32>>;
+// Unit normal of each trunk anchor, in the trunk grid's order (zero where unknown).
+@group(0) @binding(7) var<storage, read> normals: array<vec4<f32>>;
+
+fn hamilton(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
+    return vec4<f32>(
+        a.x * b.x - a.y * b.y - a.z * b.z - a.w * b.w,
+        a.x * b.y + a.y * b.x + a.z * b.w - a.w * b.z,
+        a.x * b.z - a.y * b.w + a.z * b.x + a.w * b.y,
+        a.x * b.w + a.y * b.z - a.z * b.y + a.w * b.x);
+}
+
+@compute @workgroup_size(256)
+fn bind(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    let i = gid(wg, nwg, lid);
+    if i >= gp.n || trunk_prob[i] < gp.bind_min_prob {
+        return;
+    }
+    let p = vec3<f32>(means[3u * i], means[3u * i + 1u], means[3u * i + 2u]);
+    n_best = 0u;
+    let ct = cell_of(p, gp.t_origin, gp.t_cell, gp.t_dims);
+    let rt = max_ring(ct, gp.t_dims);
+    for (var r = 0; r <= rt; r += 1) {
+        scan_shell(p, ct, r, gp.t_dims, 0u, 0u, 1u);
+        let reach = f32(r) * gp.t_cell;
+        if n_best == 1u && best_d2[0] <= reach * reach {
+            break;
+        }
+    }
+    if n_best == 0u {
+        return;
+    }
+    let n = normals[best_id[0]].xyz;
+    if dot(n, n) < 0.25 {
+        return;
+    }
+    let a = anchors[best_id[0]].xyz;
+    let o = dot(p - a, n);
+    let q_mu = p - (o - clamp(o, -gp.bind_band, gp.bind_band)) * n;
+    means[3u * i] = q_mu.x;
+    means[3u * i + 1u] = q_mu.y;
+    means[3u * i + 2u] = q_mu.z;
+    // Local z axis of the normalised rotation (w, x, y, z), turned onto +-n by the shortest arc.
+    var q = rotations[i];
+    let l = length(q);
+    q = select(vec4<f32>(1.0, 0.0, 0.0, 0.0), q / l, l > 1e-12);
+    let u = vec3<f32>(2.0 * (q.y * q.w + q.x * q.z),
+                      2.0 * (q.z * q.w - q.x * q.y),
+                      1.0 - 2.0 * (q.y * q.y + q.z * q.z));
+    let v = select(-n, n, dot(u, n) >= 0.0);
+    let ax = cross(u, v);
+    let r = normalize(vec4<f32>(1.0 + dot(u, v), ax));
+    rotations[i] = hamilton(r, q);
+    log_scales[3u * i + 2u] = min(log_scales[3u * i + 2u], gp.bind_log_scale);
 }
 #endif

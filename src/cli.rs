@@ -262,7 +262,8 @@ pub struct RunArgs {
     /// points (sfm, vanilla 3DGS); overrides the params file.
     #[arg(long, env = "SYLVA_INIT")]
     pub init: Option<String>,
-    /// The semantic trunk term: on (the paper's method) or off; overrides the params file.
+    /// What holds the trunk Gaussians: bind (Sylva's binding, the default), paper (the
+    /// paper's L_geo) or off; overrides the params file.
     #[arg(long, env = "SYLVA_SEMANTIC")]
     pub semantic: Option<String>,
     /// Training steps; overrides the params file.
@@ -281,7 +282,7 @@ pub struct RunArgs {
 
 /// Applies `sylva run`'s training flags to `params`.
 fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result<()> {
-    use crate::pipeline::params::{InitSource, TrainBackend};
+    use crate::pipeline::params::{InitSource, TrainBackend, TrunkTerm};
     let t = &mut params.train;
     match a.init.as_deref() {
         None => {}
@@ -291,9 +292,10 @@ fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result
     }
     match a.semantic.as_deref() {
         None => {}
-        Some("on") => t.semantic = true,
-        Some("off") => t.semantic = false,
-        Some(other) => anyhow::bail!("--semantic must be on or off, not {other:?}"),
+        Some("bind") => t.semantic = TrunkTerm::Bind,
+        Some("paper") => t.semantic = TrunkTerm::Paper,
+        Some("off") => t.semantic = TrunkTerm::Off,
+        Some(other) => anyhow::bail!("--semantic must be bind, paper or off, not {other:?}"),
     }
     match a.backend.as_deref() {
         None => {}
@@ -1078,8 +1080,16 @@ async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
         );
         println!("| trees matched | {} |", st["dbh"]["dbh"]["matched"]);
         println!(
-            "| trunk Gaussians to LiDAR stem surface (mm) | {} |",
+            "| trunk Gaussians to LiDAR stem surface, mean absolute (mm) | {} |",
             f(&st["dbh"]["mean_radial_dev_mm"])
+        );
+        println!(
+            "| trunk Gaussians to LiDAR stem surface, mean signed (mm, + outside) | {} |",
+            f(&st["dbh"]["mean_surface_offset_mm"])
+        );
+        println!(
+            "| trunk term | {} |",
+            st["train"]["semantic"]["term"].as_str().unwrap_or("n/a")
         );
     }
     let ok = job["state"] == "succeeded";

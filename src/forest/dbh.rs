@@ -188,3 +188,37 @@ pub fn measure_dbh(points: &[Vec3], stem: &Stem, params: &DbhParams) -> Option<S
         .filter(|(f, _, _)| f.fit.n >= params.min_points && f.arc_coverage >= MIN_STEM_ARC)
         .map(|(f, c, h)| make((f, c), h, FitQuality::Poor))
 }
+
+/// The points of `points` in the slice at `height_m` along `axis` above `base` (± `half_thickness_m`,
+/// measured along the axis, as the LiDAR slice), within `reach_m` of the axis line, each with its
+/// signed distance from the circle `center`/`radius_m` in the slice plane (positive outside), metres.
+#[allow(clippy::too_many_arguments)]
+pub fn slice_offsets(
+    points: &[Vec3],
+    base: Vec3,
+    axis: Vec3,
+    height_m: f32,
+    half_thickness_m: f32,
+    reach_m: f32,
+    center: Vec3,
+    radius_m: f32,
+) -> Vec<(usize, f32)> {
+    let axis = axis.try_normalize().unwrap_or(Vec3::Z);
+    points
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &p)| {
+            let along = (p - base).dot(axis);
+            if (along - height_m).abs() > half_thickness_m {
+                return None;
+            }
+            let off_axis = (p - base) - axis * along;
+            if off_axis.length() > reach_m {
+                return None;
+            }
+            let d = p - center;
+            let r = (d - axis * d.dot(axis)).length();
+            Some((i, r - radius_m))
+        })
+        .collect()
+}

@@ -201,8 +201,17 @@ pub struct TrainParams {
     pub steps: u32,
     /// Initialisation source (default lidar, the paper's method).
     pub init: InitSource,
-    /// Add the semantic trunk term L_geo (default true, the paper's method).
-    pub semantic: bool,
+    /// What holds the trunk Gaussians: "bind" (default: Sylva's binding, surfels held on the
+    /// LiDAR stem surface from step 0, METHOD.md Stage 4 "Sylva's binding"), "paper" (the
+    /// paper's term L_geo exactly as METHOD.md writes it, for the ablation) or "off".
+    pub semantic: TrunkTerm,
+    /// Sylva's binding: largest offset of a trunk Gaussian's centre from the LiDAR surface
+    /// along its normal, metres (default 0.01: the 1 cm range noise of a handheld scanner,
+    /// half the 2 cm anchor voxel).
+    pub bind_band_m: f64,
+    /// Sylva's binding: largest standard deviation of a trunk surfel along the normal, metres
+    /// (default 0.005: half the LiDAR noise).
+    pub bind_normal_scale_m: f64,
     /// Final weight of L_geo (paper: 0.02; 0.01-0.03 is stable).
     pub gamma_max: f64,
     /// Step where the L_geo ramp starts (paper: 3000 of 30,000; moved in proportion when
@@ -227,6 +236,30 @@ pub struct TrainParams {
     pub seed: u64,
 }
 
+/// What holds the trunk Gaussians during training (the ablation's arms).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum TrunkTerm {
+    /// Sylva's binding (the default): trunk surfels projected onto the LiDAR surface after
+    /// every optimiser step.
+    Bind,
+    /// The paper's L_geo as METHOD.md specifies it.
+    Paper,
+    /// Nothing (LiDAR initialisation alone, or vanilla 3DGS with `init = "sfm"`).
+    Off,
+}
+
+impl TrunkTerm {
+    /// The name used in params and on the command line.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            TrunkTerm::Bind => "bind",
+            TrunkTerm::Paper => "paper",
+            TrunkTerm::Off => "off",
+        }
+    }
+}
+
 /// Where training runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
@@ -240,7 +273,9 @@ impl Default for TrainParams {
         Self {
             steps: 30_000,
             init: InitSource::Lidar,
-            semantic: true,
+            semantic: TrunkTerm::Bind,
+            bind_band_m: 0.01,
+            bind_normal_scale_m: 0.005,
             gamma_max: 0.02,
             gamma_start: 3000,
             gamma_end: 7000,
@@ -293,7 +328,7 @@ impl TrainParams {
     /// parameters' resolution, cap and seed.
     pub fn config(&self) -> crate::splat::config::TrainConfig {
         let semantic = crate::splat::semantic::SemanticConfig {
-            enabled: self.semantic,
+            enabled: self.semantic == TrunkTerm::Paper,
             gamma_max: self.gamma_max as f32,
             gamma_start: self.gamma_start,
             gamma_end: self.gamma_end,
@@ -301,9 +336,16 @@ impl TrainParams {
             beta: self.trunk_beta as f32,
             ..Default::default()
         };
+        let bind = crate::splat::bind::BindConfig {
+            enabled: self.semantic == TrunkTerm::Bind,
+            band_m: self.bind_band_m as f32,
+            normal_scale_m: self.bind_normal_scale_m as f32,
+            ..Default::default()
+        };
         let mut cfg = crate::splat::config::TrainConfig {
             steps: self.steps,
             semantic,
+            bind,
             ..Default::default()
         }
         .scaled_to(self.steps);

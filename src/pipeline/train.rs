@@ -7,7 +7,7 @@
 
 use serde_json::json;
 
-use super::params::{InitSource, TrainBackend, TrainParams};
+use super::params::{InitSource, TrainBackend, TrainParams, TrunkTerm};
 use super::{Stage, StageContext, StageError};
 use crate::io::colmap;
 use crate::io::ply;
@@ -17,8 +17,10 @@ use crate::splat::dataset::{self, Dataset, DatasetError};
 use crate::splat::init::{self, Anchor, AnchorInit};
 use crate::splat::model::Gaussians;
 use crate::splat::rng::SplitMix64;
-use crate::splat::semantic::SemanticAnchors;
+use crate::splat::bind;
+use crate::splat::semantic::{AnchorIndex, SemanticAnchors};
 use crate::splat::trainer;
+use crate::splat::trunk_diag::{SliceFn, TrunkMonitor};
 
 impl From<TrainError> for StageError {
     fn from(e: TrainError) -> Self {
@@ -87,8 +89,8 @@ pub fn cap_gaussians(g: &mut Gaussians, max: u32, seed: u64) {
 }
 
 /// The labelled anchors of stage `segment` (LiDAR local frame): position, colour, trunk
-/// probability, and whether the anchor is labelled trunk.
-fn read_anchors(ctx: &StageContext<'_>) -> Result<(Vec<Anchor>, Vec<bool>), StageError> {
+/// probability; whether the anchor is labelled trunk; and the normals when the file has them.
+fn read_anchors(ctx: &StageContext<'_>) -> Result<LabelledAnchors, StageError> {
     let segment = ctx.output_of(Stage::Segment, Stage::Train)?;
     let (cloud, fields) = ply::read_ply_with_fields(&segment.join("anchors.ply"), &NoProgress)?;
     let field = |name: &str| {
@@ -114,8 +116,19 @@ fn read_anchors(ctx: &StageContext<'_>) -> Result<(Vec<Anchor>, Vec<bool>), Stag
             trunk_prob: prob.get(i).copied().unwrap_or(0.0),
         })
         .collect();
-    Ok((anchors, is_trunk))
+    let normals = match (field("nx"), field("ny"), field("nz")) {
+        (Some(x), Some(y), Some(z)) if x.len() == cloud.len() => Some(
+            (0..x.len())
+                .map(|i| [x[i], y.get(i).copied().unwrap_or(0.0), z.get(i).copied().unwrap_or(0.0)])
+                .collect(),
+        ),
+        _ => None,
+    };
+    Ok((anchors, is_trunk, normals))
 }
+
+/// Anchors, their trunk labels and their normals (when known).
+type LabelledAnchors = (Vec<Anchor>, Vec<bool>, Option<Vec<[f32; 3]>>);
 
 /// Initial Gaussians for `params.init`: the LiDAR anchors labelled by stage `segment`, or the
 /// SfM points of the dataset. SfM Gaussians take the trunk probability of their nearest anchor
@@ -183,54 +196,102 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         cfg.test_every,
         &SubProgress::new(ctx.progress, 0.0, 0.05),
     )?;
-    // The anchors: the initialisation of the paper's method and the targets of L_geo.
-    let wants_anchors = params.init == InitSource::Lidar || params.semantic;
-    let (anchors, is_trunk) = if wants_anchors {
-        let (a, t) = read_anchors(ctx)?;
-        (Some(a), t)
+    // The anchors: the initialisation of the paper's method, the targets of L_geo and the
+    // surface of Sylva's binding.
+    let wants_anchors = params.init == InitSource::Lidar || params.semantic != TrunkTerm::Off;
+    let (anchors, is_trunk, normals) = if wants_anchors {
+        let (a, t, n) = read_anchors(ctx)?;
+        (Some(a), t, n)
     } else {
-        (None, Vec::new())
+        (None, Vec::new(), None)
     };
-    let init = initial_gaussians(&data, params, anchors.as_deref())?;
+    let mut init = initial_gaussians(&data, params, anchors.as_deref())?;
     let n_init = init.len();
     let mut cfg = cfg;
     cfg.semantic.temperature_m = ctx.params.anchors.voxel_size_m as f32;
     cfg.semantic
         .validate()
+        .and_then(|_| cfg.bind.validate())
         .map_err(|e| StageError::Input(format!("params.train: {e}")))?;
-    let mut semantic_note = serde_json::Value::Null;
-    if let (true, Some(anchors)) = (params.semantic, anchors.as_ref()) {
-        let points: Vec<[f32; 3]> = anchors.iter().map(|a| a.position).collect();
-        match SemanticAnchors::new(&points, &is_trunk) {
-            Ok(set) => {
-                backend.set_semantic(&set, &cfg.semantic)?;
-                semantic_note = json!({
-                    "trunk_anchors": set.trunk.len(),
-                    "leaf_anchors": set.leaf.len(),
-                    "n_pos_m": set.n_pos,
-                    "gamma_max": cfg.semantic.gamma_max,
-                    "gamma_start": cfg.semantic.gamma_start,
-                    "gamma_end": cfg.semantic.gamma_end,
-                    "temperature_m": cfg.semantic.temperature_m,
-                    "k": cfg.semantic.k,
-                    "beta": cfg.semantic.beta,
-                });
-            }
-            Err(e) => {
-                // No trunk anchors: nothing to pull towards. Train without the term and say so.
-                ctx.progress.log(&format!("semantic term off: {e}"));
-                cfg.semantic.enabled = false;
+    let set = match anchors.as_ref() {
+        Some(anchors) => {
+            let points: Vec<[f32; 3]> = anchors.iter().map(|a| a.position).collect();
+            match SemanticAnchors::new(&points, normals.as_deref(), &is_trunk) {
+                Ok(set) => Some(set),
+                Err(e) => {
+                    // No trunk anchors: nothing to hold the trunks to. Train without and say so.
+                    ctx.progress
+                        .log(&format!("trunk term {} off: {e}", params.semantic.as_str()));
+                    None
+                }
             }
         }
+        None => None,
+    };
+    let mut trunk_note = json!({ "term": params.semantic.as_str() });
+    match (params.semantic, set.as_ref()) {
+        (TrunkTerm::Paper, Some(set)) => {
+            backend.set_semantic(set, &cfg.semantic)?;
+            trunk_note = json!({
+                "term": "paper",
+                "trunk_anchors": set.trunk.len(),
+                "leaf_anchors": set.leaf.len(),
+                "n_pos_m": set.n_pos,
+                "gamma_max": cfg.semantic.gamma_max,
+                "gamma_start": cfg.semantic.gamma_start,
+                "gamma_end": cfg.semantic.gamma_end,
+                "temperature_m": cfg.semantic.temperature_m,
+                "k": cfg.semantic.k,
+                "beta": cfg.semantic.beta,
+            });
+        }
+        (TrunkTerm::Bind, Some(set)) => {
+            if set.trunk_normals.is_empty() {
+                return Err(StageError::Input(
+                    "Sylva's binding needs the anchors' normals (segment/anchors.ply has no nx, ny, nz); rerun from stage anchors, or set params.train.semantic to \"paper\" or \"off\"".into(),
+                ));
+            }
+            let index = AnchorIndex::new(set).ok_or_else(|| {
+                StageError::Input("Sylva's binding: the trunk anchors cannot be indexed".into())
+            })?;
+            let surfels = bind::surfel_init(&mut init, &index, &cfg.bind);
+            backend.set_bind(set, &cfg.bind)?;
+            ctx.progress.log(&format!(
+                "trunk binding: {surfels} trunk surfels held within {} m of the LiDAR surface",
+                cfg.bind.band_m
+            ));
+            trunk_note = json!({
+                "term": "bind",
+                "trunk_anchors": set.trunk.len(),
+                "leaf_anchors": set.leaf.len(),
+                "surfels": surfels,
+                "band_m": cfg.bind.band_m,
+                "normal_scale_m": cfg.bind.normal_scale_m,
+            });
+        }
+        _ => {
+            cfg.semantic.enabled = false;
+            cfg.bind.enabled = false;
+        }
     }
-    let semantic_applied = cfg.semantic.enabled && cfg.steps > cfg.semantic.gamma_start;
+    if set.is_none() {
+        cfg.semantic.enabled = false;
+        cfg.bind.enabled = false;
+    }
+    let semantic_applied = (cfg.semantic.enabled && cfg.steps > cfg.semantic.gamma_start)
+        || (cfg.bind.enabled && params.semantic == TrunkTerm::Bind);
+    let monitor = match set.as_ref() {
+        Some(set) => trunk_monitor(ctx, set, &cfg)?,
+        None => None,
+    };
     let mut strategy = trainer::default_strategy(&cfg);
-    let outcome = trainer::train(
+    let outcome = trainer::train_monitored(
         backend.as_mut(),
         &data,
         init,
         &cfg,
         &mut strategy,
+        monitor.as_ref(),
         // Loading took the first 5 %, writing the outputs takes the last 3 %.
         &SubProgress::new(ctx.progress, 0.05, 0.92),
     )?;
@@ -249,7 +310,11 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "device": outcome.device,
         "init": params.init,
         "semantic_applied": semantic_applied,
-        "semantic": semantic_note,
+        "semantic": trunk_note,
+        "trunk_diagnostics": {
+            "first": outcome.losses.iter().find_map(|r| r.trunk),
+            "last": outcome.losses.iter().rev().find_map(|r| r.trunk),
+        },
         "final_geo_loss": outcome.losses.last().map(|r| r.geo),
         "steps": cfg.steps,
         "resolution": data.train.first().map(|v| [v.camera.width, v.camera.height]),
@@ -263,6 +328,92 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "refinements": outcome.refinements.len(),
         "offset": offset,
     }))
+}
+
+/// Measurements per run of the trunk monitor (about 20, at least every 10 steps).
+const MONITOR_POINTS: u32 = 20;
+
+/// The trunk monitor of this run: the anchors and the stems of stage `segment` with their
+/// LiDAR circles, measured on the breast-height slice stage `dbh` fits. None when the segment
+/// stage found no stems.
+fn trunk_monitor(
+    ctx: &StageContext<'_>,
+    set: &SemanticAnchors,
+    cfg: &crate::splat::config::TrainConfig,
+) -> Result<Option<TrunkMonitor>, StageError> {
+    let segment = ctx.output_of(Stage::Segment, Stage::Train)?;
+    let path = segment.join("stems.json");
+    let bytes = std::fs::read(&path).map_err(|e| super::io_err(&path, e))?;
+    let file: StemsFile = serde_json::from_slice(&bytes)
+        .map_err(|e| StageError::Input(format!("{}: {e}", path.display())))?;
+    // The Gaussians live in the registered model's frame (stage ingest's offset); the stems
+    // in stage segment's: shift the stems when the two differ.
+    let offset = read_offset(ctx)?;
+    let shift = glam::Vec3::new(
+        (file.offset[0] - offset[0]) as f32,
+        (file.offset[1] - offset[1]) as f32,
+        (file.offset[2] - offset[2]) as f32,
+    );
+    let stems: Vec<StemCircle> = file
+        .stems
+        .into_iter()
+        .map(|s| StemCircle {
+            base: glam::Vec3::from_array(s.base) + shift,
+            axis: glam::Vec3::from_array(s.axis),
+            center: s.dbh.center + shift,
+            radius_m: (s.dbh.diameter_m / 2.0) as f32,
+            height_m: s.dbh.slice_height_m,
+        })
+        .collect();
+    if stems.is_empty() {
+        return Ok(None);
+    }
+    let half = ctx.params.segment.dbh.half_thickness_m;
+    let slice: Box<SliceFn> = Box::new(move |centres: &[glam::Vec3]| {
+        let mut out = Vec::new();
+        for s in &stems {
+            out.extend(crate::forest::dbh::slice_offsets(
+                centres,
+                s.base,
+                s.axis,
+                s.height_m,
+                half,
+                2.0 * s.radius_m + 0.10,
+                s.center,
+                s.radius_m,
+            ));
+        }
+        out
+    });
+    let every = (cfg.steps / MONITOR_POINTS).max(trainer::LOSS_EVERY);
+    let mut m = TrunkMonitor::new(set, &cfg.semantic, slice, every);
+    if let Some(m) = m.as_mut() {
+        m.min_opacity = ctx.params.dbh.min_opacity as f32;
+    }
+    Ok(m)
+}
+
+/// A stem of `segment/stems.json` as the monitor needs it.
+#[derive(serde::Deserialize)]
+struct StemEntry {
+    base: [f32; 3],
+    axis: [f32; 3],
+    dbh: crate::forest::StemDbh,
+}
+
+#[derive(serde::Deserialize)]
+struct StemsFile {
+    offset: [f64; 3],
+    stems: Vec<StemEntry>,
+}
+
+/// A stem's breast-height circle in the training frame.
+struct StemCircle {
+    base: glam::Vec3,
+    axis: glam::Vec3,
+    center: glam::Vec3,
+    radius_m: f32,
+    height_m: f32,
 }
 
 /// The local frame's offset (file coordinates of the origin), from stage `ingest`'s cloud.

@@ -7,6 +7,7 @@
 //! on ordinary steps except, now and then, the loss.
 
 use super::adam::{AdamState, LearningRates};
+use super::bind::{self, BindConfig};
 use super::camera::Camera;
 use super::cameras::View;
 use super::cpu;
@@ -72,6 +73,14 @@ pub trait Backend {
     ) -> Result<(), TrainError>;
     /// The weight gamma of L_geo for the following steps (0 turns it off).
     fn set_geo_weight(&mut self, gamma: f32);
+    /// Installs Sylva's trunk binding ([`crate::splat::bind`]) on the labelled anchors (with
+    /// their normals): from the next step on, every bound Gaussian is projected onto the LiDAR
+    /// surface after each optimiser step.
+    fn set_bind(&mut self, anchors: &SemanticAnchors, cfg: &BindConfig)
+    -> Result<(), TrainError>;
+    /// dL/d(mean) of the latest step, per Gaussian (photometric plus L_geo when it is on);
+    /// a GPU backend reads it back here, so call it only now and then (diagnostics).
+    fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError>;
     /// The loss of the latest step (a GPU backend reads it back here).
     fn last_loss(&mut self) -> Result<StepLoss, TrainError>;
     /// The accumulated statistics, which are then reset.
@@ -97,6 +106,9 @@ pub struct CpuBackend {
     times: PhaseTimes,
     semantic: Option<(semantic::AnchorIndex, f32, SemanticConfig)>,
     gamma: f32,
+    bind: Option<(semantic::AnchorIndex, BindConfig)>,
+    /// dL/d(mean) of the latest step.
+    last_mean_grads: Vec<[f32; 3]>,
 }
 
 impl CpuBackend {
@@ -110,6 +122,8 @@ impl CpuBackend {
             times: PhaseTimes::default(),
             semantic: None,
             gamma: 0.0,
+            bind: None,
+            last_mean_grads: Vec::new(),
         }
     }
 }
@@ -188,6 +202,10 @@ impl Backend for CpuBackend {
         self.adam
             .step(&mut self.model, &grads, lr)
             .map_err(invalid)?;
+        if let Some((index, cfg)) = self.bind.as_ref() {
+            bind::project(&mut self.model, index, cfg);
+        }
+        self.last_mean_grads = grads.means;
         self.times.optimizer_ms += ms(t);
         self.loss = StepLoss {
             loss: loss.loss as f32,
@@ -212,6 +230,18 @@ impl Backend for CpuBackend {
 
     fn set_geo_weight(&mut self, gamma: f32) {
         self.gamma = gamma;
+    }
+
+    fn set_bind(&mut self, anchors: &SemanticAnchors, cfg: &BindConfig) -> Result<(), TrainError> {
+        cfg.validate().map_err(TrainError::Invalid)?;
+        let index = semantic::AnchorIndex::new(anchors)
+            .ok_or_else(|| TrainError::Invalid("the trunk binding needs trunk anchors".into()))?;
+        self.bind = Some((index, cfg.clone()));
+        Ok(())
+    }
+
+    fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError> {
+        Ok(self.last_mean_grads.clone())
     }
 
     fn last_loss(&mut self) -> Result<StepLoss, TrainError> {

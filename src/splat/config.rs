@@ -93,6 +93,9 @@ pub struct TrainConfig {
     /// The semantic trunk term L_geo (METHOD.md Stage 4); off by default (vanilla 3DGS). Its
     /// anchors are installed on the backend by the caller ([`crate::splat::backend::Backend::set_semantic`]).
     pub semantic: crate::splat::semantic::SemanticConfig,
+    /// Sylva's trunk binding (METHOD.md Stage 4, "Sylva's binding"); off by default here. Its
+    /// anchors are installed on the backend by the caller ([`crate::splat::backend::Backend::set_bind`]).
+    pub bind: crate::splat::bind::BindConfig,
 }
 
 impl Default for TrainConfig {
@@ -124,6 +127,7 @@ impl Default for TrainConfig {
             resolution: None,
             seed: 0,
             semantic: Default::default(),
+            bind: Default::default(),
         }
     }
 }

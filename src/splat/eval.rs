@@ -247,16 +247,38 @@ pub struct LossRecord {
     pub n_gaussians: usize,
     /// Wall time since training started, seconds.
     pub seconds: f64,
+    /// What holds the trunk Gaussians, on the steps the monitor measured
+    /// ([`super::trunk_diag`]).
+    #[serde(default)]
+    pub trunk: Option<super::trunk_diag::TrunkDiag>,
 }
 
-/// Writes the log as CSV with header `step,loss,l1,ssim,n_gaussians,seconds,geo`.
+/// Writes the log as CSV with header `step,loss,l1,ssim,n_gaussians,seconds,geo` followed by
+/// the trunk monitor's columns `s_count,s_weight,slice_count,slice_in_s,geo_photo_grad_ratio,
+/// surface_offset_mm,surface_abs_mm` (empty on the steps it did not measure).
 pub fn write_loss_csv<W: Write>(out: W, records: &[LossRecord]) -> io::Result<()> {
     let mut out = io::BufWriter::new(out);
-    writeln!(out, "step,loss,l1,ssim,n_gaussians,seconds,geo")?;
+    writeln!(
+        out,
+        "step,loss,l1,ssim,n_gaussians,seconds,geo,s_count,s_weight,slice_count,slice_in_s,geo_photo_grad_ratio,surface_offset_mm,surface_abs_mm"
+    )?;
+    let opt = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x:.4}"));
     for r in records {
+        let trunk = r.trunk.map_or(",,,,,,".to_string(), |d| {
+            format!(
+                "{},{:.4},{},{},{},{},{}",
+                d.s_count,
+                d.s_weight,
+                d.slice_count,
+                opt(d.slice_in_s),
+                opt(d.geo_photo_grad_ratio),
+                opt(d.surface_offset_mm),
+                opt(d.surface_abs_mm)
+            )
+        });
         writeln!(
             out,
-            "{},{},{},{},{},{:.3},{}",
+            "{},{},{},{},{},{:.3},{},{trunk}",
             r.step, r.loss, r.l1, r.ssim, r.n_gaussians, r.seconds, r.geo
         )?;
     }

@@ -122,17 +122,30 @@ fn loss_csv_has_a_header_and_one_line_per_record() {
         geo: 0.125,
         n_gaussians: 1234,
         seconds: 1.5,
+        trunk: None,
+    };
+    let measured = LossRecord {
+        trunk: Some(crate::splat::trunk_diag::TrunkDiag {
+            s_count: 3,
+            s_weight: 1.75,
+            slice_count: 40,
+            slice_in_s: Some(0.25),
+            geo_photo_grad_ratio: None,
+            surface_offset_mm: Some(-1.5),
+            surface_abs_mm: Some(4.0),
+        }),
+        ..r
     };
     let mut out = Vec::new();
-    write_loss_csv(&mut out, &[r, r]).expect("write to memory");
+    write_loss_csv(&mut out, &[r, measured]).expect("write to memory");
     let text = String::from_utf8(out).expect("utf-8");
     let lines: Vec<&str> = text.lines().collect();
     assert_eq!(
         lines,
         [
-            "step,loss,l1,ssim,n_gaussians,seconds,geo",
-            "7,0.25,0.2,0.6,1234,1.500,0.125",
-            "7,0.25,0.2,0.6,1234,1.500,0.125"
+            "step,loss,l1,ssim,n_gaussians,seconds,geo,s_count,s_weight,slice_count,slice_in_s,geo_photo_grad_ratio,surface_offset_mm,surface_abs_mm",
+            "7,0.25,0.2,0.6,1234,1.500,0.125,,,,,,,",
+            "7,0.25,0.2,0.6,1234,1.500,0.125,3,1.7500,40,0.2500,,-1.5000,4.0000"
         ]
     );
 }

@@ -229,7 +229,7 @@ fn median_colour(mut s: Vec<[u8; 3]>) -> Option<[u8; 3]> {
 
 /// For every point, the squared distances (m²) to its `k` nearest other points, in input order
 /// (fewer than `k` when there are not that many; none when the points cannot be indexed).
-fn self_knn_dist2(points: &[[f32; 3]], k: usize) -> Vec<Vec<f64>> {
+pub(crate) fn self_knn_dist2(points: &[[f32; 3]], k: usize) -> Vec<Vec<f64>> {
     let positions: Vec<glam::Vec3> = points.iter().map(|p| glam::Vec3::from_array(*p)).collect();
     let Ok(index) = crate::geom::PointIndex::new(&positions) else {
         return vec![Vec::new(); points.len()];

@@ -5,6 +5,7 @@
 //! `sylva train` run.
 
 pub mod adam;
+pub mod bind;
 pub mod backend;
 pub mod camera;
 pub mod camera_models;
@@ -25,3 +26,4 @@ pub mod rng;
 pub mod semantic;
 pub mod strategy;
 pub mod trainer;
+pub mod trunk_diag;

@@ -159,6 +159,7 @@ mod tests {
                 geo: 0.0,
                 n_gaussians: 100,
                 seconds: s as f64,
+                trunk: None,
             })
             .collect()
     }

@@ -127,22 +127,30 @@ impl SemanticConfig {
 #[derive(Debug, Clone, Default)]
 pub struct SemanticAnchors {
     pub trunk: Vec<[f32; 3]>,
+    /// Unit LiDAR surface normal of each trunk anchor (stage `anchors`), or empty when the
+    /// anchors carry none; Sylva's binding ([`super::bind`]) needs them, L_geo does not.
+    pub trunk_normals: Vec<[f32; 3]>,
     pub leaf: Vec<[f32; 3]>,
     /// N_pos: the diagonal of the bounding box of all anchors, metres (METHOD.md).
     pub n_pos: f32,
 }
 
 impl SemanticAnchors {
-    /// Splits anchors into trunk and leaf by their label (`is_trunk`), N_pos from all of them.
+    /// Splits anchors into trunk and leaf by their label (`is_trunk`), N_pos from all of them;
+    /// `normals` (one per point, or none) give the trunk anchors their surface normals.
     /// An error when there is no trunk anchor (nothing to pull towards) or N_pos is zero.
-    pub fn new(points: &[[f32; 3]], is_trunk: &[bool]) -> Result<Self, String> {
-        if points.len() != is_trunk.len() {
-            return Err("anchor labels and positions differ in count".into());
+    pub fn new(
+        points: &[[f32; 3]],
+        normals: Option<&[[f32; 3]]>,
+        is_trunk: &[bool],
+    ) -> Result<Self, String> {
+        if points.len() != is_trunk.len() || normals.is_some_and(|n| n.len() != points.len()) {
+            return Err("anchor labels, normals and positions differ in count".into());
         }
         let mut lo = [f32::INFINITY; 3];
         let mut hi = [f32::NEG_INFINITY; 3];
-        let (mut trunk, mut leaf) = (Vec::new(), Vec::new());
-        for (p, &t) in points.iter().zip(is_trunk) {
+        let (mut trunk, mut leaf, mut trunk_normals) = (Vec::new(), Vec::new(), Vec::new());
+        for (i, (p, &t)) in points.iter().zip(is_trunk).enumerate() {
             if !p.iter().all(|v| v.is_finite()) {
                 continue;
             }
@@ -150,7 +158,14 @@ impl SemanticAnchors {
                 lo[a] = lo[a].min(p[a]);
                 hi[a] = hi[a].max(p[a]);
             }
-            if t { trunk.push(*p) } else { leaf.push(*p) }
+            if t {
+                trunk.push(*p);
+                if let Some(n) = normals {
+                    trunk_normals.push(unit_or_zero(n[i]));
+                }
+            } else {
+                leaf.push(*p)
+            }
         }
         if trunk.is_empty() {
             return Err("no trunk anchors: the semantic term needs the wood/leaf labels".into());
@@ -160,7 +175,22 @@ impl SemanticAnchors {
         if n_pos.is_nan() || n_pos <= 0.0 {
             return Err("the anchors span no volume (N_pos = 0)".into());
         }
-        Ok(SemanticAnchors { trunk, leaf, n_pos })
+        Ok(SemanticAnchors {
+            trunk,
+            trunk_normals,
+            leaf,
+            n_pos,
+        })
+    }
+}
+
+/// `n` scaled to unit length, or zero when it has none (a zero normal means "unknown").
+fn unit_or_zero(n: [f32; 3]) -> [f32; 3] {
+    let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    if l.is_finite() && l > 1e-6 {
+        n.map(|v| v / l)
+    } else {
+        [0.0; 3]
     }
 }
 
@@ -201,6 +231,8 @@ pub fn geo_targets(
 /// k-d trees over the trunk and leaf anchors, built once (anchors do not move in training).
 pub struct AnchorIndex {
     trunk: Vec<glam::Vec3>,
+    /// Unit normals of the trunk anchors (zero where unknown); empty without normals.
+    trunk_normals: Vec<glam::Vec3>,
     leaf: Vec<glam::Vec3>,
     ti: PointIndex,
     li: Option<PointIndex>,
@@ -216,10 +248,23 @@ impl AnchorIndex {
         let li = PointIndex::new(&leaf).ok();
         Some(AnchorIndex {
             trunk,
+            trunk_normals: anchors.trunk_normals.iter().map(to_vec).collect(),
             leaf,
             ti,
             li,
         })
+    }
+}
+
+impl AnchorIndex {
+    /// The nearest trunk anchor to `p`: its position and unit normal (zero when unknown).
+    pub fn nearest_trunk(&self, p: glam::Vec3) -> Option<(glam::Vec3, glam::Vec3)> {
+        let n = self.ti.nearest(p)?;
+        let i = n.index as usize;
+        Some((
+            self.trunk[i],
+            self.trunk_normals.get(i).copied().unwrap_or(glam::Vec3::ZERO),
+        ))
     }
 }
 
@@ -234,6 +279,7 @@ pub fn geo_targets_indexed(
         leaf,
         ti,
         li,
+        ..
     } = index;
     let to_vec = |p: &[f32; 3]| glam::Vec3::from_array(*p);
     let k = (cfg.k as usize).min(trunk.len()).max(1);
@@ -331,6 +377,8 @@ pub struct AnchorGrid {
     pub dims: [u32; 3],
     pub cell_start: Vec<u32>,
     pub points: Vec<[f32; 3]>,
+    /// Index in the input of each point of `points` (to carry per-anchor data such as normals).
+    pub order: Vec<u32>,
 }
 
 /// Finest grid resolution per axis; bounds the cell table at 128³ entries.
@@ -357,6 +405,7 @@ impl AnchorGrid {
                 dims: [1, 1, 1],
                 cell_start: vec![0, 0],
                 points: Vec::new(),
+                order: Vec::new(),
             };
         }
         let extent = (0..3)
@@ -399,9 +448,11 @@ impl AnchorGrid {
         }
         let mut fill = counts.clone();
         let mut sorted = vec![[0.0f32; 3]; points.len()];
-        for p in points {
+        let mut order = vec![0u32; points.len()];
+        for (i, p) in points.iter().enumerate() {
             let c = index(p);
             sorted[fill[c] as usize] = *p;
+            order[fill[c] as usize] = i as u32;
             fill[c] += 1;
         }
         AnchorGrid {
@@ -410,12 +461,14 @@ impl AnchorGrid {
             dims,
             cell_start: counts,
             points: sorted,
+            order,
         }
     }
 }
 
 /// A test scene with known geometry, for the CPU and GPU tests and benchmarks: a trunk (600
-/// anchors on a cylinder of radius 0.15 m, 3 m tall) and 600 leaf anchors above it, and `n`
+/// anchors on a cylinder of radius 0.15 m, 3 m tall, with their outward normals) and 600 leaf
+/// anchors above it, and `n`
 /// Gaussians near them (trunk ones with P in [0.6, 1], leaf ones below 0.3; every tenth moved
 /// 3 m off the anchors' box).
 pub fn test_scene(seed: u64, n: usize) -> (Gaussians, SemanticAnchors) {
@@ -436,7 +489,12 @@ pub fn test_scene(seed: u64, n: usize) -> (Gaussians, SemanticAnchors) {
         n_pos: 0.0,
         ..Default::default()
     };
-    let anchors = SemanticAnchors::new(&pts, &lab).unwrap_or(anchors);
+    let normals: Vec<[f32; 3]> = pts
+        .iter()
+        .zip(&lab)
+        .map(|(p, &t)| if t { [p[0], p[1], 0.0] } else { [0.0, 0.0, 1.0] })
+        .collect();
+    let anchors = SemanticAnchors::new(&pts, Some(&normals), &lab).unwrap_or(anchors);
     let mut g = Gaussians::default();
     for i in 0..n {
         let j = (i * 7) % pts.len();
@@ -609,9 +667,9 @@ mod tests {
 
     #[test]
     fn bad_inputs_are_refused() {
-        assert!(SemanticAnchors::new(&[[0.0; 3]], &[false]).is_err());
+        assert!(SemanticAnchors::new(&[[0.0; 3]], None, &[false]).is_err());
         assert!(
-            SemanticAnchors::new(&[[0.0; 3]], &[true]).is_err(),
+            SemanticAnchors::new(&[[0.0; 3]], None, &[true]).is_err(),
             "N_pos = 0"
         );
         let bad = SemanticConfig {

@@ -13,6 +13,7 @@ use super::eval::{EvalReport, LossRecord, ViewMetrics, save_side_by_side};
 use super::model::Gaussians;
 use super::rng::SplitMix64;
 use super::strategy::{DefaultStrategy, RefineReport, Strategy};
+use super::trunk_diag::TrunkMonitor;
 use crate::progress::Progress;
 
 /// How often the loss is read back and recorded, steps. One read per this many steps keeps a
@@ -44,6 +45,20 @@ pub fn train(
     init: Gaussians,
     cfg: &TrainConfig,
     strategy: &mut dyn Strategy,
+    progress: &dyn Progress,
+) -> Result<TrainOutcome, TrainError> {
+    train_monitored(backend, data, init, cfg, strategy, None, progress)
+}
+
+/// [`train`] with the trunk monitor measuring every `monitor.every` steps (and at the last):
+/// the model and the latest position gradients are read back then, never on other steps.
+pub fn train_monitored(
+    backend: &mut dyn Backend,
+    data: &Dataset,
+    init: Gaussians,
+    cfg: &TrainConfig,
+    strategy: &mut dyn Strategy,
+    monitor: Option<&TrunkMonitor>,
     progress: &dyn Progress,
 ) -> Result<TrainOutcome, TrainError> {
     if init.is_empty() || !init.is_consistent() {
@@ -99,7 +114,26 @@ pub fn train(
             count = model.len();
             backend.set_model(&model, &adam)?;
         }
-        if step % LOSS_EVERY == 0 || step == cfg.steps {
+        let measure = monitor.filter(|m| step % m.every == 0 || step == cfg.steps);
+        if step % LOSS_EVERY == 0 || step == cfg.steps || measure.is_some() {
+            let trunk = match measure {
+                Some(m) => {
+                    let grads = backend.position_grads()?;
+                    let (now, _) = backend.model()?;
+                    let d = m.observe(&now, Some(&grads), cfg.semantic.gamma_at(step));
+                    progress.log(&format!(
+                        "step {step}: trunk Gaussians {:.1} mm from the LiDAR surface (signed {:+.1} mm, {} in the DBH slices, {:.0} % of them in L_geo's S of {}); L_geo/photometric position gradient {}",
+                        d.surface_abs_mm.unwrap_or(f64::NAN),
+                        d.surface_offset_mm.unwrap_or(f64::NAN),
+                        d.slice_count,
+                        d.slice_in_s.unwrap_or(0.0) * 100.0,
+                        d.s_count,
+                        d.geo_photo_grad_ratio.map_or("n/a".into(), |r| format!("{r:.2e}"))
+                    ));
+                    Some(d)
+                }
+                None => None,
+            };
             let StepLoss {
                 loss,
                 l1,
@@ -119,6 +153,7 @@ pub fn train(
                 geo,
                 n_gaussians: count,
                 seconds: start.elapsed().as_secs_f64(),
+                trunk,
             });
             progress.set(f64::from(step) / f64::from(cfg.steps) * 0.95);
             let every = (cfg.steps / 20).max(LOSS_EVERY);
@@ -322,7 +357,7 @@ mod tests {
         let data = ring_dataset(&truth, 16);
         // Every other true Gaussian is "trunk": its mean is a trunk anchor; the rest are leaves.
         let is_trunk: Vec<bool> = (0..truth.len()).map(|i| i % 2 == 0).collect();
-        let anchors = SemanticAnchors::new(&truth.means, &is_trunk).expect("anchors");
+        let anchors = SemanticAnchors::new(&truth.means, None, &is_trunk).expect("anchors");
         let mut init = Gaussians::default();
         for (m, &trunk) in truth.means.iter().zip(&is_trunk) {
             let mut g =

@@ -126,3 +126,64 @@ fn gpu_semantic_term_is_silent_without_trunk_gaussians() {
     let gm: Vec<f32> = read_buffer(&ctx, &grads.means, 3 * model.len()).expect("grad means");
     assert!(gm.iter().all(|&g| g == 0.0));
 }
+
+/// Sylva's binding on the GPU against its CPU twin (`splat::bind::project`): the same nearest
+/// trunk anchor, offset clamp, rotation onto the normal and normal-scale cap, for Gaussians
+/// thrown up to 6 cm off the trunk with random rotations; leaf Gaussians untouched.
+#[test]
+fn gpu_trunk_binding_matches_cpu_twin() {
+    use rand::rngs::ChaCha8Rng;
+    use rand::{RngExt, SeedableRng};
+    use sylva::splat::bind::{BindConfig, project};
+    use sylva::splat::semantic::AnchorIndex;
+    let Some(ctx) = common::context() else { return };
+    let (mut model, anchors) = test_scene(6, 3000);
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    for i in 0..model.len() {
+        for a in 0..3 {
+            model.means[i][a] += rng.random_range(-0.06f32..0.06);
+        }
+        model.rotations[i] = std::array::from_fn(|_| rng.random_range(-1.0f32..1.0));
+        model.log_scales[i][2] = rng.random_range(-6.0f32..-2.0);
+    }
+    let cfg = BindConfig {
+        enabled: true,
+        ..Default::default()
+    };
+    let mut cpu = model.clone();
+    let index = AnchorIndex::new(&anchors).expect("index");
+    let bound = project(&mut cpu, &index, &cfg);
+    assert!(bound > 1000, "{bound} bound");
+
+    let splats = GpuSplats::upload(&ctx, &model).expect("upload");
+    let mut sem = GpuSemantic::new(&ctx, &anchors, &SemanticConfig::default()).expect("semantic");
+    sem.set_model(&ctx, &model.trunk_prob).expect("model");
+    sem.set_bind(&cfg).expect("bind");
+    let mut enc = ctx.device.create_command_encoder(&Default::default());
+    sem.encode_bind(&ctx, &mut enc, &splats).expect("encode");
+    ctx.queue.submit([enc.finish()]);
+    let mut gpu = model.clone();
+    splats.download_into(&ctx, &mut gpu).expect("download");
+    let mut moved = 0;
+    for i in 0..model.len() {
+        if model.trunk_prob[i] < cfg.min_trunk_prob {
+            assert_eq!(gpu.means[i], model.means[i], "leaf Gaussian {i} moved");
+            assert_eq!(gpu.rotations[i], model.rotations[i]);
+            continue;
+        }
+        moved += usize::from(cpu.means[i] != model.means[i]);
+        for a in 0..3 {
+            assert!(
+                (gpu.means[i][a] - cpu.means[i][a]).abs() < 1e-5,
+                "mean {i}: {:?} vs {:?}",
+                gpu.means[i],
+                cpu.means[i]
+            );
+            assert!((gpu.log_scales[i][a] - cpu.log_scales[i][a]).abs() < 1e-6);
+        }
+        // q and -q are the same rotation.
+        let dot: f32 = (0..4).map(|k| gpu.rotations[i][k] * cpu.rotations[i][k]).sum();
+        assert!(dot.abs() > 1.0 - 1e-5, "rotation {i}: {dot}");
+    }
+    assert!(moved > 500, "only {moved} trunk Gaussians needed the projection");
+}

@@ -14,6 +14,7 @@ use super::loss::{LOSS_OUT_BYTES, LossKernel};
 use super::{GpuContext, GpuError, GpuGrads, GpuSplats, Renderer};
 use crate::splat::adam::{AdamState, LearningRates, Moments};
 use crate::splat::backend::{Backend, PhaseTimes, StepLoss, TrainError};
+use crate::splat::bind::BindConfig;
 use crate::splat::camera::Camera;
 use crate::splat::cameras::View;
 use crate::splat::model::Gaussians;
@@ -54,6 +55,8 @@ pub struct GpuBackend {
     /// The semantic term's anchors and scratch, once installed, and its current weight.
     semantic: Option<GpuSemantic>,
     gamma: f32,
+    /// Sylva's trunk binding, once installed (its anchors are those of `semantic`).
+    bind: Option<BindConfig>,
 }
 
 impl GpuBackend {
@@ -81,6 +84,7 @@ impl GpuBackend {
             timed: false,
             semantic: None,
             gamma: 0.0,
+            bind: None,
         })
     }
 
@@ -255,6 +259,9 @@ impl Backend for GpuBackend {
         state
             .adam
             .encode_step(&self.ctx, &mut enc, &state.splats, &state.grads, &rates)?;
+        if let (Some(sem), Some(_)) = (self.semantic.as_ref(), self.bind.as_ref()) {
+            sem.encode_bind(&self.ctx, &mut enc, &state.splats)?;
+        }
         self.ctx.queue.submit([enc.finish()]);
         let optimizer_ms = self.wait_ms(t)?;
         self.times.loss_ms += loss_ms;
@@ -282,12 +289,32 @@ impl Backend for GpuBackend {
         if let Some(state) = self.state.as_ref() {
             sem.set_model(&self.ctx, &state.trunk_prob)?;
         }
+        if let Some(b) = self.bind.as_ref() {
+            sem.set_bind(b)?;
+        }
         self.semantic = Some(sem);
         Ok(())
     }
 
     fn set_geo_weight(&mut self, gamma: f32) {
         self.gamma = gamma;
+    }
+
+    fn set_bind(&mut self, anchors: &SemanticAnchors, cfg: &BindConfig) -> Result<(), TrainError> {
+        // The binding searches the same anchor grids as L_geo; L_geo's own settings only
+        // matter when it is switched on as well.
+        let sem_cfg = SemanticConfig::default();
+        self.bind = Some(cfg.clone());
+        self.set_semantic(anchors, &sem_cfg)
+    }
+
+    fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError> {
+        let state = self.state()?;
+        let n = state.splats.count as usize;
+        let flat: Vec<f32> = read_buffer(&self.ctx, &state.grads.means, 3 * n)?;
+        Ok((0..n)
+            .map(|i| [flat[3 * i], flat[3 * i + 1], flat[3 * i + 2]])
+            .collect())
     }
 
     fn take_stats(&mut self) -> Result<DensifyStats, TrainError> {

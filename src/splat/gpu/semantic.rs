@@ -4,7 +4,8 @@
 //! the photometric backward pass and before Adam: query (neighbours, weights, targets), reduce
 //! (W and L_geo, which lands in the fourth float of the loss read-back) and apply (adds
 //! gamma × the gradient to the mean and log-scale gradients). The CPU twin is
-//! [`crate::splat::semantic`].
+//! [`crate::splat::semantic`]. The same anchors serve Sylva's binding: one pass after Adam
+//! ([`GpuSemantic::encode_bind`]) whose CPU twin is [`crate::splat::bind::project`].
 
 use crate::splat::gpu::buffers::{
     pipeline, read_buffer, storage_from, storage_zeroed, uniform_from,
@@ -12,6 +13,7 @@ use crate::splat::gpu::buffers::{
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch, groups_for};
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
+use crate::splat::bind::BindConfig;
 use crate::splat::semantic::{AnchorGrid, SemanticAnchors, SemanticConfig};
 
 const SOURCE: &str = include_str!("../../../shaders/semantic.wgsl");
@@ -20,19 +22,28 @@ const SOURCE: &str = include_str!("../../../shaders/semantic.wgsl");
 /// the trunk score q = sigmoid((d_l − d_t)/T) is 1 to f32 precision.
 const LEAF_CUTOFF_TEMPERATURES: f32 = 30.0;
 
-/// The text of one pass: everything before the first `#ifdef`, then the pass's own block.
-pub fn pass_source(name: &str) -> Result<String, GpuError> {
+/// The text of one pass: everything before the first `#ifdef`, then the blocks `names` in
+/// order (e.g. `["GRID", "QUERY"]`).
+pub fn pass_source(names: &[&str]) -> Result<String, GpuError> {
     // Directives stand at the start of a line (comments may mention them).
-    let head = SOURCE.split("\n#ifdef ").next().unwrap_or_default();
-    let marker = format!("\n#ifdef {name}\n");
-    let start = SOURCE
-        .find(&marker)
-        .ok_or_else(|| GpuError::Invalid(format!("semantic.wgsl has no {name} pass")))?
-        + marker.len();
-    let len = SOURCE[start..]
-        .find("\n#endif")
-        .ok_or_else(|| GpuError::Invalid(format!("semantic.wgsl: {name} pass not closed")))?;
-    Ok(format!("{head}\n{}", &SOURCE[start..start + len]))
+    let mut text = SOURCE
+        .split("\n#ifdef ")
+        .next()
+        .unwrap_or_default()
+        .to_string();
+    for name in names {
+        let marker = format!("\n#ifdef {name}\n");
+        let start = SOURCE
+            .find(&marker)
+            .ok_or_else(|| GpuError::Invalid(format!("semantic.wgsl has no {name} block")))?
+            + marker.len();
+        let len = SOURCE[start..]
+            .find("\n#endif")
+            .ok_or_else(|| GpuError::Invalid(format!("semantic.wgsl: {name} block not closed")))?;
+        text.push('\n');
+        text.push_str(&SOURCE[start..start + len]);
+    }
+    Ok(text)
 }
 
 #[repr(C)]
@@ -58,6 +69,10 @@ struct GeoParams {
     gamma: f32,
     leaf_cutoff: f32,
     _p2: f32,
+    bind_band: f32,
+    bind_log_scale: f32,
+    bind_min_prob: f32,
+    _p3: f32,
 }
 
 /// The anchors, their grids and the per-model scratch of L_geo on the GPU.
@@ -65,8 +80,11 @@ pub struct GpuSemantic {
     query: wgpu::ComputePipeline,
     reduce: wgpu::ComputePipeline,
     apply: wgpu::ComputePipeline,
+    bind: wgpu::ComputePipeline,
     starts: wgpu::Buffer,
     anchors: wgpu::Buffer,
+    /// Unit normals of the trunk anchors in the trunk grid's order (zero where unknown).
+    normals: wgpu::Buffer,
     params: GeoParams,
     /// Trunk probabilities and the 2 vec4 per Gaussian of the query, for `count` Gaussians.
     trunk_prob: Option<wgpu::Buffer>,
@@ -116,13 +134,42 @@ impl GpuSemantic {
             gamma: 0.0,
             leaf_cutoff: LEAF_CUTOFF_TEMPERATURES * cfg.temperature_m,
             _p2: 0.0,
+            bind_band: 0.0,
+            bind_log_scale: 0.0,
+            bind_min_prob: f32::INFINITY,
+            _p3: 0.0,
+        };
+        let normals: Vec<[f32; 4]> = trunk
+            .order
+            .iter()
+            .map(|&i| {
+                let n = anchors
+                    .trunk_normals
+                    .get(i as usize)
+                    .copied()
+                    .unwrap_or([0.0; 3]);
+                [n[0], n[1], n[2], 0.0]
+            })
+            .collect();
+        // wgpu refuses empty buffers: one zero normal stands for none.
+        let normals = if normals.is_empty() {
+            vec![[0.0f32; 4]]
+        } else {
+            normals
         };
         Ok(GpuSemantic {
-            query: pipeline(ctx, "semantic query", &pass_source("QUERY")?, "query"),
-            reduce: pipeline(ctx, "semantic reduce", &pass_source("REDUCE")?, "reduce"),
-            apply: pipeline(ctx, "semantic apply", &pass_source("APPLY")?, "apply"),
+            query: pipeline(
+                ctx,
+                "semantic query",
+                &pass_source(&["GRID", "QUERY"])?,
+                "query",
+            ),
+            reduce: pipeline(ctx, "semantic reduce", &pass_source(&["REDUCE"])?, "reduce"),
+            apply: pipeline(ctx, "semantic apply", &pass_source(&["APPLY"])?, "apply"),
+            bind: pipeline(ctx, "trunk binding", &pass_source(&["GRID", "BIND"])?, "bind"),
             starts: storage_from(ctx, "semantic cell starts", &starts)?,
             anchors: storage_from(ctx, "semantic anchors", &points)?,
+            normals: storage_from(ctx, "trunk anchor normals", &normals)?,
             params,
             trunk_prob: None,
             geo: None,
@@ -218,6 +265,65 @@ impl GpuSemantic {
                 &grads.log_scales,
             ],
             groups,
+        );
+        Ok(())
+    }
+
+    /// Installs the binding's settings (see [`crate::splat::bind`]); the CPU twin is
+    /// [`crate::splat::bind::project`].
+    pub fn set_bind(&mut self, cfg: &BindConfig) -> Result<(), GpuError> {
+        cfg.validate().map_err(GpuError::Invalid)?;
+        self.params.bind_band = cfg.band_m;
+        self.params.bind_log_scale = cfg.normal_scale_m.ln();
+        self.params.bind_min_prob = cfg.min_trunk_prob;
+        Ok(())
+    }
+
+    /// Records the binding's projection of every bound Gaussian (after the optimiser step).
+    pub fn encode_bind(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        splats: &GpuSplats,
+    ) -> Result<(), GpuError> {
+        let Some(prob) = &self.trunk_prob else {
+            return Err(GpuError::Invalid("trunk binding: no model installed".into()));
+        };
+        if splats.count != self.count {
+            return Err(GpuError::Invalid(format!(
+                "trunk binding for {} Gaussians, model {}",
+                self.count, splats.count
+            )));
+        }
+        ctx.check_binding(
+            "rotations (bound whole by the trunk binding)",
+            self.count as u64 * 16,
+        )?;
+        ctx.check_binding(
+            "means and log-scales (bound whole by the trunk binding)",
+            self.count as u64 * 12,
+        )?;
+        let params = GeoParams {
+            n: self.count,
+            k: 1,
+            ..self.params
+        };
+        let u = uniform_from(ctx, "binding params", &params);
+        dispatch(
+            ctx,
+            enc,
+            &self.bind,
+            &[
+                &u,
+                &splats.means,
+                &splats.log_scales,
+                prob,
+                &self.starts,
+                &self.anchors,
+                &splats.rotations,
+                &self.normals,
+            ],
+            groups_for(self.count),
         );
         Ok(())
     }
