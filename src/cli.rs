@@ -48,7 +48,7 @@ pub enum Command {
     /// resume from a splat PLY); writes splats.ply, eval.json, the loss curve and test renders.
     Train(TrainArgs),
     /// Benchmarks that print tables (not tests): `sylva bench train`, `sylva bench load`,
-    /// `sylva bench soak`, `sylva bench geom`.
+    /// `sylva bench soak`, `sylva bench geom`, `sylva bench method`.
     Bench(BenchArgs),
     /// A generated plot through the whole service: start the server (SQLite + local files),
     /// upload the plot through the API, follow the job, print the inventory and its accuracy,
@@ -94,7 +94,9 @@ pub struct BenchArgs {
     /// or soak (many small jobs through `sylva serve` and `sylva worker` processes with random
     /// cancels and one SIGKILL; jobs per hour, API latency and anything lost; flags marked
     /// `soak:`, and --jobs) or geom (read, voxel, outlier filter, normals and ICP on a real
-    /// point cloud with per-phase peak memory; flags marked `geom:`).
+    /// point cloud with per-phase peak memory; flags marked `geom:`) or method (the paper's
+    /// ablation plus Sylva's binding on generated plots: render quality, DBH from the
+    /// Gaussians and the LiDAR, trunk-surface distance; flags marked `method:`).
     #[arg(env = "SYLVA_BENCH_WHAT", default_value = "train")]
     pub what: String,
     /// A COLMAP project to train on; without one a synthetic plot is generated.
@@ -121,6 +123,8 @@ pub struct BenchArgs {
     pub soak: crate::loadbench::soak::SoakArgs,
     #[command(flatten)]
     pub geom: crate::loadbench::geom::GeomBenchArgs,
+    #[command(flatten)]
+    pub method: crate::loadbench::method::MethodBenchArgs,
 }
 
 #[derive(Debug, Args)]
@@ -822,9 +826,14 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         tokio::task::spawn_blocking(move || crate::loadbench::geom::run(&args)).await??;
         return Ok(ExitCode::SUCCESS);
     }
+    if a.what == "method" {
+        let args = a.method.clone();
+        tokio::task::spawn_blocking(move || crate::loadbench::method::run(&args)).await??;
+        return Ok(ExitCode::SUCCESS);
+    }
     if a.what != "train" {
         anyhow::bail!(
-            "unknown benchmark {:?}; available: train, load, soak, geom",
+            "unknown benchmark {:?}; available: train, load, soak, geom, method",
             a.what
         );
     }

@@ -17,6 +17,7 @@
 //! machine.
 
 pub mod geom;
+pub mod method;
 pub mod postgres;
 pub mod soak;
 

@@ -1,0 +1,426 @@
+//! `sylva bench method`: the paper's Table 5 ablation plus Sylva's arm, on generated plots
+//! with known truth, at equal steps — one table a person can compare with the last one.
+//!
+//! Arms (`--method-arms`): `vanilla` (SfM initialisation, no trunk term), `lidar` (LiDAR
+//! anchors, no term), `paper` (LiDAR + the paper's L_geo, METHOD.md Stage 4) and `bind` (LiDAR
+//! + Sylva's binding). Stages ingest to segment run once per plot; each arm then runs train
+//! and dbh in its own folder beside them. Per arm, pooled over the plots:
+//!
+//! - held-out PSNR and SSIM (mean over plots), Gaussians at the end, wall time of train + dbh;
+//! - DBH RMSE and bias against `field_dbh.csv` for the Gaussians and for the LiDAR;
+//! - the paired difference Gaussian − LiDAR per tree: mean |d| with a bootstrap 95 %
+//!   interval (2000 resamples of the trees, seeded), and the mean d;
+//! - the trunk-surface distance against `truth.json`: every trunk Gaussian (trunk
+//!   probability ≥ 0.5, opacity ≥ 0.1, as stage `dbh`) within ±0.1 m of the true breast-height
+//!   point along the true axis and within 2 r + 10 cm of it, its distance from the true
+//!   elliptical section (positive outside); mean absolute and mean signed, mm.
+//!
+//! `--method-long N` instead trains the `bind` arm for N steps (on the first plot) and prints
+//! the trunk monitor's surface distance (against the LiDAR stems) every 1000 steps, to show
+//! whether it grows with steps.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::Args;
+use glam::DVec3;
+use serde_json::Value;
+
+use crate::forest::{TreeRow, compare_with_field};
+use crate::pipeline::params::{InitSource, PipelineParams, TrunkTerm};
+use crate::pipeline::{self, Stage, StageInputs};
+use crate::splat::model::sigmoid;
+use crate::splat::rng::SplitMix64;
+
+/// Flags of `sylva bench method`.
+#[derive(Debug, Clone, Args)]
+pub struct MethodBenchArgs {
+    /// method: synthetic preset of the plots (tiny, plot, stand).
+    #[arg(long = "method-preset", env = "SYLVA_BENCH_METHOD_PRESET", default_value = "stand")]
+    pub preset: String,
+    /// method: seeds of the plots, comma-separated (stand 1 and 2 hold 34 trees).
+    #[arg(long = "method-seeds", env = "SYLVA_BENCH_METHOD_SEEDS", default_value = "1,2")]
+    pub seeds: String,
+    /// method: arms, comma-separated, among vanilla, lidar, paper, bind.
+    #[arg(
+        long = "method-arms",
+        env = "SYLVA_BENCH_METHOD_ARMS",
+        default_value = "vanilla,lidar,paper,bind"
+    )]
+    pub arms: String,
+    /// method: training steps of every arm.
+    #[arg(long = "method-steps", env = "SYLVA_BENCH_METHOD_STEPS", default_value_t = 500)]
+    pub steps: u32,
+    /// method: longest image side, pixels.
+    #[arg(long = "method-resolution", env = "SYLVA_BENCH_METHOD_RESOLUTION", default_value_t = 80)]
+    pub resolution: u32,
+    /// method: Gaussian cap (0 = none).
+    #[arg(long = "method-cap", env = "SYLVA_BENCH_METHOD_CAP", default_value_t = 10_000)]
+    pub cap: u32,
+    /// method: gpu or cpu.
+    #[arg(long = "method-backend", env = "SYLVA_BENCH_METHOD_BACKEND", default_value = "gpu")]
+    pub backend: String,
+    /// method: the working folder (plots and runs are kept and reused).
+    #[arg(
+        long = "method-work",
+        env = "SYLVA_BENCH_METHOD_WORK",
+        default_value = "target/bench-method"
+    )]
+    pub work: PathBuf,
+    /// method: instead of the table, train the bind arm this many steps on the first plot and
+    /// print the surface distance every 1000 steps.
+    #[arg(long = "method-long", env = "SYLVA_BENCH_METHOD_LONG")]
+    pub long: Option<u32>,
+}
+
+/// One arm's (init, term).
+fn arm(name: &str) -> anyhow::Result<(InitSource, TrunkTerm)> {
+    Ok(match name {
+        "vanilla" => (InitSource::Sfm, TrunkTerm::Off),
+        "lidar" => (InitSource::Lidar, TrunkTerm::Off),
+        "paper" => (InitSource::Lidar, TrunkTerm::Paper),
+        "bind" => (InitSource::Lidar, TrunkTerm::Bind),
+        other => anyhow::bail!("unknown arm {other:?}: vanilla, lidar, paper or bind"),
+    })
+}
+
+/// A progress sink that prints the stage's log lines.
+struct Log(&'static str);
+
+impl crate::progress::Progress for Log {
+    fn set(&self, _fraction: f64) {}
+    fn log(&self, message: &str) {
+        eprintln!("    {}: {message}", self.0);
+    }
+}
+
+fn read_json(path: &Path) -> anyhow::Result<Value> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    serde_json::from_slice(&bytes).with_context(|| format!("{}: invalid JSON", path.display()))
+}
+
+/// Generates plot `seed` (once) and runs stages ingest to segment on it (once).
+fn prepare_plot(
+    preset: crate::synth::Preset,
+    seed: u64,
+    dir: &Path,
+) -> anyhow::Result<StageInputs> {
+    let plot = dir.join("plot");
+    if !plot.join("truth.json").is_file() {
+        eprintln!("generating {} …", plot.display());
+        let mut p = crate::synth::SynthParams::new(preset);
+        p.seed = seed;
+        crate::synth::generate(&p, &plot, &crate::progress::NoProgress)?;
+    }
+    let inputs = StageInputs {
+        lidar: plot.join("lidar.laz"),
+        colmap: plot.join("colmap"),
+        control_points: Some(plot.join("control_points.csv")),
+        field_dbh: Some(plot.join("field_dbh.csv")),
+    };
+    let shared = dir.join("shared");
+    let params = PipelineParams::default();
+    for stage in [Stage::Ingest, Stage::Register, Stage::Anchors, Stage::Segment] {
+        if !shared.join(stage.name()).join(pipeline::REPORT_FILE).is_file() {
+            eprintln!("  {stage} on seed {seed}");
+            pipeline::execute_stage(stage, &inputs, &shared, &params, &Log(stage.name()))
+                .map_err(|e| anyhow::anyhow!("stage {stage} on seed {seed}: {e}"))?;
+        }
+    }
+    Ok(inputs)
+}
+
+/// A run folder whose shared stages link to the plot's.
+fn arm_dir(dir: &Path, name: &str) -> anyhow::Result<PathBuf> {
+    let out = dir.join(name);
+    std::fs::create_dir_all(&out)?;
+    for stage in [Stage::Ingest, Stage::Register, Stage::Anchors, Stage::Segment] {
+        let link = out.join(stage.name());
+        if !link.exists() {
+            std::os::unix::fs::symlink(dir.join("shared").join(stage.name()), &link)?;
+        }
+    }
+    Ok(out)
+}
+
+/// What one arm measured on one plot.
+#[derive(Debug, Default, Clone)]
+struct ArmResult {
+    psnr: f64,
+    ssim: f64,
+    gaussians: u64,
+    seconds: f64,
+    /// Per matched tree: (field, LiDAR, Gaussian) DBH, cm; the Gaussian one may be missing.
+    trees: Vec<(f64, f64, Option<f64>)>,
+    /// Per trunk Gaussian in a true breast-height slice: signed distance from the true stem, m.
+    offsets: Vec<f64>,
+}
+
+fn run_arm(
+    dir: &Path,
+    inputs: &StageInputs,
+    name: &str,
+    a: &MethodBenchArgs,
+    steps: u32,
+) -> anyhow::Result<ArmResult> {
+    let (init, term) = arm(name)?;
+    let mut params = PipelineParams::default();
+    params.train.init = init;
+    params.train.semantic = term;
+    params.train.steps = steps;
+    params.train.resolution = a.resolution;
+    params.train.max_gaussians = a.cap;
+    params.train.backend = match a.backend.as_str() {
+        "cpu" => crate::pipeline::params::TrainBackend::Cpu,
+        _ => crate::pipeline::params::TrainBackend::Gpu,
+    };
+    let out = arm_dir(dir, &format!("{name}-{steps}-{}-{}", a.resolution, a.cap))?;
+    let start = Instant::now();
+    for stage in [Stage::Train, Stage::Dbh] {
+        if !out.join(stage.name()).join(pipeline::REPORT_FILE).is_file() {
+            pipeline::execute_stage(stage, inputs, &out, &params, &Log(stage.name()))
+                .map_err(|e| anyhow::anyhow!("arm {name}, stage {stage}: {e}"))?;
+        }
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    let train = read_json(&out.join("train").join(pipeline::REPORT_FILE))?;
+    let dbh = read_json(&out.join("dbh").join(pipeline::REPORT_FILE))?;
+    let stems = read_json(&dir.join("shared/segment/stems.json"))?;
+    let rows: Vec<TreeRow> = serde_json::from_value(stems["trees"].clone())?;
+    let gs_of = |id: u32| {
+        dbh["trees"].as_array().and_then(|t| {
+            t.iter()
+                .find(|r| r["tree_id"].as_u64() == Some(u64::from(id)))
+                .and_then(|r| r["dbh_gs_cm"].as_f64())
+        })
+    };
+    let field_path = inputs
+        .field_dbh
+        .as_deref()
+        .context("the plot has no field_dbh.csv")?;
+    let field = crate::io::tables::read_field_dbh(field_path)?;
+    let cmp = compare_with_field(&rows, &field, crate::forest::accuracy::MATCH_DISTANCE_M);
+    let trees = cmp
+        .matches
+        .iter()
+        .map(|m| (m.dbh_field_cm, m.dbh_lidar_cm, gs_of(m.tree_id)))
+        .collect();
+    let offset: Vec<f64> = serde_json::from_value(train["offset"].clone())?;
+    let offsets = truth_offsets(
+        &out.join("train/splats.ply"),
+        &dir.join("plot/truth.json"),
+        DVec3::new(offset[0], offset[1], offset[2]),
+    )?;
+    Ok(ArmResult {
+        psnr: train["render"]["psnr"].as_f64().unwrap_or(f64::NAN),
+        ssim: train["render"]["ssim"].as_f64().unwrap_or(f64::NAN),
+        gaussians: train["gaussians"]["final"].as_u64().unwrap_or(0),
+        seconds,
+        trees,
+        offsets,
+    })
+}
+
+/// Signed distances (m, + outside) of the trunk Gaussians in each true stem's breast-height
+/// slice from the true elliptical section (see the module doc).
+fn truth_offsets(splats: &Path, truth: &Path, offset: DVec3) -> anyhow::Result<Vec<f64>> {
+    let file = std::fs::File::open(splats).with_context(|| splats.display().to_string())?;
+    let g = crate::splat::export::read_ply(std::io::BufReader::new(file))?;
+    let truth = read_json(truth)?;
+    let v3 = |v: &Value| -> Option<DVec3> {
+        Some(DVec3::new(v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?))
+    };
+    let mut out = Vec::new();
+    for t in truth["trees"].as_array().into_iter().flatten() {
+        let (Some(bh), Some(axis), Some(major)) = (
+            v3(&t["breast_height_point"]),
+            v3(&t["axis"]),
+            v3(&t["section_major_axis"]),
+        ) else {
+            continue;
+        };
+        let (Some(a), Some(b)) = (
+            t["section_semi_axes_m"][0].as_f64(),
+            t["section_semi_axes_m"][1].as_f64(),
+        ) else {
+            continue;
+        };
+        let axis = axis.normalize_or(DVec3::Z);
+        let major = (major - axis * major.dot(axis)).normalize_or(DVec3::X);
+        let minor = axis.cross(major);
+        for i in 0..g.len() {
+            if g.trunk_prob[i] < 0.5 || sigmoid(g.opacity_logits[i]) < 0.1 {
+                continue;
+            }
+            let p = DVec3::from_array(g.means[i].map(f64::from)) + offset;
+            let d = p - bh;
+            let along = d.dot(axis);
+            let radial = d - axis * along;
+            let r = radial.length();
+            if along.abs() > 0.1 || r > 2.0 * a + 0.1 || r < 1e-9 {
+                continue;
+            }
+            let (c, s) = (radial.dot(major) / r, radial.dot(minor) / r);
+            let r_true = a * b / ((b * c).powi(2) + (a * s).powi(2)).sqrt();
+            out.push(r - r_true);
+        }
+    }
+    Ok(out)
+}
+
+/// Mean of `v` (NaN when empty).
+fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
+/// Bootstrap 95 % interval of the mean of `v` (2000 resamples, seeded).
+fn bootstrap_ci(v: &[f64]) -> (f64, f64) {
+    if v.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    let mut rng = SplitMix64::new(0x5ee_d0b0);
+    let mut means: Vec<f64> = (0..2000)
+        .map(|_| (0..v.len()).map(|_| v[rng.below(v.len() as u64) as usize]).sum::<f64>() / v.len() as f64)
+        .collect();
+    means.sort_by(f64::total_cmp);
+    (means[49], means[1949])
+}
+
+fn rmse_bias(pairs: &[(f64, f64)]) -> (f64, f64) {
+    let d: Vec<f64> = pairs.iter().map(|(est, truth)| est - truth).collect();
+    (mean(&d.iter().map(|x| x * x).collect::<Vec<_>>()).sqrt(), mean(&d))
+}
+
+/// Runs the benchmark and prints its table.
+pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
+    let preset = crate::synth::Preset::from_name(&a.preset)
+        .with_context(|| format!("--method-preset {:?}: tiny, plot or stand", a.preset))?;
+    let seeds: Vec<u64> = a
+        .seeds
+        .split(',')
+        .map(|s| s.trim().parse())
+        .collect::<Result<_, _>>()
+        .context("--method-seeds: comma-separated integers")?;
+    let arms: Vec<String> = a.arms.split(',').map(|s| s.trim().to_string()).collect();
+    for name in &arms {
+        arm(name)?;
+    }
+    let plots: Vec<(PathBuf, StageInputs)> = seeds
+        .iter()
+        .map(|&s| {
+            let dir = a.work.join(format!("{}-{s}", a.preset));
+            prepare_plot(preset, s, &dir).map(|i| (dir, i))
+        })
+        .collect::<anyhow::Result<_>>()?;
+    if let Some(long) = a.long {
+        return run_long(a, &plots, long);
+    }
+    println!(
+        "\n{} seeds {} — {} steps at {} px, cap {} Gaussians, backend {}\n",
+        a.preset, a.seeds, a.steps, a.resolution, a.cap, a.backend
+    );
+    println!(
+        "| arm | PSNR dB | SSIM | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for name in &arms {
+        let mut all = Vec::new();
+        for (dir, inputs) in &plots {
+            eprintln!("arm {name} on {}", dir.display());
+            all.push(run_arm(dir, inputs, name, a, a.steps)?);
+        }
+        let trees: Vec<(f64, f64, Option<f64>)> =
+            all.iter().flat_map(|r| r.trees.iter().copied()).collect();
+        let gs: Vec<(f64, f64)> = trees.iter().filter_map(|t| Some((t.2?, t.0))).collect();
+        let lidar: Vec<(f64, f64)> = trees.iter().map(|t| (t.1, t.0)).collect();
+        let diff: Vec<f64> = trees.iter().filter_map(|t| Some(t.2? - t.1)).collect();
+        let abs_diff: Vec<f64> = diff.iter().map(|d| d.abs()).collect();
+        let (ci_lo, ci_hi) = bootstrap_ci(&abs_diff);
+        let (rg, bg) = rmse_bias(&gs);
+        let (rl, bl) = rmse_bias(&lidar);
+        let offsets: Vec<f64> = all.iter().flat_map(|r| r.offsets.iter().copied()).collect();
+        let abs_off: Vec<f64> = offsets.iter().map(|o| o.abs()).collect();
+        let f = |x: f64| if x.is_finite() { format!("{x:.2}") } else { "n/a".into() };
+        println!(
+            "| {name} | {} | {:.3} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {:.1} | {:+.1} | {} | {:.0} |",
+            f(mean(&all.iter().map(|r| r.psnr).collect::<Vec<_>>())),
+            mean(&all.iter().map(|r| r.ssim).collect::<Vec<_>>()),
+            f(rg),
+            f(bg),
+            f(rl),
+            f(bl),
+            f(mean(&abs_diff)),
+            f(ci_lo),
+            f(ci_hi),
+            f(mean(&diff)),
+            gs.len(),
+            trees.len(),
+            mean(&abs_off) * 1000.0,
+            mean(&offsets) * 1000.0,
+            all.iter().map(|r| r.gaussians).sum::<u64>(),
+            all.iter().map(|r| r.seconds).sum::<f64>(),
+        );
+    }
+    Ok(())
+}
+
+/// The long run of the bind arm: its loss.csv holds the trunk monitor's columns.
+fn run_long(
+    a: &MethodBenchArgs,
+    plots: &[(PathBuf, StageInputs)],
+    steps: u32,
+) -> anyhow::Result<()> {
+    let Some((dir, inputs)) = plots.first() else {
+        anyhow::bail!("no plot");
+    };
+    let r = run_arm(dir, inputs, "bind", a, steps)?;
+    let out = dir.join(format!("bind-{steps}-{}-{}", a.resolution, a.cap));
+    let csv = std::fs::read_to_string(out.join("train/loss.csv"))?;
+    println!(
+        "\nbind arm, {steps} steps at {} px, cap {}, on {}: trunk monitor every 1000 steps\n",
+        a.resolution,
+        a.cap,
+        dir.display()
+    );
+    println!("| step | Gaussians | slice Gaussians | surface abs mm | surface signed mm |");
+    println!("|---|---|---|---|---|");
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name);
+    let (Some(cs), Some(cn), Some(cc), Some(ca), Some(co)) = (
+        col("step"),
+        col("n_gaussians"),
+        col("slice_count"),
+        col("surface_abs_mm"),
+        col("surface_offset_mm"),
+    ) else {
+        anyhow::bail!("loss.csv has no trunk monitor columns");
+    };
+    for line in lines {
+        let v: Vec<&str> = line.split(',').collect();
+        let step: u32 = v.get(cs).and_then(|s| s.parse().ok()).unwrap_or(0);
+        if v.get(ca).is_some_and(|s| !s.is_empty()) && (step % 1000 == 0 || step == steps) {
+            println!(
+                "| {step} | {} | {} | {} | {} |",
+                v.get(cn).unwrap_or(&""),
+                v.get(cc).unwrap_or(&""),
+                v.get(ca).unwrap_or(&""),
+                v.get(co).unwrap_or(&"")
+            );
+        }
+    }
+    let abs: Vec<f64> = r.offsets.iter().map(|o| o.abs()).collect();
+    println!(
+        "\nat the end, against truth.json: {:.1} mm absolute, {:+.1} mm signed over {} slice Gaussians; PSNR {:.2} dB",
+        mean(&abs) * 1000.0,
+        mean(&r.offsets) * 1000.0,
+        r.offsets.len(),
+        r.psnr
+    );
+    Ok(())
+}
