@@ -165,7 +165,9 @@ fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
     let csv = std::fs::read_to_string(out.join("segment/trees.csv")).expect("trees.csv");
     assert_eq!(
         csv.lines().next(),
-        Some("tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality")
+        Some(
+            "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality,gs_quality"
+        )
     );
     assert_eq!(csv.lines().count(), n_true + 1);
     // The anchors carry labels for the trainer, and some of them are trunk.

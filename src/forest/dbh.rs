@@ -7,11 +7,16 @@
 //! first acceptable one is reported as it is, flagged `fallback_slice`. It is not corrected
 //! to 1.3 m: a taper of ~1 cm per metre changes a diameter by 2–4 mm over 0.2–0.4 m, less
 //! than the fit's own error, and a taper estimated from two noisy slices would add more.
+//!
+//! The same measurement serves any point set ([`measure_dbh_of`]): the LiDAR points of a stem
+//! (weights 1) and the centres of its trunk Gaussians (weights = opacity, METHOD.md Stage 5.3),
+//! so the two diameters differ only by what they are fitted to. The Gaussian fit adds a reach
+//! limit around the axis and a centre prior from the LiDAR circle ([`SliceCenterPrior`]).
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-use super::ransac::{CircleParams, RobustCircle, fit_circle_robust};
+use super::ransac::{CenterPrior, CircleParams, RobustCircle, fit_circle_robust_weighted};
 use super::stems::Stem;
 
 /// A cluster whose best slice covers less of a circle than this (a quarter) is no stem.
@@ -100,26 +105,117 @@ fn plane_basis(axis: Vec3) -> (Vec3, Vec3) {
     (e1, axis.cross(e1))
 }
 
-/// Fits the slice at height `h` (along the axis) of `stem`; returns the fit and its 3D centre.
+/// `axis` as a unit vector: kept as it is when it already has unit length (so a stem's own
+/// axis is used bit for bit), normalised otherwise; `None` when zero or not finite.
+fn unit_axis(axis: Vec3) -> Option<Vec3> {
+    if !axis.is_finite() {
+        return None;
+    }
+    if (axis.length_squared() - 1.0).abs() <= 1e-6 {
+        Some(axis)
+    } else {
+        axis.try_normalize()
+    }
+}
+
+/// The centre prior of a slice fit: the circle of a stem measured before (in the slices'
+/// frame, the LiDAR circle for the Gaussian fit) and how far a fitted centre may lie from it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SliceCenterPrior {
+    /// The expected centre, local 3D coordinates, metres (as [`StemDbh::center`] stores it);
+    /// only its position in the plane perpendicular to the axis counts, so it holds for every
+    /// slice height.
+    pub center: Vec3,
+    /// Largest distance of a fitted centre from `center` in the slice plane, metres.
+    pub max_offset_m: f32,
+}
+
+impl SliceCenterPrior {
+    /// The prior the Gaussian fit gets from the LiDAR fit `lidar`: its centre, and
+    /// max(0.5 × its radius, 2 cm). Half a radius lets a Gaussian circle of a different size
+    /// (the fits differ by a few millimetres) keep its own centre, while a circle through the
+    /// arc of a neighbouring stem or a branch — whose centre lies at least a radius away —
+    /// is refused; 2 cm keeps room for thin stems, where half a radius is below the fits'
+    /// own centre noise (~1 cm, the scanner's range noise).
+    pub fn from_lidar(lidar: &StemDbh) -> Self {
+        Self {
+            center: lidar.center,
+            max_offset_m: (0.25 * lidar.diameter_m as f32).max(0.02),
+        }
+    }
+}
+
+/// What [`measure_dbh_of`] measures: a point set, which of its points may belong to the stem,
+/// their weights, and the stem's frame.
+#[derive(Debug, Clone, Copy)]
+pub struct SliceSource<'a> {
+    /// The points, local coordinates, metres.
+    pub points: &'a [Vec3],
+    /// Indices into `points` of the candidates (the LiDAR: [`Stem::points`]); `None`: all.
+    pub candidates: Option<&'a [u32]>,
+    /// One weight per point of `points` (the Gaussians: their opacity); `None`: all 1.
+    /// A point with a weight that is zero, negative or not finite is left out.
+    pub weights: Option<&'a [f64]>,
+    /// Where the stem's axis meets the ground, local coordinates, metres.
+    pub base: Vec3,
+    /// The stem's axis direction, pointing up (normalised here if it is not a unit vector).
+    pub axis: Vec3,
+    /// Only points within this distance of the axis line are candidates, metres; `None`: no
+    /// limit (the LiDAR stem's points are already the ones within reach).
+    pub reach_m: Option<f32>,
+    /// A centre prior for every slice fit (the Gaussian fit: [`SliceCenterPrior::from_lidar`]).
+    pub center_prior: Option<SliceCenterPrior>,
+}
+
+/// Fits the slice at height `h` (along the axis) of `src`; returns the fit and its 3D centre.
 fn fit_slice(
-    points: &[Vec3],
-    stem: &Stem,
+    src: &SliceSource<'_>,
+    axis: Vec3,
     h: f32,
     params: &DbhParams,
 ) -> Option<(RobustCircle, Vec3)> {
-    let (e1, e2) = plane_basis(stem.axis);
-    let pts: Vec<[f64; 2]> = stem
-        .points
-        .iter()
-        .filter_map(|&i| {
-            let d = *points.get(i as usize)? - stem.base;
-            let s = d.dot(stem.axis);
-            ((s - h).abs() <= params.half_thickness_m).then(|| [d.dot(e1) as f64, d.dot(e2) as f64])
-        })
-        .collect();
-    let fit = fit_circle_robust(&pts, &params.circle)?;
-    let c =
-        stem.base + stem.axis * h + e1 * fit.fit.center[0] as f32 + e2 * fit.fit.center[1] as f32;
+    let (e1, e2) = plane_basis(axis);
+    let mut pts: Vec<[f64; 2]> = Vec::new();
+    let mut weights: Vec<f64> = Vec::new();
+    let mut take = |i: usize| {
+        let Some(&p) = src.points.get(i) else {
+            return;
+        };
+        let w = match src.weights {
+            Some(ws) => match ws.get(i) {
+                Some(&w) if w.is_finite() && w > 0.0 => w,
+                _ => return,
+            },
+            None => 1.0,
+        };
+        let d = p - src.base;
+        let s = d.dot(axis);
+        // Written as the comparisons that keep a point, so a NaN never gets in.
+        let in_slice = (s - h).abs() <= params.half_thickness_m;
+        let in_reach = src.reach_m.is_none_or(|r| (d - axis * s).length() <= r);
+        if in_slice && in_reach {
+            pts.push([d.dot(e1) as f64, d.dot(e2) as f64]);
+            weights.push(w);
+        }
+    };
+    match src.candidates {
+        Some(idx) => idx.iter().for_each(|&i| take(i as usize)),
+        None => (0..src.points.len()).for_each(&mut take),
+    }
+    let prior = src.center_prior.map(|p| {
+        let d = p.center - src.base;
+        CenterPrior {
+            center: [d.dot(e1) as f64, d.dot(e2) as f64],
+            max_offset_m: f64::from(p.max_offset_m),
+        }
+    });
+    let fit = fit_circle_robust_weighted(
+        &pts,
+        src.weights.map(|_| weights.as_slice()),
+        prior.as_ref(),
+        &params.circle,
+    )?;
+    let c = src.base + axis * h + e1 * fit.fit.center[0] as f32 + e2 * fit.fit.center[1] as f32;
     Some((fit, c))
 }
 
@@ -142,7 +238,32 @@ fn badness(fit: &RobustCircle) -> f64 {
 /// Measures the DBH of `stem` (see the module doc for the fallback rule). `None` when no
 /// slice holds a circle with `min_points` inliers over a quarter of the circumference — then
 /// the cluster was no stem.
+///
+/// [`measure_dbh_of`] on the stem's own points, unweighted, without a reach limit or prior.
 pub fn measure_dbh(points: &[Vec3], stem: &Stem, params: &DbhParams) -> Option<StemDbh> {
+    measure_dbh_of(
+        &SliceSource {
+            points,
+            candidates: Some(&stem.points),
+            weights: None,
+            base: stem.base,
+            axis: stem.axis,
+            reach_m: None,
+            center_prior: None,
+        },
+        params,
+    )
+}
+
+/// The DBH of one stem from any point set — the LiDAR points ([`measure_dbh`]) or the centres
+/// of the trunk Gaussians (stage `dbh`, weights = opacity) — measured one way for both: slices
+/// `half_thickness_m` thick cut perpendicular to `src.axis` at `breast_height_m` above
+/// `src.base` (then at `fallback_heights_m`), RANSAC → weighted algebraic → geometric fit
+/// ([`fit_circle_robust_weighted`]), the same acceptance and badness rules and the same
+/// [`FitQuality`] (see the module doc). `None` when no slice holds a circle with `min_points`
+/// inliers over a quarter of the circumference, or the axis is zero or not finite.
+pub fn measure_dbh_of(src: &SliceSource<'_>, params: &DbhParams) -> Option<StemDbh> {
+    let axis = unit_axis(src.axis)?;
     let make = |(circle, center): (RobustCircle, Vec3), h: f32, quality| StemDbh {
         diameter_m: 2.0 * circle.fit.radius,
         slice_height_m: h,
@@ -150,7 +271,7 @@ pub fn measure_dbh(points: &[Vec3], stem: &Stem, params: &DbhParams) -> Option<S
         circle,
         quality,
     };
-    let breast = fit_slice(points, stem, params.breast_height_m, params);
+    let breast = fit_slice(src, axis, params.breast_height_m, params);
     if let Some(b) = breast
         && acceptable(&b.0, params)
     {
@@ -167,7 +288,7 @@ pub fn measure_dbh(points: &[Vec3], stem: &Stem, params: &DbhParams) -> Option<S
     let mut least_bad: Option<(RobustCircle, Vec3, f32)> =
         breast.map(|(f, c)| (f, c, params.breast_height_m));
     for &h in &params.fallback_heights_m {
-        let Some((fit, c)) = fit_slice(points, stem, h, params) else {
+        let Some((fit, c)) = fit_slice(src, axis, h, params) else {
             continue;
         };
         if acceptable(&fit, params) && !fit.partial_arc {
@@ -192,33 +313,35 @@ pub fn measure_dbh(points: &[Vec3], stem: &Stem, params: &DbhParams) -> Option<S
 /// The points of `points` in the slice at `height_m` along `axis` above `base` (± `half_thickness_m`,
 /// measured along the axis, as the LiDAR slice), within `reach_m` of the axis line, each with its
 /// signed distance from the circle `center`/`radius_m` in the slice plane (positive outside), metres.
+///
+/// `center` is a 3D circle centre as [`StemDbh::center`] stores it; only its position in the
+/// plane perpendicular to the axis counts. `axis` need not be unit length; a zero or
+/// non-finite axis gives no points. Indices are into `points`, in increasing order.
 #[allow(clippy::too_many_arguments)]
 pub fn slice_offsets(
-    points: &[Vec3],
-    base: Vec3,
-    axis: Vec3,
+    points: &[glam::Vec3],
+    base: glam::Vec3,
+    axis: glam::Vec3,
     height_m: f32,
     half_thickness_m: f32,
     reach_m: f32,
-    center: Vec3,
+    center: glam::Vec3,
     radius_m: f32,
 ) -> Vec<(usize, f32)> {
-    let axis = axis.try_normalize().unwrap_or(Vec3::Z);
+    let Some(axis) = unit_axis(axis) else {
+        return Vec::new();
+    };
+    let dc = center - base;
+    let c = dc - axis * dc.dot(axis);
     points
         .iter()
         .enumerate()
         .filter_map(|(i, &p)| {
-            let along = (p - base).dot(axis);
-            if (along - height_m).abs() > half_thickness_m {
-                return None;
-            }
-            let off_axis = (p - base) - axis * along;
-            if off_axis.length() > reach_m {
-                return None;
-            }
-            let d = p - center;
-            let r = (d - axis * d.dot(axis)).length();
-            Some((i, r - radius_m))
+            let d = p - base;
+            let s = d.dot(axis);
+            let q = d - axis * s;
+            let keep = (s - height_m).abs() <= half_thickness_m && q.length() <= reach_m;
+            keep.then(|| (i, q.distance(c) - radius_m))
         })
         .collect()
 }

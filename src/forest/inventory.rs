@@ -12,7 +12,7 @@ use super::ground::{CsfParams, Dtm, classify_ground};
 use super::segment::{SegmentParams, SegmentSeconds, segment_wood_leaf};
 use super::stem_labels::{StemLabelParams, label_stem_points};
 use super::stems::{Stem, StemParams, detect_stems};
-use super::{ForestError, StemDbh};
+use super::{FitQuality, ForestError, StemDbh};
 use crate::io::pointcloud::PointCloud;
 use crate::progress::{Progress, SubProgress};
 
@@ -54,6 +54,10 @@ pub struct TreeRow {
     pub arc_coverage: f64,
     /// good, partial_arc, fallback_slice or poor.
     pub quality: String,
+    /// Quality flag of the Gaussian fit (filled by stage `dbh` beside `dbh_gs_cm`; `None`
+    /// here, and in rows written before it existed).
+    #[serde(default)]
+    pub gs_quality: Option<FitQuality>,
 }
 
 /// Wall-clock seconds of each inventory phase.
@@ -179,6 +183,7 @@ pub fn inventory(
             rms_mm: d.circle.fit.rms * 1000.0,
             arc_coverage: d.circle.arc_coverage,
             quality: d.quality.as_str().to_string(),
+            gs_quality: None,
         });
         kept.push(Stem { id, ..stem });
         dbh.push(d);

@@ -34,10 +34,15 @@ pub use accuracy::{
     FieldComparison, MatchedTree, accuracy_lines, compare_with_field, compare_with_field_file,
 };
 pub use circle::{CircleFit, fit_circle_weighted};
-pub use dbh::{DbhParams, FitQuality, StemDbh, measure_dbh};
+pub use dbh::{
+    DbhParams, FitQuality, SliceCenterPrior, SliceSource, StemDbh, measure_dbh, measure_dbh_of,
+    slice_offsets,
+};
 pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
 pub use output::{trees_csv, trees_geojson, write_trees_csv, write_trees_geojson};
-pub use ransac::{CircleParams, RobustCircle, fit_circle_robust};
+pub use ransac::{
+    CenterPrior, CircleParams, RobustCircle, fit_circle_robust, fit_circle_robust_weighted,
+};
 pub use segment::{LEAF, SegmentParams, SegmentSeconds, TRUNK, WoodLeaf, segment_wood_leaf};
 pub use stem_labels::{StemLabelParams, label_stem_points};
 pub use stems::{Stem, StemParams, detect_stems};

@@ -6,20 +6,23 @@ use std::path::Path;
 use super::inventory::TreeRow;
 use crate::io::IoError;
 
-/// The exact header of trees.csv.
+/// The exact header of trees.csv. `n_points`, `rms_mm`, `arc_coverage` and `quality` are
+/// the LiDAR fit's; `gs_quality` (last, so readers of the older header keep their columns)
+/// is the Gaussian fit's quality flag.
 pub const TREES_CSV_HEADER: &str =
-    "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality";
+    "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality,gs_quality";
 
-/// trees.csv as text: the header, then one line per tree; `dbh_gs_cm` is empty when absent.
-/// Coordinates with millimetre precision, DBH to 0.01 cm, RMS to 0.01 mm.
+/// trees.csv as text: the header, then one line per tree; `dbh_gs_cm` and `gs_quality` are
+/// empty when absent. Coordinates with millimetre precision, DBH to 0.01 cm, RMS to 0.01 mm.
 pub fn trees_csv(rows: &[TreeRow]) -> String {
     let mut s = String::with_capacity(64 * (rows.len() + 1));
     s.push_str(TREES_CSV_HEADER);
     s.push('\n');
     for r in rows {
         let gs = r.dbh_gs_cm.map(|v| format!("{v:.2}")).unwrap_or_default();
+        let gs_quality = r.gs_quality.map(|q| q.as_str()).unwrap_or_default();
         s.push_str(&format!(
-            "{},{:.3},{:.3},{:.3},{:.2},{},{},{:.2},{:.3},{}\n",
+            "{},{:.3},{:.3},{:.3},{:.2},{},{},{:.2},{:.3},{},{}\n",
             r.tree_id,
             r.x,
             r.y,
@@ -29,7 +32,8 @@ pub fn trees_csv(rows: &[TreeRow]) -> String {
             r.n_points,
             r.rms_mm,
             r.arc_coverage,
-            csv_field(&r.quality)
+            csv_field(&r.quality),
+            gs_quality
         ));
     }
     s
@@ -45,7 +49,7 @@ fn csv_field(v: &str) -> String {
 }
 
 /// trees.geojson as a JSON value: Point geometries at (x, y, ground_z), every row field as a
-/// property (`dbh_gs_cm` null when absent).
+/// property (`dbh_gs_cm` and `gs_quality` null when absent).
 pub fn trees_geojson(rows: &[TreeRow]) -> serde_json::Value {
     let features: Vec<serde_json::Value> = rows
         .iter()

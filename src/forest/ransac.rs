@@ -85,13 +85,52 @@ fn inliers_of(points: &[[f64; 2]], center: [f64; 2], radius: f64, thr: f64) -> V
         .collect()
 }
 
+/// A prior on the circle centre: a RANSAC candidate circle whose centre lies further than
+/// `max_offset_m` from `center` is rejected, and so is a final circle that ends up there.
+/// Used to keep a fit on the stem it belongs to when other surfaces (a neighbouring stem, a
+/// branch) lie within reach; see [`super::dbh::measure_dbh_of`] for the values it gets.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CenterPrior {
+    /// Expected centre in the plane of the points, metres.
+    pub center: [f64; 2],
+    /// Largest accepted distance of a circle centre from `center`, metres.
+    pub max_offset_m: f64,
+}
+
+impl CenterPrior {
+    fn admits(&self, c: [f64; 2]) -> bool {
+        (c[0] - self.center[0]).hypot(c[1] - self.center[1]) <= self.max_offset_m
+    }
+}
+
 /// RANSAC → weighted algebraic fit on the inliers → Gauss–Newton, with quality figures.
 ///
 /// The RANSAC score is the inlier count, ties broken by the smaller sum of squared residuals.
 /// After the refinement the inliers are selected once more against the refined circle and the
 /// fit repeated on them. `None` when fewer than 5 points are given or no candidate circle with
 /// at least 5 inliers and a radius within bounds exists.
+///
+/// The unweighted, unconstrained case of [`fit_circle_robust_weighted`].
 pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<RobustCircle> {
+    fit_circle_robust_weighted(points, None, None, params)
+}
+
+/// [`fit_circle_robust`] with optional per-point weights and an optional centre prior.
+///
+/// The RANSAC stage is the same as the unweighted one (uniform 3-point samples, scored by the
+/// inlier count): a weight says how much a point counts in the fit, not whether it lies on the
+/// circle. The weights enter the algebraic fit on the inliers (METHOD.md Stage 5.3, the
+/// opacity-weighted fit of the Gaussians), the Gauss–Newton refinement and the reported RMS
+/// (weighted RMS); `n`, the inlier share and the arc coverage still count points. With
+/// `weights` `None` the result is exactly that of [`fit_circle_robust`]. `None` as well when
+/// the weights do not match the points in number or are negative or not finite, or when the
+/// centre `prior` rejects every candidate or the final circle.
+pub fn fit_circle_robust_weighted(
+    points: &[[f64; 2]],
+    weights: Option<&[f64]>,
+    prior: Option<&CenterPrior>,
+    params: &CircleParams,
+) -> Option<RobustCircle> {
     let n = points.len();
     if n < 5
         || points
@@ -100,8 +139,14 @@ pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<R
     {
         return None;
     }
+    if let Some(w) = weights
+        && (w.len() != n || w.iter().any(|w| !w.is_finite() || *w < 0.0))
+    {
+        return None;
+    }
     let thr = params.inlier_threshold_m.max(1e-6);
     let radius_ok = |r: f64| r >= params.min_radius_m && r <= params.max_radius_m;
+    let center_ok = |c: [f64; 2]| prior.is_none_or(|p| p.admits(c));
     let mut rng = SplitMix64::new(params.seed ^ (n as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
     let mut best: Option<(usize, f64, [f64; 2], f64)> = None;
     for _ in 0..params.iterations.max(1) {
@@ -113,7 +158,7 @@ pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<R
         let Some((c, r)) = circle_through(points[i], points[j], points[k]) else {
             continue;
         };
-        if !radius_ok(r) {
+        if !radius_ok(r) || !center_ok(c) {
             continue;
         }
         let (mut count, mut sse) = (0usize, 0.0f64);
@@ -137,12 +182,13 @@ pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<R
         return None;
     }
     let mut inliers = inliers_of(points, c, r, thr);
-    let mut fit = algebraic_on(points, &inliers)?;
+    let mut fit = algebraic_on(points, weights, &inliers)?;
     let mut converged = true;
     for _ in 0..2 {
-        let pts: Vec<[f64; 2]> = inliers.iter().map(|&i| points[i]).collect();
+        let (pts, w) = gather(points, weights, &inliers);
         if params.refine_iterations > 0 {
-            let (refined, ok) = refine_circle_geometric(&pts, None, &fit, params.refine_iterations);
+            let (refined, ok) =
+                refine_circle_geometric(&pts, w.as_deref(), &fit, params.refine_iterations);
             fit = refined;
             converged = ok;
         }
@@ -151,14 +197,14 @@ pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<R
             break;
         }
         inliers = again;
-        fit = algebraic_on(points, &inliers)?;
+        fit = algebraic_on(points, weights, &inliers)?;
     }
-    if !radius_ok(fit.radius) {
+    if !radius_ok(fit.radius) || !center_ok(fit.center) {
         return None;
     }
-    let pts: Vec<[f64; 2]> = inliers.iter().map(|&i| points[i]).collect();
+    let (pts, w) = gather(points, weights, &inliers);
     fit.n = pts.len();
-    fit.rms = super::circle::weighted_rms(&pts, None, fit.center, fit.radius);
+    fit.rms = super::circle::weighted_rms(&pts, w.as_deref(), fit.center, fit.radius);
     let coverage = arc_coverage(&pts, fit.center);
     Some(RobustCircle {
         fit,
@@ -169,7 +215,18 @@ pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<R
     })
 }
 
-fn algebraic_on(points: &[[f64; 2]], idx: &[usize]) -> Option<CircleFit> {
-    let pts: Vec<[f64; 2]> = idx.iter().map(|&i| points[i]).collect();
-    fit_circle_weighted(&pts, None)
+/// The points at `idx` with their weights (`None` when unweighted).
+fn gather(
+    points: &[[f64; 2]],
+    weights: Option<&[f64]>,
+    idx: &[usize],
+) -> (Vec<[f64; 2]>, Option<Vec<f64>>) {
+    let pts = idx.iter().map(|&i| points[i]).collect();
+    let w = weights.map(|w| idx.iter().map(|&i| w[i]).collect());
+    (pts, w)
+}
+
+fn algebraic_on(points: &[[f64; 2]], weights: Option<&[f64]>, idx: &[usize]) -> Option<CircleFit> {
+    let (pts, w) = gather(points, weights, idx);
+    fit_circle_weighted(&pts, w.as_deref())
 }

@@ -105,6 +105,7 @@ fn row(id: u32, x: f64, y: f64, dbh: f64) -> TreeRow {
         rms_mm: 3.5,
         arc_coverage: 0.75,
         quality: "good".into(),
+        gs_quality: None,
     }
 }
 
@@ -114,17 +115,38 @@ fn trees_csv_has_the_fixed_header_and_an_empty_gaussian_dbh() {
     let mut lines = csv.lines();
     assert_eq!(
         lines.next(),
-        Some("tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality")
+        Some(
+            "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality,gs_quality"
+        )
     );
     assert_eq!(
         lines.next(),
-        Some("1,500000.123,4000000.500,100.000,23.46,,42,3.50,0.750,good")
+        Some("1,500000.123,4000000.500,100.000,23.46,,42,3.50,0.750,good,")
     );
     let gj = trees_geojson(&[row(1, 5.0, 6.0, 20.0)]);
     assert_eq!(gj["type"], "FeatureCollection");
     assert_eq!(gj["features"][0]["geometry"]["coordinates"][0], 5.0);
     assert_eq!(gj["features"][0]["properties"]["quality"], "good");
     assert!(gj["features"][0]["properties"]["dbh_gs_cm"].is_null());
+    assert!(gj["features"][0]["properties"]["gs_quality"].is_null());
+    // With a Gaussian diameter: its value and its fit's quality flag, last.
+    let measured = TreeRow {
+        dbh_gs_cm: Some(24.126),
+        gs_quality: Some(FitQuality::PartialArc),
+        ..row(2, 1.0, 2.0, 24.0)
+    };
+    let csv = trees_csv(std::slice::from_ref(&measured));
+    assert_eq!(
+        csv.lines().nth(1),
+        Some("2,1.000,2.000,100.000,24.00,24.13,42,3.50,0.750,good,partial_arc")
+    );
+    let gj = trees_geojson(std::slice::from_ref(&measured));
+    assert_eq!(gj["features"][0]["properties"]["gs_quality"], "partial_arc");
+    // A row written before `gs_quality` existed still reads.
+    let mut old = serde_json::to_value(row(3, 1.0, 2.0, 20.0)).expect("json");
+    old.as_object_mut().map(|o| o.remove("gs_quality"));
+    let back: TreeRow = serde_json::from_value(old).expect("old row");
+    assert_eq!(back, row(3, 1.0, 2.0, 20.0));
     let dir = tempfile::tempdir().expect("tempdir");
     write_trees_csv(&dir.path().join("t.csv"), &[]).expect("write csv");
     write_trees_geojson(&dir.path().join("t.geojson"), &[]).expect("write geojson");
@@ -163,4 +185,82 @@ fn field_comparison_matches_one_to_one_and_computes_the_figures() {
     let c = accuracy::compare_with_field_file(&rows, &path).expect("compare");
     assert_eq!((c.n_matched, c.n_field), (2, 2));
     assert!(serde_json::to_string(&c).is_ok());
+}
+
+#[test]
+fn weights_change_the_robust_fit_and_unit_weights_change_nothing() {
+    // Two interleaved rings 1 cm apart, both within the RANSAC threshold of each other.
+    let inner = ring([0.3, -0.2], 0.15, 0.0, 360.0, 60, 0.0);
+    let outer = ring([0.3, -0.2], 0.16, 3.0, 363.0, 60, 0.0);
+    let pts: Vec<[f64; 2]> = inner.iter().chain(&outer).copied().collect();
+    let heavy_outer: Vec<f64> = (0..120).map(|i| if i < 60 { 0.02 } else { 1.0 }).collect();
+    for refine in [0, 20] {
+        let p = CircleParams {
+            refine_iterations: refine,
+            ..CircleParams::default()
+        };
+        let plain = fit_circle_robust(&pts, &p).expect("fit");
+        assert!((plain.fit.radius - 0.155).abs() < 0.001, "{plain:?}");
+        let ones = vec![1.0; pts.len()];
+        assert_eq!(
+            fit_circle_robust_weighted(&pts, Some(&ones), None, &p),
+            Some(plain)
+        );
+        let w = fit_circle_robust_weighted(&pts, Some(&heavy_outer), None, &p).expect("fit");
+        assert!((w.fit.radius - 0.16).abs() < 0.0005, "{w:?}");
+        assert_eq!(w.fit.n, 120);
+        // Bad weights give no circle.
+        assert!(fit_circle_robust_weighted(&pts, Some(&ones[1..]), None, &p).is_none());
+        let mut neg = ones.clone();
+        neg[7] = -1.0;
+        assert!(fit_circle_robust_weighted(&pts, Some(&neg), None, &p).is_none());
+    }
+}
+
+#[test]
+fn the_centre_prior_rejects_circles_centred_elsewhere() {
+    let pts = ring([1.0, 1.0], 0.2, 0.0, 360.0, 72, 0.002);
+    let near = CenterPrior {
+        center: [1.02, 1.0],
+        max_offset_m: 0.05,
+    };
+    let far = CenterPrior {
+        center: [1.3, 1.0],
+        max_offset_m: 0.05,
+    };
+    let p = CircleParams::default();
+    assert_eq!(
+        fit_circle_robust_weighted(&pts, None, Some(&near), &p),
+        fit_circle_robust(&pts, &p)
+    );
+    assert!(fit_circle_robust_weighted(&pts, None, Some(&far), &p).is_none());
+}
+
+#[test]
+fn slice_offsets_are_signed_distances_in_the_plane_across_the_axis() {
+    let base = glam::Vec3::new(2.0, -1.0, 0.5);
+    let axis = glam::Vec3::new(0.3, 0.1, 1.0).normalize();
+    let e1 = axis.any_orthonormal_vector();
+    let e2 = axis.cross(e1);
+    let at = |s: f32, deg: f32, r: f32| {
+        let a = deg.to_radians();
+        base + axis * s + (e1 * a.cos() + e2 * a.sin()) * r
+    };
+    let points = [
+        at(1.3, 0.0, 0.21),   // 1 cm outside
+        at(1.35, 90.0, 0.19), // 1 cm inside
+        at(1.25, 200.0, 0.2), // on it
+        at(1.5, 0.0, 0.21),   // outside the slice
+        at(1.3, 45.0, 0.6),   // beyond reach
+    ];
+    // The centre given at another height along the axis: only its place in the plane counts.
+    let center = base + axis * 0.7;
+    // `axis` need not be unit length.
+    let got = slice_offsets(&points, base, axis * 2.0, 1.3, 0.1, 0.5, center, 0.2);
+    let idx: Vec<usize> = got.iter().map(|g| g.0).collect();
+    assert_eq!(idx, vec![0, 1, 2]);
+    assert!((got[0].1 - 0.01).abs() < 1e-5, "{got:?}");
+    assert!((got[1].1 + 0.01).abs() < 1e-5, "{got:?}");
+    assert!(got[2].1.abs() < 1e-5, "{got:?}");
+    assert!(slice_offsets(&points, base, glam::Vec3::ZERO, 1.3, 0.1, 0.5, center, 0.2).is_empty());
 }

@@ -1,11 +1,20 @@
 //! Stage `dbh`: diameter at breast height from the trained Gaussians for every stem that stage
 //! `segment` found (METHOD.md Stage 5, paper 3.6), beside the LiDAR-only diameter.
 //!
-//! Per stem: the trunk Gaussians (trunk probability ≥ 0.5) with opacity ≥ `min_opacity` whose
-//! centres lie `breast_height ± half_thickness` above the DTM and within reach of the stem's
-//! axis; a RANSAC circle on their (x, y) centres drops gross outliers; the opacity-weighted
-//! algebraic fit on the inliers gives the diameter. Outputs `trees.csv` and `trees.geojson`
-//! with both diameters, and with field data the accuracy of both.
+//! The Gaussian diameter is measured exactly as the LiDAR one ([`forest::measure_dbh_of`]):
+//! the centres of the trunk Gaussians (trunk probability ≥ 0.5, opacity ≥ `min_opacity`) in
+//! slices cut perpendicular to the stem's axis from its base (`stems.json`), 1.3 m first and
+//! the fallback slices after it, RANSAC → opacity-weighted algebraic fit → geometric
+//! refinement, the same acceptance rules and quality flags, with the segment's DBH parameters
+//! (the RANSAC threshold from `dbh.ransac_threshold_m`). Only Gaussians within reach of the
+//! axis (2 × LiDAR radius + 10 cm) are candidates, and the fitted centre must lie within
+//! max(0.5 × LiDAR radius, 2 cm) of the LiDAR circle's centre
+//! ([`forest::dbh::SliceCenterPrior::from_lidar`]), so a neighbouring stem's arc within reach
+//! cannot take the fit. The two diameters then differ only by what they are fitted to.
+//!
+//! Beside it, how far the slice's trunk Gaussians sit from the LiDAR stem surface
+//! ([`surface_offset`]). Outputs `trees.csv` and `trees.geojson` with both diameters and the
+//! Gaussian fit's quality, and with field data the accuracy of both.
 
 use std::path::Path;
 
@@ -14,16 +23,19 @@ use serde::Deserialize;
 use serde_json::json;
 
 use super::{Stage, StageContext, StageError};
-use crate::forest::ground::Dtm;
-use crate::forest::{self, CircleParams, StemDbh, TreeRow};
+use crate::forest::dbh::{SliceCenterPrior, SliceSource, measure_dbh_of, slice_offsets};
+use crate::forest::{self, CircleParams, DbhParams, FitQuality, StemDbh, TreeRow};
 use crate::splat::model::{Gaussians, sigmoid};
 
 /// A stem as stage `segment` lists it in `stems.json`.
 #[derive(Debug, Clone, Deserialize)]
 pub struct StemRecord {
     pub id: u32,
+    /// Where the axis meets the ground, local coordinates, metres.
     pub base: [f32; 3],
+    /// Unit axis direction, pointing up.
     pub axis: [f32; 3],
+    /// The LiDAR fit.
     pub dbh: StemDbh,
 }
 
@@ -34,130 +46,171 @@ struct StemsFile {
     trees: Vec<TreeRow>,
 }
 
-#[derive(Deserialize)]
-struct DtmFile {
-    offset: [f64; 3],
-    dtm: Dtm,
+/// Trunk probability from which a Gaussian is a trunk Gaussian (0.5: the trunk label).
+pub const MIN_TRUNK_PROB: f32 = 0.5;
+
+/// The trunk Gaussians of a model: centres (local coordinates, metres) and opacities.
+#[derive(Debug, Clone, Default)]
+pub struct TrunkGaussians {
+    pub means: Vec<Vec3>,
+    /// Opacity in (0, 1], the weight of each Gaussian in the fits.
+    pub opacity: Vec<f64>,
+}
+
+impl TrunkGaussians {
+    /// The Gaussians of `g` with trunk probability ≥ `min_trunk_prob` and opacity ≥
+    /// `min_opacity` (paper 3.6: 0.1) and a finite centre.
+    pub fn select(g: &Gaussians, min_opacity: f32, min_trunk_prob: f32) -> Self {
+        let mut t = Self::default();
+        for i in 0..g.len() {
+            let m = Vec3::from_array(g.means[i]);
+            let opacity = sigmoid(g.opacity_logits[i]);
+            if opacity >= min_opacity
+                && opacity > 0.0
+                && g.trunk_prob[i] >= min_trunk_prob
+                && m.is_finite()
+            {
+                t.means.push(m);
+                t.opacity.push(f64::from(opacity));
+            }
+        }
+        t
+    }
+
+    /// The ones within `reach_m` of the axis line of `stem` and between `lo_m` and `hi_m`
+    /// along it (above the base), as a new set.
+    fn near_axis(&self, base: Vec3, axis: Vec3, reach_m: f32, lo_m: f32, hi_m: f32) -> Self {
+        let axis = axis.try_normalize().unwrap_or(Vec3::Z);
+        let mut t = Self::default();
+        for (m, &w) in self.means.iter().zip(&self.opacity) {
+            let d = *m - base;
+            let s = d.dot(axis);
+            if s >= lo_m && s <= hi_m && (d - axis * s).length() <= reach_m {
+                t.means.push(*m);
+                t.opacity.push(w);
+            }
+        }
+        t
+    }
+}
+
+/// How far around the LiDAR axis the Gaussians of a stem are looked for: 2 × the LiDAR
+/// radius + 0.10 m, metres (room for a Gaussian circle twice as wide, and for the axis being
+/// off by a few centimetres).
+pub fn reach_m(lidar: &StemDbh) -> f32 {
+    lidar.diameter_m as f32 + 0.10
 }
 
 /// What the Gaussian fit of one stem found.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GaussianDbh {
-    /// Diameter, metres.
-    pub diameter_m: f64,
-    /// Gaussians in the slice before RANSAC and after it.
+    /// The fit, as the LiDAR one is reported: diameter (metres), slice height, centre, circle
+    /// (inliers, RMS, arc coverage) and quality flag.
+    pub dbh: StemDbh,
+    /// Trunk Gaussians within reach in the slice used, before RANSAC.
     pub candidates: usize,
-    pub inliers: usize,
-    /// RMS distance of the inliers from the circle, metres.
-    pub rms_m: f64,
 }
 
-/// Parameters of [`gaussian_dbh`] (from the job's `dbh` and `segment` parameters).
-#[derive(Debug, Clone)]
-pub struct GaussianDbhParams {
-    /// Breast height above the DTM, metres (paper 3.6: 1.3 m).
-    pub breast_height_m: f32,
-    /// Half the slice thickness, metres (paper 3.6: 0.1 m).
-    pub half_thickness_m: f32,
-    /// Minimum opacity of a Gaussian used (paper 3.6: 0.1).
-    pub min_opacity: f32,
-    /// Minimum trunk probability of a Gaussian used (0.5: the trunk label).
-    pub min_trunk_prob: f32,
-    /// RANSAC parameters (inlier threshold METHOD.md: 1–2 cm).
-    pub circle: CircleParams,
-}
-
-/// The Gaussian DBH of one stem, or `None` when too few trunk Gaussians sit in its slice.
-/// `lidar_radius_m` bounds the search around the axis (2 × radius + 10 cm).
-pub fn gaussian_dbh(
-    g: &Gaussians,
-    dtm: &Dtm,
-    base: Vec3,
-    axis: Vec3,
-    lidar_radius_m: f32,
-    p: &GaussianDbhParams,
-) -> Option<GaussianDbh> {
-    let axis = axis.try_normalize().unwrap_or(Vec3::Z);
-    let reach = 2.0 * lidar_radius_m + 0.10;
-    let mut pts = Vec::new();
-    let mut weights = Vec::new();
-    for (m, opacity) in slice_trunk_gaussians(g, dtm, p) {
-        // Position relative to the axis at this height, in the horizontal plane.
-        let along = (m - base).dot(axis);
-        let on_axis = base + axis * along;
-        let d = m - on_axis;
-        if d.x.hypot(d.y) > reach {
-            continue;
-        }
-        pts.push([f64::from(m.x), f64::from(m.y)]);
-        weights.push(f64::from(opacity));
-    }
-    let robust = forest::fit_circle_robust(
-        &pts,
-        &CircleParams {
-            refine_iterations: 0,
-            ..p.circle.clone()
+/// The DBH parameters of the Gaussian fit: the segment's (`segment.dbh`, so both diameters
+/// are measured alike) with the RANSAC inlier threshold of `dbh.ransac_threshold_m`.
+pub fn gaussian_dbh_params(segment_dbh: &DbhParams, ransac_threshold_m: f64) -> DbhParams {
+    DbhParams {
+        circle: CircleParams {
+            inlier_threshold_m: ransac_threshold_m,
+            ..segment_dbh.circle.clone()
         },
+        ..segment_dbh.clone()
+    }
+}
+
+/// The slice heights `p` may use, lowest and highest, metres along the axis (with the slice
+/// half thickness), and the LiDAR fit's own slice.
+fn height_range(stem: &StemRecord, p: &DbhParams) -> (f32, f32) {
+    let hs = p
+        .fallback_heights_m
+        .iter()
+        .chain([&p.breast_height_m, &stem.dbh.slice_height_m]);
+    let lo = hs.clone().fold(f32::INFINITY, |a, &h| a.min(h));
+    let hi = hs.fold(f32::NEG_INFINITY, |a, &h| a.max(h));
+    (lo - p.half_thickness_m, hi + p.half_thickness_m)
+}
+
+/// The Gaussian DBH of one stem (see the module doc): `None` when no slice holds an acceptable
+/// circle or a piece of one ([`forest::measure_dbh_of`]), e.g. too few trunk Gaussians.
+pub fn gaussian_dbh(t: &TrunkGaussians, stem: &StemRecord, p: &DbhParams) -> Option<GaussianDbh> {
+    let base = Vec3::from_array(stem.base);
+    let axis = Vec3::from_array(stem.axis);
+    let reach = reach_m(&stem.dbh);
+    let (lo, hi) = height_range(stem, p);
+    let near = t.near_axis(base, axis, reach, lo, hi);
+    let dbh = measure_dbh_of(
+        &SliceSource {
+            points: &near.means,
+            candidates: None,
+            weights: Some(&near.opacity),
+            base,
+            axis,
+            reach_m: Some(reach),
+            center_prior: Some(SliceCenterPrior::from_lidar(&stem.dbh)),
+        },
+        p,
     )?;
-    let thr = p.circle.inlier_threshold_m;
-    let c = robust.fit.center;
-    let r = robust.fit.radius;
-    let (mut ip, mut iw) = (Vec::new(), Vec::new());
-    for (q, w) in pts.iter().zip(&weights) {
-        if ((q[0] - c[0]).hypot(q[1] - c[1]) - r).abs() <= thr {
-            ip.push(*q);
-            iw.push(*w);
-        }
-    }
-    let fit = forest::fit_circle_weighted(&ip, Some(&iw))?;
-    Some(GaussianDbh {
-        diameter_m: 2.0 * fit.radius,
-        candidates: pts.len(),
-        inliers: ip.len(),
-        rms_m: fit.rms,
-    })
+    let candidates = slice_offsets(
+        &near.means,
+        base,
+        axis,
+        dbh.slice_height_m,
+        p.half_thickness_m,
+        reach,
+        dbh.center,
+        (dbh.diameter_m / 2.0) as f32,
+    )
+    .len();
+    Some(GaussianDbh { dbh, candidates })
 }
 
-/// Centres and opacities of the trunk Gaussians (opacity and trunk probability at or above the
-/// thresholds of `p`) whose centre lies in the breast-height slice above the DTM.
-fn slice_trunk_gaussians<'a>(
-    g: &'a Gaussians,
-    dtm: &'a Dtm,
-    p: &'a GaussianDbhParams,
-) -> impl Iterator<Item = (Vec3, f32)> + 'a {
-    (0..g.len()).filter_map(move |i| {
-        let m = Vec3::from_array(g.means[i]);
-        let opacity = sigmoid(g.opacity_logits[i]);
-        if opacity < p.min_opacity || g.trunk_prob[i] < p.min_trunk_prob {
-            return None;
-        }
-        let h = m.z - dtm.height_at(m.x, m.y);
-        ((h - p.breast_height_m).abs() <= p.half_thickness_m).then_some((m, opacity))
-    })
+/// How far the trunk Gaussians sit from the LiDAR stem surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceOffset {
+    /// Opacity-weighted mean signed distance from the LiDAR circle, metres (positive outside).
+    pub signed_m: f64,
+    /// Opacity-weighted mean absolute distance, metres (issue 7 asks for ≤ 2 cm).
+    pub abs_m: f64,
+    /// Gaussians used.
+    pub gaussians: usize,
 }
 
-/// How far the trunk Gaussians of the breast-height slice sit from the LiDAR stem surface: the
-/// opacity-weighted mean of | horizontal distance to the LiDAR circle's centre − its radius |,
-/// metres, over the same candidates as [`gaussian_dbh`] (None without any). Issue 7 asks for
-/// ≤ 2 cm on generated plots.
-pub fn radial_deviation(
-    g: &Gaussians,
-    dtm: &Dtm,
-    center: Vec3,
-    lidar_radius_m: f32,
-    p: &GaussianDbhParams,
-) -> Option<f64> {
-    let reach = 2.0 * lidar_radius_m + 0.10;
-    let (mut sum, mut wsum) = (0.0f64, 0.0f64);
-    for (m, opacity) in slice_trunk_gaussians(g, dtm, p) {
-        let r = (m.x - center.x).hypot(m.y - center.y);
-        if r > reach {
-            continue;
-        }
-        sum += f64::from(opacity) * f64::from((r - lidar_radius_m).abs());
-        wsum += f64::from(opacity);
+/// The trunk Gaussians within reach of the axis in the LiDAR fit's own slice (its height
+/// `stem.dbh.slice_height_m`, ± `half_thickness_m` along the axis), and their opacity-weighted
+/// mean signed and absolute distances from the LiDAR circle in the slice plane
+/// ([`slice_offsets`]). `None` without any such Gaussian.
+pub fn surface_offset(
+    t: &TrunkGaussians,
+    stem: &StemRecord,
+    half_thickness_m: f32,
+) -> Option<SurfaceOffset> {
+    let offsets = slice_offsets(
+        &t.means,
+        Vec3::from_array(stem.base),
+        Vec3::from_array(stem.axis),
+        stem.dbh.slice_height_m,
+        half_thickness_m,
+        reach_m(&stem.dbh),
+        stem.dbh.center,
+        (stem.dbh.diameter_m / 2.0) as f32,
+    );
+    let (mut signed, mut abs, mut wsum) = (0.0f64, 0.0f64, 0.0f64);
+    for &(i, e) in &offsets {
+        let w = t.opacity[i];
+        signed += w * f64::from(e);
+        abs += w * f64::from(e.abs());
+        wsum += w;
     }
-    (wsum > 0.0).then(|| sum / wsum)
+    (wsum > 0.0).then(|| SurfaceOffset {
+        signed_m: signed / wsum,
+        abs_m: abs / wsum,
+        gaussians: offsets.len(),
+    })
 }
 
 fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, StageError> {
@@ -170,7 +223,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let segment = ctx.output_of(Stage::Segment, Stage::Dbh)?;
     let train = ctx.output_of(Stage::Train, Stage::Dbh)?;
     let stems: StemsFile = read_json(&segment.join("stems.json"))?;
-    let dtm: DtmFile = read_json(&segment.join("dtm.json"))?;
     let mut rows = stems.trees.clone();
     let splats_path = train.join("splats.ply");
     let file = std::fs::File::open(&splats_path).map_err(|e| super::io_err(&splats_path, e))?;
@@ -199,57 +251,45 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             *m = (Vec3::from_array(*m) + shift).to_array();
         }
     }
-    if dtm.offset != stems.offset {
-        return Err(StageError::Input(
-            "segment/dtm.json and segment/stems.json use different offsets".into(),
-        ));
-    }
     let p = &ctx.params;
-    let params = GaussianDbhParams {
-        breast_height_m: p.segment.dbh.breast_height_m,
-        half_thickness_m: p.segment.dbh.half_thickness_m,
-        min_opacity: p.dbh.min_opacity as f32,
-        min_trunk_prob: 0.5,
-        circle: CircleParams {
-            inlier_threshold_m: p.dbh.ransac_threshold_m,
-            ..p.segment.dbh.circle.clone()
-        },
-    };
+    let params = gaussian_dbh_params(&p.segment.dbh, p.dbh.ransac_threshold_m);
+    let trunk = TrunkGaussians::select(&g, p.dbh.min_opacity as f32, MIN_TRUNK_PROB);
+    drop(g);
     let mut per_tree = Vec::new();
-    let mut deviations = Vec::new();
+    let mut offsets: Vec<SurfaceOffset> = Vec::new();
+    let mut qualities = serde_json::Map::new();
     for (k, stem) in stems.stems.iter().enumerate() {
         if ctx.progress.is_cancelled() {
             return Err(StageError::Cancelled);
         }
-        let fit = gaussian_dbh(
-            &g,
-            &dtm.dtm,
-            Vec3::from_array(stem.base),
-            Vec3::from_array(stem.axis),
-            (stem.dbh.diameter_m / 2.0) as f32,
-            &params,
-        );
-        let dev = radial_deviation(
-            &g,
-            &dtm.dtm,
-            stem.dbh.center,
-            (stem.dbh.diameter_m / 2.0) as f32,
-            &params,
-        );
-        if let Some(d) = dev {
-            deviations.push(d);
-        }
+        let fit = gaussian_dbh(&trunk, stem, &params);
+        let off = surface_offset(&trunk, stem, params.half_thickness_m);
+        offsets.extend(off);
+        let quality = fit.map(|f| f.dbh.quality);
+        let key = quality.map_or("none", FitQuality::as_str);
+        let count = qualities
+            .get(key)
+            .and_then(serde_json::Value::as_u64)
+            .unwrap_or(0);
+        qualities.insert(key.into(), json!(count + 1));
         if let Some(row) = rows.iter_mut().find(|r| r.tree_id == stem.id) {
-            row.dbh_gs_cm = fit.map(|f| f.diameter_m * 100.0);
+            row.dbh_gs_cm = fit.map(|f| f.dbh.diameter_m * 100.0);
+            row.gs_quality = quality;
         }
         per_tree.push(json!({
             "tree_id": stem.id,
-            "dbh_gs_cm": fit.map(|f| f.diameter_m * 100.0),
+            "dbh_gs_cm": fit.map(|f| f.dbh.diameter_m * 100.0),
             "dbh_lidar_cm": stem.dbh.diameter_m * 100.0,
+            "gs_quality": quality.map(FitQuality::as_str),
+            "slice_height_m": fit.map(|f| f.dbh.slice_height_m),
             "gaussians": fit.map_or(0, |f| f.candidates),
-            "inliers": fit.map_or(0, |f| f.inliers),
-            "rms_mm": fit.map(|f| f.rms_m * 1000.0),
-            "radial_dev_mm": dev.map(|d| d * 1000.0),
+            "inliers": fit.map_or(0, |f| f.dbh.circle.fit.n),
+            "rms_mm": fit.map(|f| f.dbh.circle.fit.rms * 1000.0),
+            "arc_coverage": fit.map(|f| f.dbh.circle.arc_coverage),
+            "surface_gaussians": off.map_or(0, |o| o.gaussians),
+            "surface_offset_mm": off.map(|o| o.signed_m * 1000.0),
+            "abs_surface_offset_mm": off.map(|o| o.abs_m * 1000.0),
+            "radial_dev_mm": off.map(|o| o.abs_m * 1000.0),
         }));
         ctx.progress
             .set(0.9 * (k + 1) as f64 / stems.stems.len().max(1) as f64);
@@ -266,18 +306,28 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "DBH from the Gaussians for {measured} of {} trees",
         rows.len()
     ));
-    let mean_dev_mm = (!deviations.is_empty())
-        .then(|| deviations.iter().sum::<f64>() / deviations.len() as f64 * 1000.0);
-    if let Some(d) = mean_dev_mm {
+    let mean_mm = |f: fn(&SurfaceOffset) -> f64| {
+        (!offsets.is_empty())
+            .then(|| offsets.iter().map(f).sum::<f64>() / offsets.len() as f64 * 1000.0)
+    };
+    let mean_signed_mm = mean_mm(|o| o.signed_m);
+    let mean_abs_mm = mean_mm(|o| o.abs_m);
+    if let (Some(s), Some(a)) = (mean_signed_mm, mean_abs_mm) {
         ctx.progress.log(&format!(
-            "trunk Gaussians sit {d:.1} mm from the LiDAR stem surface on average (breast-height slice)"
+            "trunk Gaussians sit {a:.1} mm from the LiDAR stem surface on average \
+             ({s:+.1} mm signed, positive outside; LiDAR slice, {} trees)",
+            offsets.len()
         ));
     }
     Ok(json!({
         "trees": per_tree,
         "measured": measured,
+        "gs_quality": qualities,
         "dbh": field,
-        "mean_radial_dev_mm": mean_dev_mm,
+        "mean_surface_offset_mm": mean_signed_mm,
+        "mean_abs_surface_offset_mm": mean_abs_mm,
+        // The name earlier readers (the demo, the web page) know: the absolute offset.
+        "mean_radial_dev_mm": mean_abs_mm,
     }))
 }
 
@@ -311,25 +361,78 @@ fn field_accuracy(rows: &[TreeRow], path: &Path) -> Result<serde_json::Value, St
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::forest::{CircleFit, RobustCircle};
     use crate::splat::model::Gaussian;
 
-    fn flat_dtm(z: f32) -> Dtm {
-        Dtm {
-            origin: [-10.0, -10.0],
-            cell: 1.0,
-            nx: 21,
-            ny: 21,
-            heights: vec![z; 21 * 21],
+    fn params() -> DbhParams {
+        gaussian_dbh_params(&DbhParams::default(), 0.015)
+    }
+
+    /// A stem record whose LiDAR fit is the circle of `radius` around the axis at 1.3 m.
+    fn stem(base: Vec3, axis: Vec3, radius: f64) -> StemRecord {
+        let axis = axis.normalize();
+        StemRecord {
+            id: 1,
+            base: base.to_array(),
+            axis: axis.to_array(),
+            dbh: StemDbh {
+                diameter_m: 2.0 * radius,
+                slice_height_m: 1.3,
+                center: base + axis * 1.3,
+                circle: RobustCircle {
+                    fit: CircleFit {
+                        center: [0.0, 0.0],
+                        radius,
+                        rms: 0.002,
+                        n: 100,
+                    },
+                    arc_coverage: 1.0,
+                    inlier_share: 1.0,
+                    partial_arc: false,
+                    converged: true,
+                },
+                quality: FitQuality::Good,
+            },
         }
     }
 
-    fn params() -> GaussianDbhParams {
-        GaussianDbhParams {
-            breast_height_m: 1.3,
-            half_thickness_m: 0.1,
-            min_opacity: 0.1,
-            min_trunk_prob: 0.5,
-            circle: CircleParams::default(),
+    fn add(g: &mut Gaussians, p: Vec3, opacity: f32, trunk: f32) {
+        let mut x = Gaussian::isotropic(p.to_array(), 0.01, [0.4, 0.3, 0.2], opacity);
+        x.trunk_prob = trunk;
+        g.push(x);
+    }
+
+    /// Trunk Gaussians on the cylinder of `radius` around the axis (`base`, `axis`), rings
+    /// every 2 cm along it from 0.4 m to 2.2 m (leaving out `skip` m), over the angles
+    /// `from_deg..to_deg` every `step_deg`, opacity 0.3–1.0.
+    #[allow(clippy::too_many_arguments)]
+    fn cylinder(
+        g: &mut Gaussians,
+        base: Vec3,
+        axis: Vec3,
+        radius: f32,
+        from_deg: f32,
+        to_deg: f32,
+        step_deg: f32,
+        skip: Option<(f32, f32)>,
+    ) {
+        let axis = axis.normalize();
+        let e1 = axis.any_orthonormal_vector();
+        let e2 = axis.cross(e1);
+        for ring in 0..=90 {
+            let s = 0.4 + 0.02 * ring as f32;
+            if skip.is_some_and(|(lo, hi)| s > lo && s < hi) {
+                continue;
+            }
+            let mut a = from_deg;
+            let mut k = 0;
+            while a < to_deg - 1e-3 {
+                let r = a.to_radians();
+                let p = base + axis * s + (e1 * r.cos() + e2 * r.sin()) * radius;
+                add(g, p, 0.3 + 0.7 * ((k * 3 + ring) % 5) as f32 / 5.0, 0.9);
+                a += step_deg;
+                k += 1;
+            }
         }
     }
 
@@ -338,17 +441,14 @@ mod tests {
     /// trunk outliers inside the slice that only RANSAC removes.
     fn scene() -> Gaussians {
         let mut g = Gaussians::default();
-        let mut add = |p: [f32; 3], opacity: f32, trunk: f32| {
-            let mut x = Gaussian::isotropic(p, 0.01, [0.4, 0.3, 0.2], opacity);
-            x.trunk_prob = trunk;
-            g.push(x);
-        };
+        let mut add =
+            |p: [f32; 3], opacity: f32, trunk: f32| add(&mut g, Vec3::from(p), opacity, trunk);
         for k in 0..72 {
             let a = k as f32 * 5f32.to_radians();
             let h = 0.5 + 1.22 + 0.16 * ((k * 7) % 10) as f32 / 10.0;
             let p = [1.0 + 0.15 * a.cos(), 2.0 + 0.15 * a.sin(), h];
             add(p, 0.3 + 0.7 * ((k * 3) % 5) as f32 / 5.0, 0.9);
-            add([p[0], p[1], 0.5 + 2.5], 0.9, 0.9); // above the slice
+            add([p[0], p[1], 0.5 + 2.5], 0.9, 0.9); // above every slice
             add([p[0] * 1.2, p[1], h], 0.05, 0.9); // faint
         }
         for k in 0..40 {
@@ -362,21 +462,20 @@ mod tests {
         g
     }
 
+    fn trunk(g: &Gaussians) -> TrunkGaussians {
+        TrunkGaussians::select(g, 0.1, MIN_TRUNK_PROB)
+    }
+
     #[test]
     fn gaussian_diameter_comes_from_trunk_gaussians_in_the_slice() {
         let g = scene();
-        let fit = gaussian_dbh(
-            &g,
-            &flat_dtm(0.5),
-            Vec3::new(1.0, 2.0, 0.5),
-            Vec3::Z,
-            0.15,
-            &params(),
-        )
-        .expect("fit");
-        assert!((fit.diameter_m - 0.30).abs() < 0.002, "{fit:?}");
-        assert_eq!(fit.inliers, 72, "{fit:?}");
+        let s = stem(Vec3::new(1.0, 2.0, 0.5), Vec3::Z, 0.15);
+        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
+        assert!((fit.dbh.diameter_m - 0.30).abs() < 0.002, "{fit:?}");
+        assert_eq!(fit.dbh.circle.fit.n, 72, "{fit:?}");
         assert_eq!(fit.candidates, 75, "{fit:?}");
+        assert_eq!(fit.dbh.quality, FitQuality::Good, "{fit:?}");
+        assert_eq!(fit.dbh.slice_height_m, 1.3);
     }
 
     #[test]
@@ -385,30 +484,135 @@ mod tests {
         for p in &mut g.trunk_prob {
             *p = 0.2;
         }
-        let fit = gaussian_dbh(
-            &g,
-            &flat_dtm(0.5),
-            Vec3::new(1.0, 2.0, 0.5),
-            Vec3::Z,
-            0.15,
-            &params(),
-        );
-        assert!(fit.is_none());
+        let s = stem(Vec3::new(1.0, 2.0, 0.5), Vec3::Z, 0.15);
+        assert!(gaussian_dbh(&trunk(&g), &s, &params()).is_none());
     }
 
     #[test]
-    fn radial_deviation_measures_the_distance_to_the_lidar_surface() {
+    fn surface_offset_measures_the_signed_distance_to_the_lidar_surface() {
         let g = scene();
-        let dtm = flat_dtm(0.5);
-        let c = Vec3::new(1.0, 2.0, 1.8);
-        let on = radial_deviation(&g, &dtm, c, 0.15, &params()).expect("deviation");
-        // 72 Gaussians on the circle, 3 outliers 0.09–0.15 m inside it: a few millimetres.
-        assert!(on > 0.001 && on < 0.01, "{on}");
-        // The same Gaussians against a circle 2 cm wider sit about 2 cm off.
-        let wide = radial_deviation(&g, &dtm, c, 0.17, &params()).expect("deviation");
-        assert!((wide - 0.02).abs() < 0.006, "{wide}");
+        let t = trunk(&g);
+        let s = stem(Vec3::new(1.0, 2.0, 0.5), Vec3::Z, 0.15);
+        let on = surface_offset(&t, &s, 0.1).expect("offset");
+        // 72 Gaussians on the circle, 3 outliers 0.07–0.10 m off it: a few millimetres.
+        assert!(on.abs_m > 0.001 && on.abs_m < 0.01, "{on:?}");
+        assert!(on.signed_m < 0.0 && on.signed_m > -on.abs_m, "{on:?}");
+        assert_eq!(on.gaussians, 75);
+        // The same Gaussians against a circle 2 cm wider sit about 2 cm inside it.
+        let wide = surface_offset(&t, &stem(Vec3::new(1.0, 2.0, 0.5), Vec3::Z, 0.17), 0.1)
+            .expect("offset");
+        assert!((wide.abs_m - 0.02).abs() < 0.006, "{wide:?}");
+        assert!((wide.signed_m + 0.02).abs() < 0.006, "{wide:?}");
         let mut leaves = g.clone();
         leaves.trunk_prob.iter_mut().for_each(|p| *p = 0.0);
-        assert!(radial_deviation(&leaves, &dtm, c, 0.15, &params()).is_none());
+        assert!(surface_offset(&trunk(&leaves), &s, 0.1).is_none());
+    }
+
+    #[test]
+    fn a_leaning_stem_is_cut_across_its_axis() {
+        // 25° lean: a horizontal slab cuts an ellipse 10 % longer one way, smeared by
+        // tan 25° × 0.2 m = 9 cm over the slab; the slice across the axis cuts the circle.
+        let axis = Vec3::new(25f32.to_radians().sin(), 0.0, 25f32.to_radians().cos());
+        let base = Vec3::new(4.0, -3.0, 0.2);
+        let mut g = Gaussians::default();
+        cylinder(&mut g, base, axis, 0.15, 0.0, 360.0, 5.0, None);
+        let t = trunk(&g);
+        let s = stem(base, axis, 0.15);
+        let fit = gaussian_dbh(&t, &s, &params()).expect("fit");
+        assert!((fit.dbh.diameter_m - 0.30).abs() < 0.002, "{fit:?}");
+        assert_eq!(fit.dbh.quality, FitQuality::Good, "{fit:?}");
+        assert!(
+            fit.dbh.center.distance(base + axis * 1.3) < 0.002,
+            "{fit:?}"
+        );
+        let off = surface_offset(&t, &s, 0.1).expect("offset");
+        assert!(off.abs_m < 0.001, "{off:?}");
+        // The old measurement: a horizontal slab 1.3 m ± 0.1 m above the base, fitted on
+        // (x, y), does not give the stem's diameter.
+        let (mut pts, mut w) = (Vec::new(), Vec::new());
+        for (m, &o) in t.means.iter().zip(&t.opacity) {
+            if (m.z - base.z - 1.3).abs() <= 0.1 {
+                pts.push([f64::from(m.x), f64::from(m.y)]);
+                w.push(o);
+            }
+        }
+        let slab =
+            forest::ransac::fit_circle_robust_weighted(&pts, Some(&w), None, &params().circle);
+        let slab_d = slab.map_or(0.0, |f| 2.0 * f.fit.radius);
+        assert!((slab_d - 0.30).abs() > 0.005, "{slab:?}");
+    }
+
+    #[test]
+    fn the_centre_prior_keeps_the_fit_off_a_neighbouring_stem() {
+        // A 20 cm stem seen by 36 Gaussians a ring; 25 cm away from its surface a 40 cm
+        // neighbour whose near arc (±32°, 64 Gaussians a ring) lies within reach (30 cm).
+        let base = Vec3::ZERO;
+        let mut g = Gaussians::default();
+        cylinder(&mut g, base, Vec3::Z, 0.10, 0.0, 360.0, 10.0, None);
+        cylinder(
+            &mut g,
+            Vec3::new(0.45, 0.0, 0.0),
+            Vec3::Z,
+            0.20,
+            0.0,
+            360.0,
+            1.0,
+            None,
+        );
+        let t = trunk(&g);
+        let s = stem(base, Vec3::Z, 0.10);
+        // Without the prior the neighbour's arc has more inliers and takes the fit.
+        let free = measure_dbh_of(
+            &SliceSource {
+                points: &t.means,
+                candidates: None,
+                weights: Some(&t.opacity),
+                base,
+                axis: Vec3::Z,
+                reach_m: Some(reach_m(&s.dbh)),
+                center_prior: None,
+            },
+            &params(),
+        )
+        .expect("a circle");
+        assert!((free.diameter_m - 0.40).abs() < 0.01, "{free:?}");
+        // With it, the stem's own circle.
+        let fit = gaussian_dbh(&t, &s, &params()).expect("fit");
+        assert!((fit.dbh.diameter_m - 0.20).abs() < 0.002, "{fit:?}");
+        assert_eq!(fit.dbh.quality, FitQuality::Good, "{fit:?}");
+        assert!(fit.dbh.center.truncate().length() < 0.002, "{fit:?}");
+    }
+
+    #[test]
+    fn a_partial_arc_and_a_missing_breast_slice_are_flagged() {
+        let base = Vec3::new(1.0, 1.0, 0.0);
+        // Only a third of the stem seen: the diameter, flagged as a partial arc.
+        let mut g = Gaussians::default();
+        cylinder(&mut g, base, Vec3::Z, 0.12, 0.0, 120.0, 2.0, None);
+        let s = stem(base, Vec3::Z, 0.12);
+        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
+        assert_eq!(fit.dbh.quality, FitQuality::PartialArc, "{fit:?}");
+        assert_eq!(fit.dbh.slice_height_m, 1.3);
+        assert!(
+            (fit.dbh.circle.arc_coverage - 12.0 / 36.0).abs() < 0.03,
+            "{fit:?}"
+        );
+        assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
+        // No Gaussians between 1.19 m and 1.41 m: the 1.1 m slice gives the diameter.
+        let mut g = Gaussians::default();
+        cylinder(
+            &mut g,
+            base,
+            Vec3::Z,
+            0.12,
+            0.0,
+            360.0,
+            5.0,
+            Some((1.19, 1.41)),
+        );
+        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
+        assert_eq!(fit.dbh.quality, FitQuality::FallbackSlice, "{fit:?}");
+        assert_eq!(fit.dbh.slice_height_m, 1.1);
+        assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
     }
 }

@@ -610,7 +610,7 @@ async function renderInventory() {
 
 const TREE_COLUMNS = {
   tree_id: 'Tree', x: 'x (m)', y: 'y (m)', ground_z: 'ground z (m)', dbh_lidar_cm: 'DBH LiDAR (cm)', dbh_gs_cm: 'DBH Gaussians (cm)',
-  n_points: 'points', rms_mm: 'fit RMS (mm)', arc_coverage: 'arc covered', quality: 'quality',
+  n_points: 'points', rms_mm: 'fit RMS (mm)', arc_coverage: 'arc covered', quality: 'quality', gs_quality: 'quality (Gaussians)',
 };
 
 function drawTrees() {
