@@ -150,6 +150,20 @@ pub fn patch_status(cloud: &[Vec3], index: &PointIndex, q: DVec3, p: &SurfacePar
     fit_patch_why(cloud, index, q, p).map_or_else(|e| e, |_| 0)
 }
 
+/// The foot of `q` on the quadric fitted to the points of `cloud` around it (the patch rules
+/// of [`SurfaceParams`]) and the surface's unit normal there; `None` where no patch fits.
+/// Sylva's trunk binding takes the anchors' own surface from it (`splat::bind`).
+pub fn surface_foot(
+    cloud: &[Vec3],
+    index: &PointIndex,
+    q: DVec3,
+    p: &SurfaceParams,
+) -> Option<(DVec3, DVec3)> {
+    fit_patch_why(cloud, index, q, p)
+        .ok()
+        .map(|patch| (patch.centre, patch.n))
+}
+
 /// Fits the patch of `cloud` within `radius` of `q`.
 fn fit_patch(cloud: &[Vec3], index: &PointIndex, q: DVec3, p: &SurfaceParams) -> Patch {
     fit_patch_why(cloud, index, q, p).unwrap_or_default()

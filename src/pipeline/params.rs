@@ -206,8 +206,8 @@ pub struct TrainParams {
     /// paper's term L_geo exactly as METHOD.md writes it, for the ablation) or "off".
     pub semantic: TrunkTerm,
     /// Sylva's binding: largest offset of a trunk Gaussian's centre from the LiDAR surface
-    /// along its normal, metres (default 0.01: the 1 cm range noise of a handheld scanner,
-    /// half the 2 cm anchor voxel).
+    /// along its normal, metres (default 0.001: the photos cannot place a stem to a pixel,
+    /// and a 1 cm band let them push the fitted Gaussians to its edge; see `splat::bind`).
     pub bind_band_m: f64,
     /// Sylva's binding: largest standard deviation of a trunk surfel along the normal, metres
     /// (default 0.005: half the LiDAR noise).
@@ -274,7 +274,7 @@ impl Default for TrainParams {
             steps: 30_000,
             init: InitSource::Lidar,
             semantic: TrunkTerm::Bind,
-            bind_band_m: 0.01,
+            bind_band_m: 0.001,
             bind_normal_scale_m: 0.005,
             gamma_max: 0.02,
             gamma_start: 3000,

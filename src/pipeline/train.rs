@@ -251,11 +251,12 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                     "Sylva's binding needs the anchors' normals (segment/anchors.ply has no nx, ny, nz); rerun from stage anchors, or set params.train.semantic to \"paper\" or \"off\"".into(),
                 ));
             }
-            let index = AnchorIndex::new(set).ok_or_else(|| {
+            let surface = bind::surface_anchors(set, &cfg.bind);
+            let index = AnchorIndex::new(&surface).ok_or_else(|| {
                 StageError::Input("Sylva's binding: the trunk anchors cannot be indexed".into())
             })?;
             let surfels = bind::surfel_init(&mut init, &index, &cfg.bind);
-            backend.set_bind(set, &cfg.bind)?;
+            backend.set_bind(&surface, &cfg.bind)?;
             ctx.progress.log(&format!(
                 "trunk binding: {surfels} trunk surfels held within {} m of the LiDAR surface",
                 cfg.bind.band_m
@@ -266,6 +267,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                 "leaf_anchors": set.leaf.len(),
                 "surfels": surfels,
                 "band_m": cfg.bind.band_m,
+                "surface_radius_m": cfg.bind.surface_radius_m,
                 "normal_scale_m": cfg.bind.normal_scale_m,
             });
         }
