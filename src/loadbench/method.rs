@@ -11,7 +11,7 @@
 //! - the paired difference Gaussian − LiDAR per tree: mean |d| with a bootstrap 95 %
 //!   interval (2000 resamples of the trees, seeded), and the mean d;
 //! - the trunk-surface distance against `truth.json`: every trunk Gaussian (trunk
-//!   probability ≥ 0.5, opacity ≥ 0.1, as stage `dbh`) within ±0.1 m of the true breast-height
+//!   probability ≥ 0.5, opacity ≥ `params.dbh.min_opacity`, as stage `dbh`) within ±0.1 m of the true breast-height
 //!   point along the true axis and within 2 r + 10 cm of it, its distance from the true
 //!   elliptical section (positive outside); mean absolute and mean signed, mm.
 //!
@@ -211,6 +211,7 @@ fn run_arm(
         &out.join("train/splats.ply"),
         &dir.join("plot/truth.json"),
         DVec3::new(offset[0], offset[1], offset[2]),
+        params.dbh.min_opacity as f32,
     )?;
     Ok(ArmResult {
         psnr: train["render"]["psnr"].as_f64().unwrap_or(f64::NAN),
@@ -224,7 +225,12 @@ fn run_arm(
 
 /// Signed distances (m, + outside) of the trunk Gaussians in each true stem's breast-height
 /// slice from the true elliptical section (see the module doc).
-fn truth_offsets(splats: &Path, truth: &Path, offset: DVec3) -> anyhow::Result<Vec<f64>> {
+fn truth_offsets(
+    splats: &Path,
+    truth: &Path,
+    offset: DVec3,
+    min_opacity: f32,
+) -> anyhow::Result<Vec<f64>> {
     let file = std::fs::File::open(splats).with_context(|| splats.display().to_string())?;
     let g = crate::splat::export::read_ply(std::io::BufReader::new(file))?;
     let truth = read_json(truth)?;
@@ -250,7 +256,7 @@ fn truth_offsets(splats: &Path, truth: &Path, offset: DVec3) -> anyhow::Result<V
         let major = (major - axis * major.dot(axis)).normalize_or(DVec3::X);
         let minor = axis.cross(major);
         for i in 0..g.len() {
-            if g.trunk_prob[i] < 0.5 || sigmoid(g.opacity_logits[i]) < 0.1 {
+            if g.trunk_prob[i] < 0.5 || sigmoid(g.opacity_logits[i]) < min_opacity {
                 continue;
             }
             let p = DVec3::from_array(g.means[i].map(f64::from)) + offset;

@@ -47,9 +47,10 @@ pub struct BindConfig {
     /// "The twin you can measure"), a bias of 3 cm in diameter.
     pub band_m: f32,
     /// Radius of the quadric patch of trunk anchors that gives the surface under each trunk
-    /// anchor, metres ([`surface_anchors`]). Default 0.05 m: about 20 anchors at the 2 cm
-    /// voxel, enough to average their ~7 mm scatter down, and small against the thinnest
-    /// stems of the presets (7.5 cm radius) so the quadric holds.
+    /// anchor, metres ([`surface_anchors`]). Default 0.08 m, as `geom::surface`'s patches:
+    /// about 50 anchors at the 2 cm voxel, which bring their 7–8.5 mm scatter about a stem of
+    /// `tiny` seed 1 down to 3.3–4.3 mm (0.05 m: 7–8 mm, too few anchors per patch), and
+    /// still a quadric on the thinnest stems of the presets (7.5 cm radius).
     pub surface_radius_m: f32,
     /// A patch whose quadric leaves a larger RMS is no surface and its anchor is kept as it
     /// is, metres. Default 0.02 m: twice the scatter of voxelised anchors of a 1 cm-noise
@@ -68,7 +69,7 @@ impl Default for BindConfig {
         BindConfig {
             enabled: false,
             band_m: 0.001,
-            surface_radius_m: 0.05,
+            surface_radius_m: 0.08,
             surface_max_rms_m: 0.02,
             normal_scale_m: 0.005,
             min_trunk_prob: 0.5,
@@ -112,8 +113,8 @@ impl BindConfig {
 /// foot on a quadric fitted to the trunk anchors within [`BindConfig::surface_radius_m`], and
 /// the quadric's normal there (turned to agree with the anchor's own). A voxelised anchor
 /// scatters about the LiDAR noise around the surface (7–8.5 mm on `tiny`); the quadric's foot
-/// scatters about 3 mm with no measurable curvature bias, where a plane through the
-/// neighbours' centroid sat 2.4–3.8 mm inside a 12 cm stem (8 neighbours). Anchors without a
+/// scatters 3.3–4.3 mm with a bias of −0.5 to −0.7 mm on the 12 cm stems of `tiny` seed 1,
+/// where a plane through the 8 nearest neighbours' centroid sat 2.4–3.8 mm inside. Anchors without a
 /// patch (too few neighbours, no surface) keep their place and normal.
 pub fn surface_anchors(set: &SemanticAnchors, cfg: &BindConfig) -> SemanticAnchors {
     let cloud: Vec<Vec3> = set.trunk.iter().map(|p| Vec3::from_array(*p)).collect();

@@ -53,7 +53,7 @@ pub struct TrunkMonitor {
     slice: Box<SliceFn>,
     /// Trunk Gaussians: trunk probability at or above this (0.5, the label; as stage `dbh`).
     pub min_trunk_prob: f32,
-    /// ... and opacity at or above this (METHOD.md Stage 5: 0.1; as stage `dbh`).
+    /// ... and opacity at or above this (0.005; stage `dbh` sets its `min_opacity`).
     pub min_opacity: f32,
 }
 
@@ -73,7 +73,7 @@ impl TrunkMonitor {
             cfg: cfg.clone(),
             slice,
             min_trunk_prob: 0.5,
-            min_opacity: 0.1,
+            min_opacity: 0.005,
         })
     }
 
