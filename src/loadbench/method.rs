@@ -38,40 +38,40 @@ use crate::splat::rng::SplitMix64;
 pub struct MethodBenchArgs {
     /// method: synthetic preset of the plots (tiny, plot, stand).
     #[arg(long = "method-preset", env = "SYLVA_BENCH_METHOD_PRESET", default_value = "stand")]
-    pub preset: String,
+    pub method_preset: String,
     /// method: seeds of the plots, comma-separated (stand 1 and 2 hold 34 trees).
     #[arg(long = "method-seeds", env = "SYLVA_BENCH_METHOD_SEEDS", default_value = "1,2")]
-    pub seeds: String,
+    pub method_seeds: String,
     /// method: arms, comma-separated, among vanilla, lidar, paper, bind.
     #[arg(
         long = "method-arms",
         env = "SYLVA_BENCH_METHOD_ARMS",
         default_value = "vanilla,lidar,paper,bind"
     )]
-    pub arms: String,
+    pub method_arms: String,
     /// method: training steps of every arm.
     #[arg(long = "method-steps", env = "SYLVA_BENCH_METHOD_STEPS", default_value_t = 500)]
-    pub steps: u32,
+    pub method_steps: u32,
     /// method: longest image side, pixels.
     #[arg(long = "method-resolution", env = "SYLVA_BENCH_METHOD_RESOLUTION", default_value_t = 80)]
-    pub resolution: u32,
+    pub method_resolution: u32,
     /// method: Gaussian cap (0 = none).
     #[arg(long = "method-cap", env = "SYLVA_BENCH_METHOD_CAP", default_value_t = 10_000)]
-    pub cap: u32,
+    pub method_cap: u32,
     /// method: gpu or cpu.
     #[arg(long = "method-backend", env = "SYLVA_BENCH_METHOD_BACKEND", default_value = "gpu")]
-    pub backend: String,
+    pub method_backend: String,
     /// method: the working folder (plots and runs are kept and reused).
     #[arg(
         long = "method-work",
         env = "SYLVA_BENCH_METHOD_WORK",
         default_value = "target/bench-method"
     )]
-    pub work: PathBuf,
+    pub method_work: PathBuf,
     /// method: instead of the table, train the bind arm this many steps on the first plot and
     /// print the surface distance every 1000 steps.
     #[arg(long = "method-long", env = "SYLVA_BENCH_METHOD_LONG")]
-    pub long: Option<u32>,
+    pub method_long: Option<u32>,
 }
 
 /// One arm's (init, term).
@@ -169,13 +169,13 @@ fn run_arm(
     params.train.init = init;
     params.train.semantic = term;
     params.train.steps = steps;
-    params.train.resolution = a.resolution;
-    params.train.max_gaussians = a.cap;
-    params.train.backend = match a.backend.as_str() {
+    params.train.resolution = a.method_resolution;
+    params.train.max_gaussians = a.method_cap;
+    params.train.backend = match a.method_backend.as_str() {
         "cpu" => crate::pipeline::params::TrainBackend::Cpu,
         _ => crate::pipeline::params::TrainBackend::Gpu,
     };
-    let out = arm_dir(dir, &format!("{name}-{steps}-{}-{}", a.resolution, a.cap))?;
+    let out = arm_dir(dir, &format!("{name}-{steps}-{}-{}", a.method_resolution, a.method_cap))?;
     let start = Instant::now();
     for stage in [Stage::Train, Stage::Dbh] {
         if !out.join(stage.name()).join(pipeline::REPORT_FILE).is_file() {
@@ -304,31 +304,31 @@ fn rmse_bias(pairs: &[(f64, f64)]) -> (f64, f64) {
 
 /// Runs the benchmark and prints its table.
 pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
-    let preset = crate::synth::Preset::from_name(&a.preset)
-        .with_context(|| format!("--method-preset {:?}: tiny, plot or stand", a.preset))?;
+    let preset = crate::synth::Preset::from_name(&a.method_preset)
+        .with_context(|| format!("--method-preset {:?}: tiny, plot or stand", a.method_preset))?;
     let seeds: Vec<u64> = a
-        .seeds
+        .method_seeds
         .split(',')
         .map(|s| s.trim().parse())
         .collect::<Result<_, _>>()
         .context("--method-seeds: comma-separated integers")?;
-    let arms: Vec<String> = a.arms.split(',').map(|s| s.trim().to_string()).collect();
+    let arms: Vec<String> = a.method_arms.split(',').map(|s| s.trim().to_string()).collect();
     for name in &arms {
         arm(name)?;
     }
     let plots: Vec<(PathBuf, StageInputs)> = seeds
         .iter()
         .map(|&s| {
-            let dir = a.work.join(format!("{}-{s}", a.preset));
+            let dir = a.method_work.join(format!("{}-{s}", a.method_preset));
             prepare_plot(preset, s, &dir).map(|i| (dir, i))
         })
         .collect::<anyhow::Result<_>>()?;
-    if let Some(long) = a.long {
+    if let Some(long) = a.method_long {
         return run_long(a, &plots, long);
     }
     println!(
         "\n{} seeds {} — {} steps at {} px, cap {} Gaussians, backend {}\n",
-        a.preset, a.seeds, a.steps, a.resolution, a.cap, a.backend
+        a.method_preset, a.method_seeds, a.method_steps, a.method_resolution, a.method_cap, a.method_backend
     );
     println!(
         "| arm | PSNR dB | SSIM | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
@@ -338,7 +338,7 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
         let mut all = Vec::new();
         for (dir, inputs) in &plots {
             eprintln!("arm {name} on {}", dir.display());
-            all.push(run_arm(dir, inputs, name, a, a.steps)?);
+            all.push(run_arm(dir, inputs, name, a, a.method_steps)?);
         }
         let trees: Vec<(f64, f64, Option<f64>)> =
             all.iter().flat_map(|r| r.trees.iter().copied()).collect();
@@ -385,12 +385,12 @@ fn run_long(
         anyhow::bail!("no plot");
     };
     let r = run_arm(dir, inputs, "bind", a, steps)?;
-    let out = dir.join(format!("bind-{steps}-{}-{}", a.resolution, a.cap));
+    let out = dir.join(format!("bind-{steps}-{}-{}", a.method_resolution, a.method_cap));
     let csv = std::fs::read_to_string(out.join("train/loss.csv"))?;
     println!(
         "\nbind arm, {steps} steps at {} px, cap {}, on {}: trunk monitor every 1000 steps\n",
-        a.resolution,
-        a.cap,
+        a.method_resolution,
+        a.method_cap,
         dir.display()
     );
     println!("| step | Gaussians | slice Gaussians | surface abs mm | surface signed mm |");
