@@ -1087,6 +1087,10 @@ async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
             "| DBH RMSE, LiDAR (cm) | {} |",
             f(&st["dbh"]["dbh"]["rmse_lidar_cm"])
         );
+        println!(
+            "| DBH RMSE, Gaussians against LiDAR (cm) | {} |",
+            f(&st["dbh"]["gs_vs_lidar"]["rmse_cm"])
+        );
         println!("| trees matched | {} |", st["dbh"]["dbh"]["matched"]);
         println!(
             "| trunk Gaussians to LiDAR stem surface, mean absolute (mm) | {} |",

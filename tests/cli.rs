@@ -237,8 +237,14 @@ fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters
         "{train}"
     );
     assert!(train["render"]["psnr"].as_f64().is_some(), "{train}");
-    // The paper's method by default: the semantic term with the labelled anchors.
+    // Sylva's binding by default: trunk surfels held on the LiDAR surface from step 0.
     assert_eq!(train["semantic_applied"], true, "{train}");
+    assert_eq!(train["semantic"]["term"], "bind", "{train}");
+    let last = &train["trunk_diagnostics"]["last"];
+    assert!(
+        last["surface_abs_mm"].as_f64().is_some_and(|d| d <= 15.0),
+        "{last}"
+    );
     assert!(
         train["semantic"]["trunk_anchors"].as_u64().unwrap_or(0) > 0,
         "{train}"

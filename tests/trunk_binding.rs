@@ -17,18 +17,40 @@ fn report(dir: &Path, stage: Stage) -> Value {
 }
 
 /// Runs train and dbh for `term` in `out` (whose earlier stages link to `shared`).
-fn arm(shared: &Path, out: &Path, inputs: &StageInputs, term: TrunkTerm, gpu: bool) -> (Value, Value) {
+fn arm(
+    shared: &Path,
+    out: &Path,
+    inputs: &StageInputs,
+    term: TrunkTerm,
+    gpu: bool,
+) -> (Value, Value) {
     std::fs::create_dir_all(out).expect("arm dir");
-    for stage in [Stage::Ingest, Stage::Register, Stage::Anchors, Stage::Segment] {
+    for stage in [
+        Stage::Ingest,
+        Stage::Register,
+        Stage::Anchors,
+        Stage::Segment,
+    ] {
         std::os::unix::fs::symlink(shared.join(stage.name()), out.join(stage.name()))
             .expect("link");
     }
     let mut params = PipelineParams::default();
     params.train.semantic = term;
     // GPU: 300 steps at 64 px on 3000 Gaussians; CPU reference: 100 steps at 48 px on 1500.
-    (params.train.steps, params.train.resolution, params.train.max_gaussians) =
-        if gpu { (300, 64, 3000) } else { (100, 48, 1500) };
-    params.train.backend = if gpu { TrainBackend::Gpu } else { TrainBackend::Cpu };
+    (
+        params.train.steps,
+        params.train.resolution,
+        params.train.max_gaussians,
+    ) = if gpu {
+        (300, 64, 3000)
+    } else {
+        (100, 48, 1500)
+    };
+    params.train.backend = if gpu {
+        TrainBackend::Gpu
+    } else {
+        TrainBackend::Cpu
+    };
     for stage in [Stage::Train, Stage::Dbh] {
         pipeline::execute_stage(stage, inputs, out, &params, &NoProgress).expect("stage");
     }
@@ -50,16 +72,32 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
     };
     let shared = dir.path().join("shared");
     let defaults = PipelineParams::default();
-    for stage in [Stage::Ingest, Stage::Register, Stage::Anchors, Stage::Segment] {
+    for stage in [
+        Stage::Ingest,
+        Stage::Register,
+        Stage::Anchors,
+        Stage::Segment,
+    ] {
         pipeline::execute_stage(stage, &inputs, &shared, &defaults, &NoProgress).expect("stage");
     }
     let gpu = sylva::splat::gpu::GpuContext::new().is_ok();
     if !gpu {
         eprintln!("no GPU adapter: both arms train on the CPU reference (100 steps)");
     }
-    let (bind_train, bind_dbh) = arm(&shared, &dir.path().join("bind"), &inputs, TrunkTerm::Bind, gpu);
-    let (paper_train, paper_dbh) =
-        arm(&shared, &dir.path().join("paper"), &inputs, TrunkTerm::Paper, gpu);
+    let (bind_train, bind_dbh) = arm(
+        &shared,
+        &dir.path().join("bind"),
+        &inputs,
+        TrunkTerm::Bind,
+        gpu,
+    );
+    let (paper_train, paper_dbh) = arm(
+        &shared,
+        &dir.path().join("paper"),
+        &inputs,
+        TrunkTerm::Paper,
+        gpu,
+    );
     println!("bind: {bind_dbh}\npaper: {paper_dbh}");
 
     // The binding: surfels from step 0, held on the surface at every measurement.
@@ -79,15 +117,23 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
         let (Some(gs), Some(lidar)) = (gs, lidar) else {
             panic!("no Gaussian diameter: {t}");
         };
-        assert!((gs - lidar).abs() <= 1.0, "tree {}: {gs} vs {lidar} cm", t["tree_id"]);
+        assert!(
+            (gs - lidar).abs() <= 1.0,
+            "tree {}: {gs} vs {lidar} cm",
+            t["tree_id"]
+        );
     }
-    let bind_abs = bind_dbh["mean_abs_surface_offset_mm"].as_f64().expect("offset");
+    let bind_abs = bind_dbh["mean_abs_surface_offset_mm"]
+        .as_f64()
+        .expect("offset");
     assert!(bind_abs <= 15.0, "{bind_abs} mm");
 
     // The paper's term as METHOD.md writes it: no weight before the (scaled) ramp starts, a
     // candidate set once the opacities allow, and nothing that holds the trunks in place.
     assert_eq!(paper_train["semantic"]["term"], "paper", "{paper_train}");
-    let start = paper_train["semantic"]["gamma_start"].as_u64().expect("ramp start");
+    let start = paper_train["semantic"]["gamma_start"]
+        .as_u64()
+        .expect("ramp start");
     let steps = paper_train["steps"].as_u64().expect("steps");
     assert_eq!(start, steps / 10, "3000 of 30 000, scaled");
     let loss = std::fs::read_to_string(dir.path().join("paper/train/loss.csv")).expect("loss");
@@ -99,8 +145,14 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
             Some((v.first()?.parse().ok()?, v.get(6)?.parse().ok()?))
         })
         .collect();
-    assert!(geo.iter().filter(|(s, _)| *s <= start).all(|(_, g)| *g == 0.0));
-    let paper_abs = paper_dbh["mean_abs_surface_offset_mm"].as_f64().unwrap_or(f64::INFINITY);
+    assert!(
+        geo.iter()
+            .filter(|(s, _)| *s <= start)
+            .all(|(_, g)| *g == 0.0)
+    );
+    let paper_abs = paper_dbh["mean_abs_surface_offset_mm"]
+        .as_f64()
+        .unwrap_or(f64::INFINITY);
     assert!(
         bind_abs < paper_abs,
         "the binding ({bind_abs} mm) holds the trunks closer than L_geo ({paper_abs} mm)"

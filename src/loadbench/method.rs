@@ -37,10 +37,18 @@ use crate::splat::rng::SplitMix64;
 #[derive(Debug, Clone, Args)]
 pub struct MethodBenchArgs {
     /// method: synthetic preset of the plots (tiny, plot, stand).
-    #[arg(long = "method-preset", env = "SYLVA_BENCH_METHOD_PRESET", default_value = "stand")]
+    #[arg(
+        long = "method-preset",
+        env = "SYLVA_BENCH_METHOD_PRESET",
+        default_value = "stand"
+    )]
     pub method_preset: String,
     /// method: seeds of the plots, comma-separated (stand 1 and 2 hold 34 trees).
-    #[arg(long = "method-seeds", env = "SYLVA_BENCH_METHOD_SEEDS", default_value = "1,2")]
+    #[arg(
+        long = "method-seeds",
+        env = "SYLVA_BENCH_METHOD_SEEDS",
+        default_value = "1,2"
+    )]
     pub method_seeds: String,
     /// method: arms, comma-separated, among vanilla, lidar, paper, bind.
     #[arg(
@@ -50,16 +58,32 @@ pub struct MethodBenchArgs {
     )]
     pub method_arms: String,
     /// method: training steps of every arm.
-    #[arg(long = "method-steps", env = "SYLVA_BENCH_METHOD_STEPS", default_value_t = 500)]
+    #[arg(
+        long = "method-steps",
+        env = "SYLVA_BENCH_METHOD_STEPS",
+        default_value_t = 500
+    )]
     pub method_steps: u32,
     /// method: longest image side, pixels.
-    #[arg(long = "method-resolution", env = "SYLVA_BENCH_METHOD_RESOLUTION", default_value_t = 80)]
+    #[arg(
+        long = "method-resolution",
+        env = "SYLVA_BENCH_METHOD_RESOLUTION",
+        default_value_t = 80
+    )]
     pub method_resolution: u32,
     /// method: Gaussian cap (0 = none).
-    #[arg(long = "method-cap", env = "SYLVA_BENCH_METHOD_CAP", default_value_t = 10_000)]
+    #[arg(
+        long = "method-cap",
+        env = "SYLVA_BENCH_METHOD_CAP",
+        default_value_t = 10_000
+    )]
     pub method_cap: u32,
     /// method: gpu or cpu.
-    #[arg(long = "method-backend", env = "SYLVA_BENCH_METHOD_BACKEND", default_value = "gpu")]
+    #[arg(
+        long = "method-backend",
+        env = "SYLVA_BENCH_METHOD_BACKEND",
+        default_value = "gpu"
+    )]
     pub method_backend: String,
     /// method: the working folder (plots and runs are kept and reused).
     #[arg(
@@ -121,8 +145,17 @@ fn prepare_plot(
     };
     let shared = dir.join("shared");
     let params = PipelineParams::default();
-    for stage in [Stage::Ingest, Stage::Register, Stage::Anchors, Stage::Segment] {
-        if !shared.join(stage.name()).join(pipeline::REPORT_FILE).is_file() {
+    for stage in [
+        Stage::Ingest,
+        Stage::Register,
+        Stage::Anchors,
+        Stage::Segment,
+    ] {
+        if !shared
+            .join(stage.name())
+            .join(pipeline::REPORT_FILE)
+            .is_file()
+        {
             eprintln!("  {stage} on seed {seed}");
             pipeline::execute_stage(stage, &inputs, &shared, &params, &Log(stage.name()))
                 .map_err(|e| anyhow::anyhow!("stage {stage} on seed {seed}: {e}"))?;
@@ -135,7 +168,12 @@ fn prepare_plot(
 fn arm_dir(dir: &Path, name: &str) -> anyhow::Result<PathBuf> {
     let out = dir.join(name);
     std::fs::create_dir_all(&out)?;
-    for stage in [Stage::Ingest, Stage::Register, Stage::Anchors, Stage::Segment] {
+    for stage in [
+        Stage::Ingest,
+        Stage::Register,
+        Stage::Anchors,
+        Stage::Segment,
+    ] {
         let link = out.join(stage.name());
         if !link.exists() {
             std::os::unix::fs::symlink(dir.join("shared").join(stage.name()), &link)?;
@@ -175,7 +213,10 @@ fn run_arm(
         "cpu" => crate::pipeline::params::TrainBackend::Cpu,
         _ => crate::pipeline::params::TrainBackend::Gpu,
     };
-    let out = arm_dir(dir, &format!("{name}-{steps}-{}-{}", a.method_resolution, a.method_cap))?;
+    let out = arm_dir(
+        dir,
+        &format!("{name}-{steps}-{}-{}", a.method_resolution, a.method_cap),
+    )?;
     let start = Instant::now();
     for stage in [Stage::Train, Stage::Dbh] {
         if !out.join(stage.name()).join(pipeline::REPORT_FILE).is_file() {
@@ -291,7 +332,12 @@ fn bootstrap_ci(v: &[f64]) -> (f64, f64) {
     }
     let mut rng = SplitMix64::new(0x5ee_d0b0);
     let mut means: Vec<f64> = (0..2000)
-        .map(|_| (0..v.len()).map(|_| v[rng.below(v.len() as u64) as usize]).sum::<f64>() / v.len() as f64)
+        .map(|_| {
+            (0..v.len())
+                .map(|_| v[rng.below(v.len() as u64) as usize])
+                .sum::<f64>()
+                / v.len() as f64
+        })
         .collect();
     means.sort_by(f64::total_cmp);
     (means[49], means[1949])
@@ -299,7 +345,10 @@ fn bootstrap_ci(v: &[f64]) -> (f64, f64) {
 
 fn rmse_bias(pairs: &[(f64, f64)]) -> (f64, f64) {
     let d: Vec<f64> = pairs.iter().map(|(est, truth)| est - truth).collect();
-    (mean(&d.iter().map(|x| x * x).collect::<Vec<_>>()).sqrt(), mean(&d))
+    (
+        mean(&d.iter().map(|x| x * x).collect::<Vec<_>>()).sqrt(),
+        mean(&d),
+    )
 }
 
 /// Runs the benchmark and prints its table.
@@ -312,7 +361,11 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
         .map(|s| s.trim().parse())
         .collect::<Result<_, _>>()
         .context("--method-seeds: comma-separated integers")?;
-    let arms: Vec<String> = a.method_arms.split(',').map(|s| s.trim().to_string()).collect();
+    let arms: Vec<String> = a
+        .method_arms
+        .split(',')
+        .map(|s| s.trim().to_string())
+        .collect();
     for name in &arms {
         arm(name)?;
     }
@@ -328,7 +381,12 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
     }
     println!(
         "\n{} seeds {} — {} steps at {} px, cap {} Gaussians, backend {}\n",
-        a.method_preset, a.method_seeds, a.method_steps, a.method_resolution, a.method_cap, a.method_backend
+        a.method_preset,
+        a.method_seeds,
+        a.method_steps,
+        a.method_resolution,
+        a.method_cap,
+        a.method_backend
     );
     println!(
         "| arm | PSNR dB | SSIM | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
@@ -351,7 +409,13 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
         let (rl, bl) = rmse_bias(&lidar);
         let offsets: Vec<f64> = all.iter().flat_map(|r| r.offsets.iter().copied()).collect();
         let abs_off: Vec<f64> = offsets.iter().map(|o| o.abs()).collect();
-        let f = |x: f64| if x.is_finite() { format!("{x:.2}") } else { "n/a".into() };
+        let f = |x: f64| {
+            if x.is_finite() {
+                format!("{x:.2}")
+            } else {
+                "n/a".into()
+            }
+        };
         println!(
             "| {name} | {} | {:.3} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {:.1} | {:+.1} | {} | {:.0} |",
             f(mean(&all.iter().map(|r| r.psnr).collect::<Vec<_>>())),
@@ -385,7 +449,10 @@ fn run_long(
         anyhow::bail!("no plot");
     };
     let r = run_arm(dir, inputs, "bind", a, steps)?;
-    let out = dir.join(format!("bind-{steps}-{}-{}", a.method_resolution, a.method_cap));
+    let out = dir.join(format!(
+        "bind-{steps}-{}-{}",
+        a.method_resolution, a.method_cap
+    ));
     let csv = std::fs::read_to_string(out.join("train/loss.csv"))?;
     println!(
         "\nbind arm, {steps} steps at {} px, cap {}, on {}: trunk monitor every 1000 steps\n",

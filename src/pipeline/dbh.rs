@@ -302,6 +302,21 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         None => None,
     };
     let measured = rows.iter().filter(|r| r.dbh_gs_cm.is_some()).count();
+    // The two diameters of the same stems against each other (cm): the twin measures as well
+    // as the LiDAR when these are small.
+    let diffs: Vec<f64> = rows
+        .iter()
+        .filter_map(|r| Some(r.dbh_gs_cm? - r.dbh_lidar_cm))
+        .collect();
+    let n_diff = diffs.len().max(1) as f64;
+    let gs_vs_lidar = (!diffs.is_empty()).then(|| {
+        json!({
+            "rmse_cm": (diffs.iter().map(|d| d * d).sum::<f64>() / n_diff).sqrt(),
+            "mean_cm": diffs.iter().sum::<f64>() / n_diff,
+            "mean_abs_cm": diffs.iter().map(|d| d.abs()).sum::<f64>() / n_diff,
+            "trees": diffs.len(),
+        })
+    });
     ctx.progress.log(&format!(
         "DBH from the Gaussians for {measured} of {} trees",
         rows.len()
@@ -324,6 +339,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "measured": measured,
         "gs_quality": qualities,
         "dbh": field,
+        "gs_vs_lidar": gs_vs_lidar,
         "mean_surface_offset_mm": mean_signed_mm,
         "mean_abs_surface_offset_mm": mean_abs_mm,
         // The name earlier readers (the demo, the web page) know: the absolute offset.

@@ -13,11 +13,11 @@ use crate::io::colmap;
 use crate::io::ply;
 use crate::progress::{NoProgress, SubProgress};
 use crate::splat::backend::{Backend, CpuBackend, TrainError};
+use crate::splat::bind;
 use crate::splat::dataset::{self, Dataset, DatasetError};
 use crate::splat::init::{self, Anchor, AnchorInit};
 use crate::splat::model::Gaussians;
 use crate::splat::rng::SplitMix64;
-use crate::splat::bind;
 use crate::splat::semantic::{AnchorIndex, SemanticAnchors};
 use crate::splat::trainer;
 use crate::splat::trunk_diag::{SliceFn, TrunkMonitor};
@@ -119,7 +119,13 @@ fn read_anchors(ctx: &StageContext<'_>) -> Result<LabelledAnchors, StageError> {
     let normals = match (field("nx"), field("ny"), field("nz")) {
         (Some(x), Some(y), Some(z)) if x.len() == cloud.len() => Some(
             (0..x.len())
-                .map(|i| [x[i], y.get(i).copied().unwrap_or(0.0), z.get(i).copied().unwrap_or(0.0)])
+                .map(|i| {
+                    [
+                        x[i],
+                        y.get(i).copied().unwrap_or(0.0),
+                        z.get(i).copied().unwrap_or(0.0),
+                    ]
+                })
                 .collect(),
         ),
         _ => None,

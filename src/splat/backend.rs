@@ -76,8 +76,7 @@ pub trait Backend {
     /// Installs Sylva's trunk binding ([`crate::splat::bind`]) on the labelled anchors (with
     /// their normals): from the next step on, every bound Gaussian is projected onto the LiDAR
     /// surface after each optimiser step.
-    fn set_bind(&mut self, anchors: &SemanticAnchors, cfg: &BindConfig)
-    -> Result<(), TrainError>;
+    fn set_bind(&mut self, anchors: &SemanticAnchors, cfg: &BindConfig) -> Result<(), TrainError>;
     /// dL/d(mean) of the latest step, per Gaussian (photometric plus L_geo when it is on);
     /// a GPU backend reads it back here, so call it only now and then (diagnostics).
     fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError>;

@@ -135,7 +135,11 @@ pub fn surface_anchors(set: &SemanticAnchors, cfg: &BindConfig) -> SemanticAncho
             match surface_foot(&cloud, &index, p.as_dvec3(), &params) {
                 Some((foot, n)) => {
                     let n = n.as_vec3();
-                    let n = if n.dot(Vec3::from_array(own)) < 0.0 { -n } else { n };
+                    let n = if n.dot(Vec3::from_array(own)) < 0.0 {
+                        -n
+                    } else {
+                        n
+                    };
                     (foot.as_vec3().to_array(), n.to_array())
                 }
                 None => (p.to_array(), own),
@@ -320,16 +324,9 @@ mod tests {
         let twisted = Quat::from_axis_angle(n, 30f32.to_radians()) * base;
         let mut q = [twisted.w, twisted.x, twisted.y, twisted.z];
         let before = q;
-        project_one(
-            &mut [0.0; 3],
-            &mut [-4.0; 3],
-            &mut q,
-            Vec3::ZERO,
-            n,
-            &cfg(),
-        );
-        for k in 0..4 {
-            assert!((q[k] - before[k]).abs() < 1e-5, "{q:?} vs {before:?}");
+        project_one(&mut [0.0; 3], &mut [-4.0; 3], &mut q, Vec3::ZERO, n, &cfg());
+        for (a, b) in q.iter().zip(before) {
+            assert!((a - b).abs() < 1e-5, "{q:?} vs {before:?}");
         }
     }
 

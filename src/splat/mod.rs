@@ -5,8 +5,8 @@
 //! `sylva train` run.
 
 pub mod adam;
-pub mod bind;
 pub mod backend;
+pub mod bind;
 pub mod camera;
 pub mod camera_models;
 pub mod cameras;

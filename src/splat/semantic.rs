@@ -263,7 +263,10 @@ impl AnchorIndex {
         let i = n.index as usize;
         Some((
             self.trunk[i],
-            self.trunk_normals.get(i).copied().unwrap_or(glam::Vec3::ZERO),
+            self.trunk_normals
+                .get(i)
+                .copied()
+                .unwrap_or(glam::Vec3::ZERO),
         ))
     }
 }
@@ -492,7 +495,13 @@ pub fn test_scene(seed: u64, n: usize) -> (Gaussians, SemanticAnchors) {
     let normals: Vec<[f32; 3]> = pts
         .iter()
         .zip(&lab)
-        .map(|(p, &t)| if t { [p[0], p[1], 0.0] } else { [0.0, 0.0, 1.0] })
+        .map(|(p, &t)| {
+            if t {
+                [p[0], p[1], 0.0]
+            } else {
+                [0.0, 0.0, 1.0]
+            }
+        })
         .collect();
     let anchors = SemanticAnchors::new(&pts, Some(&normals), &lab).unwrap_or(anchors);
     let mut g = Gaussians::default();

@@ -183,7 +183,10 @@ mod tests {
         assert!((0.0..=1.0).contains(&share));
         // With every opacity at 0.1 (the initial value) no Gaussian can be in S (w ≤ 0.1).
         let mut faint = g.clone();
-        faint.opacity_logits.iter_mut().for_each(|o| *o = (0.1f32 / 0.9).ln());
+        faint
+            .opacity_logits
+            .iter_mut()
+            .for_each(|o| *o = (0.1f32 / 0.9).ln());
         let d = m.observe(&faint, None, 0.0);
         assert_eq!((d.s_count, d.slice_in_s), (0, Some(0.0)));
     }

@@ -182,8 +182,13 @@ fn gpu_trunk_binding_matches_cpu_twin() {
             assert!((gpu.log_scales[i][a] - cpu.log_scales[i][a]).abs() < 1e-6);
         }
         // q and -q are the same rotation.
-        let dot: f32 = (0..4).map(|k| gpu.rotations[i][k] * cpu.rotations[i][k]).sum();
+        let dot: f32 = (0..4)
+            .map(|k| gpu.rotations[i][k] * cpu.rotations[i][k])
+            .sum();
         assert!(dot.abs() > 1.0 - 1e-5, "rotation {i}: {dot}");
     }
-    assert!(moved > 500, "only {moved} trunk Gaussians needed the projection");
+    assert!(
+        moved > 500,
+        "only {moved} trunk Gaussians needed the projection"
+    );
 }

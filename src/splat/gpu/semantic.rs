@@ -7,13 +7,13 @@
 //! [`crate::splat::semantic`]. The same anchors serve Sylva's binding: one pass after Adam
 //! ([`GpuSemantic::encode_bind`]) whose CPU twin is [`crate::splat::bind::project`].
 
+use crate::splat::bind::BindConfig;
 use crate::splat::gpu::buffers::{
     pipeline, read_buffer, storage_from, storage_zeroed, uniform_from,
 };
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch, groups_for};
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
-use crate::splat::bind::BindConfig;
 use crate::splat::semantic::{AnchorGrid, SemanticAnchors, SemanticConfig};
 
 const SOURCE: &str = include_str!("../../../shaders/semantic.wgsl");
@@ -166,7 +166,12 @@ impl GpuSemantic {
             ),
             reduce: pipeline(ctx, "semantic reduce", &pass_source(&["REDUCE"])?, "reduce"),
             apply: pipeline(ctx, "semantic apply", &pass_source(&["APPLY"])?, "apply"),
-            bind: pipeline(ctx, "trunk binding", &pass_source(&["GRID", "BIND"])?, "bind"),
+            bind: pipeline(
+                ctx,
+                "trunk binding",
+                &pass_source(&["GRID", "BIND"])?,
+                "bind",
+            ),
             starts: storage_from(ctx, "semantic cell starts", &starts)?,
             anchors: storage_from(ctx, "semantic anchors", &points)?,
             normals: storage_from(ctx, "trunk anchor normals", &normals)?,
@@ -287,7 +292,9 @@ impl GpuSemantic {
         splats: &GpuSplats,
     ) -> Result<(), GpuError> {
         let Some(prob) = &self.trunk_prob else {
-            return Err(GpuError::Invalid("trunk binding: no model installed".into()));
+            return Err(GpuError::Invalid(
+                "trunk binding: no model installed".into(),
+            ));
         };
         if splats.count != self.count {
             return Err(GpuError::Invalid(format!(
