@@ -2,8 +2,8 @@
 //! with known truth, at equal steps — one table a person can compare with the last one.
 //!
 //! Arms (`--method-arms`): `vanilla` (SfM initialisation, no trunk term), `lidar` (LiDAR
-//! anchors, no term), `paper` (LiDAR + the paper's L_geo, METHOD.md Stage 4) and `bind` (LiDAR
-//! + Sylva's binding). Stages ingest to segment run once per plot; each arm then runs train
+//! anchors, no term), `paper` (LiDAR and the paper's L_geo, METHOD.md Stage 4) and `bind`
+//! (LiDAR and Sylva's binding). Stages ingest to segment run once per plot; each arm then runs train
 //! and dbh in its own folder beside them. Per arm, pooled over the plots:
 //!
 //! - held-out PSNR and SSIM (mean over plots), Gaussians at the end, wall time of train + dbh;
@@ -477,7 +477,8 @@ fn run_long(
     for line in lines {
         let v: Vec<&str> = line.split(',').collect();
         let step: u32 = v.get(cs).and_then(|s| s.parse().ok()).unwrap_or(0);
-        if v.get(ca).is_some_and(|s| !s.is_empty()) && (step % 1000 == 0 || step == steps) {
+        if v.get(ca).is_some_and(|s| !s.is_empty()) && (step.is_multiple_of(1000) || step == steps)
+        {
             println!(
                 "| {step} | {} | {} | {} | {} |",
                 v.get(cn).unwrap_or(&""),

@@ -83,9 +83,8 @@ impl BindConfig {
         if !(self.band_m >= 0.0 && self.band_m.is_finite()) {
             return Err(format!("bind band must be ≥ 0 m, got {}", self.band_m));
         }
-        if !(self.surface_radius_m > 0.0 && self.surface_radius_m.is_finite())
-            || !(self.surface_max_rms_m > 0.0 && self.surface_max_rms_m.is_finite())
-        {
+        let positive = |v: f32| v > 0.0 && v.is_finite();
+        if !positive(self.surface_radius_m) || !positive(self.surface_max_rms_m) {
             return Err("bind surface radius and RMS must be > 0 m".into());
         }
         if !(self.normal_scale_m > 0.0 && self.normal_scale_m.is_finite()) {
