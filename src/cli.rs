@@ -779,7 +779,11 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             crate::splat::export::read_ply(std::io::BufReader::new(file))
                 .map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?
         };
-        crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed);
+        let before = init.len();
+        crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None);
+        if a.init == "sfm" && init.len() < before {
+            crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
+        }
         let mut strategy = crate::splat::trainer::default_strategy(&cfg);
         let outcome = crate::splat::trainer::train(
             backend.as_mut(),
@@ -885,7 +889,11 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             cfg.test_every = 0;
             let data = crate::splat::dataset::load(&model, &images, cfg.resolution, 0, &crate::progress::NoProgress)?;
             let mut init = crate::splat::init::from_sfm_points(&data.points, &data.colours)?;
-            crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed);
+            let before = init.len();
+            crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None);
+            if init.len() < before {
+                crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
+            }
             let n = init.len();
             let mut backend = crate::pipeline::train::backend_for(&params)?;
             backend.set_timed(true);

@@ -165,6 +165,27 @@ pub struct SliceSource<'a> {
     pub reach_m: Option<f32>,
     /// A centre prior for every slice fit (the Gaussian fit: [`SliceCenterPrior::from_lidar`]).
     pub center_prior: Option<SliceCenterPrior>,
+    /// One standard deviation along the axis per point of `points`, metres (the Gaussians:
+    /// each one's extent along the stem); `None`: points, of no extent (the LiDAR). With them
+    /// a point takes part in a slice by the share of its mass inside the slab
+    /// ([`slab_mass`]), which multiplies its weight: a surfel that straddles the slab is in
+    /// it as much as its mass is, as a LiDAR point is when its centre is.
+    pub extents: Option<&'a [f32]>,
+}
+
+/// A point enters a slice when at least this share of its mass lies inside the slab (5 %:
+/// beyond it a Gaussian barely touches the slab; Sylva's choice).
+pub const MIN_SLAB_MASS: f64 = 0.05;
+
+/// The share of a 1-D normal distribution of standard deviation `sigma_m` centred `d_m`
+/// from a slab's middle that lies within ± `half_m` of it; the indicator |d| ≤ half for a
+/// zero, negative or non-finite `sigma_m` (a point).
+pub fn slab_mass(d_m: f64, half_m: f64, sigma_m: f64) -> f64 {
+    if !(sigma_m.is_finite() && sigma_m > 0.0) {
+        return if d_m.abs() <= half_m { 1.0 } else { 0.0 };
+    }
+    let s = sigma_m * std::f64::consts::SQRT_2;
+    0.5 * (libm::erf((half_m - d_m) / s) - libm::erf((-half_m - d_m) / s))
 }
 
 /// Fits the slice at height `h` (along the axis) of `src`; returns the fit and its 3D centre.
@@ -191,7 +212,18 @@ fn fit_slice(
         let d = p - src.base;
         let s = d.dot(axis);
         // Written as the comparisons that keep a point, so a NaN never gets in.
-        let in_slice = (s - h).abs() <= params.half_thickness_m;
+        let (in_slice, w) = match src.extents {
+            None => ((s - h).abs() <= params.half_thickness_m, w),
+            Some(e) => {
+                let sigma = e.get(i).copied().unwrap_or(0.0);
+                let m = slab_mass(
+                    f64::from(s - h),
+                    f64::from(params.half_thickness_m),
+                    f64::from(sigma),
+                );
+                (m >= MIN_SLAB_MASS, w * m)
+            }
+        };
         let in_reach = src.reach_m.is_none_or(|r| (d - axis * s).length() <= r);
         if in_slice && in_reach {
             pts.push([d.dot(e1) as f64, d.dot(e2) as f64]);
@@ -211,7 +243,7 @@ fn fit_slice(
     });
     let fit = fit_circle_robust_weighted(
         &pts,
-        src.weights.map(|_| weights.as_slice()),
+        (src.weights.is_some() || src.extents.is_some()).then_some(weights.as_slice()),
         prior.as_ref(),
         &params.circle,
     )?;
@@ -250,6 +282,7 @@ pub fn measure_dbh(points: &[Vec3], stem: &Stem, params: &DbhParams) -> Option<S
             axis: stem.axis,
             reach_m: None,
             center_prior: None,
+            extents: None,
         },
         params,
     )

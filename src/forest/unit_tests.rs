@@ -264,3 +264,20 @@ fn slice_offsets_are_signed_distances_in_the_plane_across_the_axis() {
     assert!(got[2].1.abs() < 1e-5, "{got:?}");
     assert!(slice_offsets(&points, base, glam::Vec3::ZERO, 1.3, 0.1, 0.5, center, 0.2).is_empty());
 }
+
+#[test]
+fn slab_mass_is_the_share_of_a_gaussian_inside_the_slab() {
+    use super::dbh::slab_mass;
+    // A point is in or out.
+    assert_eq!(slab_mass(0.05, 0.1, 0.0), 1.0);
+    assert_eq!(slab_mass(0.15, 0.1, 0.0), 0.0);
+    assert_eq!(slab_mass(0.15, 0.1, f64::NAN), 0.0);
+    // Centred: 2 Φ(h / σ) − 1 (σ = h: 0.6827).
+    assert!((slab_mass(0.0, 0.1, 0.1) - 0.682_689).abs() < 1e-5);
+    // Symmetric, and half the mass when the centre sits on the slab's face and σ ≪ h.
+    assert!((slab_mass(0.07, 0.1, 0.05) - slab_mass(-0.07, 0.1, 0.05)).abs() < 1e-12);
+    assert!((slab_mass(0.1, 0.1, 1e-4) - 0.5).abs() < 1e-9);
+    // Wide: about the slab's share of the density, 2h / (σ √(2π)) at the centre.
+    let wide = slab_mass(0.0, 0.01, 1.0);
+    assert!((wide - 0.02 / (2.0 * std::f64::consts::PI).sqrt()).abs() < 1e-5);
+}

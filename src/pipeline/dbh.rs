@@ -26,6 +26,7 @@ use super::{Stage, StageContext, StageError};
 use crate::forest::dbh::{SliceCenterPrior, SliceSource, measure_dbh_of, slice_offsets};
 use crate::forest::{self, CircleParams, DbhParams, FitQuality, StemDbh, TreeRow};
 use crate::splat::model::{Gaussians, sigmoid};
+use crate::splat::strategy::quat_to_matrix;
 
 /// A stem as stage `segment` lists it in `stems.json`.
 #[derive(Debug, Clone, Deserialize)]
@@ -49,12 +50,17 @@ struct StemsFile {
 /// Trunk probability from which a Gaussian is a trunk Gaussian (0.5: the trunk label).
 pub const MIN_TRUNK_PROB: f32 = 0.5;
 
-/// The trunk Gaussians of a model: centres (local coordinates, metres) and opacities.
+/// The trunk Gaussians of a model: centres (local coordinates, metres), opacities and
+/// covariances.
 #[derive(Debug, Clone, Default)]
 pub struct TrunkGaussians {
     pub means: Vec<Vec3>,
     /// Opacity in (0, 1], the weight of each Gaussian in the fits.
     pub opacity: Vec<f64>,
+    /// Covariance R S² Rᵀ, m²; empty when the Gaussians are taken as points.
+    pub cov: Vec<glam::Mat3>,
+    /// Standard deviation along the stem's axis, metres ([`Self::near_axis`] fills it).
+    pub sigma_axis: Vec<f32>,
 }
 
 impl TrunkGaussians {
@@ -72,22 +78,35 @@ impl TrunkGaussians {
             {
                 t.means.push(m);
                 t.opacity.push(f64::from(opacity));
+                let r = glam::Mat3::from_cols_array_2d(&quat_to_matrix(g.rotations[i])).transpose();
+                let s = Vec3::from_array(g.log_scales[i].map(f32::exp));
+                t.cov
+                    .push(r * glam::Mat3::from_diagonal(s * s) * r.transpose());
             }
         }
         t
     }
 
-    /// The ones within `reach_m` of the axis line of `stem` and between `lo_m` and `hi_m`
-    /// along it (above the base), as a new set.
+    /// The ones within `reach_m` of the axis line of `stem` and within 3 standard deviations
+    /// (along the axis) of the range `lo_m`..`hi_m` above the base, as a new set with their
+    /// standard deviations along the axis.
     fn near_axis(&self, base: Vec3, axis: Vec3, reach_m: f32, lo_m: f32, hi_m: f32) -> Self {
         let axis = axis.try_normalize().unwrap_or(Vec3::Z);
         let mut t = Self::default();
-        for (m, &w) in self.means.iter().zip(&self.opacity) {
+        for (i, (m, &w)) in self.means.iter().zip(&self.opacity).enumerate() {
+            let sigma = self
+                .cov
+                .get(i)
+                .map_or(0.0, |c| axis.dot(*c * axis).max(0.0).sqrt());
             let d = *m - base;
             let s = d.dot(axis);
-            if s >= lo_m && s <= hi_m && (d - axis * s).length() <= reach_m {
+            if s >= lo_m - 3.0 * sigma
+                && s <= hi_m + 3.0 * sigma
+                && (d - axis * s).length() <= reach_m
+            {
                 t.means.push(*m);
                 t.opacity.push(w);
+                t.sigma_axis.push(sigma);
             }
         }
         t
@@ -135,6 +154,43 @@ fn height_range(stem: &StemRecord, p: &DbhParams) -> (f32, f32) {
     (lo - p.half_thickness_m, hi + p.half_thickness_m)
 }
 
+/// The stems of stage `segment` (`stems.json` in `segment_dir`), in its local frame.
+pub fn read_stems(segment_dir: &Path) -> Result<Vec<StemRecord>, StageError> {
+    let stems: StemsFile = read_json(&segment_dir.join("stems.json"))?;
+    Ok(stems.stems)
+}
+
+/// Per point of `means`, whether it lies in the band of some stem's DBH slices: within
+/// [`reach_m`] of the axis and within the heights any slice of `p` may use (1.3 m and the
+/// fallback slices, ± the slice half thickness, and 0.1 m more for a Gaussian's extent).
+pub fn in_dbh_band(means: &[[f32; 3]], stems: &[StemRecord], p: &DbhParams) -> Vec<bool> {
+    let bands: Vec<(Vec3, Vec3, f32, f32, f32)> = stems
+        .iter()
+        .map(|s| {
+            let (lo, hi) = height_range(s, p);
+            let axis = Vec3::from_array(s.axis).try_normalize().unwrap_or(Vec3::Z);
+            (
+                Vec3::from_array(s.base),
+                axis,
+                reach_m(&s.dbh),
+                lo - 0.1,
+                hi + 0.1,
+            )
+        })
+        .collect();
+    means
+        .iter()
+        .map(|m| {
+            let m = Vec3::from_array(*m);
+            bands.iter().any(|&(base, axis, reach, lo, hi)| {
+                let d = m - base;
+                let s = d.dot(axis);
+                s >= lo && s <= hi && (d - axis * s).length() <= reach
+            })
+        })
+        .collect()
+}
+
 /// The Gaussian DBH of one stem (see the module doc): `None` when no slice holds an acceptable
 /// circle or a piece of one ([`forest::measure_dbh_of`]), e.g. too few trunk Gaussians.
 pub fn gaussian_dbh(t: &TrunkGaussians, stem: &StemRecord, p: &DbhParams) -> Option<GaussianDbh> {
@@ -152,6 +208,7 @@ pub fn gaussian_dbh(t: &TrunkGaussians, stem: &StemRecord, p: &DbhParams) -> Opt
             axis,
             reach_m: Some(reach),
             center_prior: Some(SliceCenterPrior::from_lidar(&stem.dbh)),
+            extents: Some(&near.sigma_axis),
         },
         p,
     )?;
@@ -495,6 +552,35 @@ mod tests {
     }
 
     #[test]
+    fn surfels_that_straddle_the_slice_take_part_by_their_mass_in_it() {
+        // Rings of 24 surfels every 30 cm, none with its centre in the 1.3 m slab
+        // (1.2–1.4 m): tall along the stem (σ 15 cm), 1 cm across.
+        let base = Vec3::new(1.0, 2.0, 0.5);
+        let mut g = Gaussians::default();
+        for s in [0.4, 0.7, 1.0, 1.6, 1.9, 2.2] {
+            for k in 0..24 {
+                let a = (k as f32 * 15.0).to_radians();
+                let p = base + Vec3::new(0.15 * a.cos(), 0.15 * a.sin(), s);
+                let mut x = Gaussian::isotropic(p.to_array(), 0.01, [0.4; 3], 0.8);
+                x.log_scale = [0.01f32.ln(), 0.01f32.ln(), 0.15f32.ln()];
+                x.trunk_prob = 0.9;
+                g.push(x);
+            }
+        }
+        let s = stem(base, Vec3::Z, 0.15);
+        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
+        assert_eq!(fit.dbh.quality, FitQuality::Good, "{fit:?}");
+        assert_eq!(fit.dbh.slice_height_m, 1.3, "{fit:?}");
+        assert_eq!(fit.dbh.circle.fit.n, 48, "{fit:?}");
+        assert!((fit.dbh.diameter_m - 0.30).abs() < 0.002, "{fit:?}");
+        // Taken as points, the breast-height slice is empty.
+        let mut points = trunk(&g);
+        points.cov.clear();
+        let fit = gaussian_dbh(&points, &s, &params()).expect("fit");
+        assert_ne!(fit.dbh.slice_height_m, 1.3, "{fit:?}");
+    }
+
+    #[test]
     fn a_stem_without_trunk_gaussians_has_no_gaussian_diameter() {
         let mut g = scene();
         for p in &mut g.trunk_prob {
@@ -587,6 +673,7 @@ mod tests {
                 axis: Vec3::Z,
                 reach_m: Some(reach_m(&s.dbh)),
                 center_prior: None,
+                extents: None,
             },
             &params(),
         )

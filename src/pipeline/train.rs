@@ -58,34 +58,117 @@ pub fn backend_for(params: &TrainParams) -> Result<Box<dyn Backend>, TrainError>
 /// there (about 10 per stem with 10 k of the 179 k anchors of `tiny`). Sylva's choice.
 pub const TRUNK_SHARE_OF_CAP: f64 = 0.5;
 
+/// Share of the trunk Gaussians' part of a cap kept for the band of the DBH slices (Gaussians
+/// within reach of a stem's axis between 0.5 and 2.1 m along it, [`super::dbh::in_dbh_band`]):
+/// half (Sylva's choice). The trunk surfels are what stage `dbh` measures; an even draw over
+/// the whole trunk surface leaves a 20 cm slice of a 17-stem plot about 8 surfels at a cap
+/// of 10 000, too few for a circle (10 inliers at least), while the rest of the trunks, which
+/// only the photos see, render as well from a coarser draw.
+pub const DBH_BAND_SHARE_OF_TRUNKS: f64 = 0.5;
+
 /// Keeps at most `max` Gaussians (all when `max` is 0 or not exceeded): up to
-/// [`TRUNK_SHARE_OF_CAP`] of the cap from the trunk Gaussians, the rest from the others, each a
-/// seeded random subset; a share one side does not use goes to the other.
-pub fn cap_gaussians(g: &mut Gaussians, max: u32, seed: u64) {
+/// [`TRUNK_SHARE_OF_CAP`] of the cap from the trunk Gaussians (of that, up to
+/// [`DBH_BAND_SHARE_OF_TRUNKS`] from those `band` marks, when given), the rest from the
+/// others; a share one side does not use goes to the other. Each part is drawn evenly in
+/// space ([`voxel_draw`]): one Gaussian per cell of the finest grid that fits the share, the
+/// grid shifted by the seed, so a slice of a stem holds surfels all round its circumference
+/// rather than a random subset's clumps and gaps. Scales are left as they are: the caller
+/// sets them from the spacing of what is kept ([`crate::splat::init::rescale_from_spacing`]).
+pub fn cap_gaussians(g: &mut Gaussians, max: u32, seed: u64, band: Option<&[bool]>) {
     let n = g.len();
     if max == 0 || n <= max as usize {
         return;
     }
     let max = max as usize;
-    let mut rng = SplitMix64::new(seed);
-    let mut shuffled = |mut v: Vec<usize>| {
-        for i in (1..v.len()).rev() {
-            let j = rng.below(i as u64 + 1) as usize;
-            v.swap(i, j);
-        }
-        v
-    };
+    let in_band = |i: usize| band.is_some_and(|b| b.get(i).copied().unwrap_or(false));
     let (trunk, other): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| g.trunk_prob[i] >= 0.5);
-    let trunk = shuffled(trunk);
-    let other = shuffled(other);
+    let (trunk_band, trunk_rest): (Vec<usize>, Vec<usize>) =
+        trunk.iter().partition(|&&i| in_band(i));
     let reserve = ((max as f64 * TRUNK_SHARE_OF_CAP) as usize).min(trunk.len());
     let from_other = (max - reserve).min(other.len());
     let from_trunk = (max - from_other).min(trunk.len());
+    let band_reserve =
+        ((from_trunk as f64 * DBH_BAND_SHARE_OF_TRUNKS) as usize).min(trunk_band.len());
+    let from_rest = (from_trunk - band_reserve).min(trunk_rest.len());
+    let from_band = from_trunk - from_rest;
+    let mut rng = SplitMix64::new(seed);
     let mut keep = vec![false; n];
-    for &i in trunk[..from_trunk].iter().chain(&other[..from_other]) {
-        keep[i] = true;
+    for (part, count) in [
+        (&trunk_band, from_band),
+        (&trunk_rest, from_rest),
+        (&other, from_other),
+    ] {
+        for i in voxel_draw(&g.means, part, count, &mut rng) {
+            keep[i] = true;
+        }
     }
     g.retain_mask(&keep);
+}
+
+/// Exactly `count` of the points `idx` of `means` (all when there are no more), spread evenly:
+/// a bisection of the log cell edge (24 halvings: the edge to 1e-6 of its
+/// range) finds the finest grid,
+/// offset by a seeded random shift, with at most `count` occupied cells; each cell gives the
+/// point nearest its centre, and a seeded random choice among the rest tops the draw up to
+/// `count` (the occupied cells jump as the grid changes).
+fn voxel_draw(means: &[[f32; 3]], idx: &[usize], count: usize, rng: &mut SplitMix64) -> Vec<usize> {
+    if count >= idx.len() {
+        return idx.to_vec();
+    }
+    if count == 0 {
+        return Vec::new();
+    }
+    let p = |i: usize| glam::DVec3::from(means[i].map(f64::from));
+    let (lo, hi) = idx.iter().fold(
+        (
+            glam::DVec3::splat(f64::INFINITY),
+            glam::DVec3::splat(f64::NEG_INFINITY),
+        ),
+        |(lo, hi), &i| (lo.min(p(i)), hi.max(p(i))),
+    );
+    let extent = (hi - lo).max_element().max(1e-6);
+    let shift = glam::DVec3::new(rng.uniform(), rng.uniform(), rng.uniform());
+    // One point per occupied cell of edge `v`: the nearest to the cell's centre.
+    let cells = |v: f64| {
+        let mut best: std::collections::HashMap<[i64; 3], (f64, usize)> =
+            std::collections::HashMap::new();
+        for &i in idx {
+            let q = (p(i) - lo) / v + shift;
+            let c = q.floor();
+            let d2 = (q - c - glam::DVec3::splat(0.5)).length_squared();
+            let key = [c.x as i64, c.y as i64, c.z as i64];
+            let e = best.entry(key).or_insert((f64::INFINITY, i));
+            if d2 < e.0 || (d2 == e.0 && i < e.1) {
+                *e = (d2, i);
+            }
+        }
+        let mut picked: Vec<usize> = best.into_values().map(|(_, i)| i).collect();
+        picked.sort_unstable();
+        picked
+    };
+    // Cell edges between extent / 1e6 (every point alone) and 2 × extent (one cell).
+    let (mut fine, mut coarse) = ((extent * 1e-6).ln(), (2.0 * extent).ln());
+    let mut picked = cells(coarse.exp());
+    for _ in 0..24 {
+        let mid = 0.5 * (fine + coarse);
+        let c = cells(mid.exp());
+        if c.len() <= count {
+            coarse = mid;
+            picked = c;
+        } else {
+            fine = mid;
+        }
+    }
+    let mut taken = vec![false; means.len()];
+    for &i in &picked {
+        taken[i] = true;
+    }
+    let mut rest: Vec<usize> = idx.iter().copied().filter(|&i| !taken[i]).collect();
+    while picked.len() < count && !rest.is_empty() {
+        let j = rng.below(rest.len() as u64) as usize;
+        picked.push(rest.swap_remove(j));
+    }
+    picked
 }
 
 /// The labelled anchors of stage `segment` (LiDAR local frame): position, colour, trunk
@@ -143,6 +226,7 @@ fn initial_gaussians(
     data: &Dataset,
     params: &TrainParams,
     anchors: Option<&[Anchor]>,
+    band: Option<&dyn Fn(&[[f32; 3]]) -> Vec<bool>>,
 ) -> Result<Gaussians, StageError> {
     let mut g = match (params.init, anchors) {
         (InitSource::Lidar, Some(anchors)) => {
@@ -163,7 +247,18 @@ fn initial_gaussians(
             g
         }
     };
-    cap_gaussians(&mut g, params.max_gaussians, params.seed);
+    let before = g.len();
+    if params.max_gaussians > 0 && g.len() > params.max_gaussians as usize {
+        let band = band.map(|f| f(&g.means));
+        cap_gaussians(&mut g, params.max_gaussians, params.seed, band.as_deref());
+    }
+    if g.len() < before {
+        // Scales from the spacing of what the cap kept (the same rule as the source's).
+        match params.init {
+            InitSource::Lidar => init::rescale_from_spacing(&mut g, 1, AnchorInit::default().eps),
+            InitSource::Sfm => init::rescale_from_spacing(&mut g, 3, 0.0),
+        }
+    }
     Ok(g)
 }
 
@@ -211,7 +306,16 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     } else {
         (None, Vec::new(), None)
     };
-    let mut init = initial_gaussians(&data, params, anchors.as_deref())?;
+    // The stems of stage `segment` (same local frame as its anchors), whose DBH band a cap
+    // keeps dense; none without the anchors (vanilla runs need no stage `segment`).
+    let stems = if wants_anchors {
+        super::dbh::read_stems(&ctx.output_of(Stage::Segment, Stage::Train)?)?
+    } else {
+        Vec::new()
+    };
+    let dbh_params = &ctx.params.segment.dbh;
+    let band = |means: &[[f32; 3]]| super::dbh::in_dbh_band(means, &stems, dbh_params);
+    let mut init = initial_gaussians(&data, params, anchors.as_deref(), Some(&band))?;
     let n_init = init.len();
     let mut cfg = cfg;
     cfg.semantic.temperature_m = ctx.params.anchors.voxel_size_m as f32;
@@ -454,28 +558,87 @@ mod tests {
     fn a_cap_keeps_a_share_for_the_trunks_and_lends_what_one_side_leaves() {
         // Few trunk Gaussians: all are kept, the others fill the cap.
         let mut g = scene(50, 10_000);
-        cap_gaussians(&mut g, 1000, 7);
+        cap_gaussians(&mut g, 1000, 7, None);
         assert_eq!((g.len(), trunk_count(&g)), (1000, 50));
         // Many: half the cap for each side.
         let mut g = scene(5000, 10_000);
-        cap_gaussians(&mut g, 1000, 7);
+        cap_gaussians(&mut g, 1000, 7, None);
         assert_eq!((g.len(), trunk_count(&g)), (1000, 500));
         // Few others: the trunks take the rest of the cap.
         let mut g = scene(5000, 100);
-        cap_gaussians(&mut g, 1000, 7);
+        cap_gaussians(&mut g, 1000, 7, None);
         assert_eq!((g.len(), trunk_count(&g)), (1000, 900));
         // Under the cap, or no cap: nothing goes.
         let mut g = scene(10, 10);
-        cap_gaussians(&mut g, 1000, 7);
+        cap_gaussians(&mut g, 1000, 7, None);
         assert_eq!(g.len(), 20);
-        cap_gaussians(&mut g, 0, 7);
+        cap_gaussians(&mut g, 0, 7, None);
         assert_eq!(g.len(), 20);
         // The same seed keeps the same Gaussians; another keeps others.
         let (mut a, mut b, mut c) = (scene(3000, 3000), scene(3000, 3000), scene(3000, 3000));
-        cap_gaussians(&mut a, 500, 1);
-        cap_gaussians(&mut b, 500, 1);
-        cap_gaussians(&mut c, 500, 2);
+        cap_gaussians(&mut a, 500, 1, None);
+        cap_gaussians(&mut b, 500, 1, None);
+        cap_gaussians(&mut c, 500, 2, None);
         assert_eq!(a.means, b.means);
         assert_ne!(a.means, c.means);
+    }
+
+    /// The farthest any point of `all` lies from its nearest kept Gaussian, metres.
+    fn covering_radius(all: &Gaussians, kept: &Gaussians) -> f32 {
+        let pts: Vec<glam::Vec3> = kept
+            .means
+            .iter()
+            .map(|m| glam::Vec3::from_array(*m))
+            .collect();
+        let index = crate::geom::PointIndex::new(&pts).expect("index");
+        all.means
+            .iter()
+            .map(|m| {
+                index
+                    .nearest(glam::Vec3::from_array(*m))
+                    .map_or(f32::INFINITY, |n| n.dist2.sqrt())
+            })
+            .fold(0.0, f32::max)
+    }
+
+    #[test]
+    fn a_cap_draws_a_stem_surface_evenly_and_scales_follow_the_kept_spacing() {
+        // 20 000 points at random on a 15 cm stem 10 m tall; a cap of 400 keeps one in 50.
+        let mut rng = SplitMix64::new(3);
+        let mut g = Gaussians::default();
+        for _ in 0..20_000 {
+            let a = rng.uniform() * std::f64::consts::TAU;
+            let z = rng.uniform() * 10.0;
+            let p = [(0.15 * a.cos()) as f32, (0.15 * a.sin()) as f32, z as f32];
+            let mut one = Gaussian::isotropic(p, 0.005, [0.5; 3], 0.1);
+            one.trunk_prob = 0.9;
+            g.push(one);
+        }
+        let mut drawn = g.clone();
+        cap_gaussians(&mut drawn, 400, 1, None);
+        assert_eq!(drawn.len(), 400);
+        // A random subset of the same size, for comparison.
+        let mut keep = vec![false; g.len()];
+        let mut left: Vec<usize> = (0..g.len()).collect();
+        for _ in 0..400 {
+            let j = rng.below(left.len() as u64) as usize;
+            keep[left.swap_remove(j)] = true;
+        }
+        let mut random = g.clone();
+        random.retain_mask(&keep);
+        let (even, uneven) = (covering_radius(&g, &drawn), covering_radius(&g, &random));
+        assert!(even < 0.7 * uneven, "even draw {even} m, random {uneven} m");
+        // 9.4 m² over 400 Gaussians: about 15 cm apart; the scales follow the kept spacing.
+        init::rescale_from_spacing(&mut drawn, 1, 0.0);
+        let mean_sigma = drawn
+            .log_scales
+            .iter()
+            .map(|s| f64::from(s[0]).exp())
+            .sum::<f64>()
+            / 400.0;
+        assert!(
+            (0.06..0.2).contains(&mean_sigma),
+            "mean nearest spacing {mean_sigma} m"
+        );
     }
 }

@@ -75,6 +75,22 @@ pub fn from_sfm_points(points: &[[f32; 3]], colours: &[[u8; 3]]) -> Result<Gauss
     Ok(g)
 }
 
+/// Sets every Gaussian's three scales to log sqrt(mean squared distance to its `k` nearest
+/// other Gaussians + `eps`) — the initial scale rule of [`from_sfm_points`] (`k` = 3) and
+/// [`from_anchors`] (`k` = 1) — for Gaussians whose neighbours changed after a cap dropped
+/// some: a scale from the spacing before the draw would leave holes between those kept.
+pub fn rescale_from_spacing(g: &mut Gaussians, k: usize, eps: f64) {
+    let knn = self_knn_dist2(&g.means, k);
+    for (s, d) in g.log_scales.iter_mut().zip(&knn) {
+        let mean_d2 = if d.is_empty() {
+            MIN_DIST2
+        } else {
+            d.iter().sum::<f64>() / d.len() as f64
+        };
+        *s = [(0.5 * (mean_d2 + eps).max(MIN_DIST2).ln()) as f32; 3];
+    }
+}
+
 /// A LiDAR anchor: position (metres), its own colour (fallback) and trunk probability P_i.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Anchor {
