@@ -416,8 +416,14 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
                 "n/a".into()
             }
         };
+        // Millimetres, one decimal, signed when asked; n/a without any trunk Gaussian.
+        let f1 = |x: f64, signed: bool| match (x.is_finite(), signed) {
+            (false, _) => "n/a".to_string(),
+            (true, true) => format!("{x:+.1}"),
+            (true, false) => format!("{x:.1}"),
+        };
         println!(
-            "| {name} | {} | {:.3} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {:.1} | {:+.1} | {} | {:.0} |",
+            "| {name} | {} | {:.3} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {} | {} | {} | {:.0} |",
             f(mean(&all.iter().map(|r| r.psnr).collect::<Vec<_>>())),
             mean(&all.iter().map(|r| r.ssim).collect::<Vec<_>>()),
             f(rg),
@@ -430,8 +436,8 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
             f(mean(&diff)),
             gs.len(),
             trees.len(),
-            mean(&abs_off) * 1000.0,
-            mean(&offsets) * 1000.0,
+            f1(mean(&abs_off) * 1000.0, false),
+            f1(mean(&offsets) * 1000.0, true),
             all.iter().map(|r| r.gaussians).sum::<u64>(),
             all.iter().map(|r| r.seconds).sum::<f64>(),
         );
