@@ -216,6 +216,9 @@ fn read_anchors(ctx: &StageContext<'_>) -> Result<LabelledAnchors, StageError> {
     Ok((anchors, is_trunk, normals))
 }
 
+/// Marks, per Gaussian centre, those in the band of the stems' DBH slices.
+type BandFn<'a> = dyn Fn(&[[f32; 3]]) -> Vec<bool> + 'a;
+
 /// Anchors, their trunk labels and their normals (when known).
 type LabelledAnchors = (Vec<Anchor>, Vec<bool>, Option<Vec<[f32; 3]>>);
 
@@ -226,7 +229,7 @@ fn initial_gaussians(
     data: &Dataset,
     params: &TrainParams,
     anchors: Option<&[Anchor]>,
-    band: Option<&dyn Fn(&[[f32; 3]]) -> Vec<bool>>,
+    band: Option<&BandFn>,
 ) -> Result<Gaussians, StageError> {
     let mut g = match (params.init, anchors) {
         (InitSource::Lidar, Some(anchors)) => {
