@@ -96,7 +96,7 @@ fn stands_of_five_seeds_meet_the_accuracy_goals() {
     // The issue's goals, on every seed: stems recall and precision >= 95 %, DBH RMSE
     // <= 1.0 cm, ground at the stems <= 3 cm, and wood/leaf against the generator's labels
     // (where "wood" includes every branch down to 6 mm radius) trunk recall >= 0.90 and
-    // precision >= 0.85, all asserted at the goal (measured values in README's "LiDAR
+    // precision >= 0.85, all asserted at the goal (measured values in docs/results/inventory.md, "LiDAR
     // inventory" paragraph).
     for (line, recall, precision, rmse, ground_err, trunk_recall, trunk_precision) in report {
         assert!(recall >= 0.95 && precision >= 0.95, "{line}");

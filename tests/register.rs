@@ -132,11 +132,11 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
             trans_err * 100.0,
             report["fitness"]
         );
-        // Measured (README, registration results): rotation 0.005-0.025° on the seeds with
+        // Measured (docs/results/registration.md): rotation 0.005-0.025° on the seeds with
         // two or three stems, 0.085° on seed 2 (one stem), scale 0.006-0.059 %, translation
         // 0.06-0.20 cm. A single round stem does not hold the yaw about itself, so on seed 2
         // only the ground relief and six stones do: its yaw spreads 0.050° over 20 draws of
-        // the SfM noise (README, Monte Carlo), and no estimator can promise 0.05°. Asserted: the
+        // the SfM noise (docs/results/registration.md, Monte Carlo), and no estimator can promise 0.05°. Asserted: the
         // issue's goals wherever two stems stand, and an error consistent with the reported
         // standard error on a single-stem plot.
         let stems = trees_in(&out);
@@ -171,7 +171,7 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
 
 /// `stand` (17 trees) reaches the goals with control points. A lighter stand than
 /// the preset (30 photos of 320×180, 800 k LiDAR points, 5000 SfM points) keeps the test to
-/// tens of seconds; the full preset's five seeds are in the README (register_diag).
+/// tens of seconds; the full preset's five seeds are in docs/results/registration.md (register_diag).
 #[test]
 fn control_points_reach_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -194,7 +194,7 @@ fn control_points_reach_the_goals_on_a_stand() {
 }
 
 /// Without control points on `tiny` the automatic alignment must either refuse with a
-/// request for control points or reach the goals. Measured (README): seeds 1, 3 and
+/// request for control points or reach the goals. Measured (docs/results/registration.md): seeds 1, 3 and
 /// 5 are accepted (confidence 0.79-1.00) and end 0.008-0.025° off; seeds 2 (one stem) and 4
 /// are refused because the SfM points pin their rotation only to 0.036° and 0.037° (the
 /// larger of the normal-matrix and split-half standard errors; at most 0.025° is accepted
@@ -239,7 +239,7 @@ fn automatic_alignment_on_tiny_reaches_the_goals_or_refuses() {
 
 /// Without control points the light stand (as the control-point test above, but with 10 000
 /// SfM points) is aligned automatically, confidently and to the goals. With 5000 SfM
-/// points it ended 0.047° off, too near the 0.05° goal to test; 10 000 give 0.0144° (README).
+/// points it ended 0.047° off, too near the 0.05° goal to test; 10 000 give 0.0144° (docs/results/registration.md).
 #[test]
 fn automatic_alignment_reaches_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -382,7 +382,7 @@ pub fn align(
 /// `lidar` (local frame, z up), best raster score first. Each comes from the coarse search
 /// over every yaw and scale, refined on two finer rasters (a third and a ninth of the coarse
 /// cell). Raster scores alone do not tell a right alignment from a wrong one reliably
-/// (README, registration results): the caller verifies each candidate (stage `register`
+/// (docs/results/registration.md): the caller verifies each candidate (stage `register`
 /// runs ICP from each and compares how well the SfM points then lie on the LiDAR cloud).
 pub fn align_candidates(
     sfm: &[DVec3],

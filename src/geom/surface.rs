@@ -63,7 +63,7 @@ pub struct SurfaceParams {
     pub huber_m: f64,
     /// Outer rounds: patches refitted at the points' new positions (default 3, it stops
     /// early once a round moves no point by more than `tolerance_m`; on `tiny` plots with one
-    /// stem, more rounds let the weakly determined yaw wander further: README, registration).
+    /// stem, more rounds let the weakly determined yaw wander further: docs/results/registration.md).
     pub rounds: usize,
     /// Iterations per round, each re-weighting the residuals (Huber) and solving the
     /// linear least squares on the round's tangent planes (default 3).
@@ -363,7 +363,7 @@ pub struct SplitHalfSpread {
 /// could really have) and the patch normals carry the LiDAR's range noise, which the normal
 /// matrix counts as information. On `tiny` plots where the ground relief holds the yaw, 20
 /// Monte Carlo draws of the SfM noise spread the yaw 1.3-1.9 times wider than the normal
-/// matrix says, from the truth or from 0.2° off alike (README, registration).
+/// matrix says, from the truth or from 0.2° off alike (docs/results/registration.md).
 ///
 /// The halves are drawn from a SplitMix64 stream seeded with the split number, so the
 /// result is repeatable. Control pairs are left out: both halves would share them.
@@ -500,7 +500,7 @@ fn gauss_newton(
         // them, so plain least squares on target-frame distances prefers to shrink the source
         // (every residual holds its point's noise, and shrinking scales that noise down by s).
         // The estimate then falls short by about sigma² / var((x - c) · g): -0.2 to -1 % on a
-        // `tiny` plot whose points lie mostly on flat ground (README, registration). Measuring
+        // `tiny` plot whose points lie mostly on flat ground (docs/results/registration.md). Measuring
         // the residual in source units, r / s, removes the bias; at the current estimate its
         // derivative in ln s is the foot's lever arm (x - r g - c) · g = x · g - r instead of
         // x · g (rotation and translation columns change only by the common factor 1 / s).

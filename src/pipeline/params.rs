@@ -75,8 +75,8 @@ pub struct RegisterParams {
     /// 0.05 m: well below SfM point noise, and fast).
     pub target_voxel_m: f64,
     /// Try the automatic alignment when no control points are given (default false: it
-    /// reaches the goals on `stand` but refuses on small plots such as `tiny`, README
-    /// registration results; without it a job with no control points stops with a clear
+    /// reaches the goals on `stand` but refuses on small plots such as `tiny`,
+    /// docs/results/registration.md; without it a job with no control points stops with a clear
     /// request for them).
     pub automatic: bool,
     /// The automatic alignment must reach this confidence in [0, 1], or the stage refuses
@@ -95,7 +95,7 @@ pub struct RegisterParams {
     /// puts the SfM points on quadric patches of the LiDAR surface (ground, stems, stones;
     /// foliage and edges fail the patch test), with the control points as extra observations.
     /// Default true: point-to-point ICP onto a thinned cloud stops centimetres and tenths of a
-    /// degree short (README, registration results).
+    /// degree short (docs/results/registration.md).
     pub refine: bool,
     /// The LiDAR cloud is thinned to this voxel size (metres) for the surface patches
     /// (default 0.01 m: the range noise of a handheld scanner; finer only adds time).
@@ -122,7 +122,7 @@ pub struct RegisterParams {
     /// Random halvings of the SfM points refined again to measure the refinement's standard
     /// errors on the data (default 16; 0 keeps the normal-matrix errors alone). The report
     /// and the automatic gate take, per parameter, the larger of the two: on `tiny` the
-    /// normal matrix put the yaw 1.3-1.9 times too tight (README, registration). Sixteen
+    /// normal matrix put the yaw 1.3-1.9 times too tight (docs/results/registration.md). Sixteen
     /// splits give each standard error to about ±18 % (a chi-square of 16 degrees of
     /// freedom); with eight (±25 %) two `tiny` plots whose yaw error is 0.021-0.023° fell
     /// either side of the automatic gate depending on the draw of the halves.

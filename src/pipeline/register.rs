@@ -295,7 +295,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                 .map(|(a, b)| (a.as_slice(), b.as_slice())),
             p,
             // Without control points the pose after ICP is often still tenths of a degree and
-            // about a percent off (README: stand 1 left ICP at 0.37° and 1.2 %); further
+            // about a percent off (docs/results/registration.md: stand 1 left ICP at 0.37° and 1.2 %); further
             // passes carry the refinement on from where the last stopped.
             if method == "automatic" {
                 AUTOMATIC_REFINE_PASSES
@@ -613,7 +613,7 @@ const AUTOMATIC_REFINE_PASSES: usize = 5;
 /// at 2 sigma, a 95 % chance of meeting it. When the gate read the normal matrix alone it
 /// stood at 2.5 sigma, because that matrix read the yaw 1.3-1.9 times too tight on `tiny`
 /// (20 draws of seed 4's SfM noise spread its yaw by 0.028° where it said 0.020°); the
-/// split halves measure the spread on the data (README, registration). Measured: `stand`
+/// split halves measure the spread on the data (docs/results/registration.md). Measured: `stand`
 /// 0.003-0.006°, `tiny` 0.018-0.039°.
 const AUTOMATIC_MAX_STD_ROTATION_DEG: f64 = 0.025;
 /// The same for the scale (relative): 0.05 % puts the goal of 0.1 % at 2 sigma (measured:
@@ -832,7 +832,7 @@ pub fn verify_candidates(
     let best_score = score(b);
     // Confidence: full when the best beats every distinct rival by 0.6 (on-cloud plus
     // elevated on-cloud share) and puts at least 0.6 of its elevated points on the cloud;
-    // 0.5 (the default threshold) needs 0.3 of each. Measured (README, registration
+    // 0.5 (the default threshold) needs 0.3 of each. Measured (docs/results/registration.md
     // results): after ICP and the surface passes the right candidates of `stand` seeds 1-5
     // put 0.75-0.79 of their elevated points on the cloud (the light stand of the tests
     // 0.38), wrong candidates on `stand` at most 0.04, on `tiny` at most 0.11; the overall

@@ -1,7 +1,7 @@
 //! Sylva's trunk binding (METHOD.md Stage 4, "Beyond the paper — Sylva's binding"): trunk
 //! Gaussians are surfels held on the LiDAR stem surface for the whole run.
 //!
-//! Why not the paper's L_geo alone: measured on the demo (README, "The twin you can measure"),
+//! Why not the paper's L_geo alone: measured on the demo (docs/results/twin.md),
 //! its candidate set needs an opacity the Gaussians reach late, and its position term, divided
 //! by the squared anchor-box diagonal, is orders of magnitude below the photometric gradient,
 //! so trunk Gaussians drifted 7–10 cm and the Gaussian DBH was 5–17 cm off.
@@ -43,7 +43,7 @@ pub struct BindConfig {
     /// metres. Default 0.001 m, well inside METHOD.md's "within about max(voxel, LiDAR
     /// noise)": the photos cannot place a stem surface to a pixel (centimetres at the budgets
     /// measured), and with a 1 cm band on the raw anchors the Gaussians the DBH fit keeps sat
-    /// at one edge of it (−14.8 mm mean on `tiny` seed 1, 500 steps at 80 px; README,
+    /// at one edge of it (−14.8 mm mean on `tiny` seed 1, 500 steps at 80 px; docs/results/twin.md,
     /// "The twin you can measure"), a bias of 3 cm in diameter.
     pub band_m: f32,
     /// Radius of the quadric patch of trunk anchors that gives the surface under each trunk

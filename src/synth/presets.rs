@@ -54,7 +54,7 @@ impl Preset {
                 shrub_share: 0.5,
                 // 400 k LiDAR points and 12 000 SfM points: with fewer (200 k, 1500) the
                 // registration of a 3.5 m plot cannot pin its yaw to the 0.05°
-                // (README, registration).
+                // (docs/results/registration.md).
                 lidar_points: 400_000,
                 images: 30,
                 width: 160,

@@ -51,7 +51,7 @@ pub enum AtomicMode {
 
 /// Raster pixels per thread on CPU adapters: in the backward raster each thread sums 8 pixels'
 /// contributions before one atomic add per Gaussian, and both rasters read each staged Gaussian
-/// once per 8 pixels (measured on lavapipe, 2 cores: README "Gaussian splatting", speed table).
+/// once per 8 pixels (measured on lavapipe, 2 cores: docs/results/splatting.md, speed table).
 pub const RASTER_PIXELS_CPU: u32 = 8;
 
 /// The rasters' pixels per thread for `device_type`, unless `SYLVA_RASTER_PIXELS` (a power of two
