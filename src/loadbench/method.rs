@@ -2,8 +2,10 @@
 //! with known truth, at equal steps — one table a person can compare with the last one.
 //!
 //! Arms (`--method-arms`): `vanilla` (SfM initialisation, no trunk term), `lidar` (LiDAR
-//! anchors, no term), `paper` (LiDAR and the paper's L_geo, METHOD.md Stage 4) and `bind`
-//! (LiDAR and Sylva's binding). Stages ingest to segment run once per plot; each arm then runs train
+//! anchors, no term), `paper` (LiDAR and the paper's L_geo, METHOD.md Stage 4) — these three
+//! the paper's Table 5 — `bind-lidar` (LiDAR anchors and Sylva's binding) and `bind` (Sylva's
+//! default: the binding, with the SfM points beyond the LiDAR filling the start,
+//! `params.train.sfm_fill_m`). Stages ingest to segment run once per plot; each arm then runs train
 //! and dbh in its own folder beside them. Per arm, pooled over the plots:
 //!
 //! - held-out PSNR and SSIM (mean over plots), Gaussians at the end, wall time of train + dbh;
@@ -50,11 +52,11 @@ pub struct MethodBenchArgs {
         default_value = "1,2"
     )]
     pub method_seeds: String,
-    /// method: arms, comma-separated, among vanilla, lidar, paper, bind.
+    /// method: arms, comma-separated, among vanilla, lidar, paper, bind-lidar, bind.
     #[arg(
         long = "method-arms",
         env = "SYLVA_BENCH_METHOD_ARMS",
-        default_value = "vanilla,lidar,paper,bind"
+        default_value = "vanilla,lidar,paper,bind-lidar,bind"
     )]
     pub method_arms: String,
     /// method: training steps of every arm.
@@ -98,14 +100,15 @@ pub struct MethodBenchArgs {
     pub method_long: Option<u32>,
 }
 
-/// One arm's (init, term).
-fn arm(name: &str) -> anyhow::Result<(InitSource, TrunkTerm)> {
+/// One arm's (init, term, SfM fill in metres; `None`: the default of `params.train`).
+fn arm(name: &str) -> anyhow::Result<(InitSource, TrunkTerm, Option<f64>)> {
     Ok(match name {
-        "vanilla" => (InitSource::Sfm, TrunkTerm::Off),
-        "lidar" => (InitSource::Lidar, TrunkTerm::Off),
-        "paper" => (InitSource::Lidar, TrunkTerm::Paper),
-        "bind" => (InitSource::Lidar, TrunkTerm::Bind),
-        other => anyhow::bail!("unknown arm {other:?}: vanilla, lidar, paper or bind"),
+        "vanilla" => (InitSource::Sfm, TrunkTerm::Off, None),
+        "lidar" => (InitSource::Lidar, TrunkTerm::Off, Some(0.0)),
+        "paper" => (InitSource::Lidar, TrunkTerm::Paper, Some(0.0)),
+        "bind-lidar" => (InitSource::Lidar, TrunkTerm::Bind, Some(0.0)),
+        "bind" => (InitSource::Lidar, TrunkTerm::Bind, None),
+        other => anyhow::bail!("unknown arm {other:?}: vanilla, lidar, paper, bind-lidar or bind"),
     })
 }
 
@@ -202,9 +205,12 @@ fn run_arm(
     a: &MethodBenchArgs,
     steps: u32,
 ) -> anyhow::Result<ArmResult> {
-    let (init, term) = arm(name)?;
+    let (init, term, fill) = arm(name)?;
     let mut params = PipelineParams::default();
     params.train.init = init;
+    if let Some(fill) = fill {
+        params.train.sfm_fill_m = fill;
+    }
     params.train.semantic = term;
     params.train.steps = steps;
     params.train.resolution = a.method_resolution;

@@ -199,6 +199,12 @@ pub fn gaussian_dbh(t: &TrunkGaussians, stem: &StemRecord, p: &DbhParams) -> Opt
     let reach = reach_m(&stem.dbh);
     let (lo, hi) = height_range(stem, p);
     let near = t.near_axis(base, axis, reach, lo, hi);
+    // The LiDAR fit's own slice first, so that both diameters come from one slice.
+    let breast_height_m = p.breast_height_m;
+    let p = &DbhParams {
+        breast_height_m: stem.dbh.slice_height_m,
+        ..p.clone()
+    };
     let dbh = measure_dbh_of(
         &SliceSource {
             points: &near.means,
@@ -212,6 +218,11 @@ pub fn gaussian_dbh(t: &TrunkGaussians, stem: &StemRecord, p: &DbhParams) -> Opt
         },
         p,
     )?;
+    // Measured at the LiDAR's fallback slice, a full circle is a fallback slice too.
+    let mut dbh = dbh;
+    if dbh.quality == FitQuality::Good && dbh.slice_height_m != breast_height_m {
+        dbh.quality = FitQuality::FallbackSlice;
+    }
     let candidates = slice_offsets(
         &near.means,
         base,
@@ -717,5 +728,31 @@ mod tests {
         assert_eq!(fit.dbh.quality, FitQuality::FallbackSlice, "{fit:?}");
         assert_eq!(fit.dbh.slice_height_m, 1.1);
         assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
+        // A third of the stem at breast height, all of it elsewhere: the LiDAR centre prior
+        // holds the arc, so the fit stays at 1.3 m (flagged) rather than trade it for taper.
+        let mut g = Gaussians::default();
+        cylinder(&mut g, base, Vec3::Z, 0.12, 0.0, 120.0, 2.0, None);
+        cylinder(
+            &mut g,
+            base,
+            Vec3::Z,
+            0.12,
+            120.0,
+            360.0,
+            2.0,
+            Some((1.19, 1.41)),
+        );
+        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
+        assert_eq!(fit.dbh.quality, FitQuality::PartialArc, "{fit:?}");
+        assert_eq!(fit.dbh.slice_height_m, 1.3);
+        assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
+        // Where the LiDAR fit took the 1.1 m slice, so does the Gaussian one, flagged alike.
+        let mut s11 = stem(base, Vec3::Z, 0.12);
+        s11.dbh.slice_height_m = 1.1;
+        let mut g = Gaussians::default();
+        cylinder(&mut g, base, Vec3::Z, 0.12, 0.0, 360.0, 5.0, None);
+        let fit = gaussian_dbh(&trunk(&g), &s11, &params()).expect("fit");
+        assert_eq!(fit.dbh.slice_height_m, 1.1, "{fit:?}");
+        assert_eq!(fit.dbh.quality, FitQuality::FallbackSlice, "{fit:?}");
     }
 }

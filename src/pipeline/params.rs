@@ -201,6 +201,12 @@ pub struct TrainParams {
     pub steps: u32,
     /// Initialisation source (default lidar, the paper's method).
     pub init: InitSource,
+    /// LiDAR initialisation: SfM points farther than this from every anchor join the anchors
+    /// as (non-trunk) Gaussians, so that what the photos see beyond the LiDAR — the canopy top
+    /// a handheld scanner under it misses, terrain outside the scan — starts with Gaussians
+    /// too; metres, 0 = the anchors alone (the paper's initialisation). Default 0.1 (Sylva's:
+    /// five anchor voxels, so the SfM noise about surfaces the LiDAR has does not double them).
+    pub sfm_fill_m: f64,
     /// What holds the trunk Gaussians: "bind" (default: Sylva's binding, surfels held on the
     /// LiDAR stem surface from step 0, METHOD.md Stage 4 "Sylva's binding"), "paper" (the
     /// paper's term L_geo exactly as METHOD.md writes it, for the ablation) or "off".
@@ -225,9 +231,10 @@ pub struct TrainParams {
     pub trunk_beta: f64,
     /// Longest image side in pixels used for training; 0 keeps the full resolution.
     pub resolution: u32,
-    /// Upper bound on the number of Gaussians, at initialisation (a seeded random subset of
-    /// the anchors or points, half of it reserved for trunk Gaussians: see
-    /// `train::cap_gaussians`) and during densification; 0 = no bound (default).
+    /// Upper bound on the number of Gaussians, at initialisation (an even draw in space of
+    /// the anchors or points, half of it reserved for trunk Gaussians and half of that for the
+    /// stems' DBH band: see `train::cap_gaussians`) and during densification; 0 = no bound
+    /// (default).
     pub max_gaussians: u32,
     /// Where the steps run: the GPU (default) or the CPU reference, which is exact but only
     /// fit for tiny scenes.
@@ -273,6 +280,7 @@ impl Default for TrainParams {
         Self {
             steps: 30_000,
             init: InitSource::Lidar,
+            sfm_fill_m: 0.1,
             semantic: TrunkTerm::Bind,
             bind_band_m: 0.001,
             bind_normal_scale_m: 0.005,

@@ -233,8 +233,12 @@ fn initial_gaussians(
 ) -> Result<Gaussians, StageError> {
     let mut g = match (params.init, anchors) {
         (InitSource::Lidar, Some(anchors)) => {
-            init::from_anchors(anchors, &data.train, &AnchorInit::default())
-                .map_err(|e| StageError::Input(format!("anchor initialisation: {e}")))?
+            let mut g = init::from_anchors(anchors, &data.train, &AnchorInit::default())
+                .map_err(|e| StageError::Input(format!("anchor initialisation: {e}")))?;
+            if params.sfm_fill_m > 0.0 {
+                sfm_fill(&mut g, anchors, data, params.sfm_fill_m);
+            }
+            g
         }
         (InitSource::Lidar, None) => {
             return Err(StageError::Input(
@@ -263,6 +267,35 @@ fn initial_gaussians(
         }
     }
     Ok(g)
+}
+
+/// Appends, as non-trunk Gaussians of the SfM rule, the SfM points of `data` farther than
+/// `min_dist_m` from every anchor (see `TrainParams::sfm_fill_m`).
+fn sfm_fill(g: &mut Gaussians, anchors: &[Anchor], data: &Dataset, min_dist_m: f64) {
+    let pts: Vec<glam::Vec3> = anchors
+        .iter()
+        .map(|a| glam::Vec3::from_array(a.position))
+        .collect();
+    let Ok(index) = crate::geom::PointIndex::new(&pts) else {
+        return;
+    };
+    let far = |p: &[f32; 3]| {
+        index
+            .nearest(glam::Vec3::from_array(*p))
+            .is_none_or(|n| f64::from(n.dist2) > min_dist_m * min_dist_m)
+    };
+    let (points, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = data
+        .points
+        .iter()
+        .zip(&data.colours)
+        .filter(|(p, _)| far(p))
+        .map(|(p, c)| (*p, *c))
+        .unzip();
+    if let Ok(fill) = init::from_sfm_points(&points, &colours) {
+        for i in 0..fill.len() {
+            g.push(fill.get(i));
+        }
+    }
 }
 
 /// Sets every Gaussian's trunk probability to that of its nearest anchor.
