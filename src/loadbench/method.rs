@@ -3,9 +3,10 @@
 //!
 //! Arms (`--method-arms`): `vanilla` (SfM initialisation, no trunk term), `lidar` (LiDAR
 //! anchors, no term), `paper` (LiDAR and the paper's L_geo, METHOD.md Stage 4) — these three
-//! the paper's Table 5 — `bind-lidar` (LiDAR anchors and Sylva's binding) and `bind` (Sylva's
-//! default: the binding, with the SfM points beyond the LiDAR filling the start,
-//! `params.train.sfm_fill_m`). Stages ingest to segment run once per plot; each arm then runs train
+//! the paper's Table 5, with neither SfM fill nor sky dome — `bind-lidar` (LiDAR anchors and
+//! Sylva's binding), `bind-nosky` (the binding, the SfM points beyond the LiDAR filling the
+//! start, `params.train.sfm_fill_m`) and `bind` (Sylva's default: that and the sky dome,
+//! `params.train.sky_gaussians`). Stages ingest to segment run once per plot; each arm then runs train
 //! and dbh in its own folder beside them. Per arm, pooled over the plots:
 //!
 //! - held-out PSNR and SSIM (mean over plots), Gaussians at the end, wall time of train + dbh;
@@ -52,7 +53,8 @@ pub struct MethodBenchArgs {
         default_value = "1,2"
     )]
     pub method_seeds: String,
-    /// method: arms, comma-separated, among vanilla, lidar, paper, bind-lidar, bind.
+    /// method: arms, comma-separated, among vanilla, lidar, paper, bind-lidar, bind-nosky,
+    /// bind.
     #[arg(
         long = "method-arms",
         env = "SYLVA_BENCH_METHOD_ARMS",
@@ -100,15 +102,41 @@ pub struct MethodBenchArgs {
     pub method_long: Option<u32>,
 }
 
-/// One arm's (init, term, SfM fill in metres; `None`: the default of `params.train`).
-fn arm(name: &str) -> anyhow::Result<(InitSource, TrunkTerm, Option<f64>)> {
+/// One arm: initialisation, trunk term, and the SfM fill (metres) and sky dome (Gaussians)
+/// where they differ from the defaults of `params.train`.
+struct Arm {
+    init: InitSource,
+    term: TrunkTerm,
+    fill: Option<f64>,
+    sky: Option<u32>,
+}
+
+/// The arms by name (see the module doc).
+fn arm(name: &str) -> anyhow::Result<Arm> {
+    let paper = |init, term| Arm {
+        init,
+        term,
+        fill: Some(0.0),
+        sky: Some(0),
+    };
     Ok(match name {
-        "vanilla" => (InitSource::Sfm, TrunkTerm::Off, None),
-        "lidar" => (InitSource::Lidar, TrunkTerm::Off, Some(0.0)),
-        "paper" => (InitSource::Lidar, TrunkTerm::Paper, Some(0.0)),
-        "bind-lidar" => (InitSource::Lidar, TrunkTerm::Bind, Some(0.0)),
-        "bind" => (InitSource::Lidar, TrunkTerm::Bind, None),
-        other => anyhow::bail!("unknown arm {other:?}: vanilla, lidar, paper, bind-lidar or bind"),
+        "vanilla" => paper(InitSource::Sfm, TrunkTerm::Off),
+        "lidar" => paper(InitSource::Lidar, TrunkTerm::Off),
+        "paper" => paper(InitSource::Lidar, TrunkTerm::Paper),
+        "bind-lidar" => paper(InitSource::Lidar, TrunkTerm::Bind),
+        "bind-nosky" => Arm {
+            sky: Some(0),
+            ..arm("bind")?
+        },
+        "bind" => Arm {
+            init: InitSource::Lidar,
+            term: TrunkTerm::Bind,
+            fill: None,
+            sky: None,
+        },
+        other => anyhow::bail!(
+            "unknown arm {other:?}: vanilla, lidar, paper, bind-lidar, bind-nosky or bind"
+        ),
     })
 }
 
@@ -205,13 +233,12 @@ fn run_arm(
     a: &MethodBenchArgs,
     steps: u32,
 ) -> anyhow::Result<ArmResult> {
-    let (init, term, fill) = arm(name)?;
+    let arm = arm(name)?;
     let mut params = PipelineParams::default();
-    params.train.init = init;
-    if let Some(fill) = fill {
-        params.train.sfm_fill_m = fill;
-    }
-    params.train.semantic = term;
+    params.train.init = arm.init;
+    params.train.sfm_fill_m = arm.fill.unwrap_or(params.train.sfm_fill_m);
+    params.train.sky_gaussians = arm.sky.unwrap_or(params.train.sky_gaussians);
+    params.train.semantic = arm.term;
     params.train.steps = steps;
     params.train.resolution = a.method_resolution;
     params.train.max_gaussians = a.method_cap;

@@ -207,6 +207,12 @@ pub struct TrainParams {
     /// too; metres, 0 = the anchors alone (the paper's initialisation). Default 0.1 (Sylva's:
     /// five anchor voxels, so the SfM noise about surfaces the LiDAR has does not double them).
     pub sfm_fill_m: f64,
+    /// Background Gaussians on a dome beyond the scene (`splat::init::add_sky`), for the sky
+    /// and distant terrain the photos show: without them the optimiser paints the sky with
+    /// floaters in front of the trees, or leaves it black. Counted in `max_gaussians` (at most
+    /// a tenth of it). Default 1000 (Sylva's: about 6.4° apart); 0 = none (reference 3DGS and
+    /// the paper).
+    pub sky_gaussians: u32,
     /// What holds the trunk Gaussians: "bind" (default: Sylva's binding, surfels held on the
     /// LiDAR stem surface from step 0, METHOD.md Stage 4 "Sylva's binding"), "paper" (the
     /// paper's term L_geo exactly as METHOD.md writes it, for the ablation) or "off".
@@ -281,6 +287,7 @@ impl Default for TrainParams {
             steps: 30_000,
             init: InitSource::Lidar,
             sfm_fill_m: 0.1,
+            sky_gaussians: 1000,
             semantic: TrunkTerm::Bind,
             bind_band_m: 0.001,
             bind_normal_scale_m: 0.005,

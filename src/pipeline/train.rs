@@ -255,9 +255,15 @@ fn initial_gaussians(
         }
     };
     let before = g.len();
-    if params.max_gaussians > 0 && g.len() > params.max_gaussians as usize {
+    // The sky dome's share of a cap: at most a tenth.
+    let sky = match params.max_gaussians {
+        0 => params.sky_gaussians,
+        max => params.sky_gaussians.min(max / 10),
+    };
+    let max = params.max_gaussians.saturating_sub(sky);
+    if params.max_gaussians > 0 && g.len() > max as usize {
         let band = band.map(|f| f(&g.means));
-        cap_gaussians(&mut g, params.max_gaussians, params.seed, band.as_deref());
+        cap_gaussians(&mut g, max, params.seed, band.as_deref());
     }
     if g.len() < before {
         // Scales from the spacing of what the cap kept (the same rule as the source's).
@@ -266,6 +272,7 @@ fn initial_gaussians(
             InitSource::Sfm => init::rescale_from_spacing(&mut g, 3, 0.0),
         }
     }
+    init::add_sky(&mut g, &data.train, sky as usize);
     Ok(g)
 }
 

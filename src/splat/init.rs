@@ -91,6 +91,72 @@ pub fn rescale_from_spacing(g: &mut Gaussians, k: usize, eps: f64) {
     }
 }
 
+/// Trunk probability that marks a background Gaussian of the sky dome ([`sky_dome`]): below
+/// every label, so no trunk term takes it, and exempt from the size pruning of the density
+/// control (a dome Gaussian is large by design).
+pub const BACKGROUND_PROB: f32 = -1.0;
+
+/// `n` points spread evenly (a Fibonacci lattice) over the sphere of `radius_m` about
+/// `centre`: the positions of the background Gaussians that take what the photos show beyond
+/// the scene — sky, distant terrain — which would otherwise be painted by floaters in front of
+/// it or left black.
+pub fn sky_dome(centre: [f32; 3], radius_m: f32, n: usize) -> Vec<[f32; 3]> {
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..n)
+        .map(|i| {
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let a = golden * i as f64;
+            [
+                centre[0] + radius_m * (r * a.cos()) as f32,
+                centre[1] + radius_m * (r * a.sin()) as f32,
+                centre[2] + radius_m * z as f32,
+            ]
+        })
+        .collect()
+}
+
+/// Appends `n` background Gaussians on a dome ([`sky_dome`]) about the mean of the views'
+/// camera centres, of twice the radius that holds every camera and every Gaussian of `g`:
+/// isotropic, as wide as their spacing on the dome, trunk probability [`BACKGROUND_PROB`],
+/// coloured like anchors by the median of their projections where nothing of `g` is in front
+/// (grey where they are never seen).
+pub fn add_sky(g: &mut Gaussians, views: &[View], n: usize) {
+    if n == 0 || views.is_empty() {
+        return;
+    }
+    let centres: Vec<glam::Vec3> = views
+        .iter()
+        .map(|v| glam::Vec3::from_array(v.camera.centre()))
+        .collect();
+    let centre = centres.iter().copied().sum::<glam::Vec3>() / centres.len() as f32;
+    let reach = centres
+        .iter()
+        .copied()
+        .chain(g.means.iter().map(|m| glam::Vec3::from_array(*m)))
+        .filter(|p| p.is_finite())
+        .map(|p| p.distance(centre))
+        .fold(1.0f32, f32::max);
+    let radius = 2.0 * reach;
+    let dome = sky_dome(centre.to_array(), radius, n);
+    let grey = [128u8; 3];
+    let anchors: Vec<Anchor> = g
+        .means
+        .iter()
+        .chain(&dome)
+        .map(|&position| Anchor {
+            position,
+            colour: grey,
+            trunk_prob: 0.0,
+        })
+        .collect();
+    let colours = photometric_colours(&anchors, views, &AnchorInit::default());
+    let spacing = radius * (4.0 * std::f32::consts::PI / n as f32).sqrt();
+    for (p, c) in dome.iter().zip(&colours[g.len()..]) {
+        g.push(seed_gaussian(*p, spacing.ln(), *c, BACKGROUND_PROB));
+    }
+}
+
 /// A LiDAR anchor: position (metres), its own colour (fallback) and trunk probability P_i.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Anchor {

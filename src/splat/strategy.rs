@@ -208,7 +208,8 @@ impl DefaultStrategy {
                 if sigmoid(e.opacity_logit) < self.cfg.prune_opacity {
                     return false;
                 }
-                if after_first_reset {
+                // The background dome is large by design (`init::sky_dome`).
+                if after_first_reset && e.trunk_prob >= 0.0 {
                     let radius = src.map_or(0.0, |i| self.max_radius[i]);
                     let world = e.log_scale.iter().copied().fold(f32::MIN, f32::max).exp();
                     return radius <= self.cfg.prune_screen_radius_px && world <= max_world;
