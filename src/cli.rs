@@ -986,8 +986,8 @@ async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
     // 3. The job: GPU when there is one, else the CPU reference on a small budget.
     let gpu = crate::gpu::probe().await;
     let params = match &gpu {
-        // A software adapter (lavapipe) gets a budget it finishes in a few minutes: a random
-        // tenth-or-so of the ~180 k anchors and short training.
+        // A software adapter (lavapipe) gets a budget it finishes in a few minutes: an even
+        // draw of about a twentieth of the ~180 k anchors and short training.
         Some(g) if g.device_type == "cpu" => {
             eprintln!("training on {} (a software GPU: small budget)", g.name);
             serde_json::json!({"train": {"steps": a.steps.unwrap_or(500), "resolution": 80,

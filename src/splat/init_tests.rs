@@ -110,3 +110,53 @@ fn anchor_samples_are_bounded_by_reservoir_sampling() {
         "median of a sample of 100..140 is in range: {c}"
     );
 }
+
+#[test]
+fn the_sky_dome_covers_the_sphere_evenly_and_takes_the_colour_seen_past_the_scene() {
+    // Evenly: every point on the sphere, and the largest gap about the lattice spacing.
+    let dome = sky_dome([1.0, 2.0, 3.0], 10.0, 500);
+    assert_eq!(dome.len(), 500);
+    let spacing = 10.0 * (4.0 * std::f32::consts::PI / 500.0).sqrt();
+    for p in &dome {
+        let r = glam::Vec3::from_array(*p).distance(glam::Vec3::new(1.0, 2.0, 3.0));
+        assert!((r - 10.0).abs() < 1e-4, "{r}");
+    }
+    let mut rng = SplitMix64::new(5);
+    for _ in 0..200 {
+        // A random direction: its nearest dome point is within a spacing.
+        let d = glam::Vec3::new(
+            rng.normal() as f32,
+            rng.normal() as f32,
+            rng.normal() as f32,
+        )
+        .normalize();
+        let q = glam::Vec3::new(1.0, 2.0, 3.0) + d * 10.0;
+        let near = dome
+            .iter()
+            .map(|p| glam::Vec3::from_array(*p).distance(q))
+            .fold(f32::INFINITY, f32::min);
+        assert!(
+            near < spacing,
+            "{near} m from the dome, spacing {spacing} m"
+        );
+    }
+    // Past a scene of one Gaussian in front of the camera, the dome takes the views' colour.
+    let mut g = Gaussians::default();
+    g.push(seed_gaussian([0.0, 0.0, 2.0], 0.1f32.ln(), [9, 9, 9], 0.9));
+    let views = [view(200), view(180), view(190)];
+    add_sky(&mut g, &views, 400);
+    assert_eq!(g.len(), 401);
+    assert!(g.trunk_prob[1..].iter().all(|&p| p == BACKGROUND_PROB));
+    let seen: Vec<usize> = (1..g.len())
+        .filter(|&i| (0.5 + SH_C0 * g.sh[i][0] - 190.0 / 255.0).abs() < 1e-6)
+        .collect();
+    assert!(!seen.is_empty(), "no dome Gaussian took the median colour");
+    // Those unseen (behind the cameras) are grey; all are as wide as their spacing.
+    let radius = glam::Vec3::from_array(g.means[1]).length();
+    let width = radius * (4.0 * std::f32::consts::PI / 400.0).sqrt();
+    assert!(
+        g.log_scales[1..]
+            .iter()
+            .all(|s| (s[0] - width.ln()).abs() < 1e-5)
+    );
+}

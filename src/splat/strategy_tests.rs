@@ -109,6 +109,24 @@ fn transparent_and_oversized_gaussians_are_pruned() {
 }
 
 #[test]
+fn background_gaussians_are_large_by_design_and_only_opacity_prunes_them() {
+    let cfg = TrainConfig::default();
+    let sky = crate::splat::init::BACKGROUND_PROB;
+    let mut m = model(&[
+        gaussian(0.0, 0.5, 0.5, sky),   // wide and large on screen: kept
+        gaussian(1.0, 0.5, 0.001, sky), // transparent: pruned
+        gaussian(2.0, 0.5, 0.5, 0.0),   // wide, not background: pruned
+    ]);
+    let mut adam = AdamState::new(3);
+    let mut s = DefaultStrategy::new(&cfg);
+    let step = cfg.opacity_reset_interval + cfg.densify_interval;
+    feed(&mut s, step, &[0.0; 3], 50.0);
+    let r = s.refine(step, &mut m, &mut adam, EXTENT);
+    assert_eq!((r.pruned, r.after), (2, 1));
+    assert_eq!(m.means, vec![[0.0, 0.0, 0.0]]);
+}
+
+#[test]
 fn adam_moments_follow_their_gaussians_and_new_ones_start_at_zero() {
     // 0: cloned, 1: pruned, 2: split, 3: untouched.
     let mut m = model(&[
