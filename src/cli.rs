@@ -780,7 +780,13 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
                 .map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?
         };
         let before = init.len();
-        crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None);
+        crate::pipeline::train::cap_gaussians(
+            &mut init,
+            params.max_gaussians,
+            params.seed,
+            None,
+            0,
+        );
         if a.init == "sfm" && init.len() < before {
             crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
         }
@@ -890,7 +896,7 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             let data = crate::splat::dataset::load(&model, &images, cfg.resolution, 0, &crate::progress::NoProgress)?;
             let mut init = crate::splat::init::from_sfm_points(&data.points, &data.colours)?;
             let before = init.len();
-            crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None);
+            crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None, 0);
             if init.len() < before {
                 crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
             }

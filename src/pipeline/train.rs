@@ -74,7 +74,16 @@ pub const DBH_BAND_SHARE_OF_TRUNKS: f64 = 0.5;
 /// grid shifted by the seed, so a slice of a stem holds surfels all round its circumference
 /// rather than a random subset's clumps and gaps. Scales are left as they are: the caller
 /// sets them from the spacing of what is kept ([`crate::splat::init::rescale_from_spacing`]).
-pub fn cap_gaussians(g: &mut Gaussians, max: u32, seed: u64, band: Option<&[bool]>) {
+///
+/// `added_later` Gaussians of the others' side (the sky dome) join the model after the cap:
+/// the trunks' share is of `max + added_later`, so the dome's room comes from the others.
+pub fn cap_gaussians(
+    g: &mut Gaussians,
+    max: u32,
+    seed: u64,
+    band: Option<&[bool]>,
+    added_later: u32,
+) {
     let n = g.len();
     if max == 0 || n <= max as usize {
         return;
@@ -84,7 +93,10 @@ pub fn cap_gaussians(g: &mut Gaussians, max: u32, seed: u64, band: Option<&[bool
     let (trunk, other): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| g.trunk_prob[i] >= 0.5);
     let (trunk_band, trunk_rest): (Vec<usize>, Vec<usize>) =
         trunk.iter().partition(|&&i| in_band(i));
-    let reserve = ((max as f64 * TRUNK_SHARE_OF_CAP) as usize).min(trunk.len());
+    let share_of = max + added_later as usize;
+    let reserve = ((share_of as f64 * TRUNK_SHARE_OF_CAP) as usize)
+        .min(trunk.len())
+        .min(max);
     let from_other = (max - reserve).min(other.len());
     let from_trunk = (max - from_other).min(trunk.len());
     let band_reserve =
@@ -263,7 +275,7 @@ fn initial_gaussians(
     let max = params.max_gaussians.saturating_sub(sky);
     if params.max_gaussians > 0 && g.len() > max as usize {
         let band = band.map(|f| f(&g.means));
-        cap_gaussians(&mut g, max, params.seed, band.as_deref());
+        cap_gaussians(&mut g, max, params.seed, band.as_deref(), sky);
     }
     if g.len() < before {
         // Scales from the spacing of what the cap kept (the same rule as the source's).
@@ -601,27 +613,31 @@ mod tests {
     fn a_cap_keeps_a_share_for_the_trunks_and_lends_what_one_side_leaves() {
         // Few trunk Gaussians: all are kept, the others fill the cap.
         let mut g = scene(50, 10_000);
-        cap_gaussians(&mut g, 1000, 7, None);
+        cap_gaussians(&mut g, 1000, 7, None, 0);
         assert_eq!((g.len(), trunk_count(&g)), (1000, 50));
         // Many: half the cap for each side.
         let mut g = scene(5000, 10_000);
-        cap_gaussians(&mut g, 1000, 7, None);
+        cap_gaussians(&mut g, 1000, 7, None, 0);
         assert_eq!((g.len(), trunk_count(&g)), (1000, 500));
+        // Room for 100 Gaussians added later comes from the others' share.
+        let mut g = scene(5000, 10_000);
+        cap_gaussians(&mut g, 900, 7, None, 100);
+        assert_eq!((g.len(), trunk_count(&g)), (900, 500));
         // Few others: the trunks take the rest of the cap.
         let mut g = scene(5000, 100);
-        cap_gaussians(&mut g, 1000, 7, None);
+        cap_gaussians(&mut g, 1000, 7, None, 0);
         assert_eq!((g.len(), trunk_count(&g)), (1000, 900));
         // Under the cap, or no cap: nothing goes.
         let mut g = scene(10, 10);
-        cap_gaussians(&mut g, 1000, 7, None);
+        cap_gaussians(&mut g, 1000, 7, None, 0);
         assert_eq!(g.len(), 20);
-        cap_gaussians(&mut g, 0, 7, None);
+        cap_gaussians(&mut g, 0, 7, None, 0);
         assert_eq!(g.len(), 20);
         // The same seed keeps the same Gaussians; another keeps others.
         let (mut a, mut b, mut c) = (scene(3000, 3000), scene(3000, 3000), scene(3000, 3000));
-        cap_gaussians(&mut a, 500, 1, None);
-        cap_gaussians(&mut b, 500, 1, None);
-        cap_gaussians(&mut c, 500, 2, None);
+        cap_gaussians(&mut a, 500, 1, None, 0);
+        cap_gaussians(&mut b, 500, 1, None, 0);
+        cap_gaussians(&mut c, 500, 2, None, 0);
         assert_eq!(a.means, b.means);
         assert_ne!(a.means, c.means);
     }
@@ -658,7 +674,7 @@ mod tests {
             g.push(one);
         }
         let mut drawn = g.clone();
-        cap_gaussians(&mut drawn, 400, 1, None);
+        cap_gaussians(&mut drawn, 400, 1, None, 0);
         assert_eq!(drawn.len(), 400);
         // A random subset of the same size, for comparison.
         let mut keep = vec![false; g.len()];
