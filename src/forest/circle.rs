@@ -140,9 +140,25 @@ pub fn refine_circle_geometric(
     start: &CircleFit,
     max_iterations: usize,
 ) -> (CircleFit, bool) {
+    refine_circle_geometric_with_prior(points, weights, start, max_iterations, None)
+}
+
+/// [`refine_circle_geometric`] with a soft prior on the centre: `(p, λ)` adds
+/// λ · |c − p|² to the cost, the centre as a pseudo-observation worth λ points of weight 1
+/// (MAP estimate under a Gaussian prior; λ = σ_point² / σ_centre²).
+pub fn refine_circle_geometric_with_prior(
+    points: &[[f64; 2]],
+    weights: Option<&[f64]>,
+    start: &CircleFit,
+    max_iterations: usize,
+    prior: Option<([f64; 2], f64)>,
+) -> (CircleFit, bool) {
     let w_at = |i: usize| weights.map_or(1.0, |w| w[i]);
+    let (pc, lambda) = prior
+        .filter(|(p, l)| l.is_finite() && *l > 0.0 && p[0].is_finite() && p[1].is_finite())
+        .unwrap_or(([0.0; 2], 0.0));
     let cost = |c: [f64; 2], r: f64| {
-        let mut s = 0.0;
+        let mut s = lambda * ((c[0] - pc[0]).powi(2) + (c[1] - pc[1]).powi(2));
         for (i, p) in points.iter().enumerate() {
             let e = (p[0] - c[0]).hypot(p[1] - c[1]) - r;
             s += w_at(i) * e * e;
@@ -171,6 +187,11 @@ pub fn refine_circle_geometric(
                 g[rr] -= w * jr * e;
             }
         }
+        // The prior's pseudo-residuals √λ (c − p), Jacobian √λ I on the centre.
+        a[0][0] += lambda;
+        a[1][1] += lambda;
+        g[0] -= lambda * (c[0] - pc[0]);
+        g[1] -= lambda * (c[1] - pc[1]);
         let Some(step) = solve3(a, g, 1.0) else {
             return (with_rms(points, weights, c, r, start.n), false);
         };

@@ -132,7 +132,15 @@ pub struct SliceCenterPrior {
     pub center: Vec3,
     /// Largest distance of a fitted centre from `center` in the slice plane, metres.
     pub max_offset_m: f32,
+    /// Weight of `center` in the geometric refinement, in points of weight 1
+    /// ([`CenterPrior::weight`]); 0: the prior only gates.
+    pub weight: f64,
 }
+
+/// How far the trunk surfels of Sylva's binding scatter about the LiDAR stem circle, metres:
+/// 4 mm (measured: 2.4–4.1 mm mean absolute on `stand` and `tiny`, docs/results/twin.md), the
+/// σ_point of the centre prior's weight.
+pub const SURFEL_SCATTER_M: f64 = 0.004;
 
 impl SliceCenterPrior {
     /// The prior the Gaussian fit gets from the LiDAR fit `lidar`: its centre, and
@@ -141,10 +149,18 @@ impl SliceCenterPrior {
     /// arc of a neighbouring stem or a branch — whose centre lies at least a radius away —
     /// is refused; 2 cm keeps room for thin stems, where half a radius is below the fits'
     /// own centre noise (~1 cm, the scanner's range noise).
+    ///
+    /// Its weight makes the LiDAR centre a pseudo-observation of the centre's own standard
+    /// error, rms × √(2 / n) of the LiDAR fit (at least 1 mm), against [`SURFEL_SCATTER_M`]
+    /// per surfel: a partial arc of surfels, whose centre its points hardly fix, is held
+    /// there, while a full circle of many surfels keeps its own.
     pub fn from_lidar(lidar: &StemDbh) -> Self {
+        let fit = &lidar.circle.fit;
+        let se = (fit.rms * (2.0 / fit.n.max(1) as f64).sqrt()).max(0.001);
         Self {
             center: lidar.center,
             max_offset_m: (0.25 * lidar.diameter_m as f32).max(0.02),
+            weight: (SURFEL_SCATTER_M / se).powi(2),
         }
     }
 }
@@ -243,6 +259,7 @@ fn fit_slice(
         CenterPrior {
             center: [d.dot(e1) as f64, d.dot(e2) as f64],
             max_offset_m: f64::from(p.max_offset_m),
+            weight: p.weight,
         }
     });
     let fit = fit_circle_robust_weighted(

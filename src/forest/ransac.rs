@@ -9,7 +9,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::splat::rng::SplitMix64;
 
-use super::circle::{CircleFit, arc_coverage, fit_circle_weighted, refine_circle_geometric};
+use super::circle::{
+    CircleFit, arc_coverage, fit_circle_weighted, refine_circle_geometric_with_prior,
+};
 
 /// Parameters of [`fit_circle_robust`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -95,6 +97,9 @@ pub struct CenterPrior {
     pub center: [f64; 2],
     /// Largest accepted distance of a circle centre from `center`, metres.
     pub max_offset_m: f64,
+    /// Weight of `center` in the geometric refinement, as a pseudo-observation worth this many
+    /// points of weight 1 (λ = σ_point² / σ_centre²); 0: the prior only gates.
+    pub weight: f64,
 }
 
 impl CenterPrior {
@@ -187,8 +192,13 @@ pub fn fit_circle_robust_weighted(
     for _ in 0..2 {
         let (pts, w) = gather(points, weights, &inliers);
         if params.refine_iterations > 0 {
-            let (refined, ok) =
-                refine_circle_geometric(&pts, w.as_deref(), &fit, params.refine_iterations);
+            let (refined, ok) = refine_circle_geometric_with_prior(
+                &pts,
+                w.as_deref(),
+                &fit,
+                params.refine_iterations,
+                prior.map(|p| (p.center, p.weight)),
+            );
             fit = refined;
             converged = ok;
         }

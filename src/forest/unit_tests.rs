@@ -223,10 +223,12 @@ fn the_centre_prior_rejects_circles_centred_elsewhere() {
     let near = CenterPrior {
         center: [1.02, 1.0],
         max_offset_m: 0.05,
+        weight: 0.0,
     };
     let far = CenterPrior {
         center: [1.3, 1.0],
         max_offset_m: 0.05,
+        weight: 0.0,
     };
     let p = CircleParams::default();
     assert_eq!(
