@@ -283,3 +283,28 @@ fn slab_mass_is_the_share_of_a_gaussian_inside_the_slab() {
     let wide = slab_mass(0.0, 0.01, 1.0);
     assert!((wide - 0.02 / (2.0 * std::f64::consts::PI).sqrt()).abs() < 1e-5);
 }
+
+#[test]
+fn a_soft_centre_prior_holds_a_partial_arc_and_leaves_a_full_circle_its_own_centre() {
+    // A quarter of a 15 cm circle, 20 points scattered ±7 mm: its centre is poorly fixed.
+    let arc = ring([0.0, 0.0], 0.15, 0.0, 90.0, 20, 0.007);
+    let p = CircleParams::default();
+    let prior = |weight: f64| CenterPrior {
+        center: [0.0, 0.0],
+        max_offset_m: 0.05,
+        weight,
+    };
+    let free = fit_circle_robust_weighted(&arc, None, Some(&prior(0.0)), &p).expect("fit");
+    let held = fit_circle_robust_weighted(&arc, None, Some(&prior(16.0)), &p).expect("fit");
+    let (e_free, e_held) = (
+        (free.fit.radius - 0.15).abs(),
+        (held.fit.radius - 0.15).abs(),
+    );
+    assert!(e_held < 0.002, "held {e_held} m");
+    assert!(e_held < e_free, "held {e_held} m, free {e_free} m");
+    // A full circle of 72 points centred 3 mm off the prior keeps most of its own centre.
+    let full = ring([0.003, 0.0], 0.15, 0.0, 360.0, 72, 0.004);
+    let fit = fit_circle_robust_weighted(&full, None, Some(&prior(16.0)), &p).expect("fit");
+    assert!(fit.fit.center[0] > 0.002, "{:?}", fit.fit.center);
+    assert!((fit.fit.radius - 0.15).abs() < 0.002, "{fit:?}");
+}
