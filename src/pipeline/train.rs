@@ -288,14 +288,19 @@ fn initial_gaussians(
     Ok(g)
 }
 
-/// Appends, as non-trunk Gaussians of the SfM rule, the SfM points of `data` farther than
-/// `min_dist_m` from every anchor (see `TrainParams::sfm_fill_m`).
-fn sfm_fill(g: &mut Gaussians, anchors: &[Anchor], data: &Dataset, min_dist_m: f64) {
+/// A nearest-neighbour index of the anchors' positions; `None` when they cannot be indexed.
+fn anchor_index(anchors: &[Anchor]) -> Option<crate::geom::PointIndex> {
     let pts: Vec<glam::Vec3> = anchors
         .iter()
         .map(|a| glam::Vec3::from_array(a.position))
         .collect();
-    let Ok(index) = crate::geom::PointIndex::new(&pts) else {
+    crate::geom::PointIndex::new(&pts).ok()
+}
+
+/// Appends, as non-trunk Gaussians of the SfM rule, the SfM points of `data` farther than
+/// `min_dist_m` from every anchor (see `TrainParams::sfm_fill_m`).
+fn sfm_fill(g: &mut Gaussians, anchors: &[Anchor], data: &Dataset, min_dist_m: f64) {
+    let Some(index) = anchor_index(anchors) else {
         return;
     };
     let far = |p: &[f32; 3]| {
@@ -319,11 +324,7 @@ fn sfm_fill(g: &mut Gaussians, anchors: &[Anchor], data: &Dataset, min_dist_m: f
 
 /// Sets every Gaussian's trunk probability to that of its nearest anchor.
 fn inherit_trunk_prob(g: &mut Gaussians, anchors: &[Anchor]) {
-    let pts: Vec<glam::Vec3> = anchors
-        .iter()
-        .map(|a| glam::Vec3::from_array(a.position))
-        .collect();
-    let Ok(index) = crate::geom::PointIndex::new(&pts) else {
+    let Some(index) = anchor_index(anchors) else {
         return;
     };
     for (m, p) in g.means.iter().zip(g.trunk_prob.iter_mut()) {
