@@ -1,4 +1,4 @@
-// Shared declarations of the splatting kernels (SPLATTING.md). Prepended to the per-pass files.
+// Shared declarations of the splatting kernels (docs/splatting.md). Prepended to the per-pass files.
 
 // Camera and frame parameters, one uniform per render (see `params.rs`).
 struct Params {

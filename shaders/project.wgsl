@@ -1,4 +1,4 @@
-// Projection (SPLATTING.md "Forward", steps 1-8): one thread per Gaussian of one chunk. Writes the
+// Projection (docs/splatting.md "Forward", steps 1-8): one thread per Gaussian of one chunk. Writes the
 // screen-space record (3 vec4 per Gaussian) and the number of touched tiles (0 when culled). Every
 // buffer but the uniforms is bound as the chunk's sub-range (index `c`; see `chunks.rs`).
 

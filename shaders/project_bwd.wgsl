@@ -144,7 +144,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let v_j0 = 2.0 * (g00 * sj0 + g01 * sj1);
     let v_j1 = 2.0 * (g01 * sj0 + g11 * sj1);
 
-    // J -> t (the clamped tx, ty are constants; SPLATTING.md step 3) and mean2d -> t.
+    // J -> t (the clamped tx, ty are constants; docs/splatting.md step 3) and mean2d -> t.
     let rz3 = rz2 * rz;
     var v_t = vec3<f32>(0.0);
     if ux >= -p.lim.x && ux <= p.lim.x {

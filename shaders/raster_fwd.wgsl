@@ -1,7 +1,7 @@
 // Forward rasterisation: one workgroup per 16x16 tile; each thread owns PIX consecutive pixels of
 // one tile row (PIX and THREADS = 256 / PIX are prepended by `raster_fwd.rs`; see
 // `raster_bwd.wgsl`). Batches of 256 Gaussians of the tile's depth-sorted run are staged in
-// workgroup memory and blended front to back (SPLATTING.md "Per pixel"); a thread reads each
+// workgroup memory and blended front to back (docs/splatting.md "Per pixel"); a thread reads each
 // staged Gaussian once for all its pixels, and the workgroup stops once every pixel is saturated.
 
 // Bindings 1-5 (projected record slots, band): `slots.wgsl`. One dispatch per band of tile rows;

@@ -1,4 +1,4 @@
-// The semantic geometric term L_geo (METHOD.md Stage 4), three passes per step:
+// The semantic geometric term L_geo (docs/method.md Stage 4), three passes per step:
 //   query  — per Gaussian: nearest trunk anchor, mean distance to the K nearest trunk anchors,
 //            nearest leaf anchor (uniform grids, exact ring search), the weight w = alpha P q and
 //            the targets; writes 2 vec4 per Gaussian: (a_nn.xyz, s_target), (w, 0, 0, 0),

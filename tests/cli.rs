@@ -259,7 +259,7 @@ fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters
     let loss = std::fs::read_to_string(out.join("train/loss.csv")).expect("loss.csv");
     assert_eq!(loss.lines().count(), 1 + 6, "{loss}");
     // Stage dbh fills the inventory with both diameters' columns and scores them.
-    // (results.json's `dbh` is the accuracy summary METHOD.md asks for.)
+    // (results.json's `dbh` is the accuracy summary docs/method.md asks for.)
     let dbh = &results["dbh"];
     assert!(dbh["rmse_lidar_cm"].as_f64().is_some(), "{dbh}");
     assert_eq!(dbh["matched"].as_u64(), Some(3), "{dbh}");

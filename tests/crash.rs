@@ -1,4 +1,4 @@
-//! A crash inside any stage loses nothing (SERVICE.md: "A killed process (SIGKILL at any
+//! A crash inside any stage loses nothing (docs/operations.md: "A killed process (SIGKILL at any
 //! point) loses no accepted upload, no job, no finished stage").
 //!
 //! One generated plot runs through every stage once without interruption (the reference).

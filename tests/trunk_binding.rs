@@ -128,7 +128,7 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
         .expect("offset");
     assert!(bind_abs <= 15.0, "{bind_abs} mm");
 
-    // The paper's term as METHOD.md writes it: no weight before the (scaled) ramp starts, a
+    // The paper's term as docs/method.md writes it: no weight before the (scaled) ramp starts, a
     // candidate set once the opacities allow, and nothing that holds the trunks in place.
     assert_eq!(paper_train["semantic"]["term"], "paper", "{paper_train}");
     let start = paper_train["semantic"]["gamma_start"]

@@ -1,4 +1,4 @@
-//! The HTTP API (SERVICE.md, openapi.yaml): thin handlers over the job store and the blob
+//! The HTTP API (docs/api.md, openapi.yaml): thin handlers over the job store and the blob
 //! store, with the cross-cutting concerns — auth, body limits, timeouts, request ids,
 //! tracing, problem+json — as layers.
 

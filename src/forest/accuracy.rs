@@ -1,4 +1,4 @@
-//! Comparison of an inventory with field-measured DBH (METHOD.md Stage 5: "match trees by
+//! Comparison of an inventory with field-measured DBH (docs/method.md Stage 5: "match trees by
 //! position and report RMSE (cm), bias, R², mean relative error"), plus detection recall and
 //! precision.
 //!

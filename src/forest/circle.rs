@@ -1,4 +1,4 @@
-//! Circle fitting in the plane: the weighted algebraic (Kåsa) fit of METHOD.md Stage 5.3, a
+//! Circle fitting in the plane: the weighted algebraic (Kåsa) fit of docs/method.md Stage 5.3, a
 //! RANSAC front end that drops gross outliers (Stage 5.2), a geometric Gauss–Newton
 //! refinement, and the quality figures every stem diameter is reported with.
 //!
@@ -24,7 +24,7 @@ pub struct CircleFit {
 
 /// Weighted algebraic (Kåsa) circle fit: solves the 3×3 weighted normal equations of
 /// `E(u, v, c) = sum w_i (x_i² + y_i² + u x_i + v y_i + c)²`; centre (-u/2, -v/2),
-/// r = sqrt(u²/4 + v²/4 - c) (METHOD.md Stage 5.3). `weights` default to 1.
+/// r = sqrt(u²/4 + v²/4 - c) (docs/method.md Stage 5.3). `weights` default to 1.
 ///
 /// `None` for fewer than 3 points with positive weight, non-finite input, mismatched lengths
 /// or (near-)collinear points.
@@ -234,7 +234,7 @@ fn with_rms(
 }
 
 /// Share of the 36 ten-degree sectors around `center` that hold at least one point, in
-/// [0, 1] (METHOD.md Stage 5: arc coverage).
+/// [0, 1] (docs/method.md Stage 5: arc coverage).
 pub fn arc_coverage(points: &[[f64; 2]], center: [f64; 2]) -> f64 {
     let mut occupied = [false; 36];
     for p in points {

@@ -1,4 +1,4 @@
-//! Label clean-up on the k-NN graph (METHOD.md Stage 3.4): connected components of each label;
+//! Label clean-up on the k-NN graph (docs/method.md Stage 3.4): connected components of each label;
 //! components smaller than tau_c points take the label of their nearest differently-labelled
 //! neighbour.
 

@@ -1,4 +1,4 @@
-//! Diameter at breast height of one stem (METHOD.md Stage 5, LiDAR-only baseline): the stem's
+//! Diameter at breast height of one stem (docs/method.md Stage 5, LiDAR-only baseline): the stem's
 //! points in a slice 1.3 m ± 0.1 m above ground, cut perpendicular to the stem's own axis,
 //! a robust circle fit, and neighbouring slices when that one is poor.
 //!
@@ -9,7 +9,7 @@
 //! than the fit's own error, and a taper estimated from two noisy slices would add more.
 //!
 //! The same measurement serves any point set ([`measure_dbh_of`]): the LiDAR points of a stem
-//! (weights 1) and the centres of its trunk Gaussians (weights = opacity, METHOD.md Stage 5.3),
+//! (weights 1) and the centres of its trunk Gaussians (weights = opacity, docs/method.md Stage 5.3),
 //! so the two diameters differ only by what they are fitted to. The Gaussian fit adds a reach
 //! limit around the axis and a centre prior from the LiDAR circle ([`SliceCenterPrior`]), and
 //! with a prior an acceptable partial arc at breast height is kept rather than traded for a
@@ -30,9 +30,9 @@ pub const MIN_STEM_ARC: f64 = 0.25;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct DbhParams {
-    /// Breast height along the stem above the ground, metres (METHOD.md Stage 5: 1.3 m).
+    /// Breast height along the stem above the ground, metres (docs/method.md Stage 5: 1.3 m).
     pub breast_height_m: f32,
-    /// Half the slice thickness, metres (METHOD.md Stage 5: ± 0.1 m).
+    /// Half the slice thickness, metres (docs/method.md Stage 5: ± 0.1 m).
     pub half_thickness_m: f32,
     /// Slice heights tried, in order, when the breast-height slice is poor, metres.
     pub fallback_heights_m: Vec<f32>,

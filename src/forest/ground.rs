@@ -49,7 +49,7 @@ impl Default for CsfParams {
 
 /// Ground points more than this far above the settled cloth (metres) are left out of the DTM:
 /// they are stem bases, roots or litter inside the class threshold. 0.1 m is ten times the
-/// range noise of a handheld scanner (METHOD.md: sigma 1 cm).
+/// range noise of a handheld scanner (docs/method.md: sigma 1 cm).
 pub const DTM_TOLERANCE_M: f64 = 0.1;
 
 /// A regular raster of ground heights over the plot (local coordinates, metres).

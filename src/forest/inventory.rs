@@ -28,7 +28,7 @@ pub struct InventoryParams {
     pub stems: StemParams,
     /// Stem-guided relabelling of the wood/leaf labels (after the stems are found).
     pub stem_labels: StemLabelParams,
-    /// Breast-height slice and circle fitting (METHOD.md Stage 5).
+    /// Breast-height slice and circle fitting (docs/method.md Stage 5).
     pub dbh: DbhParams,
 }
 

@@ -1,5 +1,5 @@
 //! Deterministic k-means (Lloyd) on standardised feature rows, used with K = 2 for the
-//! wood/leaf split (METHOD.md Stage 3.3).
+//! wood/leaf split (docs/method.md Stage 3.3).
 //!
 //! Seeding is k-means++ (D² sampling, Arthur & Vassilvitskii 2007) driven by a fixed-seed
 //! SplitMix64 generator over a strided subsample of at most 100 000 rows, so the result is

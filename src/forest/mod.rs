@@ -1,7 +1,7 @@
 //! Forest analysis: the ground model, wood/leaf segmentation, stems and their diameters at
 //! breast height, the per-tree inventory and its comparison with field data.
 //!
-//! The pipeline of [`inventory`] follows METHOD.md Stages 3 and 5 on the LiDAR cloud:
+//! The pipeline of [`inventory`] follows docs/method.md Stages 3 and 5 on the LiDAR cloud:
 //! ground (cloth simulation, [`ground`]) → wood/leaf labels on the non-ground points
 //! ([`segment`], paper 3.4) → stems from the trunk points in a band around breast height
 //! ([`stems`]) → a robust circle per stem at 1.3 m above ground in the stem's own frame

@@ -1,4 +1,4 @@
-//! Robust circle fit of one stem slice: RANSAC on 3-point samples (METHOD.md Stage 5.2), the
+//! Robust circle fit of one stem slice: RANSAC on 3-point samples (docs/method.md Stage 5.2), the
 //! weighted algebraic fit on the inliers (Stage 5.3), an optional geometric Gauss–Newton
 //! refinement, and the quality figures (RMS residual, arc coverage, inlier share).
 //!
@@ -17,7 +17,7 @@ use super::circle::{
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct CircleParams {
-    /// A point within this distance of a candidate circle is an inlier, metres. METHOD.md
+    /// A point within this distance of a candidate circle is an inlier, metres. docs/method.md
     /// Stage 5.2: "of the order of 1–2 cm"; 1.5 cm is 1.5 sigma of a handheld scanner's range
     /// noise (1 cm).
     pub inlier_threshold_m: f64,
@@ -124,7 +124,7 @@ pub fn fit_circle_robust(points: &[[f64; 2]], params: &CircleParams) -> Option<R
 ///
 /// The RANSAC stage is the same as the unweighted one (uniform 3-point samples, scored by the
 /// inlier count): a weight says how much a point counts in the fit, not whether it lies on the
-/// circle. The weights enter the algebraic fit on the inliers (METHOD.md Stage 5.3, the
+/// circle. The weights enter the algebraic fit on the inliers (docs/method.md Stage 5.3, the
 /// opacity-weighted fit of the Gaussians), the Gauss–Newton refinement and the reported RMS
 /// (weighted RMS); `n`, the inlier share and the arc coverage still count points. With
 /// `weights` `None` the result is exactly that of [`fit_circle_robust`]. `None` as well when

@@ -1,4 +1,4 @@
-//! Wood/leaf segmentation (METHOD.md Stage 3, paper 3.4): eigen features of the k = 20
+//! Wood/leaf segmentation (docs/method.md Stage 3, paper 3.4): eigen features of the k = 20
 //! nearest neighbours, colour at weight 0.5, deterministic 2-means on standardised features,
 //! trunk = the cluster with the higher mean linearity, then small-component clean-up on the
 //! k-NN graph.
@@ -20,9 +20,9 @@ use super::kmeans::{distance2_to_centre, kmeans, standardise};
 use crate::geom::{EigenFeatures, PointIndex, covariance, symmetric_eigen3};
 use crate::progress::{Progress, SubProgress};
 
-/// Label of leaf (and everything that is not wood), METHOD.md Stage 3.
+/// Label of leaf (and everything that is not wood), docs/method.md Stage 3.
 pub const LEAF: u8 = 0;
-/// Label of trunk and main branches, METHOD.md Stage 3.
+/// Label of trunk and main branches, docs/method.md Stage 3.
 pub const TRUNK: u8 = 1;
 
 /// Parameters of the wood/leaf segmentation; defaults from paper 3.4.
@@ -43,7 +43,7 @@ pub struct SegmentParams {
     pub seed: u64,
     /// Radii of the coarse-scale neighbourhoods, metres; each adds linearity, planarity,
     /// sphericity and verticality to the features of the 2-means (see [`coarse_features`]).
-    /// Empty: METHOD.md's single k = 20 scale only. Default [0.3, 0.6]: at 0.3 m a branch
+    /// Empty: docs/method.md's single k = 20 scale only. Default [0.3, 0.6]: at 0.3 m a branch
     /// is a line and a leaf (the generator's discs are 16 cm across) a plane or a blob; at
     /// 0.6 m a leaf cluster is a blob. Measured on five generated stands (1 cm noise), trunk
     /// recall / precision were 0.45 / 0.16 with k = 20 alone, 0.72 / 0.60 with [0.3],
@@ -77,7 +77,7 @@ pub struct SegmentParams {
     pub fine_line_linearity: f32,
     /// Largest spread across the line of the fine line test, metres: `sqrt(l2)` of a branch
     /// of radius r with range noise sigma is about `sqrt(r²/2 + sigma²)`, 1.2 cm for r = 8 mm
-    /// and sigma = 1 cm (METHOD.md's handheld-scanner noise); 0.025 m admits branches up to
+    /// and sigma = 1 cm (docs/method.md's handheld-scanner noise); 0.025 m admits branches up to
     /// about 3 cm radius, thicker ones are lines at 0.3 m already.
     pub fine_line_spread_m: f32,
     /// Largest angle between a candidate's fine line and the principal direction of the
@@ -410,11 +410,11 @@ pub struct CoarseFeatures {
 
 /// Coarse-scale features of every point of `points`.
 ///
-/// Why a second scale: with handheld-scanner range noise of about 1 cm (METHOD.md), the
+/// Why a second scale: with handheld-scanner range noise of about 1 cm (docs/method.md), the
 /// k = 20 neighbourhood of a dense cloud spans 2–3 cm, so its shape is mostly noise: bark,
 /// twigs and leaves all look like blobs or small planes. At ~15 cm a branch is a line, a
 /// stem a curved sheet and a leaf cluster a blob or a disc, whatever the noise. The cloud is
-/// first homogenised on a grid of edge `voxel` (centroid per voxel, as METHOD.md Stage 2.1
+/// first homogenised on a grid of edge `voxel` (centroid per voxel, as docs/method.md Stage 2.1
 /// does for the anchors), so the neighbourhood is measured in space, not in point counts,
 /// and dense near-scanner patches do not dominate; each point takes its voxel's features.
 pub fn coarse_features(

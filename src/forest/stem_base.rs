@@ -19,7 +19,7 @@ pub(crate) fn base_on_dtm(origin: Vec3, axis: Vec3, dtm: &Dtm) -> Vec3 {
 
 /// Ground points further than this from the DTM (metres) are left out of the local plane:
 /// stones, litter, low shrubs and root collars inside the ground filter's class threshold
-/// (0.5 m) would lift it. 0.06 m is six times the range noise (METHOD.md: sigma 1 cm) and
+/// (0.5 m) would lift it. 0.06 m is six times the range noise (docs/method.md: sigma 1 cm) and
 /// above the DTM's own error on the generated stands (at most 2.3 cm at a stem).
 pub(crate) const LOCAL_GROUND_BAND_M: f32 = 0.06;
 

@@ -1,4 +1,4 @@
-//! Stem-guided relabelling (a refinement of METHOD.md Stage 3, run after the stems are found):
+//! Stem-guided relabelling (a refinement of docs/method.md Stage 3, run after the stems are found):
 //! each detected stem is followed up and down from breast height by circle fits of
 //! horizontal slices (region growing along the stem axis), and the points on the fitted stem
 //! surface are labelled trunk.
@@ -28,14 +28,14 @@ use super::stems::{Buckets, Stem};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct StemLabelParams {
-    /// Run the stem-guided relabelling (true by default; false gives METHOD.md's labels).
+    /// Run the stem-guided relabelling (true by default; false gives docs/method.md's labels).
     pub enabled: bool,
     /// Thickness of one slice, metres. 0.25 m: the stem slices of [`super::StemParams`]; thin
     /// enough that taper and lean change a slice's circle by millimetres, thick enough to hold
     /// a few dozen points on the thinnest stems (DBH 8 cm).
     pub slice_m: f32,
     /// A point within this distance of an accepted slice circle is trunk, metres. 0.03 m is
-    /// three times the range noise of a handheld scanner (METHOD.md: sigma 1 cm).
+    /// three times the range noise of a handheld scanner (docs/method.md: sigma 1 cm).
     pub band_m: f32,
     /// Points within the predicted radius plus this margin enter a slice's fit, metres.
     pub search_margin_m: f32,

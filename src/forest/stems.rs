@@ -1,4 +1,4 @@
-//! Stem instances (METHOD.md Stage 3, "needed around it"): points in a band around breast
+//! Stem instances (docs/method.md Stage 3, "needed around it"): points in a band around breast
 //! height (trunk-labelled only, or all non-ground: see [`StemParams::band_trunk_only`]) are
 //! clustered in the horizontal plane; each cluster that shows a stem's circle becomes one tree
 //! with an id, a base on the ground and an axis.
@@ -29,7 +29,7 @@ use crate::progress::Progress;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct StemParams {
-    /// Detection band above the DTM, metres (METHOD.md: "a band around breast height").
+    /// Detection band above the DTM, metres (docs/method.md: "a band around breast height").
     pub band_min_m: f32,
     pub band_max_m: f32,
     /// Cell edge of the horizontal clustering grid, metres: gaps narrower than this inside a
@@ -52,7 +52,7 @@ pub struct StemParams {
     /// Stem points are those within the first radius estimate plus this margin of the axis,
     /// metres.
     pub axis_margin_m: f32,
-    /// Cluster only trunk-labelled points in the band (METHOD.md's wording) when true; when
+    /// Cluster only trunk-labelled points in the band (docs/method.md's wording) when true; when
     /// false (the default) every non-ground band point is clustered and the stem tests below
     /// (vertical fill, a circle in the slices) decide. Why: on dense TLS the bark of a stem
     /// is locally planar at k = 20, and the 2-means puts most of it with the leaves (TreeLS

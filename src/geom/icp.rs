@@ -1,4 +1,4 @@
-//! Iterative closest point (METHOD.md Stage 1.2): refines a coarse similarity from SfM points
+//! Iterative closest point (docs/method.md Stage 1.2): refines a coarse similarity from SfM points
 //! (source) to the LiDAR cloud (target) by alternating nearest-neighbour correspondences
 //! within a shrinking maximum distance and a weighted least-squares update.
 //!
@@ -57,9 +57,9 @@ pub enum RobustKernel {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct IcpParams {
-    /// Objective. Default point-to-point, the paper's (METHOD.md Stage 1.2).
+    /// Objective. Default point-to-point, the paper's (docs/method.md Stage 1.2).
     pub method: IcpMethod,
-    /// Estimate scale too (similarity ICP). Default true: METHOD.md Stage 1.2, SfM scale is
+    /// Estimate scale too (similarity ICP). Default true: docs/method.md Stage 1.2, SfM scale is
     /// only approximately fixed by the coarse step.
     pub estimate_scale: bool,
     /// Estimate rotation (default true). Point-to-plane only: false keeps the initial

@@ -7,7 +7,7 @@
 //! `DMat3`/`DVec3`. Whole-cloud passes run on all cores with rayon, report progress through
 //! [`crate::progress::Progress`] and stop with [`GeomError::Cancelled`] when asked to.
 //!
-//! The algorithms follow METHOD.md Stages 1–2 (paper sections 3.3 and registration); where
+//! The algorithms follow docs/method.md Stages 1–2 (paper sections 3.3 and registration); where
 //! the paper is silent the choice is written down on the function.
 
 pub mod coarse;

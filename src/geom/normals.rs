@@ -2,7 +2,7 @@
 //!
 //! For each point the covariance of its k nearest neighbours (the point itself included, as
 //! Open3D does) is decomposed in f64: the normal is the eigenvector of the smallest
-//! eigenvalue, and the eigenvalues l1 >= l2 >= l3 give the shape features of METHOD.md
+//! eigenvalue, and the eigenvalues l1 >= l2 >= l3 give the shape features of docs/method.md
 //! Stage 3.1 (linearity, planarity, sphericity) that the wood/leaf stage reuses.
 //!
 //! PCA leaves the sign of a normal open. It is fixed towards a viewpoint (the sensor) when one
@@ -39,7 +39,7 @@ pub enum NormalOrientation {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct NormalParams {
-    /// Neighbours per point, the point itself included. Default 20: METHOD.md Stage 3.1 uses
+    /// Neighbours per point, the point itself included. Default 20: docs/method.md Stage 3.1 uses
     /// k = 20 for the eigen features, and Open3D's benchmark uses KNN 20 for normals.
     pub k: usize,
     /// Sign convention. Default: propagation seeded along +Z (up in the LiDAR frame).
@@ -74,7 +74,7 @@ impl Normals {
     }
 }
 
-/// Shape features of a neighbourhood (METHOD.md Stage 3.1), each in [0, 1].
+/// Shape features of a neighbourhood (docs/method.md Stage 3.1), each in [0, 1].
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct EigenFeatures {
     /// (l1 - l2) / l1: 1 on a line (stems, branches).
@@ -104,7 +104,7 @@ impl EigenFeatures {
 }
 
 /// Eigen features of every point from its `k` nearest neighbours (self included); k = 20 in
-/// METHOD.md Stage 3.1. Builds its own index.
+/// docs/method.md Stage 3.1. Builds its own index.
 pub fn eigen_features(
     points: &[Vec3],
     k: usize,

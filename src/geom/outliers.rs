@@ -1,4 +1,4 @@
-//! Statistical outlier filter (METHOD.md Stage 2.2, paper 3.3.2): for each point,
+//! Statistical outlier filter (docs/method.md Stage 2.2, paper 3.3.2): for each point,
 //! d_m = mean distance to its k nearest neighbours; keep the point iff
 //! d_m <= mu + alpha * sigma, with mu and sigma the mean and standard deviation of all d_m.
 

@@ -1,4 +1,4 @@
-//! Closed-form least-squares similarity between point pairs (METHOD.md Stage 1.1, Umeyama
+//! Closed-form least-squares similarity between point pairs (docs/method.md Stage 1.1, Umeyama
 //! 1991): find s, R, t minimising sum_i w_i |s R x_i + t - y_i|^2.
 //!
 //! The rotation comes from Horn's unit-quaternion method (the top eigenvector of a 4×4

@@ -1,4 +1,4 @@
-//! Fine registration against the LiDAR surface itself (METHOD.md Stage 1.2, final step):
+//! Fine registration against the LiDAR surface itself (docs/method.md Stage 1.2, final step):
 //! every SfM point is compared with a small quadric surface fitted to the LiDAR points
 //! around it, and the similarity (rotation, translation, scale) that minimises the robust sum
 //! of squared point-to-surface distances is found by Gauss-Newton, optionally together with

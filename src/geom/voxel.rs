@@ -1,4 +1,4 @@
-//! Voxel homogenisation (METHOD.md Stage 2.1, paper 3.3.1): each non-empty voxel of a grid of
+//! Voxel homogenisation (docs/method.md Stage 2.1, paper 3.3.1): each non-empty voxel of a grid of
 //! edge `v` is replaced by the centroid of its points and their mean colour.
 //!
 //! Implementation: one 63-bit Morton key per point, a parallel sort of (key, index) pairs and
@@ -20,7 +20,7 @@ const AXIS_BITS: u32 = 21;
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct VoxelParams {
-    /// Voxel edge in metres. Default 0.02 m: the paper gives no value; METHOD.md Stage 2.1
+    /// Voxel edge in metres. Default 0.02 m: the paper gives no value; docs/method.md Stage 2.1
     /// fixes 2 cm (about the spacing of handheld SLAM LiDAR on stems).
     pub voxel_size: f32,
 }

@@ -32,7 +32,7 @@ pub struct FieldTree {
     pub dbh_cm: f64,
 }
 
-/// Minimum number of control point pairs (METHOD.md: >= 4).
+/// Minimum number of control point pairs (docs/method.md: >= 4).
 pub const MIN_CONTROL_POINTS: usize = 4;
 
 struct Table {

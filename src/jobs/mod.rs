@@ -64,7 +64,7 @@ macro_rules! string_enum {
 }
 
 string_enum!(
-    /// The state of a job (SERVICE.md).
+    /// The state of a job (docs/api.md).
     JobState {
         Queued => "queued",
         Running => "running",

@@ -2,7 +2,7 @@
 //! with known truth, at equal steps — one table a person can compare with the last one.
 //!
 //! Arms (`--method-arms`): `vanilla` (SfM initialisation, no trunk term), `lidar` (LiDAR
-//! anchors, no term), `paper` (LiDAR and the paper's L_geo, METHOD.md Stage 4) — these three
+//! anchors, no term), `paper` (LiDAR and the paper's L_geo, docs/method.md Stage 4) — these three
 //! the paper's Table 5, with neither SfM fill nor sky dome — `bind-lidar` (LiDAR anchors and
 //! Sylva's binding), `bind-nosky` (the binding, the SfM points beyond the LiDAR filling the
 //! start, `params.train.sfm_fill_m`) and `bind` (Sylva's default: that and the sky dome,

@@ -1,7 +1,7 @@
 //! `sylva bench soak`: many small jobs through real `sylva` processes, with random cancels
 //! and one SIGKILL, counting anything lost.
 //!
-//! The promise SERVICE.md makes ("a killed process loses no accepted upload, no job, no
+//! The promise docs/operations.md makes ("a killed process loses no accepted upload, no job, no
 //! finished stage"; "duplicate jobs from client retries" never happen) only means something
 //! under load, so this runs the embedded default as a user would: `sylva serve` (the API,
 //! SQLite and local files, with the larger half of `--workers` worker slots) and one

@@ -1,6 +1,6 @@
 //! Stage `anchors`: the fused cloud (registered LiDAR plus the SfM points moved into the
 //! LiDAR frame) homogenised by a voxel grid and cleaned by the statistical outlier filter;
-//! the survivors are the anchor set A (METHOD.md Stage 2, paper 3.3).
+//! the survivors are the anchor set A (docs/method.md Stage 2, paper 3.3).
 //!
 //! Outputs (LiDAR local frame, offset in the PLY header): `fused.ply` (colour, scalar field
 //! `source`: 0 LiDAR, 1 SfM) and `anchors.ply` (colour, normals nx/ny/nz).

@@ -1,5 +1,5 @@
 //! Stage `dbh`: diameter at breast height from the trained Gaussians for every stem that stage
-//! `segment` found (METHOD.md Stage 5, paper 3.6), beside the LiDAR-only diameter.
+//! `segment` found (docs/method.md Stage 5, paper 3.6), beside the LiDAR-only diameter.
 //!
 //! The Gaussian diameter is measured exactly as the LiDAR one ([`forest::measure_dbh_of`]):
 //! the centres of the trunk Gaussians (trunk probability ≥ 0.5, opacity ≥ `min_opacity`) in
@@ -415,7 +415,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }))
 }
 
-/// RMSE, bias and R² of both diameters against field data (METHOD.md Stage 5).
+/// RMSE, bias and R² of both diameters against field data (docs/method.md Stage 5).
 fn field_accuracy(rows: &[TreeRow], path: &Path) -> Result<serde_json::Value, StageError> {
     let lidar = forest::compare_with_field_file(rows, path)?;
     // The same matching, scored on the Gaussian diameters of the trees that have one.

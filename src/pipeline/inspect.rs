@@ -13,7 +13,7 @@ use crate::io::archive::{self, ExtractLimits};
 use crate::io::{IoError, colmap, pointcloud, tables};
 use crate::progress::Progress;
 
-/// What an upload holds (SERVICE.md "Kinds").
+/// What an upload holds (docs/api.md "Kinds").
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum UploadKind {

@@ -29,7 +29,7 @@ use crate::io::IoError;
 use crate::progress::Progress;
 pub use params::PipelineParams;
 
-/// The stages of a job, in order (SERVICE.md).
+/// The stages of a job, in order (docs/api.md).
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize, JsonSchema,
 )]

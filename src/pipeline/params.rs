@@ -19,7 +19,7 @@ pub struct PipelineParams {
     pub register: RegisterParams,
     pub anchors: AnchorParams,
     /// Stage `segment`: ground, wood/leaf labels, stems and their LiDAR diameters
-    /// (METHOD.md Stages 3 and 5; the parameters of `sylva inventory`).
+    /// (docs/method.md Stages 3 and 5; the parameters of `sylva inventory`).
     pub segment: crate::forest::InventoryParams,
     pub train: TrainParams,
     pub dbh: DbhParams,
@@ -48,7 +48,7 @@ impl Default for IngestParams {
     }
 }
 
-/// Stage `register`: similarity transform from the SfM frame to the LiDAR frame (METHOD.md
+/// Stage `register`: similarity transform from the SfM frame to the LiDAR frame (docs/method.md
 /// Stage 1).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(default, deny_unknown_fields)]
@@ -67,7 +67,7 @@ pub struct RegisterParams {
     /// clouds carry sky and mismatched points LiDAR does not see).
     pub icp_keep_fraction: f64,
     /// Estimate scale in ICP as well (similarity ICP), since SfM scale is only approximately
-    /// fixed by the coarse step (METHOD.md Stage 1.2; default true).
+    /// fixed by the coarse step (docs/method.md Stage 1.2; default true).
     pub estimate_scale: bool,
     /// Use the point-to-plane objective instead of the paper's point-to-point (default false).
     pub point_to_plane: bool,
@@ -165,7 +165,7 @@ impl Default for RegisterParams {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct AnchorParams {
-    /// Voxel edge in metres; the paper gives none, METHOD.md Stage 2.1 sets 0.02 m.
+    /// Voxel edge in metres; the paper gives none, docs/method.md Stage 2.1 sets 0.02 m.
     pub voxel_size_m: f64,
     /// Neighbours for the mean-distance statistic (paper 3.3.2: k = 16).
     pub outlier_k: u32,
@@ -214,8 +214,8 @@ pub struct TrainParams {
     /// the paper).
     pub sky_gaussians: u32,
     /// What holds the trunk Gaussians: "bind" (default: Sylva's binding, surfels held on the
-    /// LiDAR stem surface from step 0, METHOD.md Stage 4 "Sylva's binding"), "paper" (the
-    /// paper's term L_geo exactly as METHOD.md writes it, for the ablation) or "off".
+    /// LiDAR stem surface from step 0, docs/method.md Stage 4 "Sylva's binding"), "paper" (the
+    /// paper's term L_geo exactly as docs/method.md writes it, for the ablation) or "off".
     pub semantic: TrunkTerm,
     /// Sylva's binding: largest offset of a trunk Gaussian's centre from the LiDAR surface
     /// along its normal, metres (default 0.001: the photos cannot place a stem to a pixel,
@@ -227,13 +227,13 @@ pub struct TrainParams {
     /// Final weight of L_geo (paper: 0.02; 0.01-0.03 is stable).
     pub gamma_max: f64,
     /// Step where the L_geo ramp starts (paper: 3000 of 30,000; moved in proportion when
-    /// `steps` is smaller, METHOD.md).
+    /// `steps` is smaller, docs/method.md).
     pub gamma_start: u32,
     /// Step where the L_geo ramp reaches gamma_max (paper: 7000 of 30,000; scaled likewise).
     pub gamma_end: u32,
-    /// Trunk anchors averaged for the target scale (METHOD.md: K = 8).
+    /// Trunk anchors averaged for the target scale (docs/method.md: K = 8).
     pub trunk_k: u32,
-    /// Target scale factor on the mean trunk-anchor distance (METHOD.md: beta = 0.5).
+    /// Target scale factor on the mean trunk-anchor distance (docs/method.md: beta = 0.5).
     pub trunk_beta: f64,
     /// Longest image side in pixels used for training; 0 keeps the full resolution.
     pub resolution: u32,
@@ -256,7 +256,7 @@ pub enum TrunkTerm {
     /// Sylva's binding (the default): trunk surfels projected onto the LiDAR surface after
     /// every optimiser step.
     Bind,
-    /// The paper's L_geo as METHOD.md specifies it.
+    /// The paper's L_geo as docs/method.md specifies it.
     Paper,
     /// Nothing (LiDAR initialisation alone, or vanilla 3DGS with `init = "sfm"`).
     Off,
@@ -311,11 +311,11 @@ impl Default for TrainParams {
 pub struct DbhParams {
     /// Minimum opacity of a Gaussian used in the fit. Default 0.005, the reference prune
     /// threshold: every Gaussian the model keeps, its opacity weighting the algebraic fit
-    /// (METHOD.md Stage 5.3). The paper's 0.1 is the initial opacity itself: on short runs
+    /// (docs/method.md Stage 5.3). The paper's 0.1 is the initial opacity itself: on short runs
     /// it cut at random (Sylva's binding on `tiny` seed 1, 500 steps at 80 px: 3–9 of the
     /// 38–50 trunk surfels per slice kept, no fit), and a bound surfel is no floater.
     pub min_opacity: f64,
-    /// RANSAC inlier distance in metres (METHOD.md: of the order of 1-2 cm).
+    /// RANSAC inlier distance in metres (docs/method.md: of the order of 1-2 cm).
     pub ransac_threshold_m: f64,
 }
 

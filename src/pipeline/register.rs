@@ -1,5 +1,5 @@
 //! Stage `register`: the similarity that maps the SfM frame onto the LiDAR frame
-//! (METHOD.md Stage 1), and the COLMAP model moved into the LiDAR frame.
+//! (docs/method.md Stage 1), and the COLMAP model moved into the LiDAR frame.
 //!
 //! Coarse: from control point pairs (Umeyama, residual per pair) or, without them, the
 //! automatic alignment of [`crate::geom::coarse`]. Fine: ICP of the SfM points onto the

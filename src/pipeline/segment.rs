@@ -1,4 +1,4 @@
-//! Stage `segment`: the forest analysis of the LiDAR cloud (METHOD.md Stage 3 and the LiDAR
+//! Stage `segment`: the forest analysis of the LiDAR cloud (docs/method.md Stage 3 and the LiDAR
 //! half of Stage 5) — ground and DTM, wood/leaf labels with a trunk probability per point,
 //! stems and their LiDAR diameters — and the labels carried over to the anchors for the
 //! trainer. The same [`crate::forest::inventory`] serves `sylva inventory`.

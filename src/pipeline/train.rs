@@ -1,4 +1,4 @@
-//! Stage `train`: Gaussian splatting of the registered photos (METHOD.md Stage 4), initialised
+//! Stage `train`: Gaussian splatting of the registered photos (docs/method.md Stage 4), initialised
 //! from the labelled LiDAR anchors (the paper's method) or from the SfM points (vanilla 3DGS).
 //!
 //! Outputs in the registered model's frame (the LiDAR local frame of stage `ingest`, offset in

@@ -64,7 +64,7 @@ pub trait Backend {
         sh_degree: u32,
         stats: bool,
     ) -> Result<(), TrainError>;
-    /// Installs the labelled anchors of the semantic term L_geo (METHOD.md Stage 4). The term
+    /// Installs the labelled anchors of the semantic term L_geo (docs/method.md Stage 4). The term
     /// stays off until [`Backend::set_geo_weight`] gives it a positive weight.
     fn set_semantic(
         &mut self,

@@ -1,4 +1,4 @@
-//! Sylva's trunk binding (METHOD.md Stage 4, "Beyond the paper — Sylva's binding"): trunk
+//! Sylva's trunk binding (docs/method.md Stage 4, "Beyond the paper — Sylva's binding"): trunk
 //! Gaussians are surfels held on the LiDAR stem surface for the whole run.
 //!
 //! Why not the paper's L_geo alone: measured on the demo (docs/results/twin.md),
@@ -40,7 +40,7 @@ pub struct BindConfig {
     /// `params.train.semantic = "bind"`, its default.
     pub enabled: bool,
     /// Largest offset of a bound Gaussian's centre from the LiDAR surface along the normal,
-    /// metres. Default 0.001 m, well inside METHOD.md's "within about max(voxel, LiDAR
+    /// metres. Default 0.001 m, well inside docs/method.md's "within about max(voxel, LiDAR
     /// noise)": the photos cannot place a stem surface to a pixel (centimetres at the budgets
     /// measured), and with a 1 cm band on the raw anchors the Gaussians the DBH fit keeps sat
     /// at one edge of it (−14.8 mm mean on `tiny` seed 1, 500 steps at 80 px; docs/results/twin.md,
@@ -234,7 +234,7 @@ pub fn project(model: &mut Gaussians, index: &AnchorIndex, cfg: &BindConfig) -> 
     bound
 }
 
-/// Starts the bound Gaussians of `model` as surfels (METHOD.md, Sylva's binding): rotation
+/// Starts the bound Gaussians of `model` as surfels (docs/method.md, Sylva's binding): rotation
 /// taking the local z axis onto the nearest trunk anchor's normal, z standard deviation
 /// [`BindConfig::normal_scale_m`], tangential standard deviation sqrt(mean squared distance to
 /// the 3 nearest other bound Gaussians) — the reference's SfM rule, on the Gaussians that are

@@ -1,6 +1,6 @@
 //! COLMAP cameras and poses to the rasteriser's pinhole [`Camera`], and the train/test split.
 //!
-//! The rasteriser only knows pinhole cameras (SPLATTING.md "Camera"), so distorted COLMAP models
+//! The rasteriser only knows pinhole cameras (docs/splatting.md "Camera"), so distorted COLMAP models
 //! are undistorted once at load: every pixel of the output pinhole image (same size, focal
 //! lengths and principal point) is mapped through the distortion model and sampled bilinearly
 //! from the input. Distortion formulas are COLMAP's (`src/colmap/sensor/models.h`), applied to
@@ -163,7 +163,7 @@ pub struct TrainTestSplit {
     pub test: Vec<usize>,
 }
 
-/// Sorts `names` and holds out every `every`-th (sorted index % every == 0; METHOD.md
+/// Sorts `names` and holds out every `every`-th (sorted index % every == 0; docs/method.md
 /// evaluation, reference `llffhold = 8`); `every == 0` holds out nothing. Returns indices into
 /// `names`.
 pub fn split_train_test<S: AsRef<str>>(names: &[S], every: usize) -> TrainTestSplit {

@@ -2,7 +2,7 @@
 //! its default.
 //!
 //! Defaults follow the reference 3DGS trainer (Kerbl et al. 2023, `arguments/__init__.py` of the
-//! INRIA code) and METHOD.md Stage 4. The struct (de)serialises with serde; missing fields take
+//! INRIA code) and docs/method.md Stage 4. The struct (de)serialises with serde; missing fields take
 //! their defaults, so a JSON file only needs the values it changes.
 
 use serde::{Deserialize, Serialize};
@@ -14,7 +14,7 @@ pub const REFERENCE_STEPS: u32 = 30_000;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct TrainConfig {
-    /// Optimisation steps, one view each. Default 30 000 (reference; METHOD.md Stage 4).
+    /// Optimisation steps, one view each. Default 30 000 (reference; docs/method.md Stage 4).
     pub steps: u32,
 
     /// Position learning rate at step 0, in units of the scene extent (multiplied by it).
@@ -29,7 +29,7 @@ pub struct TrainConfig {
     /// Learning rate of the SH coefficients of degree ≥ 1. Default 2.5e-3 / 20 = 1.25e-4
     /// (reference: `feature_lr / 20.0` for `f_rest`).
     pub lr_sh_rest: f32,
-    /// Learning rate of the opacity logits. Default 0.025 (reference `opacity_lr`; METHOD.md
+    /// Learning rate of the opacity logits. Default 0.025 (reference `opacity_lr`; docs/method.md
     /// allows 0.025–0.05).
     pub lr_opacity: f32,
     /// Learning rate of the log-scales. Default 5e-3 (reference `scaling_lr`).
@@ -39,7 +39,7 @@ pub struct TrainConfig {
     pub lr_rotation: f32,
 
     /// Weight λ of the D-SSIM term, L = (1 − λ) L1 + λ (1 − SSIM), [0, 1].
-    /// Default 0.2 (reference `lambda_dssim`; SPLATTING.md "Loss").
+    /// Default 0.2 (reference `lambda_dssim`; docs/splatting.md "Loss").
     pub lambda_ssim: f32,
 
     /// First step at which densification runs (exclusive, as the reference). Default 500
@@ -50,7 +50,7 @@ pub struct TrainConfig {
     pub densify_until: u32,
     /// Steps between densifications. Default 100 (reference `densification_interval`).
     pub densify_interval: u32,
-    /// Threshold on the mean view-space positional gradient (NDC units, see SPLATTING.md
+    /// Threshold on the mean view-space positional gradient (NDC units, see docs/splatting.md
     /// "Backward") above which a Gaussian is cloned or split. Default 0.0002
     /// (reference `densify_grad_threshold`).
     pub densify_grad_threshold: f32,
@@ -74,7 +74,7 @@ pub struct TrainConfig {
     pub max_gaussians: Option<usize>,
 
     /// The active SH degree grows by one every this many steps. Default 1000 (reference
-    /// `oneupSHdegree` every 1000 iterations; METHOD.md Stage 4).
+    /// `oneupSHdegree` every 1000 iterations; docs/method.md Stage 4).
     pub sh_degree_interval: u32,
     /// Highest SH degree, 0..=3. Default 3 (reference `sh_degree`).
     pub max_sh_degree: u32,
@@ -83,17 +83,17 @@ pub struct TrainConfig {
     /// Default black (reference `white_background = False`).
     pub background: [f32; 3],
     /// Every `test_every`-th image (sorted by name, index % test_every == 0) is held out for
-    /// evaluation; 0 holds out nothing. Default 8 (reference `llffhold`; METHOD.md evaluation).
+    /// evaluation; 0 holds out nothing. Default 8 (reference `llffhold`; docs/method.md evaluation).
     pub test_every: usize,
     /// Long side of the training images in pixels after downscaling (area averaging); none keeps
     /// the native resolution. Default none (the reference rescales only above 1600 px).
     pub resolution: Option<u32>,
     /// Seed of the random numbers used by densification (split sampling). Default 0.
     pub seed: u64,
-    /// The semantic trunk term L_geo (METHOD.md Stage 4); off by default (vanilla 3DGS). Its
+    /// The semantic trunk term L_geo (docs/method.md Stage 4); off by default (vanilla 3DGS). Its
     /// anchors are installed on the backend by the caller ([`crate::splat::backend::Backend::set_semantic`]).
     pub semantic: crate::splat::semantic::SemanticConfig,
-    /// Sylva's trunk binding (METHOD.md Stage 4, "Sylva's binding"); off by default here. Its
+    /// Sylva's trunk binding (docs/method.md Stage 4, "Sylva's binding"); off by default here. Its
     /// anchors are installed on the backend by the caller ([`crate::splat::backend::Backend::set_bind`]).
     pub bind: crate::splat::bind::BindConfig,
 }

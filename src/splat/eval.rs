@@ -1,7 +1,7 @@
 //! Evaluation of renders against held-out images: PSNR, SSIM, a per-view report, side-by-side
 //! PNGs, and the training-loss log as CSV.
 //!
-//! SSIM is the loss's (SPLATTING.md "Loss"): 11×11 Gaussian window, σ = 1.5, normalised to sum 1,
+//! SSIM is the loss's (docs/splatting.md "Loss"): 11×11 Gaussian window, σ = 1.5, normalised to sum 1,
 //! C1 = 0.01², C2 = 0.03², zero padding at the border ("same" convolution of the reference
 //! `ssim()`), averaged over pixels and the three channels. Images are RGB f32 in [0, 1],
 //! row-major.
@@ -180,7 +180,7 @@ impl ViewMetrics {
     }
 }
 
-/// Averages over the held-out views and the views themselves (METHOD.md evaluation).
+/// Averages over the held-out views and the views themselves (docs/method.md evaluation).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvalReport {
     /// Mean PSNR over views, dB (mean of per-view PSNR, as the reference `metrics.py`).

@@ -2,7 +2,7 @@
 //! `x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2 rot_0..3`, as written by the
 //! reference trainer (`GaussianModel.save_ply`) and read by every splat viewer.
 //!
-//! Differences from our model layout (SPLATTING.md), converted here:
+//! Differences from our model layout (docs/splatting.md), converted here:
 //! - `f_rest` is channel-major (all R rest coefficients, then G, then B), ours is
 //!   coefficient-major (`sh[k * 3 + c]`);
 //! - opacity is stored as the logit, scales as logs, rotation as (w, x, y, z) — as ours.

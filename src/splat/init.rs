@@ -1,4 +1,4 @@
-//! Initial Gaussians: from SfM points (vanilla 3DGS) or from LiDAR anchors (METHOD.md Stage 4).
+//! Initial Gaussians: from SfM points (vanilla 3DGS) or from LiDAR anchors (docs/method.md Stage 4).
 //!
 //! Both give one isotropic Gaussian per point with identity rotation, opacity 0.1 and a DC-only
 //! colour. They differ in the scale (mean squared distance to 3 neighbours vs. distance to the
@@ -13,11 +13,11 @@ use crate::splat::cameras::View;
 use crate::splat::packed_image::unpack;
 use crate::splat::rng::SplitMix64;
 
-/// Initial opacity, (0, 1). Reference `inverse_sigmoid(0.1 * ones)`; METHOD.md Stage 4.
+/// Initial opacity, (0, 1). Reference `inverse_sigmoid(0.1 * ones)`; docs/method.md Stage 4.
 pub const INIT_OPACITY: f32 = 0.1;
 /// Floor of the squared neighbour distance, m². Reference `distCUDA2(...).clamp_min(1e-7)`.
 pub const MIN_DIST2: f64 = 1e-7;
-/// Cameras closer than this along the view axis see nothing, metres (SPLATTING.md NEAR).
+/// Cameras closer than this along the view axis see nothing, metres (docs/splatting.md NEAR).
 const NEAR: f32 = 0.01;
 
 /// Why no model could be built.
@@ -168,7 +168,7 @@ pub struct Anchor {
 /// Parameters of the anchor initialisation.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AnchorInit {
-    /// eps of s = log sqrt(d² + eps), m². Default 1e-7 (the reference's distance floor; METHOD.md
+    /// eps of s = log sqrt(d² + eps), m². Default 1e-7 (the reference's distance floor; docs/method.md
     /// leaves eps open).
     pub eps: f64,
     /// Cell size of the coarse per-image depth buffer, pixels. Default 8 (about the spacing of

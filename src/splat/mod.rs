@@ -1,5 +1,5 @@
 //! Gaussian splatting: the model, cameras and images, initialisation, the optimiser and the
-//! densification strategy, evaluation and export (METHOD.md Stage 4; conventions in
+//! densification strategy, evaluation and export (docs/method.md Stage 4; conventions in
 //! docs/splatting.md). The CPU reference of the rasteriser lives in [`cpu`] and the GPU kernels
 //! in [`gpu`]; [`trainer`] ties them into the training loop that stage `train` and
 //! `sylva train` run.

@@ -28,7 +28,7 @@ pub struct Gaussians {
     pub opacity_logits: Vec<f32>,
     /// SH coefficients, coefficient-major: `sh[i][k * 3 + c]`.
     pub sh: Vec<[f32; SH_FLOATS]>,
-    /// Trunk probability P_i (METHOD.md Stage 4); not trained, inherited by children.
+    /// Trunk probability P_i (docs/method.md Stage 4); not trained, inherited by children.
     pub trunk_prob: Vec<f32>,
     /// Active SH degree (0..=3).
     pub sh_degree: u32,

@@ -3,7 +3,7 @@
 //!
 //! Packing is little-endian: R in the low byte, then G, B, A (so `bytemuck`-style casts of
 //! `[u8; 4]` RGBA pixels and this layout agree on little-endian machines). Pixel (i, j) has its
-//! centre at (i + 0.5, j + 0.5), the COLMAP convention of SPLATTING.md.
+//! centre at (i + 0.5, j + 0.5), the COLMAP convention of docs/splatting.md.
 
 /// An RGBA8 image, row-major, one packed `u32` per pixel (R in the low byte).
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -1,4 +1,4 @@
-//! The semantic geometric term L_geo (METHOD.md Stage 4, paper 3.5): Gaussians that are likely
+//! The semantic geometric term L_geo (docs/method.md Stage 4, paper 3.5): Gaussians that are likely
 //! trunk are pulled towards the nearest trunk anchor and their scales towards the local anchor
 //! spacing, so the stems keep their LiDAR shape while the photometric loss shapes the rest.
 //!
@@ -26,32 +26,32 @@ use serde::{Deserialize, Serialize};
 use super::model::Gaussians;
 use crate::geom::PointIndex;
 
-/// The knobs of L_geo; every default is METHOD.md Stage 4's.
+/// The knobs of L_geo; every default is docs/method.md Stage 4's.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct SemanticConfig {
     /// Apply the term at all. Default false here (vanilla 3DGS); stage `train` turns it on
     /// with `params.train.semantic` (default on there, the paper's method).
     pub enabled: bool,
-    /// Final weight gamma_max of L_geo. Default 0.02 (METHOD.md; the paper finds 0.01–0.03
+    /// Final weight gamma_max of L_geo. Default 0.02 (docs/method.md; the paper finds 0.01–0.03
     /// stable).
     pub gamma_max: f32,
-    /// Step at which the ramp starts (gamma = 0 before). Default 3000 (METHOD.md T_start).
+    /// Step at which the ramp starts (gamma = 0 before). Default 3000 (docs/method.md T_start).
     pub gamma_start: u32,
-    /// Step at which the ramp reaches gamma_max. Default 7000 (METHOD.md T_end).
+    /// Step at which the ramp reaches gamma_max. Default 7000 (docs/method.md T_end).
     pub gamma_end: u32,
     /// Softmax temperature T of the trunk score q_i, metres. Default 0.02 m: "of the order of
-    /// the voxel size" (METHOD.md), and the anchors' voxel is 0.02 m (Stage 2).
+    /// the voxel size" (docs/method.md), and the anchors' voxel is 0.02 m (Stage 2).
     pub temperature_m: f32,
     /// Number K of nearest trunk anchors whose mean distance sets the target scale.
-    /// Default 8 (METHOD.md).
+    /// Default 8 (docs/method.md).
     pub k: u32,
-    /// Factor beta on that mean distance. Default 0.5 (METHOD.md).
+    /// Factor beta on that mean distance. Default 0.5 (docs/method.md).
     pub beta: f32,
     /// eps inside the target's log, metres. Default 1e-6 m (keeps the log finite on
     /// duplicated anchors; far below any anchor spacing).
     pub eps_m: f32,
-    /// Gaussians with w_i at or above this are in the candidate set S. Default 0.5 (METHOD.md).
+    /// Gaussians with w_i at or above this are in the candidate set S. Default 0.5 (docs/method.md).
     pub weight_threshold: f32,
 }
 
@@ -76,7 +76,7 @@ pub const MAX_K: u32 = 16;
 
 impl SemanticConfig {
     /// gamma(t) at 1-based `step`: 0 up to `gamma_start`, linear to `gamma_max` at
-    /// `gamma_end`, constant after (METHOD.md); 0 when disabled.
+    /// `gamma_end`, constant after (docs/method.md); 0 when disabled.
     pub fn gamma_at(&self, step: u32) -> f32 {
         if !self.enabled || step <= self.gamma_start {
             return 0.0;
@@ -89,7 +89,7 @@ impl SemanticConfig {
     }
 
     /// The ramp of a run of `steps` steps: the reference's 3000 → 7000 of 30 000 are moved in
-    /// proportion when the run is shorter (METHOD.md), unchanged otherwise.
+    /// proportion when the run is shorter (docs/method.md), unchanged otherwise.
     pub fn scaled_to(&self, steps: u32) -> SemanticConfig {
         let mut c = self.clone();
         let reference = super::config::REFERENCE_STEPS;
@@ -131,7 +131,7 @@ pub struct SemanticAnchors {
     /// anchors carry none; Sylva's binding ([`super::bind`]) needs them, L_geo does not.
     pub trunk_normals: Vec<[f32; 3]>,
     pub leaf: Vec<[f32; 3]>,
-    /// N_pos: the diagonal of the bounding box of all anchors, metres (METHOD.md).
+    /// N_pos: the diagonal of the bounding box of all anchors, metres (docs/method.md).
     pub n_pos: f32,
 }
 
@@ -338,7 +338,7 @@ pub fn geo_targets_indexed(
 }
 
 /// L_geo and its gradients with respect to the means and log-scales, with `targets` held
-/// constant (METHOD.md: w_i is a constant weight). Zero loss and gradients when S is empty.
+/// constant (docs/method.md: w_i is a constant weight). Zero loss and gradients when S is empty.
 pub fn geo_loss_and_grad(
     model: &Gaussians,
     targets: &[GeoTarget],

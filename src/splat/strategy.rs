@@ -18,7 +18,7 @@ use crate::splat::rng::SplitMix64;
 /// Per-view screen-space statistics from one backward pass.
 #[derive(Debug, Clone, Copy)]
 pub struct ViewStats<'a> {
-    /// dL/d(projected mean), pixels, one per Gaussian (SPLATTING.md "Backward").
+    /// dL/d(projected mean), pixels, one per Gaussian (docs/splatting.md "Backward").
     pub mean2d_grads: &'a [[f32; 2]],
     /// Screen radius in pixels, one per Gaussian; 0 where the Gaussian was culled.
     pub radii: &'a [f32],
@@ -111,7 +111,7 @@ pub trait Strategy {
     ) -> RefineReport;
 }
 
-/// Reference adaptive density control (Kerbl et al. 2023, section 5; METHOD.md Stage 4).
+/// Reference adaptive density control (Kerbl et al. 2023, section 5; docs/method.md Stage 4).
 #[derive(Debug, Clone)]
 pub struct DefaultStrategy {
     cfg: TrainConfig,

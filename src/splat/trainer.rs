@@ -1,4 +1,4 @@
-//! The training loop (METHOD.md Stage 4): views in a seeded random order, one optimisation step
+//! The training loop (docs/method.md Stage 4): views in a seeded random order, one optimisation step
 //! per view on a [`Backend`], the strategy's refinement at its schedule, the SH degree schedule,
 //! then the held-out evaluation. Writes nothing itself; [`write_outputs`] saves the results.
 

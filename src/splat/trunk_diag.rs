@@ -2,7 +2,7 @@
 //! [`TrunkMonitor::every`] steps the loop hands the model and the latest position gradients to
 //! [`TrunkMonitor::observe`], whose figures go into `loss.csv` and the stage report.
 //!
-//! - |S| and Σw: the paper's candidate set S = {w = α P q ≥ threshold} of L_geo (METHOD.md
+//! - |S| and Σw: the paper's candidate set S = {w = α P q ≥ threshold} of L_geo (docs/method.md
 //!   Stage 4) and its total weight, whatever arm trains (so the "bind" and "off" arms show what
 //!   the paper's term would have held);
 //! - the share of the DBH-slice trunk Gaussians (those stage `dbh` fits) that are in S;

@@ -184,7 +184,7 @@ pub fn write_truth(path: &Path, truth: &Truth) -> Result<(), SynthError> {
     write(path, text.as_bytes())
 }
 
-/// Every 8th image sorted by name, starting with the first (METHOD.md, Evaluation).
+/// Every 8th image sorted by name, starting with the first (docs/method.md, Evaluation).
 pub fn test_images(names: &[String]) -> Vec<String> {
     let mut sorted = names.to_vec();
     sorted.sort();

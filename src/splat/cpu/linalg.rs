@@ -1,5 +1,5 @@
 //! Small dense 3×3 / 2×3 helpers in f64 and the quaternion → rotation map with its
-//! vector-Jacobian product (quaternion order (w, x, y, z), SPLATTING.md "Model").
+//! vector-Jacobian product (quaternion order (w, x, y, z), docs/splatting.md "Model").
 
 /// A 3×3 matrix, row-major.
 pub type Mat3 = [[f64; 3]; 3];

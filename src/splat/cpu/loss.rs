@@ -1,4 +1,4 @@
-//! Photometric loss `L = (1 − λ) L1 + λ (1 − SSIM)` (SPLATTING.md "Loss"; Kerbl et al. 2023),
+//! Photometric loss `L = (1 − λ) L1 + λ (1 − SSIM)` (docs/splatting.md "Loss"; Kerbl et al. 2023),
 //! its gradient with respect to the rendered image, and the PSNR / SSIM metrics.
 //!
 //! Images are row-major `[r, g, b]` per pixel, values nominally in [0, 1].

@@ -1,7 +1,7 @@
 //! CPU reference of the Gaussian-splatting rasteriser, its backward pass and the photometric
 //! loss, in f64 internally (inputs and outputs are the f32 types of `splat_core`).
 //!
-//! Conventions: `SPLATTING.md` at the workspace root (Kerbl et al. 2023; Ye & Kanazawa,
+//! Conventions: `docs/splatting.md` (Kerbl et al. 2023; Ye & Kanazawa,
 //! "Mathematical Supplement for the gsplat Library", arXiv 2312.02121). The GPU kernels are
 //! tested against this crate.
 

@@ -1,4 +1,4 @@
-//! Per-Gaussian projection (SPLATTING.md "Forward", steps 1–8) and its backward.
+//! Per-Gaussian projection (docs/splatting.md "Forward", steps 1–8) and its backward.
 //!
 //! Everything is f64; inputs are the f32 model and camera of `splat_core`.
 
@@ -179,7 +179,7 @@ pub fn project_all(model: &Gaussians, cam: &Camera) -> Vec<Projected> {
 
 /// Backward of [`project`] for Gaussian `i`: turns dL/d(mean2d, conic, rgb, opacity) into
 /// dL/d(parameters). Culled Gaussians get zero. Where the Jacobian clamp is active the clamped
-/// `t.x` (or `t.y`) inside J is treated as a constant (SPLATTING.md step 3, as the reference).
+/// `t.x` (or `t.y`) inside J is treated as a constant (docs/splatting.md step 3, as the reference).
 pub fn project_backward(model: &Gaussians, i: usize, cam: &Camera, g: &ProjectedGrad) -> ParamGrad {
     let Some(f) = forward(model, i, cam) else {
         return ParamGrad::default();

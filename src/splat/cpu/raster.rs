@@ -1,4 +1,4 @@
-//! Front-to-back alpha compositing of projected Gaussians (SPLATTING.md "Forward", per pixel)
+//! Front-to-back alpha compositing of projected Gaussians (docs/splatting.md "Forward", per pixel)
 //! and its back-to-front backward.
 //!
 //! Coverage follows the GPU's 16×16 tiles: a Gaussian is evaluated at every pixel of every tile
@@ -8,7 +8,7 @@
 use crate::splat::cpu::project::{Projected, ProjectedGrad};
 use rayon::prelude::*;
 
-/// Tile edge, pixels (SPLATTING.md "GPU layout").
+/// Tile edge, pixels (docs/splatting.md "GPU layout").
 pub const TILE: u32 = 16;
 /// Upper clamp on a Gaussian's alpha (Kerbl et al. 2023).
 pub const ALPHA_MAX: f64 = 0.99;

@@ -1,5 +1,5 @@
 //! Real spherical harmonics up to degree 3: evaluation of the colour of a Gaussian seen along a
-//! direction and its backward (SPLATTING.md "Forward", step 8; constants and band order as in
+//! direction and its backward (docs/splatting.md "Forward", step 8; constants and band order as in
 //! Kerbl et al. 2023).
 
 use crate::splat::model::{SH_COEFFS, SH_FLOATS, sh_coeffs_for_degree};

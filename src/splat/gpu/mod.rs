@@ -1,6 +1,6 @@
 //! GPU forward and backward rasteriser of 3D Gaussian splatting, plus Adam, on wgpu/WGSL.
 //!
-//! Conventions: `SPLATTING.md` at the workspace root (Kerbl et al. 2023; Ye & Kanazawa,
+//! Conventions: `docs/splatting.md` (Kerbl et al. 2023; Ye & Kanazawa,
 //! "Mathematical Supplement for the gsplat Library", arXiv 2312.02121).
 //!
 //! One training step: [`Renderer::render`] (two submissions and one 4-byte read-back, the number

@@ -2,9 +2,9 @@
 
 use crate::splat::camera::Camera;
 
-/// Jacobian clamp factor of the reference: 1.3 × the half field of view (SPLATTING.md step 3).
+/// Jacobian clamp factor of the reference: 1.3 × the half field of view (docs/splatting.md step 3).
 pub const JACOBIAN_CLAMP: f32 = 1.3;
-/// Tile edge, pixels (SPLATTING.md "GPU layout").
+/// Tile edge, pixels (docs/splatting.md "GPU layout").
 pub const TILE: u32 = 16;
 
 /// Camera and frame parameters, laid out as WGSL `Params` (16-byte rows).

@@ -1,5 +1,5 @@
 //! Fused GPU photometric loss `L = (1 − λ) · L1 + λ · (1 − SSIM)` and its gradient with respect
-//! to the rendered image, in WGSL (SPLATTING.md "Loss"; Kerbl et al. 2023: λ = 0.2, 11×11
+//! to the rendered image, in WGSL (docs/splatting.md "Loss"; Kerbl et al. 2023: λ = 0.2, 11×11
 //! Gaussian window σ = 1.5, C1 = 0.01², C2 = 0.03², zero-padded "same" convolution).
 //!
 //! Five compute passes, no subgroup operations, no atomics, no readback:
