@@ -411,7 +411,9 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
         .flatten();
     match &gpu {
         Some(g) => tracing::info!(adapter = %g.name, backend = %g.backend, "GPU adapter found"),
-        None => tracing::warn!("no GPU adapter found; the train stage will not run here"),
+        None => tracing::warn!(
+            "no GPU adapter found: stage train runs here only with params.train.backend = \"cpu\" (the exact reference, for tiny scenes; the demo uses it)"
+        ),
     }
     let wake = Arc::new(Notify::new());
     let hooks = Webhooks::open(&db, &a.webhooks).await?;
