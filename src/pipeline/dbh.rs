@@ -163,29 +163,45 @@ pub fn read_stems(segment_dir: &Path) -> Result<Vec<StemRecord>, StageError> {
 /// Per point of `means`, whether it lies in the band of some stem's DBH slices: within
 /// [`reach_m`] of the axis and within the heights any slice of `p` may use (1.3 m and the
 /// fallback slices, ± the slice half thickness, and 0.1 m more for a Gaussian's extent).
+///
+/// The stems are binned by the horizontal boxes of their bands in a grid of 1 m cells, so a
+/// point tests only the stems of its own cell: linear in points and stems together, for
+/// millions of anchors and thousands of stems.
 pub fn in_dbh_band(means: &[[f32; 3]], stems: &[StemRecord], p: &DbhParams) -> Vec<bool> {
+    const CELL_M: f32 = 1.0;
     let bands: Vec<(Vec3, Vec3, f32, f32, f32)> = stems
         .iter()
         .map(|s| {
             let (lo, hi) = height_range(s, p);
             let axis = Vec3::from_array(s.axis).try_normalize().unwrap_or(Vec3::Z);
-            (
-                Vec3::from_array(s.base),
-                axis,
-                reach_m(&s.dbh),
-                lo - 0.1,
-                hi + 0.1,
-            )
+            let base = Vec3::from_array(s.base);
+            (base, axis, reach_m(&s.dbh), lo - 0.1, hi + 0.1)
         })
+        .filter(|(base, ..)| base.is_finite())
         .collect();
+    let cell = |x: f32| (x / CELL_M).floor() as i64;
+    let mut grid: std::collections::HashMap<(i64, i64), Vec<usize>> =
+        std::collections::HashMap::new();
+    for (k, &(base, axis, reach, lo, hi)) in bands.iter().enumerate() {
+        let (a, b) = (base + axis * lo, base + axis * hi);
+        let (min, max) = (a.min(b) - Vec3::splat(reach), a.max(b) + Vec3::splat(reach));
+        for x in cell(min.x)..=cell(max.x) {
+            for y in cell(min.y)..=cell(max.y) {
+                grid.entry((x, y)).or_default().push(k);
+            }
+        }
+    }
     means
         .iter()
         .map(|m| {
             let m = Vec3::from_array(*m);
-            bands.iter().any(|&(base, axis, reach, lo, hi)| {
-                let d = m - base;
-                let s = d.dot(axis);
-                s >= lo && s <= hi && (d - axis * s).length() <= reach
+            grid.get(&(cell(m.x), cell(m.y))).is_some_and(|ks| {
+                ks.iter().any(|&k| {
+                    let (base, axis, reach, lo, hi) = bands[k];
+                    let d = m - base;
+                    let s = d.dot(axis);
+                    s >= lo && s <= hi && (d - axis * s).length() <= reach
+                })
             })
         })
         .collect()
@@ -589,6 +605,46 @@ mod tests {
         points.cov.clear();
         let fit = gaussian_dbh(&points, &s, &params()).expect("fit");
         assert_ne!(fit.dbh.slice_height_m, 1.3, "{fit:?}");
+    }
+
+    #[test]
+    fn the_dbh_band_holds_the_points_near_each_stem_at_slice_heights() {
+        // Three stems, one leaning across cell borders, one on a border; random points.
+        let stems = [
+            stem(Vec3::new(0.99, 2.0, 0.5), Vec3::Z, 0.15),
+            stem(Vec3::new(3.2, -1.4, 0.0), Vec3::new(0.6, 0.3, 1.0), 0.10),
+            stem(Vec3::new(-2.0, 0.0, 1.0), Vec3::Z, 0.30),
+        ];
+        let p = params();
+        let mut rng = crate::splat::rng::SplitMix64::new(9);
+        let means: Vec<[f32; 3]> = (0..20_000)
+            .map(|_| {
+                let mut u = |lo: f64, hi: f64| (lo + (hi - lo) * rng.uniform()) as f32;
+                [u(-3.0, 6.0), u(-3.0, 4.0), u(0.0, 4.0)]
+            })
+            .collect();
+        let got = in_dbh_band(&means, &stems, &p);
+        // The same test against every stem, without the grid.
+        let brute: Vec<bool> = means
+            .iter()
+            .map(|m| {
+                stems.iter().any(|s| {
+                    let (lo, hi) = height_range(s, &p);
+                    let axis = Vec3::from_array(s.axis).normalize();
+                    let d = Vec3::from_array(*m) - Vec3::from_array(s.base);
+                    let h = d.dot(axis);
+                    h >= lo - 0.1 && h <= hi + 0.1 && (d - axis * h).length() <= reach_m(&s.dbh)
+                })
+            })
+            .collect();
+        assert_eq!(got, brute);
+        assert!(got.iter().filter(|&&b| b).count() > 100);
+        // A point on the first stem at 1.3 m is in, one at 3 m is not.
+        let on = |h: f32| [0.99 + 0.15, 2.0, 0.5 + h];
+        assert_eq!(
+            in_dbh_band(&[on(1.3), on(3.0)], &stems, &p),
+            vec![true, false]
+        );
     }
 
     #[test]

@@ -118,11 +118,11 @@ pub fn cap_gaussians(
 }
 
 /// Exactly `count` of the points `idx` of `means` (all when there are no more), spread evenly:
-/// a bisection of the log cell edge (24 halvings: the edge to 1e-6 of its
-/// range) finds the finest grid,
+/// a bisection of the log cell edge (24 halvings, to 1e-6 of its range) finds the finest grid,
 /// offset by a seeded random shift, with at most `count` occupied cells; each cell gives the
 /// point nearest its centre, and a seeded random choice among the rest tops the draw up to
-/// `count` (the occupied cells jump as the grid changes).
+/// `count` (the occupied cells jump as the grid changes). Each halving hashes every point
+/// once (25 passes in all).
 fn voxel_draw(means: &[[f32; 3]], idx: &[usize], count: usize, rng: &mut SplitMix64) -> Vec<usize> {
     if count >= idx.len() {
         return idx.to_vec();
@@ -228,9 +228,6 @@ fn read_anchors(ctx: &StageContext<'_>) -> Result<LabelledAnchors, StageError> {
     Ok((anchors, is_trunk, normals))
 }
 
-/// Marks, per Gaussian centre, those in the band of the stems' DBH slices.
-type BandFn<'a> = dyn Fn(&[[f32; 3]]) -> Vec<bool> + 'a;
-
 /// Anchors, their trunk labels and their normals (when known).
 type LabelledAnchors = (Vec<Anchor>, Vec<bool>, Option<Vec<[f32; 3]>>);
 
@@ -241,7 +238,8 @@ fn initial_gaussians(
     data: &Dataset,
     params: &TrainParams,
     anchors: Option<&[Anchor]>,
-    band: Option<&BandFn>,
+    stems: &[super::dbh::StemRecord],
+    dbh_params: &crate::forest::DbhParams,
 ) -> Result<Gaussians, StageError> {
     let mut g = match (params.init, anchors) {
         (InitSource::Lidar, Some(anchors)) => {
@@ -274,8 +272,8 @@ fn initial_gaussians(
     };
     let max = params.max_gaussians.saturating_sub(sky);
     if params.max_gaussians > 0 && g.len() > max as usize {
-        let band = band.map(|f| f(&g.means));
-        cap_gaussians(&mut g, max, params.seed, band.as_deref(), sky);
+        let band = super::dbh::in_dbh_band(&g.means, stems, dbh_params);
+        cap_gaussians(&mut g, max, params.seed, Some(&band), sky);
     }
     if g.len() < before {
         // Scales from the spacing of what the cap kept (the same rule as the source's).
@@ -369,9 +367,13 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     } else {
         Vec::new()
     };
-    let dbh_params = &ctx.params.segment.dbh;
-    let band = |means: &[[f32; 3]]| super::dbh::in_dbh_band(means, &stems, dbh_params);
-    let mut init = initial_gaussians(&data, params, anchors.as_deref(), Some(&band))?;
+    let mut init = initial_gaussians(
+        &data,
+        params,
+        anchors.as_deref(),
+        &stems,
+        &ctx.params.segment.dbh,
+    )?;
     let n_init = init.len();
     let mut cfg = cfg;
     cfg.semantic.temperature_m = ctx.params.anchors.voxel_size_m as f32;
