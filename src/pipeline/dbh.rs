@@ -154,10 +154,11 @@ fn height_range(stem: &StemRecord, p: &DbhParams) -> (f32, f32) {
     (lo - p.half_thickness_m, hi + p.half_thickness_m)
 }
 
-/// The stems of stage `segment` (`stems.json` in `segment_dir`), in its local frame.
-pub fn read_stems(segment_dir: &Path) -> Result<Vec<StemRecord>, StageError> {
+/// The stems of stage `segment` (`stems.json` in `segment_dir`) in its local frame, with that
+/// frame's offset (file coordinates of its origin).
+pub fn read_stems(segment_dir: &Path) -> Result<([f64; 3], Vec<StemRecord>), StageError> {
     let stems: StemsFile = read_json(&segment_dir.join("stems.json"))?;
-    Ok(stems.stems)
+    Ok((stems.offset, stems.stems))
 }
 
 /// Per point of `means`, whether it lies in the band of some stem's DBH slices: within

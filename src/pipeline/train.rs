@@ -360,10 +360,11 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     } else {
         (None, Vec::new(), None)
     };
-    // The stems of stage `segment` (same local frame as its anchors), whose DBH band a cap
-    // keeps dense; none without the anchors (vanilla runs need no stage `segment`).
+    // The stems of stage `segment`, whose DBH band a cap keeps dense and the trunk monitor
+    // follows; none without the anchors (vanilla runs need no stage `segment`).
+    let offset = read_offset(ctx)?;
     let stems = if wants_anchors {
-        super::dbh::read_stems(&ctx.output_of(Stage::Segment, Stage::Train)?)?
+        stems_in_model_frame(ctx, offset)?
     } else {
         Vec::new()
     };
@@ -451,7 +452,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let semantic_applied = (cfg.semantic.enabled && cfg.steps > cfg.semantic.gamma_start)
         || (cfg.bind.enabled && params.semantic == TrunkTerm::Bind);
     let monitor = match set.as_ref() {
-        Some(set) => trunk_monitor(ctx, set, &cfg)?,
+        Some(set) => trunk_monitor(ctx, set, &cfg, &stems),
         None => None,
     };
     let mut strategy = trainer::default_strategy(&cfg);
@@ -475,7 +476,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         outcome.eval.views.len(),
         outcome.baseline_psnr
     ));
-    let offset = read_offset(ctx)?;
     Ok(json!({
         "device": outcome.device,
         "init": params.init,
@@ -503,40 +503,48 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
 /// Measurements per run of the trunk monitor (about 20, at least every 10 steps).
 const MONITOR_POINTS: u32 = 20;
 
-/// The trunk monitor of this run: the anchors and the stems of stage `segment` with their
-/// LiDAR circles, measured on the breast-height slice stage `dbh` fits. None when the segment
-/// stage found no stems.
+/// The stems of stage `segment` in the training frame: the Gaussians live in the registered
+/// model's frame (stage ingest's `offset`), the stems in stage segment's, so the stems are
+/// shifted when the two differ.
+fn stems_in_model_frame(
+    ctx: &StageContext<'_>,
+    offset: [f64; 3],
+) -> Result<Vec<super::dbh::StemRecord>, StageError> {
+    let (stems_offset, mut stems) =
+        super::dbh::read_stems(&ctx.output_of(Stage::Segment, Stage::Train)?)?;
+    let shift = glam::Vec3::new(
+        (stems_offset[0] - offset[0]) as f32,
+        (stems_offset[1] - offset[1]) as f32,
+        (stems_offset[2] - offset[2]) as f32,
+    );
+    for s in &mut stems {
+        s.base = (glam::Vec3::from_array(s.base) + shift).to_array();
+        s.dbh.center += shift;
+    }
+    Ok(stems)
+}
+
+/// The trunk monitor of this run: the anchors and the stems of stage `segment` (training
+/// frame) with their LiDAR circles, measured on the breast-height slice stage `dbh` fits.
+/// None when the segment stage found no stems.
 fn trunk_monitor(
     ctx: &StageContext<'_>,
     set: &SemanticAnchors,
     cfg: &crate::splat::config::TrainConfig,
-) -> Result<Option<TrunkMonitor>, StageError> {
-    let segment = ctx.output_of(Stage::Segment, Stage::Train)?;
-    let path = segment.join("stems.json");
-    let bytes = std::fs::read(&path).map_err(|e| super::io_err(&path, e))?;
-    let file: StemsFile = serde_json::from_slice(&bytes)
-        .map_err(|e| StageError::Input(format!("{}: {e}", path.display())))?;
-    // The Gaussians live in the registered model's frame (stage ingest's offset); the stems
-    // in stage segment's: shift the stems when the two differ.
-    let offset = read_offset(ctx)?;
-    let shift = glam::Vec3::new(
-        (file.offset[0] - offset[0]) as f32,
-        (file.offset[1] - offset[1]) as f32,
-        (file.offset[2] - offset[2]) as f32,
-    );
-    let stems: Vec<StemCircle> = file
-        .stems
-        .into_iter()
+    stems: &[super::dbh::StemRecord],
+) -> Option<TrunkMonitor> {
+    let stems: Vec<StemCircle> = stems
+        .iter()
         .map(|s| StemCircle {
-            base: glam::Vec3::from_array(s.base) + shift,
+            base: glam::Vec3::from_array(s.base),
             axis: glam::Vec3::from_array(s.axis),
-            center: s.dbh.center + shift,
+            center: s.dbh.center,
             radius_m: (s.dbh.diameter_m / 2.0) as f32,
             height_m: s.dbh.slice_height_m,
         })
         .collect();
     if stems.is_empty() {
-        return Ok(None);
+        return None;
     }
     let half = ctx.params.segment.dbh.half_thickness_m;
     let slice: Box<SliceFn> = Box::new(move |centres: &[glam::Vec3]| {
@@ -560,21 +568,7 @@ fn trunk_monitor(
     if let Some(m) = m.as_mut() {
         m.min_opacity = ctx.params.dbh.min_opacity as f32;
     }
-    Ok(m)
-}
-
-/// A stem of `segment/stems.json` as the monitor needs it.
-#[derive(serde::Deserialize)]
-struct StemEntry {
-    base: [f32; 3],
-    axis: [f32; 3],
-    dbh: crate::forest::StemDbh,
-}
-
-#[derive(serde::Deserialize)]
-struct StemsFile {
-    offset: [f64; 3],
-    stems: Vec<StemEntry>,
+    m
 }
 
 /// A stem's breast-height circle in the training frame.
