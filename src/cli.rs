@@ -150,6 +150,10 @@ pub struct TrainArgs {
     /// Upper bound on the number of Gaussians; 0 = none.
     #[arg(long, env = "SYLVA_TRAIN_MAX_GAUSSIANS", default_value_t = 0)]
     pub max_gaussians: u32,
+    /// Densification: default (clone, split and prune by gradient) or mcmc (relocation under
+    /// the --max-gaussians budget, which it needs).
+    #[arg(long, env = "SYLVA_TRAIN_STRATEGY", default_value = "default")]
+    pub strategy: String,
     /// Seed of the view order and densification sampling.
     #[arg(long, env = "SYLVA_TRAIN_SEED", default_value_t = 0)]
     pub seed: u64,
@@ -279,9 +283,22 @@ pub struct RunArgs {
     /// Where training runs: gpu or cpu; overrides the params file.
     #[arg(long, env = "SYLVA_BACKEND")]
     pub backend: Option<String>,
+    /// Densification: default or mcmc (needs `max_gaussians`); overrides the params file.
+    #[arg(long, env = "SYLVA_STRATEGY")]
+    pub strategy: Option<String>,
     /// Log filter in tracing's syntax.
     #[arg(long, env = "SYLVA_LOG", default_value = "warn")]
     pub log: String,
+}
+
+/// `--strategy`'s value.
+fn parse_strategy(s: &str) -> anyhow::Result<crate::pipeline::params::DensifyStrategy> {
+    use crate::pipeline::params::DensifyStrategy;
+    match s {
+        "default" => Ok(DensifyStrategy::Default),
+        "mcmc" => Ok(DensifyStrategy::Mcmc),
+        other => anyhow::bail!("--strategy must be default or mcmc, not {other:?}"),
+    }
 }
 
 /// Applies `sylva run`'s training flags to `params`.
@@ -306,6 +323,9 @@ fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result
         Some("gpu") => t.backend = TrainBackend::Gpu,
         Some("cpu") => t.backend = TrainBackend::Cpu,
         Some(other) => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
+    }
+    if let Some(s) = a.strategy.as_deref() {
+        t.strategy = parse_strategy(s)?;
     }
     if let Some(s) = a.steps {
         t.steps = s;
@@ -750,6 +770,7 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         steps: a.steps,
         resolution: a.resolution,
         max_gaussians: a.max_gaussians,
+        strategy: parse_strategy(&a.strategy)?,
         backend,
         seed: a.seed,
         ..TrainParams::default()
@@ -792,13 +813,13 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         if a.init == "sfm" && init.len() < before {
             crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
         }
-        let mut strategy = crate::splat::trainer::default_strategy(&cfg);
+        let mut strategy = crate::splat::trainer::strategy_for(&cfg)?;
         let outcome = crate::splat::trainer::train(
             backend.as_mut(),
             &data,
             init,
             &cfg,
-            &mut strategy,
+            strategy.as_mut(),
             &progress,
         )?;
         crate::splat::trainer::write_outputs(&a.out, &outcome, &data)?;

@@ -242,6 +242,11 @@ pub struct TrainParams {
     /// stems' DBH band: see `train::cap_gaussians`) and during densification; 0 = no bound
     /// (default).
     pub max_gaussians: u32,
+    /// How the set of Gaussians changes during training: "default" (the reference adaptive
+    /// density control: clone, split and prune by gradient; Kerbl et al. 2023) or "mcmc"
+    /// (relocation of dead Gaussians and growth to `max_gaussians`, with position noise;
+    /// Kheradmand et al. 2024, `splat::mcmc`), which needs a budget.
+    pub strategy: DensifyStrategy,
     /// Where the steps run: the GPU (default) or the CPU reference, which is exact but only
     /// fit for tiny scenes.
     pub backend: TrainBackend,
@@ -273,6 +278,16 @@ impl TrunkTerm {
     }
 }
 
+/// How the set of Gaussians changes during training.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum DensifyStrategy {
+    /// Clone, split and prune by gradient (Kerbl et al. 2023).
+    Default,
+    /// Relocate dead Gaussians and grow to the budget (Kheradmand et al. 2024).
+    Mcmc,
+}
+
 /// Where training runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
@@ -298,6 +313,7 @@ impl Default for TrainParams {
             trunk_beta: 0.5,
             resolution: 1600,
             max_gaussians: 0,
+            strategy: DensifyStrategy::Default,
             backend: TrainBackend::Gpu,
             seed: 0,
         }
@@ -370,6 +386,10 @@ impl TrainParams {
         .scaled_to(self.steps);
         cfg.resolution = (self.resolution > 0).then_some(self.resolution);
         cfg.max_gaussians = (self.max_gaussians > 0).then_some(self.max_gaussians as usize);
+        cfg.strategy = match self.strategy {
+            DensifyStrategy::Default => crate::splat::config::StrategyKind::Default,
+            DensifyStrategy::Mcmc => crate::splat::config::StrategyKind::Mcmc,
+        };
         cfg.seed = self.seed;
         cfg
     }

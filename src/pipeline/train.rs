@@ -455,13 +455,13 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         Some(set) => trunk_monitor(ctx, set, &cfg, &stems),
         None => None,
     };
-    let mut strategy = trainer::default_strategy(&cfg);
+    let mut strategy = trainer::strategy_for(&cfg)?;
     let outcome = trainer::train_monitored(
         backend.as_mut(),
         &data,
         init,
         &cfg,
-        &mut strategy,
+        strategy.as_mut(),
         monitor.as_ref(),
         // Loading took the first 5 %, writing the outputs takes the last 3 %.
         &SubProgress::new(ctx.progress, 0.05, 0.92),

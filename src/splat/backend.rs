@@ -11,6 +11,7 @@ use super::bind::{self, BindConfig};
 use super::camera::Camera;
 use super::cameras::View;
 use super::cpu;
+use super::mcmc::{self, StepTerms};
 use super::model::Gaussians;
 use super::semantic::{self, SemanticAnchors, SemanticConfig};
 use super::strategy::DensifyStats;
@@ -77,6 +78,9 @@ pub trait Backend {
     /// their normals): from the next step on, every bound Gaussian is projected onto the LiDAR
     /// surface after each optimiser step.
     fn set_bind(&mut self, anchors: &SemanticAnchors, cfg: &BindConfig) -> Result<(), TrainError>;
+    /// Installs (or, with `None`, removes) what a strategy adds to every step on the device:
+    /// the MCMC position noise and regularisers ([`crate::splat::mcmc`]).
+    fn set_step_terms(&mut self, terms: Option<StepTerms>) -> Result<(), TrainError>;
     /// dL/d(mean) of the latest step, per Gaussian (photometric plus L_geo when it is on);
     /// a GPU backend reads it back here, so call it only now and then (diagnostics).
     fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError>;
@@ -108,6 +112,8 @@ pub struct CpuBackend {
     bind: Option<(semantic::AnchorIndex, BindConfig)>,
     /// dL/d(mean) of the latest step.
     last_mean_grads: Vec<[f32; 3]>,
+    /// The strategy's per-step terms (MCMC), if any.
+    terms: Option<StepTerms>,
 }
 
 impl CpuBackend {
@@ -123,6 +129,7 @@ impl CpuBackend {
             gamma: 0.0,
             bind: None,
             last_mean_grads: Vec::new(),
+            terms: None,
         }
     }
 }
@@ -188,6 +195,19 @@ impl Backend for CpuBackend {
             }
             geo = l as f32;
         }
+        let flags = self
+            .terms
+            .as_ref()
+            .map(|terms| mcmc::flags(&self.model.trunk_prob, terms));
+        if let (Some(terms), Some(flags)) = (self.terms.as_ref(), flags.as_ref()) {
+            mcmc::regularise_grads(
+                &self.model,
+                flags,
+                terms,
+                &mut grads.opacity_logits,
+                &mut grads.log_scales,
+            );
+        }
         self.times.backward_ms += ms(t);
         if stats {
             let radii: Vec<f32> = render
@@ -201,6 +221,9 @@ impl Backend for CpuBackend {
         self.adam
             .step(&mut self.model, &grads, lr)
             .map_err(invalid)?;
+        if let (Some(terms), Some(flags)) = (self.terms.as_ref(), flags.as_ref()) {
+            mcmc::add_noise(&mut self.model, flags, terms, lr.position, self.adam.step);
+        }
         if let Some((index, cfg)) = self.bind.as_ref() {
             bind::project(&mut self.model, index, cfg);
         }
@@ -236,6 +259,11 @@ impl Backend for CpuBackend {
         let index = semantic::AnchorIndex::new(anchors)
             .ok_or_else(|| TrainError::Invalid("the trunk binding needs trunk anchors".into()))?;
         self.bind = Some((index, cfg.clone()));
+        Ok(())
+    }
+
+    fn set_step_terms(&mut self, terms: Option<StepTerms>) -> Result<(), TrainError> {
+        self.terms = terms;
         Ok(())
     }
 

@@ -96,6 +96,23 @@ pub struct TrainConfig {
     /// Sylva's trunk binding (docs/method.md Stage 4, "Sylva's binding"); off by default here. Its
     /// anchors are installed on the backend by the caller ([`crate::splat::backend::Backend::set_bind`]).
     pub bind: crate::splat::bind::BindConfig,
+    /// How the set of Gaussians changes: the reference adaptive density control (default,
+    /// Kerbl et al. 2023) or MCMC relocation under the `max_gaussians` budget.
+    pub strategy: StrategyKind,
+    /// The MCMC strategy's knobs ([`crate::splat::mcmc`]), used when `strategy` is `Mcmc`.
+    pub mcmc: crate::splat::mcmc::McmcConfig,
+}
+
+/// Which densification strategy trains the model.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StrategyKind {
+    /// Clone, split and prune by gradient (Kerbl et al. 2023; [`crate::splat::strategy`]).
+    #[default]
+    Default,
+    /// Relocate dead Gaussians and grow to a fixed budget (Kheradmand et al. 2024;
+    /// [`crate::splat::mcmc`]).
+    Mcmc,
 }
 
 impl Default for TrainConfig {
@@ -128,6 +145,8 @@ impl Default for TrainConfig {
             seed: 0,
             semantic: Default::default(),
             bind: Default::default(),
+            strategy: StrategyKind::Default,
+            mcmc: Default::default(),
         }
     }
 }

@@ -19,6 +19,7 @@ pub mod export_splat;
 pub mod export_spz;
 pub mod gpu;
 pub mod init;
+pub mod mcmc;
 pub mod model;
 pub mod packed_image;
 pub mod plot;

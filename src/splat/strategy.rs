@@ -3,8 +3,8 @@
 //! The training loop knows nothing about cloning or pruning; it calls a [`Strategy`] at fixed
 //! hooks (after each backward pass, after each optimiser step), as gsplat's `Strategy` objects.
 //! [`DefaultStrategy`] is the reference adaptive density control of Kerbl et al. 2023
-//! (`densify_and_prune`, `reset_opacity`); another strategy (e.g. MCMC relocation) implements the
-//! same trait without touching the loop.
+//! (`densify_and_prune`, `reset_opacity`); [`crate::splat::mcmc::McmcStrategy`] (relocation
+//! under a budget) implements the same trait without touching the loop.
 //!
 //! Step numbers are 1-based, as the reference's `iteration`: hook calls for step `s` happen
 //! during the `s`-th optimisation step.
@@ -41,6 +41,8 @@ pub struct RefineReport {
     pub split: usize,
     /// Gaussians removed by pruning (counting new children pruned at once).
     pub pruned: usize,
+    /// Dead Gaussians moved onto live ones ([`crate::splat::mcmc`]; 0 for the reference).
+    pub relocated: usize,
     /// True when opacities were reset.
     pub opacity_reset: bool,
 }
@@ -109,6 +111,11 @@ pub trait Strategy {
         adam: &mut AdamState,
         scene_extent: f32,
     ) -> RefineReport;
+    /// What the device must add to every step for this strategy (the MCMC noise and
+    /// regularisers), given the run's seed; `None` (the default) adds nothing.
+    fn step_terms(&self, _seed: u64) -> Option<crate::splat::mcmc::StepTerms> {
+        None
+    }
 }
 
 /// Reference adaptive density control (Kerbl et al. 2023, section 5; docs/method.md Stage 4).
@@ -233,6 +240,7 @@ impl DefaultStrategy {
             cloned: clones.len(),
             split: children.len() / 2,
             pruned: entries.len() - out.len(),
+            relocated: 0,
             opacity_reset: false,
         };
         *g = out;

@@ -7,9 +7,10 @@ use std::time::Instant;
 
 use super::adam::{AdamState, LearningRates};
 use super::backend::{Backend, PhaseTimes, StepLoss, TrainError};
-use super::config::TrainConfig;
+use super::config::{StrategyKind, TrainConfig};
 use super::dataset::Dataset;
 use super::eval::{EvalReport, LossRecord, ViewMetrics, save_side_by_side};
+use super::mcmc::McmcStrategy;
 use super::model::Gaussians;
 use super::rng::SplitMix64;
 use super::strategy::{DefaultStrategy, RefineReport, Strategy};
@@ -70,6 +71,7 @@ pub fn train_monitored(
     let mut model = init;
     let mut adam = AdamState::new(model.len());
     backend.set_model(&model, &adam)?;
+    backend.set_step_terms(strategy.step_terms(cfg.seed))?;
     let mut rng = SplitMix64::new(cfg.seed);
     let mut order: Vec<usize> = Vec::new();
     let mut losses = Vec::new();
@@ -224,6 +226,14 @@ pub fn default_strategy(cfg: &TrainConfig) -> DefaultStrategy {
     DefaultStrategy::new(cfg)
 }
 
+/// The strategy `cfg.strategy` names; MCMC without a budget is refused with the reason.
+pub fn strategy_for(cfg: &TrainConfig) -> Result<Box<dyn Strategy>, TrainError> {
+    Ok(match cfg.strategy {
+        StrategyKind::Default => Box::new(DefaultStrategy::new(cfg)),
+        StrategyKind::Mcmc => Box::new(McmcStrategy::new(cfg).map_err(TrainError::Invalid)?),
+    })
+}
+
 /// Saves `splats.ply` (INRIA layout plus `trunk_prob`), `eval.json`, `loss.csv`, `loss.png`
 /// and `renders/<name>.png` (render left, ground truth right) under `out`.
 pub fn write_outputs(out: &Path, outcome: &TrainOutcome, data: &Dataset) -> std::io::Result<()> {
@@ -348,6 +358,54 @@ mod tests {
             out.baseline_psnr
         );
         assert_eq!(out.eval.views.len(), 2);
+    }
+
+    #[test]
+    fn mcmc_training_fills_its_budget_and_fits_the_views() {
+        let truth = random_scene(4, 12, 0);
+        let data = ring_dataset(&truth, 16);
+        let mut init = Gaussians::default();
+        for i in 0..truth.len() {
+            let m = truth.means[i];
+            init.push(Gaussian::isotropic(
+                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
+                0.15,
+                [0.5, 0.5, 0.5],
+                0.3,
+            ));
+        }
+        // Two Gaussians start dead: the first refinement moves them onto live ones.
+        init.opacity_logits[0] = -9.0;
+        init.opacity_logits[1] = -9.0;
+        let cap = 16;
+        let cfg = TrainConfig {
+            steps: 300,
+            max_gaussians: Some(cap),
+            strategy: StrategyKind::Mcmc,
+            ..TrainConfig::default()
+        }
+        .scaled_to(300);
+        let mut backend = CpuBackend::new([0.0; 3]);
+        let mut strategy = strategy_for(&cfg).expect("strategy");
+        let out = train(
+            &mut backend,
+            &data,
+            init,
+            &cfg,
+            strategy.as_mut(),
+            &NoProgress,
+        )
+        .expect("train");
+        assert!(out.losses.iter().all(|r| r.n_gaussians <= cap));
+        assert_eq!(out.model.len(), cap);
+        let relocated: usize = out.refinements.iter().map(|(_, r)| r.relocated).sum();
+        assert!(relocated >= 2, "{:?}", out.refinements);
+        assert!(
+            out.eval.psnr > out.baseline_psnr + 6.0,
+            "held-out PSNR {} vs baseline {}",
+            out.eval.psnr,
+            out.baseline_psnr
+        );
     }
 
     #[test]

@@ -7,6 +7,7 @@ mod chunks;
 mod common;
 mod context;
 mod forward;
+mod mcmc;
 mod semantic;
 mod sort_scan;
 mod timing;

@@ -21,7 +21,9 @@ use crate::splat::model::Gaussians;
 use crate::splat::semantic::{SemanticAnchors, SemanticConfig};
 use crate::splat::strategy::DensifyStats;
 
+use super::mcmc::GpuMcmc;
 use super::semantic::GpuSemantic;
+use crate::splat::mcmc::StepTerms;
 
 impl From<GpuError> for TrainError {
     fn from(e: GpuError) -> Self {
@@ -57,6 +59,8 @@ pub struct GpuBackend {
     gamma: f32,
     /// Sylva's trunk binding, once installed (its anchors are those of `semantic`).
     bind: Option<BindConfig>,
+    /// The strategy's per-step terms (MCMC noise and regularisers), once installed.
+    mcmc: Option<GpuMcmc>,
 }
 
 impl GpuBackend {
@@ -85,6 +89,7 @@ impl GpuBackend {
             semantic: None,
             gamma: 0.0,
             bind: None,
+            mcmc: None,
         })
     }
 
@@ -147,6 +152,9 @@ impl Backend for GpuBackend {
         let gpu_adam = GpuAdam::from_moments(&self.ctx, splats.count, adam.step, &moments)?;
         if let Some(sem) = self.semantic.as_mut() {
             sem.set_model(&self.ctx, &model.trunk_prob)?;
+        }
+        if let Some(m) = self.mcmc.as_mut() {
+            m.set_model(&self.ctx, &model.trunk_prob)?;
         }
         self.state = Some(OnDevice {
             splats,
@@ -246,6 +254,9 @@ impl Backend for GpuBackend {
                 self.gamma,
             )?;
         }
+        if let Some(m) = self.mcmc.as_ref() {
+            m.encode_regularise(&self.ctx, &mut enc, &state.splats, &state.grads)?;
+        }
         let backward_ms = t.elapsed().as_secs_f64() * 1000.0;
         let t = Instant::now();
         let rates = AdamRates {
@@ -259,6 +270,15 @@ impl Backend for GpuBackend {
         state
             .adam
             .encode_step(&self.ctx, &mut enc, &state.splats, &state.grads, &rates)?;
+        if let Some(m) = self.mcmc.as_ref() {
+            m.encode_noise(
+                &self.ctx,
+                &mut enc,
+                &state.splats,
+                state.adam.step,
+                lr.position,
+            )?;
+        }
         if let (Some(sem), Some(_)) = (self.semantic.as_ref(), self.bind.as_ref()) {
             sem.encode_bind(&self.ctx, &mut enc, &state.splats)?;
         }
@@ -306,6 +326,17 @@ impl Backend for GpuBackend {
         let sem_cfg = SemanticConfig::default();
         self.bind = Some(cfg.clone());
         self.set_semantic(anchors, &sem_cfg)
+    }
+
+    fn set_step_terms(&mut self, terms: Option<StepTerms>) -> Result<(), TrainError> {
+        self.mcmc = match terms {
+            Some(t) => {
+                let trunk_prob = self.state.as_ref().map_or(&[][..], |s| &s.trunk_prob[..]);
+                Some(GpuMcmc::new(&self.ctx, t, trunk_prob)?)
+            }
+            None => None,
+        };
+        Ok(())
     }
 
     fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError> {

@@ -27,6 +27,7 @@ pub mod chunks;
 pub mod context;
 pub mod frame;
 pub mod loss;
+pub mod mcmc;
 pub mod params;
 pub mod project;
 pub mod project_bwd;

@@ -1,0 +1,165 @@
+//! The MCMC strategy's per-step terms on the GPU ([`crate::splat::mcmc`]): the regularisers'
+//! gradients (`mcmc_regularise.wgsl`, after the backward passes) and the position noise
+//! (`mcmc_noise.wgsl`, after Adam), one thread per Gaussian of each chunk, no read-back. The CPU
+//! twins are `mcmc::regularise_grads` and `mcmc::add_noise`.
+
+use crate::splat::gpu::buffers::{chunked_from, pipeline, uniform_from};
+use crate::splat::gpu::chunks::bind_ranges;
+use crate::splat::gpu::context::{GpuContext, GpuError};
+use crate::splat::gpu::project::{dispatch_group, groups_for};
+use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
+use crate::splat::mcmc::{self, StepTerms};
+
+const COMMON: &str = include_str!("../../../shaders/mcmc_common.wgsl");
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct McmcParams {
+    n_total: u32,
+    step: u32,
+    seed: u32,
+    _p0: u32,
+    opacity_coef: f32,
+    scale_coef: f32,
+    scaler: f32,
+    _p1: f32,
+}
+
+/// The two kernels, the terms and the per-Gaussian flags of the installed model.
+pub struct GpuMcmc {
+    regularise: wgpu::ComputePipeline,
+    noise: wgpu::ComputePipeline,
+    terms: StepTerms,
+    /// [`mcmc::FLAG_BOUND`] / [`mcmc::FLAG_BACKGROUND`] per Gaussian.
+    flags: wgpu::Buffer,
+    count: u32,
+}
+
+impl GpuMcmc {
+    /// Compiles the kernels for `terms` and uploads the flags of the Gaussians with trunk
+    /// probabilities `trunk_prob`.
+    pub fn new(ctx: &GpuContext, terms: StepTerms, trunk_prob: &[f32]) -> Result<Self, GpuError> {
+        let regularise = pipeline(
+            ctx,
+            "mcmc regularise",
+            &format!(
+                "{COMMON}\n{}",
+                include_str!("../../../shaders/mcmc_regularise.wgsl")
+            ),
+            "main",
+        );
+        let noise = pipeline(
+            ctx,
+            "mcmc noise",
+            &format!(
+                "{COMMON}\n{}",
+                include_str!("../../../shaders/mcmc_noise.wgsl")
+            ),
+            "main",
+        );
+        let mut s = GpuMcmc {
+            regularise,
+            noise,
+            terms,
+            flags: chunked_from(ctx, "mcmc flags", &[0u32])?,
+            count: 0,
+        };
+        s.set_model(ctx, trunk_prob)?;
+        Ok(s)
+    }
+
+    /// The flags of a new model (after every refinement).
+    pub fn set_model(&mut self, ctx: &GpuContext, trunk_prob: &[f32]) -> Result<(), GpuError> {
+        let flags = mcmc::flags(trunk_prob, &self.terms);
+        self.flags = chunked_from(ctx, "mcmc flags", &flags)?;
+        self.count = u32::try_from(flags.len())
+            .map_err(|_| GpuError::Invalid("too many Gaussians for the MCMC flags".into()))?;
+        Ok(())
+    }
+
+    fn params(&self, step: u32, lr_position: f32) -> McmcParams {
+        let n = self.count.max(1) as f32;
+        McmcParams {
+            n_total: self.count,
+            step,
+            seed: self.terms.seed,
+            _p0: 0,
+            opacity_coef: self.terms.opacity_reg / n,
+            scale_coef: self.terms.scale_reg / (3.0 * n),
+            scaler: lr_position * self.terms.noise_lr,
+            _p1: 0.0,
+        }
+    }
+
+    fn check(&self, splats: &GpuSplats) -> Result<(), GpuError> {
+        if splats.count != self.count {
+            return Err(GpuError::Invalid(format!(
+                "MCMC flags for {} Gaussians, model {}",
+                self.count, splats.count
+            )));
+        }
+        Ok(())
+    }
+
+    /// Records the regularisers' gradients (before Adam).
+    pub fn encode_regularise(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        splats: &GpuSplats,
+        grads: &GpuGrads,
+    ) -> Result<(), GpuError> {
+        self.check(splats)?;
+        let u = uniform_from(ctx, "mcmc params", &self.params(0, 0.0));
+        for chunk in splats.plan.chunks() {
+            let cu = chunk.uniform(ctx);
+            let bg = bind_ranges(
+                ctx,
+                &self.regularise,
+                &[
+                    u.as_entire_buffer_binding(),
+                    chunk.range(&splats.opacity_logits, 1),
+                    chunk.range(&splats.log_scales, 3),
+                    chunk.range(&self.flags, 1),
+                    chunk.range(&grads.opacity_logits, 1),
+                    chunk.range(&grads.log_scales, 3),
+                    cu.as_entire_buffer_binding(),
+                ],
+            );
+            dispatch_group(enc, &self.regularise, &bg, groups_for(chunk.len));
+        }
+        Ok(())
+    }
+
+    /// Records the position noise of optimiser step `step` (after Adam) with the step's
+    /// position learning rate, metres.
+    pub fn encode_noise(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        splats: &GpuSplats,
+        step: u32,
+        lr_position: f32,
+    ) -> Result<(), GpuError> {
+        self.check(splats)?;
+        let u = uniform_from(ctx, "mcmc params", &self.params(step, lr_position));
+        for chunk in splats.plan.chunks() {
+            let cu = chunk.uniform(ctx);
+            let bg = bind_ranges(
+                ctx,
+                &self.noise,
+                &[
+                    u.as_entire_buffer_binding(),
+                    chunk.range(&splats.means, 3),
+                    chunk.range(&splats.log_scales, 3),
+                    chunk.range(&splats.rotations, 4),
+                    chunk.range(&splats.opacity_logits, 1),
+                    chunk.range(&self.flags, 1),
+                    cu.as_entire_buffer_binding(),
+                ],
+            );
+            dispatch_group(enc, &self.noise, &bg, groups_for(chunk.len));
+        }
+        Ok(())
+    }
+}
