@@ -219,8 +219,8 @@ pub fn regularise_grads(
         let o = sigmoid(model.opacity_logits[i]);
         opacity_grads[i] += terms.opacity_reg / n * o * (1.0 - o);
         if flags.get(i).is_none_or(|f| f & FLAG_BACKGROUND == 0) {
-            for k in 0..3 {
-                scale_grads[i][k] += terms.scale_reg / (3.0 * n) * model.log_scales[i][k].exp();
+            for (g, l) in scale_grads[i].iter_mut().zip(model.log_scales[i]) {
+                *g += terms.scale_reg / (3.0 * n) * l.exp();
             }
         }
     }
