@@ -147,7 +147,8 @@ pub struct TrainArgs {
     /// gpu (default) or cpu (the exact reference, for tiny scenes only).
     #[arg(long, env = "SYLVA_TRAIN_BACKEND", default_value = "gpu")]
     pub backend: String,
-    /// Upper bound on the number of Gaussians; 0 = none.
+    /// Upper bound on the number of Gaussians; 0 = the device's default budget (none on a
+    /// hardware GPU, 10000 on a software GPU such as lavapipe, 3000 on the CPU reference).
     #[arg(long, env = "SYLVA_TRAIN_MAX_GAUSSIANS", default_value_t = 0)]
     pub max_gaussians: u32,
     /// Densification: default (clone, split and prune by gradient) or mcmc (relocation under
@@ -777,7 +778,6 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
     };
     let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
         let progress = LineProgress::new("train");
-        let cfg = params.config();
         let project = crate::io::colmap::find_project(&a.colmap)?;
         let images = project.images_dir.clone().ok_or_else(|| {
             anyhow::anyhow!(
@@ -787,6 +787,16 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         })?;
         let model = crate::io::colmap::read_model(&project.sparse_dir, &progress)?;
         let mut backend = crate::pipeline::train::backend_for(&params)?;
+        let (params, budget_source) =
+            crate::pipeline::train::with_budget(&params, backend.device_kind());
+        let cfg = params.config();
+        progress.log(&format!(
+            "budget: {} Gaussians ({budget_source})",
+            match params.max_gaussians {
+                0 => "unbounded".to_string(),
+                n => n.to_string(),
+            }
+        ));
         let data = crate::splat::dataset::load(
             &model,
             &images,

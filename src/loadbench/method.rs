@@ -6,7 +6,8 @@
 //! the paper's Table 5, with neither SfM fill nor sky dome — `bind-lidar` (LiDAR anchors and
 //! Sylva's binding), `bind-nosky` (the binding, the SfM points beyond the LiDAR filling the
 //! start, `params.train.sfm_fill_m`) and `bind` (Sylva's default: that and the sky dome,
-//! `params.train.sky_gaussians`). Stages ingest to segment run once per plot; each arm then runs train
+//! `params.train.sky_gaussians`), and `bind-mcmc` (`bind` with the MCMC strategy,
+//! `params.train.strategy`). Stages ingest to segment run once per plot; each arm then runs train
 //! and dbh in its own folder beside them. Per arm, pooled over the plots:
 //!
 //! - held-out PSNR and SSIM (mean over plots), Gaussians at the end, wall time of train + dbh;
@@ -31,7 +32,7 @@ use glam::DVec3;
 use serde_json::Value;
 
 use crate::forest::{TreeRow, compare_with_field};
-use crate::pipeline::params::{InitSource, PipelineParams, TrunkTerm};
+use crate::pipeline::params::{DensifyStrategy, InitSource, PipelineParams, TrunkTerm};
 use crate::pipeline::{self, Stage, StageInputs};
 use crate::splat::model::sigmoid;
 use crate::splat::rng::SplitMix64;
@@ -54,7 +55,7 @@ pub struct MethodBenchArgs {
     )]
     pub method_seeds: String,
     /// method: arms, comma-separated, among vanilla, lidar, paper, bind-lidar, bind-nosky,
-    /// bind.
+    /// bind, bind-mcmc.
     #[arg(
         long = "method-arms",
         env = "SYLVA_BENCH_METHOD_ARMS",
@@ -109,6 +110,7 @@ struct Arm {
     term: TrunkTerm,
     fill: Option<f64>,
     sky: Option<u32>,
+    strategy: DensifyStrategy,
 }
 
 /// The arms by name (see the module doc).
@@ -118,6 +120,7 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
         term,
         fill: Some(0.0),
         sky: Some(0),
+        strategy: DensifyStrategy::Default,
     };
     Ok(match name {
         "vanilla" => paper(InitSource::Sfm, TrunkTerm::Off),
@@ -133,9 +136,14 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
             term: TrunkTerm::Bind,
             fill: None,
             sky: None,
+            strategy: DensifyStrategy::Default,
+        },
+        "bind-mcmc" => Arm {
+            strategy: DensifyStrategy::Mcmc,
+            ..arm("bind")?
         },
         other => anyhow::bail!(
-            "unknown arm {other:?}: vanilla, lidar, paper, bind-lidar, bind-nosky or bind"
+            "unknown arm {other:?}: vanilla, lidar, paper, bind-lidar, bind-nosky, bind or bind-mcmc"
         ),
     })
 }
@@ -239,6 +247,7 @@ fn run_arm(
     params.train.sfm_fill_m = arm.fill.unwrap_or(params.train.sfm_fill_m);
     params.train.sky_gaussians = arm.sky.unwrap_or(params.train.sky_gaussians);
     params.train.semantic = arm.term;
+    params.train.strategy = arm.strategy;
     params.train.steps = steps;
     params.train.resolution = a.method_resolution;
     params.train.max_gaussians = a.method_cap;

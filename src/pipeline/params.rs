@@ -239,8 +239,10 @@ pub struct TrainParams {
     pub resolution: u32,
     /// Upper bound on the number of Gaussians, at initialisation (an even draw in space of
     /// the anchors or points, half of it reserved for trunk Gaussians and half of that for the
-    /// stems' DBH band: see `train::cap_gaussians`) and during densification; 0 = no bound
-    /// (default).
+    /// stems' DBH band: see `train::cap_gaussians`) and during densification; 0 (default) =
+    /// the budget of the device that trains (`train::default_budget`: none on a hardware GPU,
+    /// 10 000 on a software one such as lavapipe, 3 000 on the CPU reference; measured in
+    /// docs/results/twin.md, "Budgets").
     pub max_gaussians: u32,
     /// How the set of Gaussians changes during training: "default" (the reference adaptive
     /// density control: clone, split and prune by gradient; Kerbl et al. 2023) or "mcmc"

@@ -12,7 +12,7 @@ use super::{Stage, StageContext, StageError};
 use crate::io::colmap;
 use crate::io::ply;
 use crate::progress::{NoProgress, SubProgress};
-use crate::splat::backend::{Backend, CpuBackend, TrainError};
+use crate::splat::backend::{Backend, CpuBackend, DeviceKind, TrainError};
 use crate::splat::bind;
 use crate::splat::dataset::{self, Dataset, DatasetError};
 use crate::splat::init::{self, Anchor, AnchorInit};
@@ -49,6 +49,43 @@ pub fn backend_for(params: &TrainParams) -> Result<Box<dyn Backend>, TrainError>
     match params.backend {
         TrainBackend::Cpu => Ok(Box::new(CpuBackend::new(background))),
         TrainBackend::Gpu => Ok(Box::new(crate::splat::gpu::GpuBackend::new(background)?)),
+    }
+}
+
+/// Default Gaussian budget on a software GPU (lavapipe), when `params.train.max_gaussians` is
+/// 0: measured on `stand` seed 1 with `sylva bench method` (docs/results/twin.md, "Budgets"),
+/// where it kept a 500-step run at 80 px within a few minutes on 2 cores.
+pub const SOFTWARE_GPU_BUDGET: u32 = 10_000;
+
+/// Default Gaussian budget on the CPU reference backend (docs/results/twin.md, "Budgets"): the
+/// demo's, which trains `tiny` in seconds on 2 cores.
+pub const CPU_REFERENCE_BUDGET: u32 = 3_000;
+
+/// The Gaussian budget a run gets when `params.train.max_gaussians` is 0: none on a hardware
+/// GPU (the reference 3DGS has no cap; not measured here, there being no GPU on the machines
+/// Sylva is tested on), [`SOFTWARE_GPU_BUDGET`] on a software one, [`CPU_REFERENCE_BUDGET`] on
+/// the CPU reference.
+pub fn default_budget(kind: DeviceKind) -> Option<u32> {
+    match kind {
+        DeviceKind::Gpu => None,
+        DeviceKind::SoftwareGpu => Some(SOFTWARE_GPU_BUDGET),
+        DeviceKind::CpuReference => Some(CPU_REFERENCE_BUDGET),
+    }
+}
+
+/// `params` with the budget of [`default_budget`] when it asks for the default (0), and where
+/// the budget came from: "params", "default for <kind>" or "none".
+pub fn with_budget(params: &TrainParams, kind: DeviceKind) -> (TrainParams, String) {
+    let mut p = params.clone();
+    if p.max_gaussians > 0 {
+        return (p, "params".into());
+    }
+    match default_budget(kind) {
+        Some(b) => {
+            p.max_gaussians = b;
+            (p, format!("default for {}", kind.as_str()))
+        }
+        None => (p, "none".into()),
     }
 }
 
@@ -333,17 +370,24 @@ fn inherit_trunk_prob(g: &mut Gaussians, anchors: &[Anchor]) {
 }
 
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
-    let params = &ctx.params.train;
-    let cfg = params.config();
     let register = ctx.output_of(Stage::Register, Stage::Train)?;
     let model = colmap::read_model(&register.join("sparse"), &NoProgress)?;
     let project = colmap::find_project(&ctx.inputs.colmap)?;
     let images = project.images_dir.ok_or_else(|| {
         StageError::Input("COLMAP project: no images/ folder beside the sparse model".into())
     })?;
-    let mut backend = backend_for(params)?;
-    ctx.progress
-        .log(&format!("training on {}", backend.device_name()));
+    let mut backend = backend_for(&ctx.params.train)?;
+    let (budgeted, budget_source) = with_budget(&ctx.params.train, backend.device_kind());
+    let params = &budgeted;
+    let cfg = params.config();
+    ctx.progress.log(&format!(
+        "training on {} with a budget of {} Gaussians ({budget_source})",
+        backend.device_name(),
+        match params.max_gaussians {
+            0 => "unbounded".to_string(),
+            n => n.to_string(),
+        }
+    ));
     let data = dataset::load(
         &model,
         &images,
@@ -490,6 +534,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "resolution": data.train.first().map(|v| [v.camera.width, v.camera.height]),
         "views": { "train": data.train.len(), "test": data.test.len() },
         "gaussians": { "initial": n_init, "final": outcome.model.len() },
+        "budget": { "max_gaussians": params.max_gaussians, "source": budget_source, "device_kind": backend.device_kind().as_str() },
         "render": outcome.eval,
         "baseline_psnr": outcome.baseline_psnr,
         "seconds": outcome.seconds,
@@ -591,6 +636,28 @@ fn read_offset(ctx: &StageContext<'_>) -> Result<[f64; 3], StageError> {
 mod tests {
     use super::*;
     use crate::splat::model::Gaussian;
+
+    #[test]
+    fn the_default_budget_follows_the_device_and_a_given_one_wins() {
+        let p = TrainParams::default();
+        assert_eq!(p.max_gaussians, 0);
+        let (b, src) = with_budget(&p, DeviceKind::SoftwareGpu);
+        assert_eq!(
+            (b.max_gaussians, src.as_str()),
+            (SOFTWARE_GPU_BUDGET, "default for software_gpu")
+        );
+        let (b, _) = with_budget(&p, DeviceKind::CpuReference);
+        assert_eq!(b.max_gaussians, CPU_REFERENCE_BUDGET);
+        let (b, src) = with_budget(&p, DeviceKind::Gpu);
+        assert_eq!((b.max_gaussians, src.as_str()), (0, "none"));
+        let given = TrainParams {
+            max_gaussians: 500,
+            ..TrainParams::default()
+        };
+        let (b, src) = with_budget(&given, DeviceKind::SoftwareGpu);
+        assert_eq!((b.max_gaussians, src.as_str()), (500, "params"));
+        assert_eq!(b.config().max_gaussians, Some(500));
+    }
 
     fn scene(trunk: usize, other: usize) -> Gaussians {
         let mut g = Gaussians::default();

@@ -50,10 +50,36 @@ pub struct PhaseTimes {
     pub optimizer_ms: f64,
 }
 
+/// What kind of device runs the steps; it sets the default Gaussian budget
+/// (`pipeline::train::default_budget`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DeviceKind {
+    /// A hardware GPU (discrete, integrated or virtual).
+    Gpu,
+    /// A GPU API implemented on the CPU (Mesa's lavapipe, SwiftShader): wgpu's `DeviceType::Cpu`.
+    SoftwareGpu,
+    /// [`CpuBackend`], the plain-Rust reference.
+    CpuReference,
+}
+
+impl DeviceKind {
+    /// The name used in reports.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DeviceKind::Gpu => "gpu",
+            DeviceKind::SoftwareGpu => "software_gpu",
+            DeviceKind::CpuReference => "cpu_reference",
+        }
+    }
+}
+
 /// One place the training steps can run.
 pub trait Backend {
     /// Human-readable device name (e.g. the GPU adapter).
     fn device_name(&self) -> String;
+    /// The kind of device (see [`DeviceKind`]).
+    fn device_kind(&self) -> DeviceKind;
     /// Installs `model` and its optimiser state (at start and after every refinement).
     fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError>;
     /// One optimisation step on `view`: render, loss, backward, Adam with `lr`; when `stats`
@@ -145,6 +171,10 @@ fn ms(t: std::time::Instant) -> f64 {
 impl Backend for CpuBackend {
     fn device_name(&self) -> String {
         format!("cpu reference ({} threads)", rayon::current_num_threads())
+    }
+
+    fn device_kind(&self) -> DeviceKind {
+        DeviceKind::CpuReference
     }
 
     fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError> {

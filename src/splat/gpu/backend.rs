@@ -13,7 +13,7 @@ use super::buffers::{read_buffer, storage_from, storage_zeroed};
 use super::loss::{LOSS_OUT_BYTES, LossKernel};
 use super::{GpuContext, GpuError, GpuGrads, GpuSplats, Renderer};
 use crate::splat::adam::{AdamState, LearningRates, Moments};
-use crate::splat::backend::{Backend, PhaseTimes, StepLoss, TrainError};
+use crate::splat::backend::{Backend, DeviceKind, PhaseTimes, StepLoss, TrainError};
 use crate::splat::bind::BindConfig;
 use crate::splat::camera::Camera;
 use crate::splat::cameras::View;
@@ -132,6 +132,14 @@ fn to_moments(stride: usize, p: &MomentPair) -> Moments {
 impl Backend for GpuBackend {
     fn device_name(&self) -> String {
         self.ctx.description.to_string()
+    }
+
+    fn device_kind(&self) -> DeviceKind {
+        if self.ctx.adapter.get_info().device_type == wgpu::DeviceType::Cpu {
+            DeviceKind::SoftwareGpu
+        } else {
+            DeviceKind::Gpu
+        }
     }
 
     fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError> {
