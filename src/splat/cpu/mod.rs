@@ -90,14 +90,22 @@ pub struct Render {
     pub projected: Vec<Projected>,
     /// Visible Gaussians sorted front to back by depth (stable).
     pub depth_order: Vec<u32>,
+    /// Expected depth per pixel, Σ T α z, metres (`raster::RasterOutput::depth`).
+    pub depth: Vec<f32>,
     image_f64: Vec<[f64; 3]>,
     final_t_f64: Vec<f64>,
+    depth_f64: Vec<f64>,
 }
 
 impl Render {
     /// The image in f64, as composited (before rounding to f32).
     pub fn image_f64(&self) -> &[[f64; 3]] {
         &self.image_f64
+    }
+
+    /// The expected depth in f64, as composited.
+    pub fn depth_f64(&self) -> &[f64] {
+        &self.depth_f64
     }
 }
 
@@ -131,8 +139,10 @@ pub fn render(model: &Gaussians, cam: &Camera, background: [f32; 3]) -> Result<R
         n_contrib: out.n_contrib,
         projected,
         depth_order: order,
+        depth: out.depth.iter().map(|&d| d as f32).collect(),
         image_f64: out.image,
         final_t_f64: out.final_t,
+        depth_f64: out.depth,
     })
 }
 
@@ -144,10 +154,25 @@ pub fn render_backward_f64(
     render: &Render,
     dl_dimage: &[[f64; 3]],
 ) -> Result<(Vec<ParamGrad>, Vec<f64>), CpuError> {
+    render_backward_depth_f64(model, cam, background, render, dl_dimage, None)
+}
+
+/// [`render_backward_f64`] with, when given, dL/d(expected depth) per pixel as well.
+pub fn render_backward_depth_f64(
+    model: &Gaussians,
+    cam: &Camera,
+    background: [f32; 3],
+    render: &Render,
+    dl_dimage: &[[f64; 3]],
+    dl_ddepth: Option<&[f64]>,
+) -> Result<(Vec<ParamGrad>, Vec<f64>), CpuError> {
     if !model.is_consistent() || render.projected.len() != model.len() {
         return Err(CpuError::InconsistentModel);
     }
     check_len(render.image.len(), dl_dimage.len())?;
+    if let Some(d) = dl_ddepth {
+        check_len(render.image.len(), d.len())?;
+    }
     let pgrads = raster::rasterize_backward(
         &render.projected,
         &render.depth_order,
@@ -157,6 +182,7 @@ pub fn render_backward_f64(
         &render.final_t_f64,
         &render.n_contrib,
         dl_dimage,
+        dl_ddepth,
     );
     let (half_w, half_h) = (
         0.5 * f64::from(render.width),
@@ -186,8 +212,22 @@ pub fn render_backward(
     render: &Render,
     dl_dimage: &[[f32; 3]],
 ) -> Result<(GaussianGrads, Vec<f32>), CpuError> {
+    render_backward_depth(model, cam, background, render, dl_dimage, None)
+}
+
+/// [`render_backward`] with, when given, dL/d(expected depth) per pixel as well.
+pub fn render_backward_depth(
+    model: &Gaussians,
+    cam: &Camera,
+    background: [f32; 3],
+    render: &Render,
+    dl_dimage: &[[f32; 3]],
+    dl_ddepth: Option<&[f32]>,
+) -> Result<(GaussianGrads, Vec<f32>), CpuError> {
     let g64: Vec<[f64; 3]> = dl_dimage.iter().map(|p| p.map(f64::from)).collect();
-    let (grads, stat) = render_backward_f64(model, cam, background, render, &g64)?;
+    let d64: Option<Vec<f64>> = dl_ddepth.map(|d| d.iter().map(|&v| f64::from(v)).collect());
+    let (grads, stat) =
+        render_backward_depth_f64(model, cam, background, render, &g64, d64.as_deref())?;
     let mut out = GaussianGrads::zeros(model.len());
     for (i, g) in grads.iter().enumerate() {
         out.means[i] = g.mean.map(|v| v as f32);

@@ -48,6 +48,8 @@ pub struct ProjectedGrad {
     pub rgb: [f64; 3],
     /// dL/dopacity (the opacity itself, not the logit).
     pub opacity: f64,
+    /// dL/d(camera-space depth t.z), 1/m: from a loss on the rendered depth.
+    pub depth: f64,
 }
 
 /// Forward intermediates shared by [`project`] and [`project_backward`].
@@ -253,6 +255,8 @@ pub fn project_backward(model: &Gaussians, i: usize, cam: &Camera, g: &Projected
     if !f.clamped[1] {
         dt[1] += -fy / tz2 * dj[1][2];
     }
+    // The depth channel: z = t.z.
+    dt[2] += g.depth;
     // Mean in pixels (unclamped).
     dt[0] += fx / tz * g.mean2d[0];
     dt[1] += fy / tz * g.mean2d[1];

@@ -26,6 +26,9 @@ pub struct RasterOutput {
     pub final_t: Vec<f64>,
     /// Number of Gaussians blended into each pixel.
     pub n_contrib: Vec<u32>,
+    /// Expected depth per pixel, Σ T_i α_i z_i over the blended Gaussians (z the camera-space
+    /// depth, metres; the background adds nothing): the depth a LiDAR depth loss compares.
+    pub depth: Vec<f64>,
 }
 
 /// Tiles `[x0, x1) × [y0, y1)` touched by the closed rectangle `mean2d ± radius`, clamped to the
@@ -141,7 +144,7 @@ pub fn rasterize(
 ) -> RasterOutput {
     let bins = bin_tiles(projected, order, width, height);
     let tiles_x = width.div_ceil(TILE);
-    let rows: Vec<Vec<([f64; 3], f64, u32)>> = (0..height)
+    let rows: Vec<Vec<([f64; 3], f64, u32, f64)>> = (0..height)
         .into_par_iter()
         .map(|y| {
             (0..width)
@@ -150,18 +153,20 @@ pub fn rasterize(
                     let (contrib, t) =
                         pixel_contributors(projected, list, f64::from(x) + 0.5, f64::from(y) + 0.5);
                     let mut colour = [0.0; 3];
+                    let mut depth = 0.0;
                     let mut tc = 1.0;
                     for hit in &contrib {
-                        let (alpha, rgb) = (hit.alpha, projected[hit.index as usize].rgb);
+                        let p = &projected[hit.index as usize];
                         for ch in 0..3 {
-                            colour[ch] += tc * alpha * rgb[ch];
+                            colour[ch] += tc * hit.alpha * p.rgb[ch];
                         }
-                        tc *= 1.0 - alpha;
+                        depth += tc * hit.alpha * p.depth;
+                        tc *= 1.0 - hit.alpha;
                     }
                     for ch in 0..3 {
                         colour[ch] += t * background[ch];
                     }
-                    (colour, t, contrib.len() as u32)
+                    (colour, t, contrib.len() as u32, depth)
                 })
                 .collect()
         })
@@ -170,18 +175,22 @@ pub fn rasterize(
         image: Vec::new(),
         final_t: Vec::new(),
         n_contrib: Vec::new(),
+        depth: Vec::new(),
     };
-    for (colour, t, n) in rows.into_iter().flatten() {
+    for (colour, t, n, depth) in rows.into_iter().flatten() {
         out.image.push(colour);
         out.final_t.push(t);
         out.n_contrib.push(n);
+        out.depth.push(depth);
     }
     out
 }
 
-/// Backward of [`rasterize`]: per Gaussian dL/d(mean2d, conic, rgb, opacity) from dL/dimage.
-/// Walks each pixel's contributors back to front starting from its final transmittance
-/// (`final_t`) and contributor count (`n_contrib`) of the forward pass.
+/// Backward of [`rasterize`]: per Gaussian dL/d(mean2d, conic, rgb, opacity, depth) from
+/// dL/dimage and, when given, dL/d(expected depth) per pixel (`dl_ddepth`; the depth is a
+/// fourth channel whose background is 0). Walks each pixel's contributors back to front
+/// starting from its final transmittance (`final_t`) and contributor count (`n_contrib`) of the
+/// forward pass.
 #[allow(clippy::too_many_arguments)]
 pub fn rasterize_backward(
     projected: &[Projected],
@@ -192,6 +201,7 @@ pub fn rasterize_backward(
     final_t: &[f64],
     n_contrib: &[u32],
     dl_dimage: &[[f64; 3]],
+    dl_ddepth: Option<&[f64]>,
 ) -> Vec<ProjectedGrad> {
     let bins = bin_tiles(projected, order, width, height);
     let tiles_x = width.div_ceil(TILE);
@@ -213,8 +223,10 @@ pub fn rasterize_backward(
                         pixel_contributors(projected, list, f64::from(x) + 0.5, f64::from(y) + 0.5);
                     let count = (n_contrib[pix] as usize).min(contrib.len());
                     let g = dl_dimage[pix];
+                    let gd = dl_ddepth.map_or(0.0, |d| d[pix]);
                     let mut t = final_t[pix];
                     let mut behind = background;
+                    let mut behind_depth = 0.0;
                     for hit in contrib[..count].iter().rev() {
                         let Hit {
                             index: i,
@@ -232,6 +244,9 @@ pub fn rasterize_backward(
                             dalpha += t * (p.rgb[ch] - behind[ch]) * g[ch];
                             behind[ch] = alpha * p.rgb[ch] + (1.0 - alpha) * behind[ch];
                         }
+                        ga.depth += t * alpha * gd;
+                        dalpha += t * (p.depth - behind_depth) * gd;
+                        behind_depth = alpha * p.depth + (1.0 - alpha) * behind_depth;
                         if clamped {
                             continue;
                         }
@@ -261,6 +276,7 @@ pub fn rasterize_backward(
                 t.rgb[k] += p.rgb[k];
             }
             t.opacity += p.opacity;
+            t.depth += p.depth;
         }
     }
     total
