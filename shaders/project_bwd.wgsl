@@ -1,5 +1,5 @@
 // Projection backward: one thread per Gaussian. Recomputes the forward projection, then chains
-// the screen-space gradients of the raster backward (grads2d, 9 per Gaussian) to the
+// the screen-space gradients of the raster backward (grads2d, 10 per Gaussian) to the
 // parameters: conic -> 2-D covariance -> (J, camera covariance) -> (t, scale, rotation through
 // the quaternion normalisation); mean2d -> t -> mu; rgb -> SH coefficients and mu through the
 // view direction; opacity -> logit. Also accumulates the densification statistic.
@@ -84,10 +84,11 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         g_opacity[c] = 0.0;
         return;
     }
-    let v_m = vec2<f32>(grads2d[9u * c], grads2d[9u * c + 1u]);
-    let v_conic = vec3<f32>(grads2d[9u * c + 2u], grads2d[9u * c + 3u], grads2d[9u * c + 4u]);
-    let v_rgb_in = vec3<f32>(grads2d[9u * c + 5u], grads2d[9u * c + 6u], grads2d[9u * c + 7u]);
-    let v_opacity = grads2d[9u * c + 8u];
+    let v_m = vec2<f32>(grads2d[10u * c], grads2d[10u * c + 1u]);
+    let v_conic = vec3<f32>(grads2d[10u * c + 2u], grads2d[10u * c + 3u], grads2d[10u * c + 4u]);
+    let v_rgb_in = vec3<f32>(grads2d[10u * c + 5u], grads2d[10u * c + 6u], grads2d[10u * c + 7u]);
+    let v_opacity = grads2d[10u * c + 8u];
+    let v_depth = grads2d[10u * c + 9u];
 
     // Densification statistic (reference: NDC gradient = pixel gradient x (w/2, h/2)).
     densify[3u * c] += length(v_m * 0.5 * p.lim.zw);
@@ -156,7 +157,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     v_t.z += -fx * rz2 * v_j0.x + 2.0 * fx * tx * rz3 * v_j0.z - fy * rz2 * v_j1.y
         + 2.0 * fy * ty * rz3 * v_j1.z;
     v_t += vec3<f32>(fx * rz * v_m.x, fy * rz * v_m.y,
-        -fx * t.x * rz2 * v_m.x - fy * t.y * rz2 * v_m.y);
+        -fx * t.x * rz2 * v_m.x - fy * t.y * rz2 * v_m.y + v_depth);
     var v_mu = transpose(w) * v_t;
 
     // Sigma_c = W Sigma W^T; Sigma = M M^T with M = Rq S.

@@ -3,8 +3,10 @@
 // to front from the last blended Gaussian, recovering the transmittance by division
 // (T_before = T_after / (1 - alpha)). Per Gaussian, a thread first sums its own pixels'
 // contributions in registers, then adds the sum to the Gaussian's screen-space gradient with
-// `add_grad` (float atomics or a CAS loop, prepended): grads2d[9 g ..] = dL/d(mean x, mean y),
-// dL/d(conic a, b, c), dL/d(r, g, b), dL/d(opacity). PIX = 1 is the classic one-pixel-per-thread
+// `add_grad` (float atomics or a CAS loop, prepended): grads2d[10 g ..] = dL/d(mean x, mean y),
+// dL/d(conic a, b, c), dL/d(r, g, b), dL/d(opacity), dL/d(depth z). The depth is a fourth channel
+// (record lane 2.w, background 0) whose per-pixel gradient comes from `depth_grad` (zero unless
+// a depth loss wrote it). PIX = 1 is the classic one-pixel-per-thread
 // kernel; a larger PIX divides the global atomics by up to PIX, which pays on CPU adapters
 // (lavapipe) where an atomic float add is a locked compare-and-swap loop. No subgroup operations.
 
@@ -17,11 +19,13 @@
 @group(0) @binding(8) var<storage, read> final_t: array<f32>;
 @group(0) @binding(9) var<storage, read> n_contrib: array<u32>;
 @group(0) @binding(10) var<storage, read> dl_dimage: array<f32>;
+// dL/d(expected depth) per pixel (binding after the four gradient slots 11-14).
+@group(0) @binding(15) var<storage, read> depth_grad: array<f32>;
 
-// Adds v to screen-space gradient k (0..8) of Gaussian g, in g's slot.
+// Adds v to screen-space gradient k (0..9) of Gaussian g, in g's slot.
 fn add_grad(g: u32, k: u32, v: f32) {
     let s = min(g / band.z, 3u);
-    let i = 9u * (g - s * band.z) + k;
+    let i = 10u * (g - s * band.z) + k;
     switch s {
         case 0u: { add_0(i, v); }
         case 1u: { add_1(i, v); }
@@ -52,10 +56,10 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     var pix: array<vec2<f32>, PIX>;
     var t_final: array<f32, PIX>;
     var last: array<u32, PIX>;
-    var v_out: array<vec3<f32>, PIX>;
+    var v_out: array<vec4<f32>, PIX>;
     var v_bg: array<f32, PIX>;
     var t: array<f32, PIX>;
-    var acc: array<vec3<f32>, PIX>;
+    var acc: array<vec4<f32>, PIX>;
     var my_last = 0u;
     for (var k = 0u; k < PIX; k++) {
         let lp = lid * PIX + k;
@@ -64,18 +68,18 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         pix[k] = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
         t_final[k] = 1.0;
         last[k] = 0u;
-        v_out[k] = vec3<f32>(0.0);
+        v_out[k] = vec4<f32>(0.0);
         if px < p.dims.x && py < p.dims.y {
             let o = py * p.dims.x + px;
             t_final[k] = final_t[o];
             last[k] = n_contrib[o];
-            v_out[k] = vec3<f32>(dl_dimage[3u * o], dl_dimage[3u * o + 1u],
-                dl_dimage[3u * o + 2u]);
+            v_out[k] = vec4<f32>(dl_dimage[3u * o], dl_dimage[3u * o + 1u],
+                dl_dimage[3u * o + 2u], depth_grad[o]);
         }
         my_last = max(my_last, last[k]);
-        v_bg[k] = dot(p.bg.xyz, v_out[k]);
+        v_bg[k] = dot(p.bg.xyz, v_out[k].xyz);
         t[k] = t_final[k];
-        acc[k] = vec3<f32>(0.0);
+        acc[k] = vec4<f32>(0.0);
     }
     atomicMax(&max_last, my_last);
     workgroupBarrier();
@@ -109,8 +113,8 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             }
             let xo = b_xy_op[j];
             let q = b_conic[j].xyz;
-            let rgb = b_rgb[j].xyz;
-            var g_rgb = vec3<f32>(0.0);
+            let rgb = b_rgb[j];
+            var g_rgb = vec4<f32>(0.0);
             var g_mean = vec2<f32>(0.0);
             var g_conic = vec3<f32>(0.0);
             var g_opacity = 0.0;
@@ -151,6 +155,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
                 add_grad(g, 5u, g_rgb.x);
                 add_grad(g, 6u, g_rgb.y);
                 add_grad(g, 7u, g_rgb.z);
+                add_grad(g, 9u, g_rgb.w);
                 if hit_geo {
                     add_grad(g, 0u, g_mean.x);
                     add_grad(g, 1u, g_mean.y);

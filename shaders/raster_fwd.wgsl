@@ -13,6 +13,8 @@
 @group(0) @binding(9) var<storage, read_write> final_t: array<f32>;
 // Per pixel: 1 + position (within the tile's run) of the last Gaussian blended, 0 if none.
 @group(0) @binding(10) var<storage, read_write> n_contrib: array<u32>;
+// Per pixel: expected depth sum T alpha z (the fourth channel, background 0), metres.
+@group(0) @binding(11) var<storage, read_write> depth: array<f32>;
 
 const BATCH: u32 = 256u;
 
@@ -36,7 +38,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     var pix: array<vec2<f32>, PIX>;
     var done: array<bool, PIX>;
     var t: array<f32, PIX>;
-    var c: array<vec3<f32>, PIX>;
+    var c: array<vec4<f32>, PIX>;
     var last: array<u32, PIX>;
     var live = 0u;
     for (var k = 0u; k < PIX; k++) {
@@ -46,7 +48,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         pix[k] = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
         done[k] = !(px < p.dims.x && py < p.dims.y);
         t[k] = 1.0;
-        c[k] = vec3<f32>(0.0);
+        c[k] = vec4<f32>(0.0);
         last[k] = 0u;
         if !done[k] {
             live++;
@@ -101,7 +103,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
                     atomicAdd(&done_count, 1u);
                     continue;
                 }
-                c[k] += t[k] * alpha * b_rgb[j].xyz;
+                c[k] += t[k] * alpha * b_rgb[j];
                 t[k] = t_next;
                 last[k] = b * BATCH + j + 1u;
             }
@@ -113,12 +115,13 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         let py = tile_y * TILE + lp / TILE;
         if px < p.dims.x && py < p.dims.y {
             let o = py * p.dims.x + px;
-            let col = c[k] + t[k] * p.bg.xyz;
+            let col = c[k].xyz + t[k] * p.bg.xyz;
             image[3u * o] = col.x;
             image[3u * o + 1u] = col.y;
             image[3u * o + 2u] = col.z;
             final_t[o] = t[k];
             n_contrib[o] = last[k];
+            depth[o] = c[k].w;
         }
     }
 }

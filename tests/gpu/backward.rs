@@ -134,3 +134,47 @@ fn every_pixels_per_thread_variant_matches_cpu_reference() {
         }
     }
 }
+
+/// The depth channel's backward (a loss on the expected depth) against the CPU reference.
+#[test]
+fn depth_backward_matches_cpu_reference() {
+    let Some(ctx) = common::context() else { return };
+    for (seed, n, w, h) in [(6u64, 60usize, 48u32, 40u32), (9, 500, 64, 48)] {
+        let model = common::scene(seed, n, 1, spread(seed));
+        let cam = common::camera(w, h, 0.8 * w as f32);
+        let bg = [0.2, 0.1, 0.4];
+        let pixels = (w * h) as usize;
+        let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
+        let dl = common::random_dl(pixels, seed + 100);
+        let dd: Vec<f32> = (0..pixels)
+            .map(|p| 0.05 * (p as f32 * 0.37).sin())
+            .collect();
+        let (want, _) =
+            sylva::splat::cpu::render_backward_depth(&model, &cam, bg, &cpu, &dl, Some(&dd))
+                .expect("cpu backward");
+        let (without, _) =
+            sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+        let moved = want
+            .means
+            .iter()
+            .zip(&without.means)
+            .filter(|(a, b)| (a[2] - b[2]).abs() > 1e-4 * (1.0 + b[2].abs()))
+            .count();
+        assert!(
+            moved > n / 10,
+            "the depth term barely changes the gradients ({moved})"
+        );
+        let renderer = Renderer::new(&ctx);
+        let splats = GpuSplats::upload(&ctx, &model).expect("upload");
+        let frame = renderer.render(&ctx, &splats, &cam, bg).expect("render");
+        ctx.queue
+            .write_buffer(&frame.depth_grad, 0, bytemuck::cast_slice(&dd));
+        let dl_buf = storage_from(&ctx, "dl", &dl).expect("buffer");
+        let grads = GpuGrads::new(&ctx, splats.count).expect("grads");
+        renderer
+            .backward(&ctx, &splats, &frame, &dl_buf, &grads)
+            .expect("backward");
+        eprintln!("seed {seed}, n {n}, {w}x{h}, with a depth loss");
+        check_all(&grads.download(&ctx).expect("download"), &want);
+    }
+}

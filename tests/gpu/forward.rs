@@ -32,6 +32,16 @@ fn forward_matches_cpu_reference() {
             .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
         let (rel, bad) = common::compare(&got, &want, 1e-3, 1e-4);
         let (trel, tbad) = common::compare(&t, &cpu.final_t, 1e-3, 1e-4);
+        let depth = frame.read_depth(&ctx).expect("read");
+        let (drel, dbad) = common::compare(&depth, &cpu.depth, 1e-3, 1e-4);
+        assert!(
+            n < 50 || cpu.depth.iter().filter(|&&d| d > 0.5).count() > (w * h / 10) as usize,
+            "the scene covers too little of the image for the depth check"
+        );
+        assert!(
+            drel < 1e-4 && dbad < 0.002,
+            "depth disagrees: rel {drel} bad {dbad}"
+        );
         eprintln!(
             "seed {seed}: n {n}, {w}x{h}, isect {}: image max {max:.2e} rel {rel:.2e} bad {bad:.4}; T rel {trel:.2e} bad {tbad:.4}",
             frame.intersections

@@ -126,7 +126,8 @@ pub fn bind_ranges(
 
 /// Storage bindings through which the rasterisers reach the projected records, and as many for
 /// the screen-space gradients (`shaders/slots.wgsl`): with the 9 other buffers of the backward
-/// raster that is 13 storage bindings per stage, within the 16 this crate asks for.
+/// raster (with the depth gradient) that is 14 storage bindings per stage, within the 16 this
+/// crate asks for.
 pub const SLOTS: u32 = 4;
 
 /// Bytes per Gaussian of the widest slotted buffer: the projected record, 3 × `vec4<f32>`.

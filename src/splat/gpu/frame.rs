@@ -30,7 +30,8 @@ pub struct Frame {
     pub params: RenderParams,
     pub params_buf: wgpu::Buffer,
     /// Per Gaussian, 3 × vec4: (mean2d px, depth m, radius px as u32 bits), (conic a, b, c,
-    /// opacity), (r, g, b, 0). All zero for culled Gaussians. Bound in chunks and `slots`.
+    /// opacity), (r, g, b, camera depth m). All zero for culled Gaussians. Bound in chunks and
+    /// `slots`.
     pub proj: wgpu::Buffer,
     /// How the rasterisers bind `proj` and the screen-space gradients (random access by id).
     pub slots: SlotPlan,
@@ -49,6 +50,11 @@ pub struct Frame {
     /// Per pixel: 1 + position of the last blended Gaussian in its tile's run (0 if none).
     /// Not the number blended: skipped Gaussians before it are counted too.
     pub n_contrib: wgpu::Buffer,
+    /// Expected depth per pixel, Σ T α z (metres; the background adds nothing), `w·h` f32.
+    pub depth: wgpu::Buffer,
+    /// dL/d(`depth`) per pixel, `w·h` f32: zero when rendered; a depth loss writes it before
+    /// the backward pass, which reads it.
+    pub depth_grad: wgpu::Buffer,
     /// Number of Gaussians rendered.
     pub count: u32,
     /// Number of (Gaussian, tile) intersections.
@@ -70,6 +76,11 @@ impl Frame {
     /// Reads the image back (blocking), row-major RGB.
     pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<[f32; 3]>, GpuError> {
         read_buffer(ctx, &self.image, self.pixels())
+    }
+
+    /// Reads the expected depth back (blocking), metres per pixel.
+    pub fn read_depth(&self, ctx: &GpuContext) -> Result<Vec<f32>, GpuError> {
+        read_buffer(ctx, &self.depth, self.pixels())
     }
 
     /// Reads the final transmittance back (blocking).

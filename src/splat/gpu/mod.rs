@@ -12,13 +12,13 @@
 //! statistics; up to 192 bytes per Gaussian for the SH block) may exceed one storage binding:
 //! kernels bind them in whole-Gaussian chunks ([`chunks`]), so they are limited by the adapter's
 //! `max_buffer_size` only. The projected records (48 bytes per Gaussian) and the screen-space
-//! gradients (36 bytes), read and written at random by the rasterisers, are bound as up to four
+//! gradients (40 bytes), read and written at random by the rasterisers, are bound as up to four
 //! whole-Gaussian slots ([`chunks::SlotPlan`]): 4 bindings' worth (on lavapipe's 128 MiB,
 //! 11.18M Gaussians). The intersection arrays (4 bytes per intersection each) are split into
 //! bands of tile rows that each fit one binding ([`renderer::plan_bands`]), so only one row of
 //! 16-pixel tiles must fit (33.5M intersections on lavapipe). Past these, and for the per-pixel
 //! images, rendering fails with [`GpuError::BufferTooLarge`], which names the buffer. The
-//! raster backward binds 13 storage buffers (the adapter must allow that per stage).
+//! raster backward binds 14 storage buffers (the adapter must allow that per stage).
 
 pub mod adam;
 pub mod backend;

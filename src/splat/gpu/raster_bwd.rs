@@ -11,8 +11,9 @@ use crate::splat::gpu::raster_fwd::SLOTS_WGSL;
 /// Binding of the first screen-space gradient slot (`raster_bwd.wgsl`).
 const GRADS2D_BINDING: u32 = 11;
 
-/// Screen-space gradient floats per Gaussian: mean2d (2), conic (3), rgb (3), opacity (1).
-pub const GRADS2D_STRIDE: u64 = 9;
+/// Screen-space gradient floats per Gaussian: mean2d (2), conic (3), rgb (3), opacity (1),
+/// camera depth (1).
+pub const GRADS2D_STRIDE: u64 = 10;
 
 /// The backward raster pipeline.
 pub struct RasterBwd {
@@ -45,9 +46,10 @@ impl RasterBwd {
         }
     }
 
-    /// Records the raster backward of `frame` given dL/dimage (w·h·3 f32, interleaved RGB),
-    /// accumulating into `grads2d` (which must be zero beforehand, 9 floats per Gaussian, bound
-    /// in the frame's slots), one dispatch per band of tile rows.
+    /// Records the raster backward of `frame` given dL/dimage (w·h·3 f32, interleaved RGB) and
+    /// the frame's dL/d(depth) (`Frame::depth_grad`, zero unless a depth loss wrote it),
+    /// accumulating into `grads2d` (which must be zero beforehand, [`GRADS2D_STRIDE`] floats per
+    /// Gaussian, bound in the frame's slots), one dispatch per band of tile rows.
     pub fn encode(
         &self,
         ctx: &GpuContext,
@@ -94,6 +96,7 @@ impl RasterBwd {
                 dl_dimage.as_entire_buffer_binding(),
             ]);
             b.extend(g2d.iter().cloned());
+            b.push(frame.depth_grad.as_entire_buffer_binding());
             let bg = bind_ranges(ctx, &self.pipeline, &b);
             dispatch_group(enc, &self.pipeline, &bg, (tx, band.rows));
         }

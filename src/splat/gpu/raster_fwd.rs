@@ -30,7 +30,7 @@ impl RasterFwd {
     }
 
     /// Records the rasterisation of `frame` (sorted, with tile ranges) into its image,
-    /// final transmittance and contributor buffers.
+    /// final transmittance, contributor and depth buffers.
     pub fn encode(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, frame: &Frame) {
         let (tx, _) = frame.params.tiles();
         for band in &frame.bands {
@@ -43,6 +43,7 @@ impl RasterFwd {
                 frame.image.as_entire_buffer_binding(),
                 frame.final_t.as_entire_buffer_binding(),
                 frame.n_contrib.as_entire_buffer_binding(),
+                frame.depth.as_entire_buffer_binding(),
             ]);
             let bg = bind_ranges(ctx, &self.pipeline, &b);
             dispatch_group(enc, &self.pipeline, &bg, (tx, band.rows));

@@ -89,9 +89,9 @@ impl Renderer {
                 cam.width, cam.height, cam.fx, cam.fy
             )));
         }
-        if ctx.device.limits().max_storage_buffers_per_shader_stage < 13 {
+        if ctx.device.limits().max_storage_buffers_per_shader_stage < 14 {
             return Err(GpuError::Invalid(
-                "the adapter allows fewer than 13 storage buffers per shader stage".into(),
+                "the adapter allows fewer than 14 storage buffers per shader stage".into(),
             ));
         }
         let mut times = PassTimings::default();
@@ -162,6 +162,8 @@ impl Renderer {
         let image = storage_zeroed(ctx, "image", pixels * 12)?;
         let final_t = storage_zeroed(ctx, "final T", pixels * 4)?;
         let n_contrib = storage_zeroed(ctx, "n contrib", pixels * 4)?;
+        let depth = storage_zeroed(ctx, "depth", pixels * 4)?;
+        let depth_grad = storage_zeroed(ctx, "dL/ddepth", pixels * 4)?;
         // Several bands: per-band tile counts and offsets, one band after the other.
         let band_offsets = if spans.len() > 1 {
             Some(storage_zeroed(
@@ -269,6 +271,8 @@ impl Renderer {
             image,
             final_t,
             n_contrib,
+            depth,
+            depth_grad,
             count: n,
             intersections: isect,
         };
