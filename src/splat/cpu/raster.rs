@@ -134,6 +134,9 @@ fn pixel_contributors(projected: &[Projected], list: &[u32], px: f64, py: f64) -
     (out, t)
 }
 
+/// One composited pixel: colour, final transmittance, contributors, expected depth.
+type PixelOut = ([f64; 3], f64, u32, f64);
+
 /// Composites a `width × height` image over `background` (RGB).
 pub fn rasterize(
     projected: &[Projected],
@@ -144,7 +147,7 @@ pub fn rasterize(
 ) -> RasterOutput {
     let bins = bin_tiles(projected, order, width, height);
     let tiles_x = width.div_ceil(TILE);
-    let rows: Vec<Vec<([f64; 3], f64, u32, f64)>> = (0..height)
+    let rows: Vec<Vec<PixelOut>> = (0..height)
         .into_par_iter()
         .map(|y| {
             (0..width)
@@ -157,8 +160,8 @@ pub fn rasterize(
                     let mut tc = 1.0;
                     for hit in &contrib {
                         let p = &projected[hit.index as usize];
-                        for ch in 0..3 {
-                            colour[ch] += tc * hit.alpha * p.rgb[ch];
+                        for (c, rgb) in colour.iter_mut().zip(p.rgb) {
+                            *c += tc * hit.alpha * rgb;
                         }
                         depth += tc * hit.alpha * p.depth;
                         tc *= 1.0 - hit.alpha;

@@ -38,6 +38,7 @@ struct Group {
 }
 
 /// Central difference on the f32 parameter with the exact step actually taken.
+#[allow(clippy::too_many_arguments)]
 fn fd(
     model: &mut Gaussians,
     cam: &Camera,
