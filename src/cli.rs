@@ -287,6 +287,9 @@ pub struct RunArgs {
     /// Densification: default or mcmc (needs `max_gaussians`); overrides the params file.
     #[arg(long, env = "SYLVA_STRATEGY")]
     pub strategy: Option<String>,
+    /// Weight of the LiDAR depth loss (0 = off); overrides the params file.
+    #[arg(long, env = "SYLVA_DEPTH_WEIGHT")]
+    pub depth_weight: Option<f64>,
     /// Log filter in tracing's syntax.
     #[arg(long, env = "SYLVA_LOG", default_value = "warn")]
     pub log: String,
@@ -327,6 +330,9 @@ fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result
     }
     if let Some(s) = a.strategy.as_deref() {
         t.strategy = parse_strategy(s)?;
+    }
+    if let Some(w) = a.depth_weight {
+        t.depth_weight = w;
     }
     if let Some(s) = a.steps {
         t.steps = s;

@@ -6,8 +6,9 @@
 //! the paper's Table 5, with neither SfM fill nor sky dome — `bind-lidar` (LiDAR anchors and
 //! Sylva's binding), `bind-nosky` (the binding, the SfM points beyond the LiDAR filling the
 //! start, `params.train.sfm_fill_m`) and `bind` (Sylva's default: that and the sky dome,
-//! `params.train.sky_gaussians`), and `bind-mcmc` (`bind` with the MCMC strategy,
-//! `params.train.strategy`). Stages ingest to segment run once per plot; each arm then runs train
+//! `params.train.sky_gaussians`), `bind-mcmc` (`bind` with the MCMC strategy,
+//! `params.train.strategy`) and `bind-depth` (`bind` with the LiDAR depth loss,
+//! `params.train.depth_weight` = `--method-depth-weight`). Stages ingest to segment run once per plot; each arm then runs train
 //! and dbh in its own folder beside them. Per arm, pooled over the plots:
 //!
 //! - held-out PSNR and SSIM (mean over plots), Gaussians at the end, wall time of train + dbh;
@@ -55,7 +56,7 @@ pub struct MethodBenchArgs {
     )]
     pub method_seeds: String,
     /// method: arms, comma-separated, among vanilla, lidar, paper, bind-lidar, bind-nosky,
-    /// bind, bind-mcmc.
+    /// bind, bind-mcmc, bind-depth.
     #[arg(
         long = "method-arms",
         env = "SYLVA_BENCH_METHOD_ARMS",
@@ -76,13 +77,20 @@ pub struct MethodBenchArgs {
         default_value_t = 80
     )]
     pub method_resolution: u32,
-    /// method: Gaussian cap (0 = none).
+    /// method: Gaussian cap (0 = the training device's default budget).
     #[arg(
         long = "method-cap",
         env = "SYLVA_BENCH_METHOD_CAP",
         default_value_t = 10_000
     )]
     pub method_cap: u32,
+    /// method: weight of the LiDAR depth loss in the `bind-depth` arm.
+    #[arg(
+        long = "method-depth-weight",
+        env = "SYLVA_BENCH_METHOD_DEPTH_WEIGHT",
+        default_value_t = 0.1
+    )]
+    pub method_depth_weight: f64,
     /// method: gpu or cpu.
     #[arg(
         long = "method-backend",
@@ -111,6 +119,8 @@ struct Arm {
     fill: Option<f64>,
     sky: Option<u32>,
     strategy: DensifyStrategy,
+    /// Weight of the LiDAR depth loss (`--method-depth-weight` for the `bind-depth` arm).
+    depth: bool,
 }
 
 /// The arms by name (see the module doc).
@@ -121,6 +131,7 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
         fill: Some(0.0),
         sky: Some(0),
         strategy: DensifyStrategy::Default,
+        depth: false,
     };
     Ok(match name {
         "vanilla" => paper(InitSource::Sfm, TrunkTerm::Off),
@@ -137,13 +148,18 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
             fill: None,
             sky: None,
             strategy: DensifyStrategy::Default,
+            depth: false,
+        },
+        "bind-depth" => Arm {
+            depth: true,
+            ..arm("bind")?
         },
         "bind-mcmc" => Arm {
             strategy: DensifyStrategy::Mcmc,
             ..arm("bind")?
         },
         other => anyhow::bail!(
-            "unknown arm {other:?}: vanilla, lidar, paper, bind-lidar, bind-nosky, bind or bind-mcmc"
+            "unknown arm {other:?}: vanilla, lidar, paper, bind-lidar, bind-nosky, bind, bind-mcmc or bind-depth"
         ),
     })
 }
@@ -226,6 +242,8 @@ fn arm_dir(dir: &Path, name: &str) -> anyhow::Result<PathBuf> {
 struct ArmResult {
     psnr: f64,
     ssim: f64,
+    /// Held-out expected depth against the LiDAR: mean absolute error, m.
+    depth_mae: f64,
     gaussians: u64,
     seconds: f64,
     /// Per matched tree: (field, LiDAR, Gaussian) DBH, cm; the Gaussian one may be missing.
@@ -248,6 +266,9 @@ fn run_arm(
     params.train.sky_gaussians = arm.sky.unwrap_or(params.train.sky_gaussians);
     params.train.semantic = arm.term;
     params.train.strategy = arm.strategy;
+    if arm.depth {
+        params.train.depth_weight = a.method_depth_weight;
+    }
     params.train.steps = steps;
     params.train.resolution = a.method_resolution;
     params.train.max_gaussians = a.method_cap;
@@ -255,9 +276,17 @@ fn run_arm(
         "cpu" => crate::pipeline::params::TrainBackend::Cpu,
         _ => crate::pipeline::params::TrainBackend::Gpu,
     };
+    let weight = if arm.depth {
+        format!("-w{}", a.method_depth_weight)
+    } else {
+        String::new()
+    };
     let out = arm_dir(
         dir,
-        &format!("{name}-{steps}-{}-{}", a.method_resolution, a.method_cap),
+        &format!(
+            "{name}-{steps}-{}-{}{weight}",
+            a.method_resolution, a.method_cap
+        ),
     )?;
     let start = Instant::now();
     for stage in [Stage::Train, Stage::Dbh] {
@@ -299,6 +328,7 @@ fn run_arm(
     Ok(ArmResult {
         psnr: train["render"]["psnr"].as_f64().unwrap_or(f64::NAN),
         ssim: train["render"]["ssim"].as_f64().unwrap_or(f64::NAN),
+        depth_mae: train["depth"]["heldout_mae_m"].as_f64().unwrap_or(f64::NAN),
         gaussians: train["gaussians"]["final"].as_u64().unwrap_or(0),
         seconds,
         trees,
@@ -431,9 +461,9 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
         a.method_backend
     );
     println!(
-        "| arm | PSNR dB | SSIM | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
+        "| arm | PSNR dB | SSIM | depth MAE m | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for name in &arms {
         let mut all = Vec::new();
         for (dir, inputs) in &plots {
@@ -465,9 +495,10 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
             (true, false) => format!("{x:.1}"),
         };
         println!(
-            "| {name} | {} | {:.3} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {} | {} | {} | {:.0} |",
+            "| {name} | {} | {:.3} | {} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {} | {} | {} | {:.0} |",
             f(mean(&all.iter().map(|r| r.psnr).collect::<Vec<_>>())),
             mean(&all.iter().map(|r| r.ssim).collect::<Vec<_>>()),
+            f(mean(&all.iter().map(|r| r.depth_mae).collect::<Vec<_>>())),
             f(rg),
             f(bg),
             f(rl),

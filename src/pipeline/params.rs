@@ -244,6 +244,11 @@ pub struct TrainParams {
     /// 10 000 on a software one such as lavapipe, 3 000 on the CPU reference; measured in
     /// docs/results/twin.md, "Budgets").
     pub max_gaussians: u32,
+    /// Weight λ of the LiDAR depth loss (`splat::depth`): the rendered expected depth of each
+    /// training view is pulled towards the registered LiDAR anchors' depth there,
+    /// λ · mean |D − L| / L over the pixels with a LiDAR return (occlusion-aware maps); 0 =
+    /// off (default: the reference 3DGS and the paper have none). Needs the LiDAR anchors.
+    pub depth_weight: f64,
     /// How the set of Gaussians changes during training: "default" (the reference adaptive
     /// density control: clone, split and prune by gradient; Kerbl et al. 2023) or "mcmc"
     /// (relocation of dead Gaussians and growth to `max_gaussians`, with position noise;
@@ -316,6 +321,7 @@ impl Default for TrainParams {
             resolution: 1600,
             max_gaussians: 0,
             strategy: DensifyStrategy::Default,
+            depth_weight: 0.0,
             backend: TrainBackend::Gpu,
             seed: 0,
         }

@@ -6,6 +6,7 @@
 //! SSIM per view), `loss.csv`, `loss.png` and `renders/*.png` (render left, photo right).
 
 use serde_json::json;
+use std::collections::HashMap;
 
 use super::params::{InitSource, TrainBackend, TrainParams, TrunkTerm};
 use super::{Stage, StageContext, StageError};
@@ -499,6 +500,42 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         Some(set) => trunk_monitor(ctx, set, &cfg, &stems),
         None => None,
     };
+    // LiDAR depth maps of every view (the anchors splatted at their voxel size): the targets of
+    // the depth loss on the training views and the held-out depth error on the others.
+    let footprint = ctx.params.anchors.voxel_size_m as f32;
+    let lidar_points: Option<Vec<[f32; 3]>> = anchors
+        .as_ref()
+        .map(|a| a.iter().map(|x| x.position).collect());
+    let depth_maps = |views: &[crate::splat::cameras::View]| -> HashMap<String, Vec<f32>> {
+        lidar_points.as_ref().map_or_else(HashMap::new, |pts| {
+            views
+                .iter()
+                .map(|v| {
+                    (
+                        v.name.clone(),
+                        crate::splat::depth::lidar_depth(pts, &v.camera, footprint),
+                    )
+                })
+                .collect()
+        })
+    };
+    if !(params.depth_weight.is_finite() && params.depth_weight >= 0.0) {
+        return Err(StageError::Input(format!(
+            "params.train.depth_weight must be finite and ≥ 0, got {}",
+            params.depth_weight
+        )));
+    }
+    if params.depth_weight > 0.0 {
+        if lidar_points.is_none() {
+            return Err(StageError::Input(
+                "params.train.depth_weight needs the LiDAR anchors of stage segment".into(),
+            ));
+        }
+        backend.set_depth_targets(crate::splat::depth::DepthTargets {
+            weight: params.depth_weight as f32,
+            maps: depth_maps(&data.train),
+        })?;
+    }
     let mut strategy = trainer::strategy_for(&cfg)?;
     let outcome = trainer::train_monitored(
         backend.as_mut(),
@@ -512,6 +549,36 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     )?;
     trainer::write_outputs(ctx.out_dir, &outcome, &data)
         .map_err(|e| super::io_err(ctx.out_dir, e))?;
+    // Held-out depth error against the LiDAR (also without the depth loss, to compare).
+    let mut depth_note = json!({ "weight": params.depth_weight });
+    if lidar_points.is_some() && !data.test.is_empty() {
+        let maps = depth_maps(&data.test);
+        let (mut mae, mut rel, mut n) = (0.0, 0.0, 0usize);
+        for v in &data.test {
+            let rendered = backend.render_depth(&v.camera)?;
+            if let Some((a, r)) = maps
+                .get(&v.name)
+                .and_then(|m| crate::splat::depth::depth_error(&rendered, m))
+            {
+                mae += a;
+                rel += r;
+                n += 1;
+            }
+        }
+        if n > 0 {
+            let (mae, rel) = (mae / n as f64, rel / n as f64);
+            ctx.progress.log(&format!(
+                "held-out depth against the LiDAR: mean absolute error {mae:.3} m, relative {:.1} % over {n} views",
+                rel * 100.0
+            ));
+            depth_note = json!({
+                "weight": params.depth_weight,
+                "heldout_mae_m": mae,
+                "heldout_rel": rel,
+                "views": n,
+            });
+        }
+    }
     ctx.progress.set(1.0);
     ctx.progress.log(&format!(
         "held-out PSNR {:.2} dB, SSIM {:.3} over {} views (mean-colour baseline {:.2} dB)",
@@ -536,6 +603,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "gaussians": { "initial": n_init, "final": outcome.model.len() },
         "budget": { "max_gaussians": params.max_gaussians, "source": budget_source, "device_kind": backend.device_kind().as_str() },
         "render": outcome.eval,
+        "depth": depth_note,
         "baseline_psnr": outcome.baseline_psnr,
         "seconds": outcome.seconds,
         "steps_per_second": outcome.steps_per_second,

@@ -11,6 +11,7 @@ use super::bind::{self, BindConfig};
 use super::camera::Camera;
 use super::cameras::View;
 use super::cpu;
+use super::depth::{self, DepthTargets};
 use super::mcmc::{self, StepTerms};
 use super::model::Gaussians;
 use super::semantic::{self, SemanticAnchors, SemanticConfig};
@@ -107,6 +108,11 @@ pub trait Backend {
     /// Installs (or, with `None`, removes) what a strategy adds to every step on the device:
     /// the MCMC position noise and regularisers ([`crate::splat::mcmc`]).
     fn set_step_terms(&mut self, terms: Option<StepTerms>) -> Result<(), TrainError>;
+    /// Installs LiDAR depth maps of the training views and the weight of the depth loss
+    /// ([`crate::splat::depth`]); a weight of 0 turns the loss off.
+    fn set_depth_targets(&mut self, targets: DepthTargets) -> Result<(), TrainError>;
+    /// Renders the expected depth Σ T α z from `camera`, metres per pixel (row-major).
+    fn render_depth(&mut self, camera: &Camera) -> Result<Vec<f32>, TrainError>;
     /// dL/d(mean) of the latest step, per Gaussian (photometric plus L_geo when it is on);
     /// a GPU backend reads it back here, so call it only now and then (diagnostics).
     fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError>;
@@ -140,6 +146,8 @@ pub struct CpuBackend {
     last_mean_grads: Vec<[f32; 3]>,
     /// The strategy's per-step terms (MCMC), if any.
     terms: Option<StepTerms>,
+    /// LiDAR depth supervision.
+    depth: DepthTargets,
 }
 
 impl CpuBackend {
@@ -156,6 +164,7 @@ impl CpuBackend {
             bind: None,
             last_mean_grads: Vec::new(),
             terms: None,
+            depth: DepthTargets::default(),
         }
     }
 }
@@ -209,9 +218,19 @@ impl Backend for CpuBackend {
         .map_err(invalid)?;
         self.times.loss_ms += ms(t);
         let t = std::time::Instant::now();
-        let (mut grads, grad_stat) =
-            cpu::render_backward(&self.model, &view.camera, self.background, &render, &grad)
-                .map_err(invalid)?;
+        let depth_grad = self
+            .depth
+            .for_view(&view.name)
+            .map(|(map, _)| depth::loss_and_grad(&render.depth, map, self.depth.weight).1);
+        let (mut grads, grad_stat) = cpu::render_backward_depth(
+            &self.model,
+            &view.camera,
+            self.background,
+            &render,
+            &grad,
+            depth_grad.as_deref(),
+        )
+        .map_err(invalid)?;
         let mut geo = 0.0;
         if let Some((index, n_pos, cfg)) = self.semantic.as_ref().filter(|_| self.gamma > 0.0) {
             let targets = semantic::geo_targets_indexed(&self.model, index, cfg);
@@ -295,6 +314,17 @@ impl Backend for CpuBackend {
     fn set_step_terms(&mut self, terms: Option<StepTerms>) -> Result<(), TrainError> {
         self.terms = terms;
         Ok(())
+    }
+
+    fn set_depth_targets(&mut self, targets: DepthTargets) -> Result<(), TrainError> {
+        self.depth = targets;
+        Ok(())
+    }
+
+    fn render_depth(&mut self, camera: &Camera) -> Result<Vec<f32>, TrainError> {
+        Ok(cpu::render(&self.model, camera, self.background)
+            .map_err(invalid)?
+            .depth)
     }
 
     fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError> {

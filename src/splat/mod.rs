@@ -13,6 +13,7 @@ pub mod cameras;
 pub mod config;
 pub mod cpu;
 pub mod dataset;
+pub mod depth;
 pub mod eval;
 pub mod export;
 pub mod export_splat;

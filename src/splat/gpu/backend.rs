@@ -21,8 +21,10 @@ use crate::splat::model::Gaussians;
 use crate::splat::semantic::{SemanticAnchors, SemanticConfig};
 use crate::splat::strategy::DensifyStats;
 
+use super::depth::DepthLoss;
 use super::mcmc::GpuMcmc;
 use super::semantic::GpuSemantic;
+use crate::splat::depth::DepthTargets;
 use crate::splat::mcmc::StepTerms;
 
 impl From<GpuError> for TrainError {
@@ -61,6 +63,10 @@ pub struct GpuBackend {
     bind: Option<BindConfig>,
     /// The strategy's per-step terms (MCMC noise and regularisers), once installed.
     mcmc: Option<GpuMcmc>,
+    /// LiDAR depth supervision: the maps (uploaded per view on first use) and the kernel.
+    depth: DepthTargets,
+    depth_maps: HashMap<String, (wgpu::Buffer, usize)>,
+    depth_loss: DepthLoss,
 }
 
 impl GpuBackend {
@@ -74,6 +80,7 @@ impl GpuBackend {
     pub fn with_context(ctx: GpuContext, background: [f32; 3]) -> Result<Self, TrainError> {
         let renderer = Renderer::new(&ctx);
         let loss = LossKernel::new(&ctx.device);
+        let depth_loss = DepthLoss::new(&ctx);
         let loss_out = storage_zeroed(&ctx, "loss out", LOSS_OUT_BYTES)?;
         Ok(GpuBackend {
             ctx,
@@ -90,6 +97,9 @@ impl GpuBackend {
             gamma: 0.0,
             bind: None,
             mcmc: None,
+            depth: DepthTargets::default(),
+            depth_maps: HashMap::new(),
+            depth_loss,
         })
     }
 
@@ -188,6 +198,12 @@ impl Backend for GpuBackend {
         }
         // Upload the target first (once per view) so the borrows below stay simple.
         self.target(view)?;
+        if let Some((map, valid)) = self.depth.for_view(&view.name)
+            && !self.depth_maps.contains_key(&view.name)
+        {
+            let buf = storage_from(&self.ctx, "LiDAR depth", map)?;
+            self.depth_maps.insert(view.name.clone(), (buf, valid));
+        }
         let t = Instant::now();
         let state = self
             .state
@@ -232,6 +248,12 @@ impl Backend for GpuBackend {
                 h,
             )
             .map_err(|e| TrainError::Invalid(e.to_string()))?;
+        if self.depth.weight > 0.0
+            && let Some((map, valid)) = self.depth_maps.get(&view.name)
+        {
+            self.depth_loss
+                .encode(&self.ctx, &mut enc, &frame, map, self.depth.weight, *valid)?;
+        }
         if self.timed {
             self.ctx.queue.submit([enc.finish()]);
             self.ctx.wait()?;
@@ -345,6 +367,20 @@ impl Backend for GpuBackend {
             None => None,
         };
         Ok(())
+    }
+
+    fn set_depth_targets(&mut self, targets: DepthTargets) -> Result<(), TrainError> {
+        self.depth = targets;
+        self.depth_maps.clear();
+        Ok(())
+    }
+
+    fn render_depth(&mut self, camera: &Camera) -> Result<Vec<f32>, TrainError> {
+        let state = self.state()?;
+        let frame = self
+            .renderer
+            .render(&self.ctx, &state.splats, camera, self.background)?;
+        Ok(frame.read_depth(&self.ctx)?)
     }
 
     fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError> {

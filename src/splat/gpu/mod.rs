@@ -25,6 +25,7 @@ pub mod backend;
 pub mod buffers;
 pub mod chunks;
 pub mod context;
+pub mod depth;
 pub mod frame;
 pub mod loss;
 pub mod mcmc;

@@ -1,0 +1,39 @@
+// The LiDAR depth loss's gradient (src/splat/depth.rs, CPU twin depth::grad_at), one thread per
+// pixel: dL/dD = coef * sign(D - L) / L where the LiDAR map has a depth L > 0, else 0, with
+// coef = lambda / |V|. Writes the frame's depth gradient, which the raster backward reads.
+
+struct DepthParams {
+    pixels: u32,
+    _p0: u32,
+    _p1: u32,
+    _p2: u32,
+    coef: f32,
+    _f0: f32,
+    _f1: f32,
+    _f2: f32,
+}
+
+@group(0) @binding(0) var<uniform> dp: DepthParams;
+@group(0) @binding(1) var<storage, read> depth: array<f32>;
+@group(0) @binding(2) var<storage, read> lidar: array<f32>;
+@group(0) @binding(3) var<storage, read_write> depth_grad: array<f32>;
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    let o = (wg.y * nwg.x + wg.x) * 256u + lid;
+    if o >= dp.pixels {
+        return;
+    }
+    let l = lidar[o];
+    var g = 0.0;
+    if l > 0.0 {
+        let d = depth[o];
+        if d > l {
+            g = dp.coef / l;
+        } else if d < l {
+            g = -dp.coef / l;
+        }
+    }
+    depth_grad[o] = g;
+}
