@@ -65,7 +65,7 @@ pub fn lidar_depth(points: &[[f32; 3]], cam: &Camera, footprint_m: f32) -> Vec<f
     let mut z = vec![f32::INFINITY; (w * h) as usize];
     for p in points {
         let t = cam.to_camera(*p);
-        if !(t[2] > NEAR_M) {
+        if t[2].is_nan() || t[2] <= NEAR_M {
             continue;
         }
         let u = cam.fx * t[0] / t[2] + cam.cx;
