@@ -11,15 +11,22 @@ struct Params {
     bg: vec4<f32>,      // background RGB
     lim: vec4<f32>,     // Jacobian clamp lim_x, lim_y (tan), width, height (px)
     dims: vec4<u32>,    // width, height, tiles_x, tiles_y
-    counts: vec4<u32>,  // Gaussians, SH degree, intersections, unused
+    counts: vec4<u32>,  // Gaussians, SH degree, intersections, antialias (1: Mip-Splatting 2-D filter)
 }
 
 const TILE: u32 = 16u;
 const NEAR: f32 = 0.01;
-const LOW_PASS: f32 = 0.3;
+const LOW_PASS: f32 = 0.3; // px^2; also the variance of the 2-D Mip filter (project.rs LOW_PASS)
 const ALPHA_MAX: f32 = 0.99;
 const ALPHA_MIN: f32 = 0.00392156862745098; // 1/255
 const T_MIN: f32 = 0.0001;
+
+// Mip-Splatting's opacity compensation rho = sqrt(max(0, det S / det(S + LOW_PASS I))) of the 2-D
+// covariance S = [[c00, c01], [c01, c11]] (px^2, before the low-pass), given det_blurred =
+// det(S + LOW_PASS I) (CPU twin: `compensation` in src/splat/cpu/project.rs).
+fn compensation(c00: f32, c01: f32, c11: f32, det_blurred: f32) -> f32 {
+    return sqrt(max(0.0, (c00 * c11 - c01 * c01) / det_blurred));
+}
 
 // Linear invocation index of a 1-D dispatch folded onto (x, y) workgroups of 256 threads.
 fn linear_id(wg: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {

@@ -49,9 +49,12 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let ty = clamp(t.y / t.z, -p.lim.y, p.lim.y) * t.z;
     let j0 = vec3<f32>(fx / t.z, 0.0, -fx * tx / (t.z * t.z));
     let j1 = vec3<f32>(0.0, fy / t.z, -fy * ty / (t.z * t.z));
-    let s00 = dot(j0, sigma_c * j0) + LOW_PASS;
-    let s01 = dot(j0, sigma_c * j1);
-    let s11 = dot(j1, sigma_c * j1) + LOW_PASS;
+    let c00 = dot(j0, sigma_c * j0);
+    let c01 = dot(j0, sigma_c * j1);
+    let c11 = dot(j1, sigma_c * j1);
+    let s00 = c00 + LOW_PASS;
+    let s01 = c01;
+    let s11 = c11 + LOW_PASS;
     let det = s00 * s11 - s01 * s01;
     if !(det > 0.0) {
         cull(c);
@@ -78,7 +81,11 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         rgb += y[k] * vec3<f32>(sh[b], sh[b + 1u], sh[b + 2u]);
     }
     rgb = max(rgb, vec3<f32>(0.0));
-    let opacity = 1.0 / (1.0 + exp(-opacity_logits[c]));
+    var opacity = 1.0 / (1.0 + exp(-opacity_logits[c]));
+    if p.counts.w != 0u {
+        // The 2-D Mip filter: the blended opacity is sigmoid(logit) * rho.
+        opacity *= compensation(c00, c01, c11, det);
+    }
     proj[3u * c] = vec4<f32>(mean2d, t.z, bitcast<f32>(u32(r)));
     proj[3u * c + 1u] = vec4<f32>(conic, opacity);
     proj[3u * c + 2u] = vec4<f32>(rgb, t.z);

@@ -2,7 +2,8 @@
 // the screen-space gradients of the raster backward (grads2d, 10 per Gaussian) to the
 // parameters: conic -> 2-D covariance -> (J, camera covariance) -> (t, scale, rotation through
 // the quaternion normalisation); mean2d -> t -> mu; rgb -> SH coefficients and mu through the
-// view direction; opacity -> logit. Also accumulates the densification statistic.
+// view direction; opacity -> logit and, with the 2-D Mip filter (params.counts.w), through the
+// compensation rho to the 2-D covariance. Also accumulates the densification statistic.
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
@@ -22,6 +23,7 @@
 // First Gaussian of the chunk, Gaussians in the chunk: every other buffer (parameters, proj,
 // grads2d, gradients, densify) is bound as the chunk's sub-range (index `c`).
 @group(0) @binding(13) var<uniform> chunk: vec4<u32>;
+@group(0) @binding(14) var<storage, read> opacity_logits: array<f32>;
 
 // d Y_k / d(x, y, z) for k = 1..15, treating the components as independent.
 fn sh_basis_grad(d: vec3<f32>, k: u32) -> vec3<f32> {
@@ -95,10 +97,6 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     densify[3u * c + 1u] += 1.0;
     densify[3u * c + 2u] = max(densify[3u * c + 2u], f32(radius));
 
-    // Opacity: sigmoid derivative.
-    let o = proj[3u * c + 1u].w;
-    g_opacity[c] = v_opacity * o * (1.0 - o);
-
     // Recompute the forward quantities.
     let mu = vec3<f32>(means[3u * c], means[3u * c + 1u], means[3u * c + 2u]);
     let w = cam_rot(p);
@@ -121,22 +119,44 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let ty = clamp(uy, -p.lim.y, p.lim.y) * t.z;
     let j0 = vec3<f32>(fx * rz, 0.0, -fx * tx * rz2);
     let j1 = vec3<f32>(0.0, fy * rz, -fy * ty * rz2);
-    let s00 = dot(j0, sigma_c * j0) + LOW_PASS;
-    let s01 = dot(j0, sigma_c * j1);
-    let s11 = dot(j1, sigma_c * j1) + LOW_PASS;
+    let c00 = dot(j0, sigma_c * j0);
+    let c01 = dot(j0, sigma_c * j1);
+    let c11 = dot(j1, sigma_c * j1);
+    let s00 = c00 + LOW_PASS;
+    let s01 = c01;
+    let s11 = c11 + LOW_PASS;
     let det = s00 * s11 - s01 * s01;
     let qa = s11 / det;
     let qb = -s01 / det;
     let qc = s00 / det;
+
+    // Opacity: the blended opacity is o * rho (rho = 1 without the 2-D Mip filter), o the
+    // sigmoid of the logit.
+    let o = 1.0 / (1.0 + exp(-opacity_logits[c]));
+    var rho = 1.0;
+    if p.counts.w != 0u {
+        rho = compensation(c00, c01, c11, det);
+    }
+    g_opacity[c] = v_opacity * rho * o * (1.0 - o);
 
     // Conic -> 2-D covariance: dL/dSigma2D = -Q V Q, V the symmetric gradient of Q
     // (b appears twice in Q, so V's off-diagonal is v_b / 2).
     let qm = mat2x2<f32>(vec2<f32>(qa, qb), vec2<f32>(qb, qc));
     let vm = mat2x2<f32>(vec2<f32>(v_conic.x, 0.5 * v_conic.y), vec2<f32>(0.5 * v_conic.y, v_conic.z));
     let gs = (qm * vm * qm) * -1.0;
-    let g00 = gs[0][0];
-    let g01 = 0.5 * (gs[0][1] + gs[1][0]);
-    let g11 = gs[1][1];
+    var g00 = gs[0][0];
+    var g01 = 0.5 * (gs[0][1] + gs[1][0]);
+    var g11 = gs[1][1];
+    // 2-D Mip filter: d rho / d Sigma2D = ((1 - rho^2) Q - LOW_PASS det(Q) I) / (2 rho), zero
+    // where rho is clamped at 0 (CPU twin: `compensation_grad`); dL/d rho = v_opacity * o.
+    if p.counts.w != 0u && rho > 0.0 {
+        let k = v_opacity * o * 0.5 / rho;
+        let one = 1.0 - rho * rho;
+        let det_q = qa * qc - qb * qb;
+        g00 += k * (one * qa - LOW_PASS * det_q);
+        g01 += k * one * qb;
+        g11 += k * (one * qc - LOW_PASS * det_q);
+    }
 
     // Sigma2D = J Sigma_c J^T: dL/dSigma_c = J^T G J; dL/dJ rows = 2 G J Sigma_c.
     let v_sigma_c = g00 * outer(j0, j0) + g01 * (outer(j0, j1) + outer(j1, j0)) + g11 * outer(j1, j1);

@@ -158,6 +158,11 @@ pub struct TrainArgs {
     /// Seed of the view order and densification sampling.
     #[arg(long, env = "SYLVA_TRAIN_SEED", default_value_t = 0)]
     pub seed: u64,
+    /// Anti-aliased rasterisation, on or off: Mip-Splatting's 2-D filter (a 0.3 px² blur with
+    /// opacity compensation) for training and the held-out renders; off is the reference
+    /// 3DGS dilation.
+    #[arg(long, env = "SYLVA_TRAIN_ANTIALIAS", default_value = "off")]
+    pub antialias: String,
 }
 
 #[derive(Debug, Args)]
@@ -290,6 +295,10 @@ pub struct RunArgs {
     /// Weight of the LiDAR depth loss (0 = off); overrides the params file.
     #[arg(long, env = "SYLVA_DEPTH_WEIGHT")]
     pub depth_weight: Option<f64>,
+    /// Anti-aliased rasterisation in training and the held-out renders (Mip-Splatting's 2-D
+    /// filter), on or off; overrides the params file.
+    #[arg(long, env = "SYLVA_ANTIALIAS")]
+    pub antialias: Option<String>,
     /// Log filter in tracing's syntax.
     #[arg(long, env = "SYLVA_LOG", default_value = "warn")]
     pub log: String,
@@ -340,7 +349,19 @@ fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result
     if let Some(r) = a.resolution {
         t.resolution = r;
     }
+    if let Some(v) = a.antialias.as_deref() {
+        t.antialias = on_off("--antialias", v)?;
+    }
     Ok(())
+}
+
+/// `on` or `off` of flag `flag` as a bool; anything else is an error naming the flag.
+fn on_off(flag: &str, value: &str) -> anyhow::Result<bool> {
+    match value {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => anyhow::bail!("{flag} must be on or off, not {other:?}"),
+    }
 }
 
 /// Adds the summary keys of results.json: `registration`, `render` = {psnr, ssim, views} and,
@@ -780,6 +801,7 @@ async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         strategy: parse_strategy(&a.strategy)?,
         backend,
         seed: a.seed,
+        antialias: on_off("--antialias", &a.antialias)?,
         ..TrainParams::default()
     };
     let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
@@ -1174,4 +1196,17 @@ async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::FAILURE
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::on_off;
+
+    #[test]
+    fn on_off_flags_parse_and_name_the_flag_on_error() {
+        assert!(on_off("--antialias", "on").expect("on"));
+        assert!(!on_off("--antialias", "off").expect("off"));
+        let err = on_off("--antialias", "yes").expect_err("not on/off");
+        assert!(err.to_string().contains("--antialias"), "{err}");
+    }
 }

@@ -259,6 +259,12 @@ pub struct TrainParams {
     pub backend: TrainBackend,
     /// Seed of view order, densification sampling and subsets (default 0).
     pub seed: u64,
+    /// Anti-aliased rasterisation: Mip-Splatting's 2-D filter (Yu et al. 2024; gsplat's
+    /// "antialiased" mode), a 0.3 px² screen-space blur whose opacity compensation dims
+    /// Gaussians smaller than a pixel instead of enlarging them, for training and the
+    /// held-out renders alike (default false: the reference 3DGS dilation). The exported
+    /// splat files do not record it; viewers render them with their own filter.
+    pub antialias: bool,
 }
 
 /// What holds the trunk Gaussians during training (the ablation's arms).
@@ -324,6 +330,7 @@ impl Default for TrainParams {
             depth_weight: 0.0,
             backend: TrainBackend::Gpu,
             seed: 0,
+            antialias: false,
         }
     }
 }
@@ -399,6 +406,7 @@ impl TrainParams {
             DensifyStrategy::Mcmc => crate::splat::config::StrategyKind::Mcmc,
         };
         cfg.seed = self.seed;
+        cfg.antialias = self.antialias;
         cfg
     }
 }
@@ -419,6 +427,16 @@ impl PipelineParams {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn antialias_reaches_the_training_config() {
+        let p: PipelineParams =
+            serde_json::from_value(serde_json::json!({"train": {"antialias": true}}))
+                .expect("valid params");
+        assert!(p.train.config().antialias);
+        assert!(p.train.config().render_options().antialias);
+        assert!(!PipelineParams::default().train.config().antialias);
+    }
 
     #[test]
     fn unknown_keys_are_refused() {

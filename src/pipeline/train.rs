@@ -598,6 +598,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         },
         "final_geo_loss": outcome.losses.last().map(|r| r.geo),
         "steps": cfg.steps,
+        "antialias": cfg.antialias,
         "resolution": data.train.first().map(|v| [v.camera.width, v.camera.height]),
         "views": { "train": data.train.len(), "test": data.test.len() },
         "gaussians": { "initial": n_init, "final": outcome.model.len() },

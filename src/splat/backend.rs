@@ -8,7 +8,7 @@
 
 use super::adam::{AdamState, LearningRates};
 use super::bind::{self, BindConfig};
-use super::camera::Camera;
+use super::camera::{Camera, RenderOptions};
 use super::cameras::View;
 use super::cpu;
 use super::depth::{self, DepthTargets};
@@ -122,7 +122,12 @@ pub trait Backend {
     fn take_stats(&mut self) -> Result<DensifyStats, TrainError>;
     /// The current model and optimiser state.
     fn model(&mut self) -> Result<(Gaussians, AdamState), TrainError>;
-    /// Renders the current model from `camera` (RGB in [0, 1], row-major).
+    /// How every later step and [`Backend::render`] rasterise (default: [`RenderOptions`]'s);
+    /// the trainer sets its configuration's at the start, so that the held-out renders of a
+    /// model use the mode it was trained with.
+    fn set_render_options(&mut self, options: RenderOptions);
+    /// Renders the current model from `camera` (RGB in [0, 1], row-major) with the options of
+    /// [`Backend::set_render_options`].
     fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError>;
     /// Time spent per phase so far.
     fn phase_times(&self) -> PhaseTimes;
@@ -138,6 +143,7 @@ pub struct CpuBackend {
     stats: DensifyStats,
     loss: StepLoss,
     background: [f32; 3],
+    options: RenderOptions,
     times: PhaseTimes,
     semantic: Option<(semantic::AnchorIndex, f32, SemanticConfig)>,
     gamma: f32,
@@ -158,6 +164,7 @@ impl CpuBackend {
             stats: DensifyStats::default(),
             loss: StepLoss::default(),
             background,
+            options: RenderOptions::default(),
             times: PhaseTimes::default(),
             semantic: None,
             gamma: 0.0,
@@ -205,7 +212,8 @@ impl Backend for CpuBackend {
     ) -> Result<(), TrainError> {
         self.model.sh_degree = sh_degree;
         let t = std::time::Instant::now();
-        let render = cpu::render(&self.model, &view.camera, self.background).map_err(invalid)?;
+        let render = cpu::render_with(&self.model, &view.camera, self.background, self.options)
+            .map_err(invalid)?;
         self.times.raster_ms += ms(t);
         let t = std::time::Instant::now();
         let target = view.image.to_rgb_f32();
@@ -346,10 +354,16 @@ impl Backend for CpuBackend {
         Ok((self.model.clone(), self.adam.clone()))
     }
 
+    fn set_render_options(&mut self, options: RenderOptions) {
+        self.options = options;
+    }
+
     fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError> {
-        Ok(cpu::render(&self.model, camera, self.background)
-            .map_err(invalid)?
-            .image)
+        Ok(
+            cpu::render_with(&self.model, camera, self.background, self.options)
+                .map_err(invalid)?
+                .image,
+        )
     }
 
     fn phase_times(&self) -> PhaseTimes {

@@ -20,6 +20,20 @@ pub struct Camera {
     pub t: [f32; 3],
 }
 
+/// How a view is rasterised besides its camera (docs/splatting.md "Forward", step 4). Both
+/// rasterisers take it: the CPU reference ([`crate::splat::cpu::render_with`]) and the GPU one
+/// (`Params.counts.w` of `shaders/common.wgsl`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct RenderOptions {
+    /// Mip-Splatting's 2-D filter (Yu et al. 2024, "Mip-Splatting: Alias-free 3D Gaussian
+    /// Splatting"; gsplat `rasterize_mode="antialiased"`): the screen-space blur of variance
+    /// [`crate::splat::cpu::project::LOW_PASS`] (0.3 px²) keeps its size, and each Gaussian's
+    /// opacity is multiplied by `ρ = sqrt(det Σ2D / det(Σ2D + 0.3 · I))`, so a Gaussian smaller
+    /// than a pixel renders dimmer rather than larger and as bright, and its total light does
+    /// not depend on the resolution. Default off (the reference 3DGS dilation, Kerbl et al. 2023).
+    pub antialias: bool,
+}
+
 impl Camera {
     /// Camera centre in the world: -Rᵀ t.
     pub fn centre(&self) -> [f32; 3] {

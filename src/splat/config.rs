@@ -90,6 +90,13 @@ pub struct TrainConfig {
     pub resolution: Option<u32>,
     /// Seed of the random numbers used by densification (split sampling). Default 0.
     pub seed: u64,
+    /// Rasterise with Mip-Splatting's 2-D filter (Yu et al. 2024; gsplat
+    /// `rasterize_mode="antialiased"`): the 0.3 px² screen-space blur with its opacity
+    /// compensation `ρ = sqrt(det Σ2D / det(Σ2D + 0.3 · I))` (unitless), so sub-pixel Gaussians
+    /// keep their total light at every resolution (docs/splatting.md "Forward", step 4). Used
+    /// for every training step and the held-out renders alike. Default false (the reference
+    /// 3DGS dilation without compensation, Kerbl et al. 2023).
+    pub antialias: bool,
     /// The semantic trunk term L_geo (docs/method.md Stage 4); off by default (vanilla 3DGS). Its
     /// anchors are installed on the backend by the caller ([`crate::splat::backend::Backend::set_semantic`]).
     pub semantic: crate::splat::semantic::SemanticConfig,
@@ -143,6 +150,7 @@ impl Default for TrainConfig {
             test_every: 8,
             resolution: None,
             seed: 0,
+            antialias: false,
             semantic: Default::default(),
             bind: Default::default(),
             strategy: StrategyKind::Default,
@@ -183,6 +191,13 @@ impl TrainConfig {
         c.sh_degree_interval = scale(self.sh_degree_interval).max(1);
         c.semantic = self.semantic.scaled_to(steps);
         c
+    }
+
+    /// How the trainer's backend rasterises, for training and the held-out renders.
+    pub fn render_options(&self) -> crate::splat::camera::RenderOptions {
+        crate::splat::camera::RenderOptions {
+            antialias: self.antialias,
+        }
     }
 
     /// Active SH degree at `step` (1-based): one more every `sh_degree_interval` steps, capped

@@ -72,6 +72,8 @@ pub fn train_monitored(
     let mut adam = AdamState::new(model.len());
     backend.set_model(&model, &adam)?;
     backend.set_step_terms(strategy.step_terms(cfg.seed))?;
+    // Training steps and the held-out renders below rasterise alike.
+    backend.set_render_options(cfg.render_options());
     let mut rng = SplitMix64::new(cfg.seed);
     let mut order: Vec<usize> = Vec::new();
     let mut losses = Vec::new();
@@ -358,6 +360,40 @@ mod tests {
             out.baseline_psnr
         );
         assert_eq!(out.eval.views.len(), 2);
+    }
+
+    /// A configuration with the 2-D Mip filter reaches the backend: the held-out renders of the
+    /// trained model are its filtered renders, not the default ones (the backend starts off).
+    #[test]
+    fn held_out_renders_use_the_configured_antialiasing() {
+        use crate::splat::camera::RenderOptions;
+        let truth = random_scene(8, 20, 0);
+        let data = ring_dataset(&truth, 16);
+        let cfg = TrainConfig {
+            steps: 20,
+            antialias: true,
+            ..TrainConfig::default()
+        }
+        .scaled_to(20);
+        let mut backend = CpuBackend::new([0.0; 3]);
+        let mut strategy = default_strategy(&cfg);
+        let out = train(
+            &mut backend,
+            &data,
+            truth.clone(),
+            &cfg,
+            &mut strategy,
+            &NoProgress,
+        )
+        .expect("train");
+        assert_eq!(out.renders.len(), data.test.len());
+        for ((_, img, _, _), view) in out.renders.iter().zip(&data.test) {
+            let on = RenderOptions { antialias: true };
+            let want = cpu::render_with(&out.model, &view.camera, [0.0; 3], on).expect("render");
+            let plain = cpu::render(&out.model, &view.camera, [0.0; 3]).expect("render");
+            assert_eq!(img, &want.image);
+            assert_ne!(img, &plain.image);
+        }
     }
 
     #[test]

@@ -2,10 +2,20 @@
 
 use crate::common;
 
+use sylva::splat::camera::RenderOptions;
 use sylva::splat::gpu::{GpuSplats, Renderer};
 
 #[test]
 fn forward_matches_cpu_reference() {
+    forward_matches_cpu_reference_with(RenderOptions::default());
+}
+
+#[test]
+fn forward_with_antialias_matches_cpu_reference() {
+    forward_matches_cpu_reference_with(RenderOptions { antialias: true });
+}
+
+fn forward_matches_cpu_reference_with(opts: RenderOptions) {
     let Some(ctx) = common::context() else { return };
     let renderer = Renderer::new(&ctx);
     let cases = [
@@ -17,10 +27,10 @@ fn forward_matches_cpu_reference() {
     for (seed, n, deg, w, h, bg) in cases {
         let model = common::scene(seed, n, deg, 1.2);
         let cam = common::camera(w, h, 0.8 * w as f32);
-        let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
+        let cpu = sylva::splat::cpu::render_with(&model, &cam, bg, opts).expect("cpu render");
         let splats = GpuSplats::upload(&ctx, &model).expect("upload");
         let frame = renderer
-            .render(&ctx, &splats, &cam, bg)
+            .render_with(&ctx, &splats, &cam, bg, opts)
             .expect("gpu render");
         let img = frame.read_image(&ctx).expect("read");
         let t = frame.read_final_t(&ctx).expect("read");
@@ -43,7 +53,7 @@ fn forward_matches_cpu_reference() {
             "depth disagrees: rel {drel} bad {dbad}"
         );
         eprintln!(
-            "seed {seed}: n {n}, {w}x{h}, isect {}: image max {max:.2e} rel {rel:.2e} bad {bad:.4}; T rel {trel:.2e} bad {tbad:.4}",
+            "{opts:?} seed {seed}: n {n}, {w}x{h}, isect {}: image max {max:.2e} rel {rel:.2e} bad {bad:.4}; T rel {trel:.2e} bad {tbad:.4}",
             frame.intersections
         );
         assert!(rel < 1e-4 && bad < 0.002, "image disagrees");

@@ -2,6 +2,7 @@
 //! (lavapipe in CI: WGPU_BACKEND=vulkan). Without an adapter every test prints why it skips.
 
 mod adam;
+mod antialias;
 mod backward;
 mod chunks;
 mod common;

@@ -18,7 +18,7 @@ fn per_pass_timings_10k_at_128px() {
     let mut best: Option<PassTimings> = None;
     for _ in 0..3 {
         let (frame, mut t) = renderer
-            .render_timed(&ctx, &splats, &cam, [0.0; 3])
+            .render_timed(&ctx, &splats, &cam, [0.0; 3], Default::default())
             .expect("render");
         let b = renderer
             .backward_timed(&ctx, &splats, &frame, &dl, &grads)

@@ -21,7 +21,7 @@ mod tests_render;
 pub use loss::LossValue;
 pub use project::{Projected, ProjectedGrad};
 
-use crate::splat::camera::Camera;
+use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::model::{GaussianGrads, Gaussians, SH_FLOATS};
 
 /// Gradient of the loss with respect to one Gaussian's parameters (f64).
@@ -92,6 +92,8 @@ pub struct Render {
     pub depth_order: Vec<u32>,
     /// Expected depth per pixel, Σ T α z, metres (`raster::RasterOutput::depth`).
     pub depth: Vec<f32>,
+    /// The options it was rendered with (its backward uses the same).
+    pub options: RenderOptions,
     image_f64: Vec<[f64; 3]>,
     final_t_f64: Vec<f64>,
     depth_f64: Vec<f64>,
@@ -117,12 +119,23 @@ fn check_len(expected: usize, got: usize) -> Result<(), CpuError> {
     }
 }
 
-/// Renders `model` seen from `cam` over `background` (RGB in [0, 1]).
+/// Renders `model` seen from `cam` over `background` (RGB in [0, 1]) with the default
+/// [`RenderOptions`] (the reference 3DGS dilation).
 pub fn render(model: &Gaussians, cam: &Camera, background: [f32; 3]) -> Result<Render, CpuError> {
+    render_with(model, cam, background, RenderOptions::default())
+}
+
+/// [`render`] with `options` (e.g. Mip-Splatting's 2-D filter, [`RenderOptions::antialias`]).
+pub fn render_with(
+    model: &Gaussians,
+    cam: &Camera,
+    background: [f32; 3],
+    options: RenderOptions,
+) -> Result<Render, CpuError> {
     if !model.is_consistent() {
         return Err(CpuError::InconsistentModel);
     }
-    let projected = project::project_all(model, cam);
+    let projected = project::project_all(model, cam, options);
     let order = raster::depth_order(&projected);
     let out = raster::rasterize(
         &projected,
@@ -140,6 +153,7 @@ pub fn render(model: &Gaussians, cam: &Camera, background: [f32; 3]) -> Result<R
         projected,
         depth_order: order,
         depth: out.depth.iter().map(|&d| d as f32).collect(),
+        options,
         image_f64: out.image,
         final_t_f64: out.final_t,
         depth_f64: out.depth,
@@ -191,7 +205,7 @@ pub fn render_backward_depth_f64(
     let mut grads = Vec::with_capacity(model.len());
     let mut stat = Vec::with_capacity(model.len());
     for (i, g) in pgrads.iter().enumerate() {
-        grads.push(project::project_backward(model, i, cam, g));
+        grads.push(project::project_backward(model, i, cam, render.options, g));
         stat.push(if render.projected[i].visible {
             (g.mean2d[0] * half_w).hypot(g.mean2d[1] * half_h)
         } else {
@@ -202,7 +216,8 @@ pub fn render_backward_depth_f64(
 }
 
 /// Gradients of a loss with respect to every parameter, given `dl_dimage` = dL/d`render.image`
-/// (per pixel RGB), for the same `model`, `cam` and `background` that produced `render`.
+/// (per pixel RGB), for the same `model`, `cam` and `background` that produced `render` (and
+/// with the [`RenderOptions`] it was rendered with, `render.options`).
 /// Also returns the densification statistic per Gaussian: `|dL/dmean2d|` with the pixel
 /// gradient scaled by `(0.5 · width, 0.5 · height)` (the reference's NDC gradient), 0 when culled.
 pub fn render_backward(

@@ -2,7 +2,7 @@
 //!
 //! Everything is f64; inputs are the f32 model and camera of `splat_core`.
 
-use crate::splat::camera::Camera;
+use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cpu::ParamGrad;
 use crate::splat::cpu::linalg::{
     Mat3, Mat23, dot, mul_t_vec, mul_vec, mul23_33, mul33, normalise_vjp, normalise4, quat_to_mat,
@@ -14,6 +14,10 @@ use crate::splat::model::Gaussians;
 /// Near plane, metres: Gaussians with camera-space `z < NEAR` are culled.
 pub const NEAR: f64 = 0.01;
 /// Low-pass (anti-aliasing) variance added to the 2-D covariance, pixels² (Kerbl et al. 2023).
+/// With [`RenderOptions::antialias`] it is also the variance `s` of Mip-Splatting's 2-D filter,
+/// whose opacity compensation is [`compensation`]: gsplat's `eps2d = 0.3` of
+/// `rasterize_mode="antialiased"`, the filter used without Mip-Splatting's 3-D filter (the
+/// paper's 0.1 px² goes with its 3-D filter, which Sylva does not have).
 pub const LOW_PASS: f64 = 0.3;
 /// Factor of the half field of view beyond which the Jacobian clamps `t.x / t.z` (reference: 1.3).
 pub const JACOBIAN_CLAMP: f64 = 1.3;
@@ -31,7 +35,8 @@ pub struct Projected {
     pub radius: u32,
     /// Colour after SH, +0.5 and clamp at 0 (unitless, usually in [0, 1]).
     pub rgb: [f64; 3],
-    /// Opacity `sigmoid(logit)`, in (0, 1).
+    /// Opacity the rasteriser blends with: `sigmoid(logit)`, times the compensation `ρ` of
+    /// [`compensation`] with [`RenderOptions::antialias`]; in [0, 1).
     pub opacity: f64,
     /// False when culled (behind the near plane, degenerate covariance or off-screen).
     pub visible: bool,
@@ -46,7 +51,7 @@ pub struct ProjectedGrad {
     pub conic: [f64; 3],
     /// dL/drgb.
     pub rgb: [f64; 3],
-    /// dL/dopacity (the opacity itself, not the logit).
+    /// dL/dopacity (the blended opacity [`Projected::opacity`], not the logit).
     pub opacity: f64,
     /// dL/d(camera-space depth t.z), 1/m: from a loss on the rendered depth.
     pub depth: f64,
@@ -69,7 +74,11 @@ struct Fwd {
     dir: [f64; 3],
     dir_len: f64,
     raw_rgb: [f64; 3],
+    /// `sigmoid(logit)`, before the compensation.
     opacity: f64,
+    /// The compensation `ρ` (1 without [`RenderOptions::antialias`]).
+    rho: f64,
+    antialias: bool,
     out: Projected,
 }
 
@@ -77,7 +86,35 @@ fn f64x3(v: [f32; 3]) -> [f64; 3] {
     v.map(f64::from)
 }
 
-fn forward(model: &Gaussians, i: usize, cam: &Camera) -> Option<Fwd> {
+/// Mip-Splatting's opacity compensation `ρ = sqrt(max(0, det Σ / det(Σ + s·I)))` of the 2-D
+/// covariance `Σ = [[c00, c01], [c01, c11]]` (pixels², before the low-pass) given
+/// `det_blurred = det(Σ + s·I)` with `s` = [`LOW_PASS`]: the factor that keeps the integral of
+/// the blurred Gaussian `o ρ exp(−½ dᵀ(Σ + s·I)⁻¹d)` equal to that of the unblurred one
+/// (Yu et al. 2024, the 2-D Mip filter; gsplat `rasterize_mode="antialiased"`). Unitless, in
+/// [0, 1).
+pub fn compensation(c00: f64, c01: f64, c11: f64, det_blurred: f64) -> f64 {
+    ((c00 * c11 - c01 * c01) / det_blurred).max(0.0).sqrt()
+}
+
+/// dρ/dΣ2D of [`compensation`], entry-wise over the symmetric blurred covariance (each of the
+/// two off-diagonal entries gets `[0][1]`), from the blurred conic `Q = (a, b, c)`:
+/// `(1 / 2ρ) ((1 − ρ²) Q − s det(Q) I)` (docs/splatting.md "Backward"). Zero where `ρ = 0`
+/// (the clamp). The shift by `s · I` is constant, so this is also dρ/dΣ.
+pub fn compensation_grad(rho: f64, conic: [f64; 3]) -> [[f64; 2]; 2] {
+    if rho <= 0.0 {
+        return [[0.0; 2]; 2];
+    }
+    let [a, b, c] = conic;
+    let det_q = a * c - b * b;
+    let k = 0.5 / rho;
+    let one = 1.0 - rho * rho;
+    [
+        [k * (one * a - LOW_PASS * det_q), k * one * b],
+        [k * one * b, k * (one * c - LOW_PASS * det_q)],
+    ]
+}
+
+fn forward(model: &Gaussians, i: usize, cam: &Camera, opts: RenderOptions) -> Option<Fwd> {
     let (fx, fy) = (f64::from(cam.fx), f64::from(cam.fy));
     let (width, height) = (f64::from(cam.width), f64::from(cam.height));
     let w: Mat3 = cam.r.map(f64x3);
@@ -107,11 +144,17 @@ fn forward(model: &Gaussians, i: usize, cam: &Camera) -> Option<Fwd> {
     // Σ2D = T Σ Tᵀ + LOW_PASS · I
     let ts = mul23_33(&tmat, &sigma);
     let cov = |r: usize, c: usize| (0..3).map(|k| ts[r][k] * tmat[c][k]).sum::<f64>();
-    let (s00, s01, s11) = (cov(0, 0) + LOW_PASS, cov(0, 1), cov(1, 1) + LOW_PASS);
+    let (c00, c01, c11) = (cov(0, 0), cov(0, 1), cov(1, 1));
+    let (s00, s01, s11) = (c00 + LOW_PASS, c01, c11 + LOW_PASS);
     let det = s00 * s11 - s01 * s01;
     if det <= 0.0 || !det.is_finite() {
         return None;
     }
+    let rho = if opts.antialias {
+        compensation(c00, c01, c11, det)
+    } else {
+        1.0
+    };
     let conic = [s11 / det, -s01 / det, s00 / det];
     let mid = 0.5 * (s00 + s11);
     let lambda_max = mid + (mid * mid - det).max(0.1).sqrt();
@@ -144,7 +187,7 @@ fn forward(model: &Gaussians, i: usize, cam: &Camera) -> Option<Fwd> {
         depth: t[2],
         radius: radius as u32,
         rgb: raw_rgb.map(|c| (c + 0.5).max(0.0)),
-        opacity,
+        opacity: opacity * rho,
         visible: true,
     };
     Some(Fwd {
@@ -164,30 +207,45 @@ fn forward(model: &Gaussians, i: usize, cam: &Camera) -> Option<Fwd> {
         dir_len,
         raw_rgb,
         opacity,
+        rho,
+        antialias: opts.antialias,
         out,
     })
 }
 
-/// Projects Gaussian `i` of `model` into `cam`. Culled Gaussians return `Projected::default()`
-/// (`visible == false`). Panics if `i` is out of range for any parameter vector.
-pub fn project(model: &Gaussians, i: usize, cam: &Camera) -> Projected {
-    forward(model, i, cam).map(|f| f.out).unwrap_or_default()
+/// Projects Gaussian `i` of `model` into `cam` with `opts`. Culled Gaussians return
+/// `Projected::default()` (`visible == false`). Panics if `i` is out of range for any parameter
+/// vector.
+pub fn project(model: &Gaussians, i: usize, cam: &Camera, opts: RenderOptions) -> Projected {
+    forward(model, i, cam, opts)
+        .map(|f| f.out)
+        .unwrap_or_default()
 }
 
 /// Projects every Gaussian of a consistent model.
-pub fn project_all(model: &Gaussians, cam: &Camera) -> Vec<Projected> {
-    (0..model.len()).map(|i| project(model, i, cam)).collect()
+pub fn project_all(model: &Gaussians, cam: &Camera, opts: RenderOptions) -> Vec<Projected> {
+    (0..model.len())
+        .map(|i| project(model, i, cam, opts))
+        .collect()
 }
 
 /// Backward of [`project`] for Gaussian `i`: turns dL/d(mean2d, conic, rgb, opacity) into
 /// dL/d(parameters). Culled Gaussians get zero. Where the Jacobian clamp is active the clamped
 /// `t.x` (or `t.y`) inside J is treated as a constant (docs/splatting.md step 3, as the reference).
-pub fn project_backward(model: &Gaussians, i: usize, cam: &Camera, g: &ProjectedGrad) -> ParamGrad {
-    let Some(f) = forward(model, i, cam) else {
+/// With [`RenderOptions::antialias`] the blended opacity is `sigmoid(logit) · ρ(Σ2D)`, and the
+/// gradient of `ρ` flows into the 2-D covariance ([`compensation_grad`]).
+pub fn project_backward(
+    model: &Gaussians,
+    i: usize,
+    cam: &Camera,
+    opts: RenderOptions,
+    g: &ProjectedGrad,
+) -> ParamGrad {
+    let Some(f) = forward(model, i, cam, opts) else {
         return ParamGrad::default();
     };
     let mut out = ParamGrad {
-        opacity_logit: g.opacity * f.opacity * (1.0 - f.opacity),
+        opacity_logit: g.opacity * f.rho * f.opacity * (1.0 - f.opacity),
         ..ParamGrad::default()
     };
     // Colour: rgb = max(raw + 0.5, 0).
@@ -218,6 +276,16 @@ pub fn project_backward(model: &Gaussians, i: usize, cam: &Camera, g: &Projected
     for r in 0..2 {
         for s in 0..2 {
             dcov[r][s] = -(qg[r][0] * q2[0][s] + qg[r][1] * q2[1][s]);
+        }
+    }
+    // Blended opacity o · ρ(Σ2D): dL/dρ = dL/d(o ρ) · o.
+    if f.antialias {
+        let drho = compensation_grad(f.rho, f.conic);
+        let g_rho = g.opacity * f.opacity;
+        for r in 0..2 {
+            for s in 0..2 {
+                dcov[r][s] += g_rho * drho[r][s];
+            }
         }
     }
     // Σ2D = T Σ Tᵀ: dT = 2 dΣ2D T Σ, dΣ = Tᵀ dΣ2D T.

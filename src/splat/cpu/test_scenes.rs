@@ -79,3 +79,52 @@ pub fn random_image(width: usize, height: usize, seed: u64) -> Vec<[f64; 3]> {
         })
         .collect()
 }
+
+/// Camera of [`sub_pixel_grid`] at `k` × 32×24 pixels (k = 1 is half the resolution R =
+/// 64×48), focal length 19.2 · k px: 4 m from the origin looking along +y (z up), 4.8 · k px
+/// per metre at the origin's depth.
+pub fn sub_pixel_grid_camera(k: u32) -> Camera {
+    Camera::look_at(
+        [0.0, -4.0, 0.0],
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0],
+        32 * k,
+        24 * k,
+        19.2 * k as f32,
+    )
+}
+
+/// 20 white, anisotropic, rotated Gaussians of opacity 0.9 on a 5 × 4 grid 1 m apart in the
+/// plane y = 0 (jittered by up to 0.15 m), axes 0.052–0.125 m: 0.25–0.6 px at
+/// [`sub_pixel_grid_camera`]`(1)`, 3.4 px or more apart, all well inside the image.
+pub fn sub_pixel_grid(seed: u64) -> Gaussians {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut g = Gaussians::default();
+    for ix in 0..5 {
+        for iz in 0..4 {
+            let mut sh = [0.0f32; SH_FLOATS];
+            for v in sh.iter_mut().take(3) {
+                *v = 0.5 / crate::splat::model::SH_C0;
+            }
+            g.push(Gaussian {
+                mean: [
+                    ix as f32 - 2.0 + rng.random_range(-0.15..0.15),
+                    rng.random_range(-0.1..0.1),
+                    iz as f32 - 1.5 + rng.random_range(-0.15..0.15),
+                ],
+                log_scale: [0, 1, 2].map(|_| rng.random_range(0.052f32..0.125).ln()),
+                rotation: [0, 1, 2, 3].map(|_| rng.random_range(-1.0f32..1.0)),
+                opacity_logit: (0.9f32 / 0.1).ln(),
+                sh,
+                trunk_prob: 0.0,
+            });
+        }
+    }
+    g
+}
+
+/// Mean over pixels and channels of an RGB image.
+pub fn mean_intensity(image: &[[f32; 3]]) -> f64 {
+    let sum: f64 = image.iter().flatten().map(|&v| f64::from(v)).sum();
+    sum / (3 * image.len().max(1)) as f64
+}

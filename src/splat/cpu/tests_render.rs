@@ -1,10 +1,14 @@
 //! Forward sanity checks of the renderer and checks of the loss.
 
-use crate::splat::camera::Camera;
+use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cpu::loss::{blur, loss_f64, ssim_window};
 use crate::splat::cpu::raster::T_MIN;
-use crate::splat::cpu::test_scenes::{random_image, random_scene, small_camera};
-use crate::splat::cpu::{CpuError, loss_and_grad_f64, psnr, render, render_backward, ssim};
+use crate::splat::cpu::test_scenes::{
+    mean_intensity, random_image, random_scene, small_camera, sub_pixel_grid, sub_pixel_grid_camera,
+};
+use crate::splat::cpu::{
+    CpuError, loss_and_grad_f64, psnr, render, render_backward, render_with, ssim,
+};
 use crate::splat::model::{Gaussian, Gaussians};
 
 fn centred_camera() -> Camera {
@@ -60,6 +64,61 @@ fn radius_follows_the_eigenvalue_rule() {
     assert_eq!(p.radius, expect);
     assert!((p.conic[0] - 1.0 / s2).abs() < 1e-6 && p.conic[1].abs() < 1e-9);
     assert!((p.mean2d[0] - 16.5).abs() < 1e-5 && (p.depth - 4.0).abs() < 1e-6);
+}
+
+#[test]
+fn antialias_scales_the_opacity_by_the_compensation_and_keeps_the_footprint() {
+    let (sigma, opacity) = (0.05f32, 0.8f32);
+    let model = one(Gaussian::isotropic(
+        [0.0, 0.0, 0.0],
+        sigma,
+        [0.5; 3],
+        opacity,
+    ));
+    let cam = centred_camera();
+    let on = RenderOptions { antialias: true };
+    let plain = render(&model, &cam, [0.0; 3]).unwrap().projected[0];
+    let aa = render_with(&model, &cam, [0.0; 3], on).unwrap().projected[0];
+    // Isotropic, 30 px/m · 0.05 m / 4 m: variance v px²; ρ = sqrt(v² / (v + 0.3)²).
+    let v = (30.0f64 * f64::from(sigma) / 4.0).powi(2);
+    let rho = v / (v + 0.3);
+    assert!(
+        (aa.opacity - f64::from(opacity) * rho).abs() < 1e-6,
+        "{} vs {}",
+        aa.opacity,
+        f64::from(opacity) * rho
+    );
+    assert!((plain.opacity - f64::from(opacity)).abs() < 1e-6);
+    assert_eq!(
+        (aa.conic, aa.radius, aa.mean2d),
+        (plain.conic, plain.radius, plain.mean2d)
+    );
+}
+
+/// Small Gaussians (0.25–0.6 px at half resolution, 1–2.4 px at twice) rendered at R/2, R and
+/// 2R: the mean intensity of the image is the total light over the image area, which does not
+/// depend on the resolution. With the 2-D Mip filter it stays within 3 % (what is left: the
+/// tails under the 1/255 alpha cut, a larger share of a dimmer Gaussian); with the dilation
+/// alone the sub-pixel Gaussians grow to the filter's size as bright, and half resolution is
+/// more than 25 % brighter than twice.
+#[test]
+fn antialias_keeps_the_total_light_across_resolutions() {
+    let model = sub_pixel_grid(31);
+    let light = |opts: RenderOptions| -> Vec<f64> {
+        [1u32, 2, 4]
+            .map(|k| {
+                let r = render_with(&model, &sub_pixel_grid_camera(k), [0.0; 3], opts).unwrap();
+                mean_intensity(&r.image)
+            })
+            .to_vec()
+    };
+    let on = light(RenderOptions { antialias: true });
+    let off = light(RenderOptions::default());
+    eprintln!("mean intensity at R/2, R, 2R: filter on {on:?}, off {off:?}");
+    let spread =
+        on.iter().cloned().fold(0.0, f64::max) / on.iter().cloned().fold(f64::INFINITY, f64::min);
+    assert!(on[0] > 0.0 && spread < 1.03, "filter on: {on:?}");
+    assert!(off[0] / off[2] > 1.25, "filter off: {off:?}");
 }
 
 #[test]

@@ -15,7 +15,7 @@ use super::{GpuContext, GpuError, GpuGrads, GpuSplats, Renderer};
 use crate::splat::adam::{AdamState, LearningRates, Moments};
 use crate::splat::backend::{Backend, DeviceKind, PhaseTimes, StepLoss, TrainError};
 use crate::splat::bind::BindConfig;
-use crate::splat::camera::Camera;
+use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cameras::View;
 use crate::splat::model::Gaussians;
 use crate::splat::semantic::{SemanticAnchors, SemanticConfig};
@@ -48,6 +48,7 @@ pub struct GpuBackend {
     renderer: Renderer,
     loss: LossKernel,
     background: [f32; 3],
+    options: RenderOptions,
     state: Option<OnDevice>,
     targets: HashMap<String, wgpu::Buffer>,
     /// dL/dimage and the loss of the latest step, resized with the image.
@@ -87,6 +88,7 @@ impl GpuBackend {
             renderer,
             loss,
             background,
+            options: RenderOptions::default(),
             state: None,
             targets: HashMap::new(),
             dl_dimage: None,
@@ -218,15 +220,20 @@ impl Backend for GpuBackend {
                 &state.splats,
                 &view.camera,
                 self.background,
+                self.options,
             )?;
             self.times.projection_ms += pt.project_ms;
             self.times.sort_ms += pt.sort_ms;
             self.times.raster_ms += pt.raster_ms;
             frame
         } else {
-            let frame =
-                self.renderer
-                    .render(&self.ctx, &state.splats, &view.camera, self.background)?;
+            let frame = self.renderer.render_with(
+                &self.ctx,
+                &state.splats,
+                &view.camera,
+                self.background,
+                self.options,
+            )?;
             self.times.raster_ms += t.elapsed().as_secs_f64() * 1000.0;
             frame
         };
@@ -432,11 +439,19 @@ impl Backend for GpuBackend {
         Ok((model, adam))
     }
 
+    fn set_render_options(&mut self, options: RenderOptions) {
+        self.options = options;
+    }
+
     fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError> {
         let state = self.state()?;
-        let frame = self
-            .renderer
-            .render(&self.ctx, &state.splats, camera, self.background)?;
+        let frame = self.renderer.render_with(
+            &self.ctx,
+            &state.splats,
+            camera,
+            self.background,
+            self.options,
+        )?;
         Ok(frame.read_image(&self.ctx)?)
     }
 

@@ -1,6 +1,6 @@
 //! The per-render uniform shared by every kernel (`Params` in `shaders/common.wgsl`).
 
-use crate::splat::camera::Camera;
+use crate::splat::camera::{Camera, RenderOptions};
 
 /// Jacobian clamp factor of the reference: 1.3 × the half field of view (docs/splatting.md step 3).
 pub const JACOBIAN_CLAMP: f32 = 1.3;
@@ -21,13 +21,20 @@ pub struct RenderParams {
     pub lim: [f32; 4],
     /// width, height, tiles_x, tiles_y.
     pub dims: [u32; 4],
-    /// Gaussians, SH degree, intersections, unused.
+    /// Gaussians, SH degree, intersections, and 1 with [`RenderOptions::antialias`] (else 0).
     pub counts: [u32; 4],
 }
 
 impl RenderParams {
-    /// Parameters of rendering `count` Gaussians at SH degree `sh_degree` through `cam`.
-    pub fn new(cam: &Camera, background: [f32; 3], count: u32, sh_degree: u32) -> Self {
+    /// Parameters of rendering `count` Gaussians at SH degree `sh_degree` through `cam` with
+    /// `options`.
+    pub fn new(
+        cam: &Camera,
+        background: [f32; 3],
+        count: u32,
+        sh_degree: u32,
+        options: RenderOptions,
+    ) -> Self {
         let r = cam.r;
         let c = cam.centre();
         let (w, h) = (cam.width, cam.height);
@@ -48,7 +55,7 @@ impl RenderParams {
                 h as f32,
             ],
             dims: [w, h, w.div_ceil(TILE), h.div_ceil(TILE)],
-            counts: [count, sh_degree.min(3), 0, 0],
+            counts: [count, sh_degree.min(3), 0, u32::from(options.antialias)],
         }
     }
 

@@ -58,6 +58,7 @@ impl ProjectBwd {
                     chunk.range(&grads.sh, SH),
                     chunk.range(&grads.densify, 3),
                     cu.as_entire_buffer_binding(),
+                    chunk.range(&splats.opacity_logits, 1),
                 ],
             );
             dispatch_group(enc, &self.pipeline, &bg, groups_for(chunk.len));

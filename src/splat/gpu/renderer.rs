@@ -9,7 +9,7 @@
 
 use std::time::Instant;
 
-use crate::splat::camera::Camera;
+use crate::splat::camera::{Camera, RenderOptions};
 
 use crate::splat::gpu::buffers::{
     chunked_zeroed, read_buffer, read_buffer_at, storage_zeroed, uniform_from,
@@ -51,8 +51,9 @@ impl Renderer {
         }
     }
 
-    /// Renders `splats` through `cam` over `background` (RGB). Reads one `u32` (the number of
-    /// tile intersections) back from the GPU; everything else stays on the GPU.
+    /// Renders `splats` through `cam` over `background` (RGB) with the default
+    /// [`RenderOptions`]. Reads one `u32` (the number of tile intersections) back from the GPU;
+    /// everything else stays on the GPU.
     pub fn render(
         &self,
         ctx: &GpuContext,
@@ -60,19 +61,33 @@ impl Renderer {
         cam: &Camera,
         background: [f32; 3],
     ) -> Result<Frame, GpuError> {
-        self.render_impl(ctx, splats, cam, background, false)
+        self.render_with(ctx, splats, cam, background, RenderOptions::default())
+    }
+
+    /// [`Renderer::render`] with `options`; the frame's backward uses the same (they travel in
+    /// its uniform).
+    pub fn render_with(
+        &self,
+        ctx: &GpuContext,
+        splats: &GpuSplats,
+        cam: &Camera,
+        background: [f32; 3],
+        options: RenderOptions,
+    ) -> Result<Frame, GpuError> {
+        self.render_impl(ctx, splats, cam, background, options, false)
             .map(|(f, _)| f)
     }
 
-    /// As [`Renderer::render`], waiting after each pass to time it.
+    /// As [`Renderer::render_with`], waiting after each pass to time it.
     pub fn render_timed(
         &self,
         ctx: &GpuContext,
         splats: &GpuSplats,
         cam: &Camera,
         background: [f32; 3],
+        options: RenderOptions,
     ) -> Result<(Frame, PassTimings), GpuError> {
-        self.render_impl(ctx, splats, cam, background, true)
+        self.render_impl(ctx, splats, cam, background, options, true)
     }
 
     fn render_impl(
@@ -81,6 +96,7 @@ impl Renderer {
         splats: &GpuSplats,
         cam: &Camera,
         background: [f32; 3],
+        options: RenderOptions,
         timed: bool,
     ) -> Result<(Frame, PassTimings), GpuError> {
         if cam.width == 0 || cam.height == 0 || !(cam.fx > 0.0 && cam.fy > 0.0) {
@@ -105,7 +121,7 @@ impl Renderer {
         }
         let n = splats.count;
         let slots = SlotPlan::new(ctx, n)?;
-        let mut params = RenderParams::new(cam, background, n, splats.sh_degree);
+        let mut params = RenderParams::new(cam, background, n, splats.sh_degree, options);
         let params_buf = uniform_from(ctx, "render params", &params);
         let proj = chunked_zeroed(ctx, "projected", n as u64 * 48)?;
         let offsets = storage_zeroed(ctx, "tile offsets", (n as u64 + 1) * 4)?;
