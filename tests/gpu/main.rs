@@ -6,6 +6,7 @@ mod backward;
 mod chunks;
 mod common;
 mod context;
+mod exposure;
 mod forward;
 mod semantic;
 mod sort_scan;
