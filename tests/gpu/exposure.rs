@@ -16,8 +16,9 @@ use sylva::splat::exposure::{EXPOSURE_FLOATS, ExposureSlot, ExposureState};
 use sylva::splat::gpu::buffers::{read_buffer, storage_from, storage_zeroed};
 use sylva::splat::gpu::exposure::{ExposureScratch, GpuExposure};
 use sylva::splat::gpu::{GpuBackend, GpuContext};
-use sylva::splat::model::{Gaussian, Gaussians};
+use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
 use sylva::splat::packed_image::{PackedImage, pack};
+use sylva::splat::rng::SplitMix64;
 
 /// `n` transforms away from the identity: gains 0.7–1.3, cross terms and offsets ±0.05.
 fn random_state(n: usize, seed: u64) -> ExposureState {
@@ -184,13 +185,42 @@ fn exposure_adam_matches_the_cpu_twin() {
     assert!(rel < 1e-5, "second moments: rel {rel}");
 }
 
-/// 16 views on a ring around `truth` (rendered by the CPU reference, 40×32), every photo with
-/// its own gain (0.7–1.3) and offset (±0.05) per channel; every 8th held out. Returns the
-/// true gains in [`Dataset::all_views`] order.
+/// The scene of the CPU trainer's tests (`random_scene(7, 30, 0)` of
+/// `src/splat/cpu/test_scenes.rs`, drawn the same way): 30 anisotropic, rotated Gaussians.
+fn ring_scene() -> Gaussians {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut g = Gaussians::default();
+    for _ in 0..30 {
+        let mut sh = [0.0f32; SH_FLOATS];
+        for (k, v) in sh.iter_mut().enumerate() {
+            *v = if k < 3 {
+                rng.random_range(-0.9..0.9)
+            } else {
+                rng.random_range(-0.25..0.25)
+            };
+        }
+        g.push(Gaussian {
+            mean: [
+                rng.random_range(-1.2..1.2),
+                rng.random_range(-0.8..0.8),
+                rng.random_range(-0.8..0.8),
+            ],
+            log_scale: [0, 1, 2].map(|_| rng.random_range(-2.3f32..-0.9)),
+            rotation: [0, 1, 2, 3].map(|_| rng.random_range(-1.0f32..1.0)),
+            opacity_logit: rng.random_range(-1.0..2.0),
+            sh,
+            trunk_prob: 0.0,
+        });
+    }
+    g
+}
+
+/// The CPU trainer test's photos (`exposure_compensation_learns_the_photos_exposures` in
+/// `src/splat/trainer.rs`): 16 views on a ring around `truth` (rendered by the CPU reference,
+/// 40×32), every 8th held out, and every photo with its own gain in [0.7, 1.3] and offset in
+/// [−0.05, 0.05] per channel. Returns the true gains in [`Dataset::all_views`] order.
 fn jittered_ring(truth: &Gaussians) -> (Dataset, Vec<[f64; 3]>) {
-    let mut rng = ChaCha8Rng::seed_from_u64(5);
     let mut views = Vec::new();
-    let mut gains = Vec::new();
     for k in 0..16 {
         let a = k as f32 / 16.0 * std::f32::consts::TAU;
         let cam = Camera::look_at(
@@ -201,18 +231,13 @@ fn jittered_ring(truth: &Gaussians) -> (Dataset, Vec<[f64; 3]>) {
             32,
             36.0,
         );
-        let gain = [0, 1, 2].map(|_| rng.random_range(0.7f64..1.3));
-        let offset = [0, 1, 2].map(|_| rng.random_range(-0.05f64..0.05));
         let img = sylva::splat::cpu::render(truth, &cam, [0.0; 3])
             .expect("render")
             .image;
         let pixels = img
             .iter()
             .map(|p| {
-                let c: [u8; 3] = std::array::from_fn(|i| {
-                    let x = gain[i] * f64::from(p[i]) + offset[i];
-                    (x.clamp(0.0, 1.0) * 255.0).round() as u8
-                });
+                let c = p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
                 pack([c[0], c[1], c[2], 255])
             })
             .collect();
@@ -225,35 +250,47 @@ fn jittered_ring(truth: &Gaussians) -> (Dataset, Vec<[f64; 3]>) {
                 pixels,
             },
         });
-        gains.push(gain);
     }
-    let (mut train, mut test, mut g_train, mut g_test) = (vec![], vec![], vec![], vec![]);
-    for (k, (v, g)) in views.into_iter().zip(gains).enumerate() {
-        if k % 8 == 0 {
-            test.push(v);
-            g_test.push(g);
-        } else {
-            train.push(v);
-            g_train.push(g);
-        }
-    }
-    g_train.extend(g_test);
-    let data = Dataset {
+    let test: Vec<View> = views.iter().step_by(8).cloned().collect();
+    let train: Vec<View> = (0..16)
+        .filter(|k| k % 8 != 0)
+        .map(|k| views[k].clone())
+        .collect();
+    let mut data = Dataset {
         train,
         test,
         points: Vec::new(),
         colours: Vec::new(),
         extent: 4.4,
     };
-    (data, g_train)
+    let mut rng = SplitMix64::new(5);
+    let mut gains = Vec::new();
+    for v in data.train.iter_mut().chain(data.test.iter_mut()) {
+        let gain = [0, 1, 2].map(|_| 0.7 + 0.6 * rng.uniform());
+        let offset = [0, 1, 2].map(|_| 0.1 * (rng.uniform() - 0.5));
+        let rgb = v.image.to_rgb_f32();
+        v.image.pixels = rgb
+            .iter()
+            .map(|p| {
+                let c: [u8; 3] = std::array::from_fn(|k| {
+                    let x = gain[k] * f64::from(p[k]) + offset[k];
+                    (x.clamp(0.0, 1.0) * 255.0).round() as u8
+                });
+                pack([c[0], c[1], c[2], 255])
+            })
+            .collect();
+        gains.push(gain);
+    }
+    (data, gains)
 }
 
-/// The GPU trainer on photos with known exposures: compensated, the held-out right halves
-/// are far better rendered than without, and the learned gains follow the true ones.
+/// The GPU trainer on the CPU trainer test's photos with known exposures, held to the same
+/// bounds: compensated, the held-out right halves are far better rendered than without, and
+/// the learned gains follow the true ones.
 #[test]
 fn gpu_training_learns_the_photos_exposures() {
     let Some(ctx) = common::context() else { return };
-    let truth = common::scene(7, 30, 0, 0.8);
+    let truth = ring_scene();
     let (data, gains) = jittered_ring(&truth);
     let mut init = Gaussians::default();
     for m in &truth.means {
@@ -306,21 +343,25 @@ fn gpu_training_learns_the_photos_exposures() {
         "held-out right halves: {:.2} dB with exposure compensation, {off_right:.2} dB without",
         on.eval.psnr
     );
+    let r: Vec<f64> = (0..3)
+        .map(|c| {
+            let learned: Vec<f64> = on
+                .exposures
+                .iter()
+                .map(|(_, e)| f64::from(e[4 * c + c]))
+                .collect();
+            let want: Vec<f64> = gains.iter().map(|g| g[c]).collect();
+            correlation(&learned, &want)
+        })
+        .collect();
+    eprintln!("learned vs true gain correlation per channel: {r:.3?}");
     assert!(
         on.eval.psnr > off_right + 3.0,
         "right halves: {} dB compensated vs {off_right} dB",
         on.eval.psnr
     );
-    for c in 0..3 {
-        let learned: Vec<f64> = on
-            .exposures
-            .iter()
-            .map(|(_, e)| f64::from(e[4 * c + c]))
-            .collect();
-        let want: Vec<f64> = gains.iter().map(|g| g[c]).collect();
-        let r = correlation(&learned, &want);
-        eprintln!("channel {c}: learned vs true gain correlation {r:.3}");
-        assert!(r > 0.8, "channel {c}: correlation {r}");
+    for (c, r) in r.iter().enumerate() {
+        assert!(*r > 0.8, "channel {c}: correlation {r}");
     }
 }
 
