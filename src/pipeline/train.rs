@@ -3,7 +3,9 @@
 //!
 //! Outputs in the registered model's frame (the LiDAR local frame of stage `ingest`, offset in
 //! the report): `splats.ply` (INRIA layout plus `trunk_prob`), `eval.json` (held-out PSNR and
-//! SSIM per view), `loss.csv`, `loss.png` and `renders/*.png` (render left, photo right).
+//! SSIM per view; with exposure compensation, on the right halves), `loss.csv`, `loss.png`,
+//! `renders/*.png` (render left, photo right) and, with exposure compensation,
+//! `exposure.json` (every photo's learned colour transform; the splats carry none).
 
 use serde_json::json;
 use std::collections::HashMap;
@@ -426,6 +428,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     cfg.semantic
         .validate()
         .and_then(|_| cfg.bind.validate())
+        .and_then(|_| cfg.validate_exposure())
         .map_err(|e| StageError::Input(format!("params.train: {e}")))?;
     let set = match anchors.as_ref() {
         Some(anchors) => {
@@ -581,10 +584,11 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }
     ctx.progress.set(1.0);
     ctx.progress.log(&format!(
-        "held-out PSNR {:.2} dB, SSIM {:.3} over {} views (mean-colour baseline {:.2} dB)",
+        "held-out PSNR {:.2} dB, SSIM {:.3} over {} views, {} (mean-colour baseline {:.2} dB)",
         outcome.eval.psnr,
         outcome.eval.ssim,
         outcome.eval.views.len(),
+        outcome.eval.region.describe(),
         outcome.baseline_psnr
     ));
     Ok(json!({
@@ -606,6 +610,14 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "render": outcome.eval,
         "depth": depth_note,
         "baseline_psnr": outcome.baseline_psnr,
+        "exposure": {
+            "enabled": cfg.exposure,
+            "images": outcome.exposures.len(),
+            "lr_init": cfg.lr_exposure_init,
+            "lr_final": cfg.lr_exposure_final,
+            "lr_delay_steps": cfg.lr_exposure_delay_steps,
+            "lr_delay_mult": cfg.lr_exposure_delay_mult,
+        },
         "seconds": outcome.seconds,
         "steps_per_second": outcome.steps_per_second,
         "phase_ms": outcome.phase_times,

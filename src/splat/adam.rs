@@ -43,6 +43,9 @@ pub struct LearningRates {
     pub scale: f32,
     /// Rotation quaternions.
     pub rotation: f32,
+    /// Per-image exposure transforms ([`crate::splat::exposure::lr_exposure`]); used only by
+    /// steps that train an exposure.
+    pub exposure: f32,
 }
 
 impl LearningRates {
@@ -55,6 +58,7 @@ impl LearningRates {
             opacity: cfg.lr_opacity,
             scale: cfg.lr_scale,
             rotation: cfg.lr_rotation,
+            exposure: crate::splat::exposure::lr_exposure(cfg, step),
         }
     }
 }

@@ -12,6 +12,7 @@ use super::camera::{Camera, RenderOptions};
 use super::cameras::View;
 use super::cpu;
 use super::depth::{self, DepthTargets};
+use super::exposure::{EXPOSURE_FLOATS, ExposureSlot, ExposureState};
 use super::mcmc::{self, StepTerms};
 use super::model::Gaussians;
 use super::semantic::{self, SemanticAnchors, SemanticConfig};
@@ -84,14 +85,32 @@ pub trait Backend {
     /// Installs `model` and its optimiser state (at start and after every refinement).
     fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError>;
     /// One optimisation step on `view`: render, loss, backward, Adam with `lr`; when `stats`
-    /// is true the view-space statistics are accumulated for densification.
+    /// is true the view-space statistics are accumulated for densification. With `exposure`,
+    /// the slot's learned transform is applied to the render before the loss and trained with
+    /// it (rate `lr.exposure`; docs/splatting.md "Exposure"); it must be below the count given
+    /// to [`Backend::set_exposures`].
     fn step(
         &mut self,
         view: &View,
+        exposure: Option<ExposureSlot>,
         lr: &LearningRates,
         sh_degree: u32,
         stats: bool,
     ) -> Result<(), TrainError>;
+    /// Installs `n` per-image exposure transforms (docs/splatting.md "Exposure"), each the
+    /// identity with zero Adam moments; 0 removes them. They live apart from the model:
+    /// [`Backend::set_model`] leaves them as they are.
+    fn set_exposures(&mut self, n: usize) -> Result<(), TrainError>;
+    /// The learned transforms, `[A | b]` row-major per image (a GPU backend reads them back
+    /// here); empty without exposures.
+    fn exposures(&mut self) -> Result<Vec<[f32; EXPOSURE_FLOATS]>, TrainError>;
+    /// Renders the current model from `camera` with the learned exposure of image `index`
+    /// applied (RGB, row-major).
+    fn render_exposed(
+        &mut self,
+        camera: &Camera,
+        index: usize,
+    ) -> Result<Vec<[f32; 3]>, TrainError>;
     /// Installs the labelled anchors of the semantic term L_geo (docs/method.md Stage 4). The term
     /// stays off until [`Backend::set_geo_weight`] gives it a positive weight.
     fn set_semantic(
@@ -154,6 +173,8 @@ pub struct CpuBackend {
     terms: Option<StepTerms>,
     /// LiDAR depth supervision.
     depth: DepthTargets,
+    /// The per-image exposures and their Adam state.
+    exposure: ExposureState,
 }
 
 impl CpuBackend {
@@ -172,8 +193,19 @@ impl CpuBackend {
             last_mean_grads: Vec::new(),
             terms: None,
             depth: DepthTargets::default(),
+            exposure: ExposureState::new(0),
         }
     }
+}
+
+/// Why an exposure slot cannot be used with `n` installed exposures.
+pub(crate) fn check_slot(slot: usize, n: usize) -> Result<(), TrainError> {
+    if slot >= n {
+        return Err(TrainError::Invalid(format!(
+            "exposure of image {slot} asked for, but {n} exposures are installed"
+        )));
+    }
+    Ok(())
 }
 
 fn invalid(e: impl std::fmt::Display) -> TrainError {
@@ -206,10 +238,14 @@ impl Backend for CpuBackend {
     fn step(
         &mut self,
         view: &View,
+        exposure: Option<ExposureSlot>,
         lr: &LearningRates,
         sh_degree: u32,
         stats: bool,
     ) -> Result<(), TrainError> {
+        if let Some(slot) = exposure {
+            check_slot(slot.index, self.exposure.len())?;
+        }
         self.model.sh_degree = sh_degree;
         let t = std::time::Instant::now();
         let render = cpu::render_with(&self.model, &view.camera, self.background, self.options)
@@ -217,13 +253,30 @@ impl Backend for CpuBackend {
         self.times.raster_ms += ms(t);
         let t = std::time::Instant::now();
         let target = view.image.to_rgb_f32();
-        let (loss, grad) = cpu::loss_and_grad(
-            &render.image,
-            &target,
-            view.camera.width,
-            view.camera.height,
-        )
-        .map_err(invalid)?;
+        let (w, h) = (view.camera.width, view.camera.height);
+        // With an exposure: loss of the exposed render, then back through the transform.
+        let mut exposure_grad = None;
+        let (loss, grad) = match exposure {
+            None => cpu::loss_and_grad(&render.image, &target, w, h).map_err(invalid)?,
+            Some(slot) => {
+                let e = self.exposure.params[slot.index].map(f64::from);
+                let target64: Vec<[f64; 3]> = target.iter().map(|p| p.map(f64::from)).collect();
+                let right = slot.left_half.then_some(target64.as_slice());
+                let out = cpu::exposure::apply(render.image_f64(), &e, w as usize, right);
+                let (loss, dl_dout) =
+                    cpu::loss_and_grad_f64(&out, &target64, w, h).map_err(invalid)?;
+                let (dl_drgb, de) = cpu::exposure::backward(
+                    render.image_f64(),
+                    &e,
+                    &dl_dout,
+                    w as usize,
+                    slot.left_half,
+                );
+                exposure_grad = Some((slot.index, de.map(|v| v as f32)));
+                let grad = dl_drgb.iter().map(|p| p.map(|v| v as f32)).collect();
+                (loss, grad)
+            }
+        };
         self.times.loss_ms += ms(t);
         let t = std::time::Instant::now();
         let depth_grad = self
@@ -281,6 +334,9 @@ impl Backend for CpuBackend {
         if let (Some(terms), Some(flags)) = (self.terms.as_ref(), flags.as_ref()) {
             mcmc::add_noise(&mut self.model, flags, terms, lr.position, self.adam.step);
         }
+        if let Some((index, de)) = exposure_grad {
+            self.exposure.adam_step(index, &de, lr.exposure);
+        }
         if let Some((index, cfg)) = self.bind.as_ref() {
             bind::project(&mut self.model, index, cfg);
         }
@@ -293,6 +349,27 @@ impl Backend for CpuBackend {
             geo,
         };
         Ok(())
+    }
+
+    fn set_exposures(&mut self, n: usize) -> Result<(), TrainError> {
+        self.exposure = ExposureState::new(n);
+        Ok(())
+    }
+
+    fn exposures(&mut self) -> Result<Vec<[f32; EXPOSURE_FLOATS]>, TrainError> {
+        Ok(self.exposure.params.clone())
+    }
+
+    fn render_exposed(
+        &mut self,
+        camera: &Camera,
+        index: usize,
+    ) -> Result<Vec<[f32; 3]>, TrainError> {
+        check_slot(index, self.exposure.len())?;
+        let render = cpu::render(&self.model, camera, self.background).map_err(invalid)?;
+        let e = self.exposure.params[index].map(f64::from);
+        let out = cpu::exposure::apply(render.image_f64(), &e, camera.width as usize, None);
+        Ok(out.iter().map(|p| p.map(|v| v as f32)).collect())
     }
 
     fn set_semantic(

@@ -8,6 +8,7 @@ use std::path::Path;
 use rayon::prelude::*;
 
 use super::cameras::{View, load_view, split_train_test};
+use super::exposure::ExposureSlot;
 use super::packed_image::PackedImage;
 use crate::io::IoError;
 use crate::io::colmap::{self, ColmapModel};
@@ -41,6 +42,23 @@ impl Dataset {
     /// Every view, training first.
     pub fn all_views(&self) -> impl Iterator<Item = &View> {
         self.train.iter().chain(&self.test)
+    }
+
+    /// The views training steps draw from, each with the exposure it trains: without
+    /// `exposure` the training views alone; with it every view, its slot its place in
+    /// [`Dataset::all_views`], and the held-out views train only their left halves
+    /// (docs/splatting.md "Exposure"; the reference trainer's `train_test_exp`).
+    pub fn step_views(&self, exposure: bool) -> Vec<(&View, Option<ExposureSlot>)> {
+        if !exposure {
+            return self.train.iter().map(|v| (v, None)).collect();
+        }
+        self.all_views()
+            .enumerate()
+            .map(|(index, v)| {
+                let left_half = index >= self.train.len();
+                (v, Some(ExposureSlot { index, left_half }))
+            })
+            .collect()
     }
 }
 

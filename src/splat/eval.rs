@@ -153,6 +153,38 @@ pub fn ssim(
     Ok((total / (3 * render.len().max(1)) as f64) as f32)
 }
 
+/// Which pixels of the held-out views the metrics measure.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EvalRegion {
+    /// The whole image (the reference's default protocol).
+    #[default]
+    Full,
+    /// The right half, columns `x ≥ width / 2`: with exposure compensation the left half of
+    /// every held-out view trains its exposure, so only the right half is unseen (the
+    /// reference's `train_test_exp` protocol; docs/splatting.md "Exposure").
+    RightHalf,
+}
+
+impl EvalRegion {
+    /// A few words for logs and tables.
+    pub fn describe(self) -> &'static str {
+        match self {
+            EvalRegion::Full => "full images",
+            EvalRegion::RightHalf => "right halves, exposure compensated",
+        }
+    }
+}
+
+/// The columns `x ≥ width / 2` of a row-major `width × height` image, and their width.
+pub fn right_half<T: Copy>(image: &[T], width: u32, height: u32) -> (Vec<T>, u32) {
+    let (w, x0) = (width as usize, (width / 2) as usize);
+    let out = (0..height as usize)
+        .flat_map(|y| image[y * w + x0..(y + 1) * w].iter().copied())
+        .collect();
+    (out, width - width / 2)
+}
+
 /// Metrics of one held-out view.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ViewMetrics {
@@ -178,6 +210,30 @@ impl ViewMetrics {
             ssim: ssim(render, &t, truth.width, truth.height)?,
         })
     }
+
+    /// [`ViewMetrics::measure`] over `region` of the images (SSIM of the right half as an
+    /// image of its own, as the reference crops before measuring).
+    pub fn measure_region(
+        name: &str,
+        render: &[[f32; 3]],
+        truth: &PackedImage,
+        region: EvalRegion,
+    ) -> Result<Self, EvalError> {
+        match region {
+            EvalRegion::Full => Self::measure(name, render, truth),
+            EvalRegion::RightHalf => {
+                let (w, h) = (truth.width, truth.height);
+                check(render, render, w, h)?;
+                let (r, rw) = right_half(render, w, h);
+                let (t, _) = right_half(&truth.to_rgb_f32(), w, h);
+                Ok(ViewMetrics {
+                    name: name.to_string(),
+                    psnr: psnr(&r, &t, rw, h)?,
+                    ssim: ssim(&r, &t, rw, h)?,
+                })
+            }
+        }
+    }
 }
 
 /// Averages over the held-out views and the views themselves (docs/method.md evaluation).
@@ -188,16 +244,25 @@ pub struct EvalReport {
     /// Mean SSIM over views.
     pub ssim: f32,
     pub views: Vec<ViewMetrics>,
+    /// The pixels measured: `full`, or `right_half` with exposure compensation.
+    #[serde(default)]
+    pub region: EvalRegion,
 }
 
 impl EvalReport {
-    /// Report of `views`; averages are 0 when there are none.
+    /// Report of `views` measured on full images; averages are 0 when there are none.
     pub fn from_views(views: Vec<ViewMetrics>) -> Self {
+        Self::from_views_in(views, EvalRegion::Full)
+    }
+
+    /// Report of `views` measured on `region`; averages are 0 when there are none.
+    pub fn from_views_in(views: Vec<ViewMetrics>, region: EvalRegion) -> Self {
         let n = views.len().max(1) as f32;
         EvalReport {
             psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
             ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
             views,
+            region,
         }
     }
 }

@@ -149,3 +149,35 @@ fn loss_csv_has_a_header_and_one_line_per_record() {
         ]
     );
 }
+
+#[test]
+fn right_half_metrics_see_only_columns_from_half_the_width() {
+    // 5×2: columns 2, 3, 4 are the right half. The render is wrong in columns 0 and 1 only.
+    let truth = crate::splat::packed_image::PackedImage::filled(5, 2, [51, 102, 153, 255]);
+    let t = truth.to_rgb_f32();
+    let mut render = t.clone();
+    for y in 0..2 {
+        for x in 0..2 {
+            render[y * 5 + x] = [1.0, 0.0, 0.0];
+        }
+    }
+    let full = ViewMetrics::measure_region("a", &render, &truth, EvalRegion::Full).expect("ok");
+    let right =
+        ViewMetrics::measure_region("a", &render, &truth, EvalRegion::RightHalf).expect("ok");
+    assert!(full.psnr < 20.0, "full {}", full.psnr);
+    assert_eq!(right.psnr, PSNR_IDENTICAL);
+    // One wrong pixel in column 2 (the first right-half column) is seen.
+    render[2] = [1.0, 0.0, 0.0];
+    let right =
+        ViewMetrics::measure_region("a", &render, &truth, EvalRegion::RightHalf).expect("ok");
+    assert!(right.psnr < 20.0, "right {}", right.psnr);
+    let (half, w) = right_half(&[0, 1, 2, 3, 4, 5, 6, 7, 8, 9], 5, 2);
+    assert_eq!((half, w), (vec![2, 3, 4, 7, 8, 9], 3));
+    let r = EvalReport::from_views_in(vec![right], EvalRegion::RightHalf);
+    let json = serde_json::to_string(&r).expect("serialise");
+    assert!(json.contains("\"region\":\"right_half\""), "{json}");
+    // Reports written before the field existed read as full-image ones.
+    let old: EvalReport =
+        serde_json::from_str(r#"{"psnr": 20.0, "ssim": 0.5, "views": []}"#).expect("parse");
+    assert_eq!(old.region, EvalRegion::Full);
+}

@@ -18,6 +18,7 @@ pub mod eval;
 pub mod export;
 pub mod export_splat;
 pub mod export_spz;
+pub mod exposure;
 pub mod gpu;
 pub mod init;
 pub mod mcmc;

@@ -9,7 +9,8 @@ use super::adam::{AdamState, LearningRates};
 use super::backend::{Backend, PhaseTimes, StepLoss, TrainError};
 use super::config::{StrategyKind, TrainConfig};
 use super::dataset::Dataset;
-use super::eval::{EvalReport, LossRecord, ViewMetrics, save_side_by_side};
+use super::eval::{EvalRegion, EvalReport, LossRecord, ViewMetrics, save_side_by_side};
+use super::exposure::EXPOSURE_FLOATS;
 use super::mcmc::McmcStrategy;
 use super::model::Gaussians;
 use super::rng::SplitMix64;
@@ -26,8 +27,8 @@ pub const LOSS_EVERY: u32 = 10;
 pub struct TrainOutcome {
     pub model: Gaussians,
     pub eval: EvalReport,
-    /// PSNR of the mean training colour on the held-out views, dB: the floor any model must
-    /// beat.
+    /// PSNR of the mean training colour on the held-out views (on `eval.region`, as the
+    /// model's), dB: the floor any model must beat.
     pub baseline_psnr: f32,
     pub losses: Vec<LossRecord>,
     pub refinements: Vec<(u32, RefineReport)>,
@@ -35,8 +36,12 @@ pub struct TrainOutcome {
     pub seconds: f64,
     pub steps_per_second: f64,
     pub phase_times: PhaseTimes,
-    /// Test renders (name, RGB image, width, height) for saving beside the ground truth.
+    /// Test renders (name, RGB image, width, height) for saving beside the ground truth;
+    /// with exposure compensation, the compensated renders.
     pub renders: Vec<(String, Vec<[f32; 3]>, u32, u32)>,
+    /// With exposure compensation, every image's learned `[A | b]` (row-major 3×4, training
+    /// views then held-out views); empty without. The model carries no exposure.
+    pub exposures: Vec<(String, [f32; EXPOSURE_FLOATS])>,
 }
 
 /// Trains `init` on `data` for `cfg.steps` steps with `strategy`.
@@ -67,6 +72,9 @@ pub fn train_monitored(
             "no Gaussians to train: the initialisation is empty".into(),
         ));
     }
+    if cfg.exposure {
+        cfg.validate_exposure().map_err(TrainError::Invalid)?;
+    }
     let start = Instant::now();
     let mut model = init;
     let mut adam = AdamState::new(model.len());
@@ -74,37 +82,57 @@ pub fn train_monitored(
     backend.set_step_terms(strategy.step_terms(cfg.seed))?;
     // Training steps and the held-out renders below rasterise alike.
     backend.set_render_options(cfg.render_options());
+    // With exposure compensation every view trains its own transform, the held-out ones on
+    // their left halves (docs/splatting.md "Exposure").
+    let step_views = data.step_views(cfg.exposure);
+    if step_views.is_empty() {
+        return Err(TrainError::Invalid("no training views".into()));
+    }
+    if cfg.exposure {
+        backend.set_exposures(data.train.len() + data.test.len())?;
+    }
     let mut rng = SplitMix64::new(cfg.seed);
     let mut order: Vec<usize> = Vec::new();
     let mut losses = Vec::new();
     let mut refinements = Vec::new();
     let mut count = model.len();
     progress.log(&format!(
-        "training {} Gaussians for {} steps on {} ({} training and {} held-out views)",
+        "training {} Gaussians for {} steps on {} ({} training and {} held-out views{})",
         count,
         cfg.steps,
         backend.device_name(),
         data.train.len(),
-        data.test.len()
+        data.test.len(),
+        if cfg.exposure {
+            "; exposure compensation on: the held-out views' left halves train, their right halves are measured"
+        } else {
+            ""
+        }
     ));
     for step in 1..=cfg.steps {
         if progress.is_cancelled() {
             return Err(TrainError::Cancelled);
         }
         if order.is_empty() {
-            order = (0..data.train.len()).collect();
+            order = (0..step_views.len()).collect();
             // Fisher–Yates with the seeded generator: the same seed visits views identically.
             for i in (1..order.len()).rev() {
                 let j = rng.below(i as u64 + 1) as usize;
                 order.swap(i, j);
             }
         }
-        let view = &data.train[order.pop().unwrap_or(0)];
+        let (view, slot) = step_views[order.pop().unwrap_or(0)];
         let lr = LearningRates::at(cfg, step, data.extent);
         if cfg.semantic.enabled {
             backend.set_geo_weight(cfg.semantic.gamma_at(step));
         }
-        backend.step(view, &lr, cfg.sh_degree_at(step), step < cfg.densify_until)?;
+        backend.step(
+            view,
+            slot,
+            &lr,
+            cfg.sh_degree_at(step),
+            step < cfg.densify_until,
+        )?;
         if strategy.wants_refine(step) {
             let stats = backend.take_stats()?;
             strategy.absorb_stats(&stats);
@@ -173,30 +201,43 @@ pub fn train_monitored(
     }
     let seconds = start.elapsed().as_secs_f64();
     let (model, _) = backend.model()?;
-    // Held-out evaluation.
+    // Held-out evaluation: with exposure compensation, each view's learned exposure applied
+    // and only its right half measured (the left half trained it).
+    let region = if cfg.exposure {
+        EvalRegion::RightHalf
+    } else {
+        EvalRegion::Full
+    };
     let mut views = Vec::new();
     let mut renders = Vec::new();
     let mean = mean_colour(data);
     let mut baseline = Vec::new();
-    for v in &data.test {
-        let img = backend.render(&v.camera)?;
-        views.push(
-            ViewMetrics::measure(&v.name, &img, &v.image)
-                .map_err(|e| TrainError::Invalid(e.to_string()))?,
-        );
+    let measure = |name: &str, img: &[[f32; 3]], truth: &super::packed_image::PackedImage| {
+        ViewMetrics::measure_region(name, img, truth, region)
+            .map_err(|e| TrainError::Invalid(e.to_string()))
+    };
+    for (j, v) in data.test.iter().enumerate() {
+        let img = if cfg.exposure {
+            backend.render_exposed(&v.camera, data.train.len() + j)?
+        } else {
+            backend.render(&v.camera)?
+        };
+        views.push(measure(&v.name, &img, &v.image)?);
         let flat = vec![mean; img.len()];
-        baseline.push(
-            ViewMetrics::measure(&v.name, &flat, &v.image)
-                .map_err(|e| TrainError::Invalid(e.to_string()))?
-                .psnr,
-        );
+        baseline.push(measure(&v.name, &flat, &v.image)?.psnr);
         renders.push((v.name.clone(), img, v.camera.width, v.camera.height));
     }
+    let exposures = if cfg.exposure {
+        let names = data.all_views().map(|v| v.name.clone());
+        names.zip(backend.exposures()?).collect()
+    } else {
+        Vec::new()
+    };
     progress.set(1.0);
     let baseline_psnr = baseline.iter().sum::<f32>() / baseline.len().max(1) as f32;
     Ok(TrainOutcome {
         model,
-        eval: EvalReport::from_views(views),
+        eval: EvalReport::from_views_in(views, region),
         baseline_psnr,
         losses,
         refinements,
@@ -205,6 +246,7 @@ pub fn train_monitored(
         steps_per_second: f64::from(cfg.steps) / seconds.max(1e-9),
         phase_times: backend.phase_times(),
         renders,
+        exposures,
     })
 }
 
@@ -237,7 +279,8 @@ pub fn strategy_for(cfg: &TrainConfig) -> Result<Box<dyn Strategy>, TrainError> 
 }
 
 /// Saves `splats.ply` (INRIA layout plus `trunk_prob`), `eval.json`, `loss.csv`, `loss.png`
-/// and `renders/<name>.png` (render left, ground truth right) under `out`.
+/// and `renders/<name>.png` (render left, ground truth right) under `out`; with exposure
+/// compensation also `exposure.json`, every image's learned transform.
 pub fn write_outputs(out: &Path, outcome: &TrainOutcome, data: &Dataset) -> std::io::Result<()> {
     std::fs::create_dir_all(out.join("renders"))?;
     let mut ply = std::io::BufWriter::new(std::fs::File::create(out.join("splats.ply"))?);
@@ -251,6 +294,24 @@ pub fn write_outputs(out: &Path, outcome: &TrainOutcome, data: &Dataset) -> std:
     )?;
     super::plot::save_loss_plot(&out.join("loss.png"), &outcome.losses, 640, 360)
         .map_err(std::io::Error::other)?;
+    if !outcome.exposures.is_empty() {
+        let images: serde_json::Map<String, serde_json::Value> = outcome
+            .exposures
+            .iter()
+            .map(|(name, e)| {
+                let rows: Vec<&[f32]> = e.chunks(4).collect();
+                (name.clone(), serde_json::json!(rows))
+            })
+            .collect();
+        let doc = serde_json::json!({
+            "layout": "per image, rows of [A | b]: out = A · rgb + b (docs/splatting.md \"Exposure\")",
+            "images": images,
+        });
+        std::fs::write(
+            out.join("exposure.json"),
+            serde_json::to_vec_pretty(&doc).unwrap_or_default(),
+        )?;
+    }
     for ((name, img, w, h), view) in outcome.renders.iter().zip(&data.test) {
         let file = name.replace(['/', '\\'], "_");
         let stem = file.rsplit_once('.').map_or(file.as_str(), |(s, _)| s);
@@ -360,6 +421,119 @@ mod tests {
             out.baseline_psnr
         );
         assert_eq!(out.eval.views.len(), 2);
+    }
+
+    /// Gives every photo of `data` its own exposure: per channel a gain in [0.7, 1.3] and an
+    /// offset in [−0.05, 0.05], rounded back to 8 bits. Returns the (gain, offset) per view,
+    /// in [`Dataset::all_views`] order.
+    fn jitter_exposures(data: &mut Dataset, seed: u64) -> Vec<([f64; 3], [f64; 3])> {
+        let mut rng = SplitMix64::new(seed);
+        let mut truth = Vec::new();
+        for v in data.train.iter_mut().chain(data.test.iter_mut()) {
+            let gain = [0, 1, 2].map(|_| 0.7 + 0.6 * rng.uniform());
+            let offset = [0, 1, 2].map(|_| 0.1 * (rng.uniform() - 0.5));
+            let rgb = v.image.to_rgb_f32();
+            v.image.pixels = rgb
+                .iter()
+                .map(|p| {
+                    let c: [u8; 3] = std::array::from_fn(|k| {
+                        let x = gain[k] * f64::from(p[k]) + offset[k];
+                        (x.clamp(0.0, 1.0) * 255.0).round() as u8
+                    });
+                    pack([c[0], c[1], c[2], 255])
+                })
+                .collect();
+            truth.push((gain, offset));
+        }
+        truth
+    }
+
+    /// Pearson correlation of two equally long series.
+    fn correlation(a: &[f64], b: &[f64]) -> f64 {
+        let n = a.len() as f64;
+        let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+        let cov: f64 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
+        let va: f64 = a.iter().map(|x| (x - ma).powi(2)).sum();
+        let vb: f64 = b.iter().map(|y| (y - mb).powi(2)).sum();
+        cov / (va * vb).sqrt().max(1e-300)
+    }
+
+    /// Photos with known per-image exposures: with compensation on, the learned gains follow
+    /// the true ones and the held-out right halves are far better rendered than without.
+    #[test]
+    fn exposure_compensation_learns_the_photos_exposures() {
+        let truth = random_scene(7, 30, 0);
+        let mut data = ring_dataset(&truth, 16);
+        let exposures = jitter_exposures(&mut data, 5);
+        let mut init = Gaussians::default();
+        for i in 0..truth.len() {
+            let m = truth.means[i];
+            init.push(Gaussian::isotropic(
+                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
+                0.15,
+                [0.5, 0.5, 0.5],
+                0.3,
+            ));
+        }
+        let run = |exposure: bool| {
+            let cfg = TrainConfig {
+                steps: 300,
+                exposure,
+                ..TrainConfig::default()
+            }
+            .scaled_to(300);
+            let mut backend = CpuBackend::new([0.0; 3]);
+            let mut strategy = default_strategy(&cfg);
+            train(
+                &mut backend,
+                &data,
+                init.clone(),
+                &cfg,
+                &mut strategy,
+                &NoProgress,
+            )
+            .expect("train")
+        };
+        let off = run(false);
+        let on = run(true);
+        assert_eq!(off.eval.region, EvalRegion::Full);
+        assert!(off.exposures.is_empty());
+        assert_eq!(on.eval.region, EvalRegion::RightHalf);
+        assert_eq!(on.exposures.len(), 16);
+        // The uncompensated model on the same right halves.
+        let off_right: Vec<f32> = off
+            .renders
+            .iter()
+            .zip(&data.test)
+            .map(|((name, img, _, _), v)| {
+                ViewMetrics::measure_region(name, img, &v.image, EvalRegion::RightHalf)
+                    .expect("sizes")
+                    .psnr
+            })
+            .collect();
+        let off_right = off_right.iter().sum::<f32>() / off_right.len() as f32;
+        eprintln!(
+            "held-out right halves: {:.2} dB with exposure compensation, {off_right:.2} dB without (baseline {:.2} dB)",
+            on.eval.psnr, on.baseline_psnr
+        );
+        assert!(
+            on.eval.psnr > off_right + 3.0,
+            "right halves: {} dB compensated vs {off_right} dB",
+            on.eval.psnr
+        );
+        // The learned gains follow the true ones (up to the colour scale the model itself
+        // absorbs): per channel, across all 16 photos.
+        for c in 0..3 {
+            let learned: Vec<f64> = on
+                .exposures
+                .iter()
+                .map(|(_, e)| f64::from(e[4 * c + c]))
+                .collect();
+            let true_gain: Vec<f64> = exposures.iter().map(|(g, _)| g[c]).collect();
+            let r = correlation(&learned, &true_gain);
+            eprintln!("channel {c}: learned vs true gain correlation {r:.3}");
+            assert!(r > 0.8, "channel {c}: correlation {r}");
+        }
     }
 
     /// A configuration with the 2-D Mip filter reaches the backend: the held-out renders of the

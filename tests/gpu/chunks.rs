@@ -232,9 +232,10 @@ fn train(ctx: &GpuContext, model: &Gaussians, view: &View, steps: u32) -> (Gauss
         opacity: 5e-2,
         scale: 5e-3,
         rotation: 1e-3,
+        exposure: 0.0,
     };
     for _ in 0..steps {
-        be.step(view, &lr, 3, true).expect("step");
+        be.step(view, None, &lr, 3, true).expect("step");
     }
     let loss = be.last_loss().expect("loss").loss;
     (be.model().expect("model").0, loss)

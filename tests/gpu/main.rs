@@ -7,6 +7,7 @@ mod backward;
 mod chunks;
 mod common;
 mod context;
+mod exposure;
 mod forward;
 mod mcmc;
 mod semantic;

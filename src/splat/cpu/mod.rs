@@ -5,6 +5,7 @@
 //! "Mathematical Supplement for the gsplat Library", arXiv 2312.02121). The GPU kernels are
 //! tested against this crate.
 
+pub mod exposure;
 pub mod linalg;
 pub mod loss;
 pub mod project;

@@ -72,6 +72,26 @@ pub fn adam_cpu(
     lr_rest: f32,
     step: u32,
 ) {
+    adam_cpu_eps(
+        params, grads, m, v, stride, n_first, lr_first, lr_rest, step, EPSILON,
+    );
+}
+
+/// [`adam_cpu`] with the denominator ε `eps` instead of [`EPSILON`] (the exposures use
+/// torch's default, [`crate::splat::exposure::EXPOSURE_EPSILON`]).
+#[allow(clippy::too_many_arguments)]
+pub fn adam_cpu_eps(
+    params: &mut [f32],
+    grads: &[f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    stride: usize,
+    n_first: usize,
+    lr_first: f32,
+    lr_rest: f32,
+    step: u32,
+    eps: f32,
+) {
     let (bc1, bc2) = bias_corrections(step);
     for (i, p) in params.iter_mut().enumerate() {
         let g = grads[i];
@@ -82,8 +102,53 @@ pub fn adam_cpu(
         } else {
             lr_rest
         };
-        *p -= lr * (m[i] / bc1) / ((v[i] / bc2).sqrt() + EPSILON);
+        *p -= lr * (m[i] / bc1) / ((v[i] / bc2).sqrt() + eps);
     }
+}
+
+/// The Adam pipeline of `adam.wgsl`, for flat buffers outside the model
+/// ([`encode_adam_flat`]).
+pub fn adam_pipeline(ctx: &GpuContext) -> wgpu::ComputePipeline {
+    crate::splat::gpu::buffers::pipeline(
+        ctx,
+        "adam",
+        include_str!("../../../shaders/adam.wgsl"),
+        "main",
+    )
+}
+
+/// Records one Adam step of the first `n_floats` floats of `param` (one rate `lr`, gradient
+/// `grad`, moments `m` and `v`, all whole storage buffers) at 1-based step `step` with
+/// denominator `eps`; `pipeline` from [`adam_pipeline`]. The CPU twin is [`adam_cpu_eps`].
+#[allow(clippy::too_many_arguments)]
+pub fn encode_adam_flat(
+    ctx: &GpuContext,
+    enc: &mut wgpu::CommandEncoder,
+    pipeline: &wgpu::ComputePipeline,
+    [param, grad, m, v]: [&wgpu::Buffer; 4],
+    n_floats: u32,
+    lr: f32,
+    step: u32,
+    eps: f32,
+) {
+    let (bc1, bc2) = bias_corrections(step);
+    let ap = AdamParams {
+        n_floats,
+        stride: 1,
+        n_first: 1,
+        _pad: 0,
+        lr_first: lr,
+        lr_rest: lr,
+        bc1,
+        bc2,
+        beta1: BETA1,
+        beta2: BETA2,
+        eps,
+        _pad2: 0.0,
+    };
+    let u = uniform_from(ctx, "adam params", &ap);
+    let bg = crate::splat::gpu::buffers::bind(ctx, pipeline, &[&u, param, grad, m, v]);
+    dispatch_group(enc, pipeline, &bg, groups_for(n_floats));
 }
 
 /// First and second moments of one parameter group, flat in the model's layout.
@@ -114,12 +179,7 @@ impl GpuAdam {
             })
             .collect::<Result<_, GpuError>>()?;
         Ok(GpuAdam {
-            pipeline: crate::splat::gpu::buffers::pipeline(
-                ctx,
-                "adam",
-                include_str!("../../../shaders/adam.wgsl"),
-                "main",
-            ),
+            pipeline: adam_pipeline(ctx),
             moments,
             step: 0,
             count,

@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use super::adam::{AdamRates, GpuAdam, MomentPair};
 use super::buffers::{read_buffer, storage_from, storage_zeroed};
+use super::exposure::{ExposureScratch, GpuExposure};
 use super::loss::{LOSS_OUT_BYTES, LossKernel};
 use super::{GpuContext, GpuError, GpuGrads, GpuSplats, Renderer};
 use crate::splat::adam::{AdamState, LearningRates, Moments};
@@ -17,6 +18,7 @@ use crate::splat::backend::{Backend, DeviceKind, PhaseTimes, StepLoss, TrainErro
 use crate::splat::bind::BindConfig;
 use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cameras::View;
+use crate::splat::exposure::{EXPOSURE_FLOATS, ExposureSlot};
 use crate::splat::model::Gaussians;
 use crate::splat::semantic::{SemanticAnchors, SemanticConfig};
 use crate::splat::strategy::DensifyStats;
@@ -68,6 +70,10 @@ pub struct GpuBackend {
     depth: DepthTargets,
     depth_maps: HashMap<String, (wgpu::Buffer, usize)>,
     depth_loss: DepthLoss,
+    /// The per-image exposures, once installed, and their per-step buffers (resized with the
+    /// image).
+    exposure: Option<GpuExposure>,
+    exposure_scratch: Option<ExposureScratch>,
 }
 
 impl GpuBackend {
@@ -102,7 +108,30 @@ impl GpuBackend {
             depth: DepthTargets::default(),
             depth_maps: HashMap::new(),
             depth_loss,
+            exposure: None,
+            exposure_scratch: None,
         })
+    }
+
+    /// The exposures on the GPU, checked to hold image `index`.
+    fn exposure_for(&self, index: usize) -> Result<&GpuExposure, TrainError> {
+        let n = self.exposure.as_ref().map_or(0, GpuExposure::count);
+        crate::splat::backend::check_slot(index, n)?;
+        self.exposure
+            .as_ref()
+            .ok_or_else(|| TrainError::Invalid("no exposures on the GPU".into()))
+    }
+
+    /// Makes the exposure scratch fit images of `pixels` pixels.
+    fn exposure_scratch_for(&mut self, pixels: usize) -> Result<(), TrainError> {
+        if self
+            .exposure_scratch
+            .as_ref()
+            .is_none_or(|s| s.pixels != pixels)
+        {
+            self.exposure_scratch = Some(ExposureScratch::new(&self.ctx, pixels)?);
+        }
+        Ok(())
     }
 
     fn state(&self) -> Result<&OnDevice, TrainError> {
@@ -188,6 +217,7 @@ impl Backend for GpuBackend {
     fn step(
         &mut self,
         view: &View,
+        exposure: Option<ExposureSlot>,
         lr: &LearningRates,
         sh_degree: u32,
         _stats: bool,
@@ -197,6 +227,10 @@ impl Backend for GpuBackend {
         if self.dl_dimage.as_ref().is_none_or(|(n, _)| *n != pixels) {
             let buf = storage_zeroed(&self.ctx, "dL/dimage", pixels as u64 * 12)?;
             self.dl_dimage = Some((pixels, buf));
+        }
+        if let Some(slot) = exposure {
+            self.exposure_for(slot.index)?;
+            self.exposure_scratch_for(pixels)?;
         }
         // Upload the target first (once per view) so the borrows below stay simple.
         self.target(view)?;
@@ -241,15 +275,42 @@ impl Backend for GpuBackend {
         else {
             return Err(TrainError::Invalid("internal: missing step buffers".into()));
         };
+        // With an exposure the loss sees the exposed render and writes dL/d(exposed render);
+        // the exposure backward then fills `dl` for the raster backward.
+        let exposed = match (exposure, &self.exposure, &self.exposure_scratch) {
+            (Some(slot), Some(ex), Some(sc)) => Some((slot, ex, sc)),
+            (Some(_), _, _) => {
+                return Err(TrainError::Invalid(
+                    "internal: missing exposure buffers".into(),
+                ));
+            }
+            (None, _, _) => None,
+        };
         let t = Instant::now();
         let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+        let (loss_in, loss_grad) = match exposed {
+            Some((slot, ex, sc)) => {
+                ex.encode_apply(
+                    &self.ctx,
+                    &mut enc,
+                    &frame.image,
+                    Some(target),
+                    sc,
+                    w,
+                    h,
+                    slot,
+                )?;
+                (&sc.exposed, &sc.dl_out)
+            }
+            None => (&frame.image, dl),
+        };
         self.loss
             .encode(
                 &self.ctx.device,
                 &mut enc,
-                &frame.image,
+                loss_in,
                 target,
-                dl,
+                loss_grad,
                 &self.loss_out,
                 w,
                 h,
@@ -268,6 +329,9 @@ impl Backend for GpuBackend {
         }
         let loss_ms = t.elapsed().as_secs_f64() * 1000.0;
         let t = Instant::now();
+        if let Some((slot, ex, sc)) = exposed {
+            ex.encode_backward(&self.ctx, &mut enc, &frame.image, sc, dl, w, h, slot)?;
+        }
         self.renderer.encode_backward(
             &self.ctx,
             &mut enc,
@@ -316,6 +380,9 @@ impl Backend for GpuBackend {
                 lr.position,
             )?;
         }
+        if let (Some(_), Some(ex)) = (exposure, self.exposure.as_mut()) {
+            ex.encode_adam(&self.ctx, &mut enc, lr.exposure);
+        }
         if let (Some(sem), Some(_)) = (self.semantic.as_ref(), self.bind.as_ref()) {
             sem.encode_bind(&self.ctx, &mut enc, &state.splats)?;
         }
@@ -335,6 +402,56 @@ impl Backend for GpuBackend {
             ssim: v.get(2).copied().unwrap_or(f32::NAN),
             geo: v.get(3).copied().unwrap_or(0.0),
         })
+    }
+
+    fn set_exposures(&mut self, n: usize) -> Result<(), TrainError> {
+        self.exposure = (n > 0)
+            .then(|| GpuExposure::new(&self.ctx, n))
+            .transpose()?;
+        Ok(())
+    }
+
+    fn exposures(&mut self) -> Result<Vec<[f32; EXPOSURE_FLOATS]>, TrainError> {
+        match self.exposure.as_ref() {
+            Some(ex) => Ok(ex.download(&self.ctx)?.params),
+            None => Ok(Vec::new()),
+        }
+    }
+
+    fn render_exposed(
+        &mut self,
+        camera: &Camera,
+        index: usize,
+    ) -> Result<Vec<[f32; 3]>, TrainError> {
+        self.exposure_for(index)?;
+        let pixels = camera.width as usize * camera.height as usize;
+        self.exposure_scratch_for(pixels)?;
+        let state = self.state()?;
+        let frame = self
+            .renderer
+            .render(&self.ctx, &state.splats, camera, self.background)?;
+        let (Some(ex), Some(sc)) = (self.exposure.as_ref(), self.exposure_scratch.as_ref()) else {
+            return Err(TrainError::Invalid(
+                "internal: missing exposure buffers".into(),
+            ));
+        };
+        let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+        let slot = ExposureSlot {
+            index,
+            left_half: false,
+        };
+        ex.encode_apply(
+            &self.ctx,
+            &mut enc,
+            &frame.image,
+            None,
+            sc,
+            camera.width,
+            camera.height,
+            slot,
+        )?;
+        self.ctx.queue.submit([enc.finish()]);
+        Ok(read_buffer(&self.ctx, &sc.exposed, pixels)?)
     }
 
     fn set_semantic(

@@ -6,7 +6,9 @@
 //! One training step: [`Renderer::render`] (two submissions and one 4-byte read-back, the number
 //! of tile intersections, which sizes the sort buffers), then the loss kernel, then
 //! [`Renderer::encode_backward`] and [`adam::GpuAdam::encode_step`] recorded into one command
-//! encoder with no read-back.
+//! encoder with no read-back. With per-image exposure compensation ([`exposure`]) the render
+//! goes through the image's transform before the loss and back through it after, in the same
+//! encoder.
 //!
 //! Capacity: per-Gaussian buffers (parameters, gradients, Adam moments, densification
 //! statistics; up to 192 bytes per Gaussian for the SH block) may exceed one storage binding:
@@ -26,6 +28,7 @@ pub mod buffers;
 pub mod chunks;
 pub mod context;
 pub mod depth;
+pub mod exposure;
 pub mod frame;
 pub mod loss;
 pub mod mcmc;

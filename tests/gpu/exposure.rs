@@ -1,0 +1,376 @@
+//! The exposure kernels (`exposure.wgsl`) against their CPU twin, and the GPU trainer learning
+//! known per-photo exposures (docs/splatting.md "Exposure").
+
+use crate::common;
+
+use rand::rngs::ChaCha8Rng;
+use rand::{RngExt, SeedableRng};
+use sylva::splat::backend::Backend;
+use sylva::splat::camera::Camera;
+use sylva::splat::cameras::View;
+use sylva::splat::config::TrainConfig;
+use sylva::splat::cpu::exposure as cpu_exposure;
+use sylva::splat::dataset::Dataset;
+use sylva::splat::eval::{EvalRegion, ViewMetrics};
+use sylva::splat::exposure::{EXPOSURE_FLOATS, ExposureSlot, ExposureState};
+use sylva::splat::gpu::buffers::{read_buffer, storage_from, storage_zeroed};
+use sylva::splat::gpu::exposure::{ExposureScratch, GpuExposure};
+use sylva::splat::gpu::{GpuBackend, GpuContext};
+use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
+use sylva::splat::packed_image::{PackedImage, pack};
+use sylva::splat::rng::SplitMix64;
+
+/// `n` transforms away from the identity: gains 0.7–1.3, cross terms and offsets ±0.05.
+fn random_state(n: usize, seed: u64) -> ExposureState {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut s = ExposureState::new(n);
+    for e in &mut s.params {
+        for r in 0..3 {
+            for k in 0..4 {
+                e[4 * r + k] = if k == r {
+                    rng.random_range(0.7f32..1.3)
+                } else {
+                    rng.random_range(-0.05f32..0.05)
+                };
+            }
+        }
+    }
+    s
+}
+
+fn f64s(img: &[[f32; 3]]) -> Vec<[f64; 3]> {
+    img.iter().map(|p| p.map(f64::from)).collect()
+}
+
+#[test]
+fn exposure_kernels_match_the_cpu_twin() {
+    let Some(ctx) = common::context() else { return };
+    // An odd width (the right half starts at column 18) and 1073 pixels: four full workgroups
+    // of 256 and a partial one.
+    let (w, h) = (37u32, 29u32);
+    let n = (w * h) as usize;
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let rendered: Vec<[f32; 3]> = (0..n)
+        .map(|_| [0, 1, 2].map(|_| rng.random_range(0.0f32..1.0)))
+        .collect();
+    let target = PackedImage {
+        width: w,
+        height: h,
+        pixels: (0..n)
+            .map(|_| pack([0, 1, 2, 3].map(|_| rng.random::<u8>())))
+            .collect(),
+    };
+    let dl_out = common::random_dl(n, 4);
+    let state = random_state(3, 2);
+    let ex = GpuExposure::from_state(&ctx, &state).expect("exposures");
+    let scratch = ExposureScratch::new(&ctx, n).expect("scratch");
+    let rendered_buf = storage_from(&ctx, "rendered", &rendered).expect("upload");
+    let target_buf = storage_from(&ctx, "target", &target.pixels).expect("upload");
+    let dl_drgb = storage_zeroed(&ctx, "dl_drgb", n as u64 * 12).expect("buffer");
+    ctx.queue
+        .write_buffer(&scratch.dl_out, 0, bytemuck::cast_slice(&dl_out));
+    let target64 = f64s(&target.to_rgb_f32());
+    for slot in [
+        ExposureSlot {
+            index: 1,
+            left_half: false,
+        },
+        ExposureSlot {
+            index: 2,
+            left_half: true,
+        },
+    ] {
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        ex.encode_apply(
+            &ctx,
+            &mut enc,
+            &rendered_buf,
+            Some(&target_buf),
+            &scratch,
+            w,
+            h,
+            slot,
+        )
+        .expect("apply");
+        ex.encode_backward(
+            &ctx,
+            &mut enc,
+            &rendered_buf,
+            &scratch,
+            &dl_drgb,
+            w,
+            h,
+            slot,
+        )
+        .expect("backward");
+        ctx.queue.submit([enc.finish()]);
+        let got_out: Vec<[f32; 3]> = read_buffer(&ctx, &scratch.exposed, n).expect("read");
+        let got_drgb: Vec<[f32; 3]> = read_buffer(&ctx, &dl_drgb, n).expect("read");
+        let got_grads: Vec<f32> = read_buffer(&ctx, &ex.grads, 3 * EXPOSURE_FLOATS).expect("read");
+
+        let e = state.params[slot.index].map(f64::from);
+        let right = slot.left_half.then_some(target64.as_slice());
+        let want_out = cpu_exposure::apply(&f64s(&rendered), &e, w as usize, right);
+        let (want_drgb, want_de) = cpu_exposure::backward(
+            &f64s(&rendered),
+            &e,
+            &f64s(&dl_out),
+            w as usize,
+            slot.left_half,
+        );
+        for i in 0..n {
+            for c in 0..3 {
+                let (a, b) = (f64::from(got_out[i][c]), want_out[i][c]);
+                assert!(
+                    (a - b).abs() <= 1e-6,
+                    "{slot:?} pixel {i} ch {c}: out {a} vs {b}"
+                );
+                let (a, b) = (f64::from(got_drgb[i][c]), want_drgb[i][c]);
+                assert!(
+                    (a - b).abs() <= 1e-6,
+                    "{slot:?} pixel {i} ch {c}: dL/drgb {a} vs {b}"
+                );
+            }
+        }
+        let scale = want_de.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(scale > 1.0, "{slot:?}: gradient sums vanish ({scale})");
+        for (k, &g) in got_grads.iter().enumerate() {
+            let want = if k / EXPOSURE_FLOATS == slot.index {
+                want_de[k % EXPOSURE_FLOATS]
+            } else {
+                0.0
+            };
+            assert!(
+                (f64::from(g) - want).abs() <= 1e-5 * scale,
+                "{slot:?} dL/de[{k}]: {g} vs {want}"
+            );
+        }
+    }
+}
+
+#[test]
+fn exposure_adam_matches_the_cpu_twin() {
+    let Some(ctx) = common::context() else { return };
+    let mut cpu = random_state(5, 7);
+    let mut ex = GpuExposure::from_state(&ctx, &cpu).expect("exposures");
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    for step in 0..6usize {
+        let index = (step * 3) % 5;
+        let g: [f32; EXPOSURE_FLOATS] = std::array::from_fn(|_| rng.random_range(-0.1f32..0.1));
+        let mut all = vec![0.0f32; 5 * EXPOSURE_FLOATS];
+        all[index * EXPOSURE_FLOATS..(index + 1) * EXPOSURE_FLOATS].copy_from_slice(&g);
+        ctx.queue
+            .write_buffer(&ex.grads, 0, bytemuck::cast_slice(&all));
+        let lr = 0.01 * 0.9f32.powi(step as i32);
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        ex.encode_adam(&ctx, &mut enc, lr);
+        ctx.queue.submit([enc.finish()]);
+        cpu.adam_step(index, &g, lr);
+    }
+    let gpu = ex.download(&ctx).expect("download");
+    assert_eq!(gpu.step, 6);
+    for (i, (a, b)) in gpu.params.iter().zip(&cpu.params).enumerate() {
+        for k in 0..EXPOSURE_FLOATS {
+            assert!(
+                (a[k] - b[k]).abs() <= 1e-6 * (1.0 + b[k].abs()),
+                "image {i} float {k}: {} vs {}",
+                a[k],
+                b[k]
+            );
+        }
+    }
+    let (rel, _) = common::compare(&gpu.m, &cpu.m, 1e-5, 0.0);
+    assert!(rel < 1e-5, "first moments: rel {rel}");
+    let (rel, _) = common::compare(&gpu.v, &cpu.v, 1e-5, 0.0);
+    assert!(rel < 1e-5, "second moments: rel {rel}");
+}
+
+/// The scene of the CPU trainer's tests (`random_scene(7, 30, 0)` of
+/// `src/splat/cpu/test_scenes.rs`, drawn the same way): 30 anisotropic, rotated Gaussians.
+fn ring_scene() -> Gaussians {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut g = Gaussians::default();
+    for _ in 0..30 {
+        let mut sh = [0.0f32; SH_FLOATS];
+        for (k, v) in sh.iter_mut().enumerate() {
+            *v = if k < 3 {
+                rng.random_range(-0.9..0.9)
+            } else {
+                rng.random_range(-0.25..0.25)
+            };
+        }
+        g.push(Gaussian {
+            mean: [
+                rng.random_range(-1.2..1.2),
+                rng.random_range(-0.8..0.8),
+                rng.random_range(-0.8..0.8),
+            ],
+            log_scale: [0, 1, 2].map(|_| rng.random_range(-2.3f32..-0.9)),
+            rotation: [0, 1, 2, 3].map(|_| rng.random_range(-1.0f32..1.0)),
+            opacity_logit: rng.random_range(-1.0..2.0),
+            sh,
+            trunk_prob: 0.0,
+        });
+    }
+    g
+}
+
+/// The CPU trainer test's photos (`exposure_compensation_learns_the_photos_exposures` in
+/// `src/splat/trainer.rs`): 16 views on a ring around `truth` (rendered by the CPU reference,
+/// 40×32), every 8th held out, and every photo with its own gain in [0.7, 1.3] and offset in
+/// [−0.05, 0.05] per channel. Returns the true gains in [`Dataset::all_views`] order.
+fn jittered_ring(truth: &Gaussians) -> (Dataset, Vec<[f64; 3]>) {
+    let mut views = Vec::new();
+    for k in 0..16 {
+        let a = k as f32 / 16.0 * std::f32::consts::TAU;
+        let cam = Camera::look_at(
+            [4.0 * a.sin(), -4.0 * a.cos(), 0.6],
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0],
+            40,
+            32,
+            36.0,
+        );
+        let img = sylva::splat::cpu::render(truth, &cam, [0.0; 3])
+            .expect("render")
+            .image;
+        let pixels = img
+            .iter()
+            .map(|p| {
+                let c = p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
+                pack([c[0], c[1], c[2], 255])
+            })
+            .collect();
+        views.push(View {
+            name: format!("view_{k:02}.png"),
+            camera: cam,
+            image: PackedImage {
+                width: 40,
+                height: 32,
+                pixels,
+            },
+        });
+    }
+    let test: Vec<View> = views.iter().step_by(8).cloned().collect();
+    let train: Vec<View> = (0..16)
+        .filter(|k| k % 8 != 0)
+        .map(|k| views[k].clone())
+        .collect();
+    let mut data = Dataset {
+        train,
+        test,
+        points: Vec::new(),
+        colours: Vec::new(),
+        extent: 4.4,
+    };
+    let mut rng = SplitMix64::new(5);
+    let mut gains = Vec::new();
+    for v in data.train.iter_mut().chain(data.test.iter_mut()) {
+        let gain = [0, 1, 2].map(|_| 0.7 + 0.6 * rng.uniform());
+        let offset = [0, 1, 2].map(|_| 0.1 * (rng.uniform() - 0.5));
+        let rgb = v.image.to_rgb_f32();
+        v.image.pixels = rgb
+            .iter()
+            .map(|p| {
+                let c: [u8; 3] = std::array::from_fn(|k| {
+                    let x = gain[k] * f64::from(p[k]) + offset[k];
+                    (x.clamp(0.0, 1.0) * 255.0).round() as u8
+                });
+                pack([c[0], c[1], c[2], 255])
+            })
+            .collect();
+        gains.push(gain);
+    }
+    (data, gains)
+}
+
+/// The GPU trainer on the CPU trainer test's photos with known exposures, held to the same
+/// bounds: compensated, the held-out right halves are far better rendered than without, and
+/// the learned gains follow the true ones.
+#[test]
+fn gpu_training_learns_the_photos_exposures() {
+    let Some(ctx) = common::context() else { return };
+    let truth = ring_scene();
+    let (data, gains) = jittered_ring(&truth);
+    let mut init = Gaussians::default();
+    for m in &truth.means {
+        init.push(Gaussian::isotropic(
+            [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
+            0.15,
+            [0.5; 3],
+            0.3,
+        ));
+    }
+    let run = |ctx: &GpuContext, exposure: bool| {
+        let cfg = TrainConfig {
+            steps: 300,
+            exposure,
+            ..TrainConfig::default()
+        }
+        .scaled_to(300);
+        let mut backend = GpuBackend::with_context(ctx.clone(), [0.0; 3]).expect("backend");
+        let mut strategy = sylva::splat::trainer::default_strategy(&cfg);
+        let out = sylva::splat::trainer::train(
+            &mut backend,
+            &data,
+            init.clone(),
+            &cfg,
+            &mut strategy,
+            &sylva::progress::NoProgress,
+        )
+        .expect("train");
+        assert_eq!(
+            backend.exposures().expect("exposures").len(),
+            out.exposures.len()
+        );
+        out
+    };
+    let off = run(&ctx, false);
+    let on = run(&ctx, true);
+    assert_eq!(on.eval.region, EvalRegion::RightHalf);
+    let off_right = off
+        .renders
+        .iter()
+        .zip(&data.test)
+        .map(|((name, img, _, _), v)| {
+            ViewMetrics::measure_region(name, img, &v.image, EvalRegion::RightHalf)
+                .expect("sizes")
+                .psnr
+        })
+        .sum::<f32>()
+        / data.test.len() as f32;
+    eprintln!(
+        "held-out right halves: {:.2} dB with exposure compensation, {off_right:.2} dB without",
+        on.eval.psnr
+    );
+    let r: Vec<f64> = (0..3)
+        .map(|c| {
+            let learned: Vec<f64> = on
+                .exposures
+                .iter()
+                .map(|(_, e)| f64::from(e[4 * c + c]))
+                .collect();
+            let want: Vec<f64> = gains.iter().map(|g| g[c]).collect();
+            correlation(&learned, &want)
+        })
+        .collect();
+    eprintln!("learned vs true gain correlation per channel: {r:.3?}");
+    assert!(
+        on.eval.psnr > off_right + 3.0,
+        "right halves: {} dB compensated vs {off_right} dB",
+        on.eval.psnr
+    );
+    for (c, r) in r.iter().enumerate() {
+        assert!(*r > 0.8, "channel {c}: correlation {r}");
+    }
+}
+
+/// Pearson correlation of two equally long series.
+fn correlation(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len() as f64;
+    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+    let cov: f64 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
+    let va: f64 = a.iter().map(|x| (x - ma).powi(2)).sum();
+    let vb: f64 = b.iter().map(|y| (y - mb).powi(2)).sum();
+    cov / (va * vb).sqrt().max(1e-300)
+}
