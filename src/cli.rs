@@ -1202,6 +1202,25 @@ async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
             "| trunk term | {} |",
             st["train"]["semantic"]["term"].as_str().unwrap_or("n/a")
         );
+        let tr = &st["train"];
+        println!(
+            "| training budget | {} steps at {} px, {} Gaussians ({}), {} |",
+            tr["steps"],
+            tr["resolution"]
+                .as_array()
+                .map_or("n/a".to_string(), |r| format!(
+                    "{}×{}",
+                    r.first().unwrap_or(&serde_json::Value::Null),
+                    r.get(1).unwrap_or(&serde_json::Value::Null)
+                )),
+            match tr["budget"]["max_gaussians"].as_u64() {
+                Some(0) | None => "unbounded".to_string(),
+                Some(n) => format!("at most {n}"),
+            },
+            tr["budget"]["source"].as_str().unwrap_or("n/a"),
+            tr["device"].as_str().unwrap_or("n/a")
+        );
+        println!("| training time (s) | {} |", f(&tr["seconds"]));
     }
     let ok = job["state"] == "succeeded";
     if a.exit {
