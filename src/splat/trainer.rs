@@ -340,6 +340,20 @@ mod tests {
     use crate::splat::model::Gaussian;
     use crate::splat::packed_image::{PackedImage, pack};
 
+    /// Grey blobs at jittered positions of the true Gaussians: the start of the training tests.
+    fn grey_blobs(truth: &Gaussians) -> Gaussians {
+        let mut init = Gaussians::default();
+        for m in &truth.means {
+            init.push(Gaussian::isotropic(
+                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
+                0.15,
+                [0.5, 0.5, 0.5],
+                0.3,
+            ));
+        }
+        init
+    }
+
     /// Views of a random scene from a ring of cameras, rendered by the reference.
     fn ring_dataset(truth: &Gaussians, n_views: usize) -> Dataset {
         let mut views = Vec::new();
@@ -391,17 +405,7 @@ mod tests {
     fn cpu_training_beats_the_mean_colour_on_held_out_views() {
         let truth = random_scene(7, 30, 0);
         let data = ring_dataset(&truth, 16);
-        // Start from grey blobs at jittered positions of the true ones.
-        let mut init = Gaussians::default();
-        for i in 0..truth.len() {
-            let m = truth.means[i];
-            init.push(Gaussian::isotropic(
-                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
-                0.15,
-                [0.5, 0.5, 0.5],
-                0.3,
-            ));
-        }
+        let init = grey_blobs(&truth);
         let cfg = TrainConfig {
             steps: 300,
             ..TrainConfig::default()
@@ -465,16 +469,7 @@ mod tests {
         let truth = random_scene(7, 30, 0);
         let mut data = ring_dataset(&truth, 16);
         let exposures = jitter_exposures(&mut data, 5);
-        let mut init = Gaussians::default();
-        for i in 0..truth.len() {
-            let m = truth.means[i];
-            init.push(Gaussian::isotropic(
-                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
-                0.15,
-                [0.5, 0.5, 0.5],
-                0.3,
-            ));
-        }
+        let init = grey_blobs(&truth);
         let run = |exposure: bool| {
             let cfg = TrainConfig {
                 steps: 300,
@@ -574,16 +569,7 @@ mod tests {
     fn mcmc_training_fills_its_budget_and_fits_the_views() {
         let truth = random_scene(4, 12, 0);
         let data = ring_dataset(&truth, 16);
-        let mut init = Gaussians::default();
-        for i in 0..truth.len() {
-            let m = truth.means[i];
-            init.push(Gaussian::isotropic(
-                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
-                0.15,
-                [0.5, 0.5, 0.5],
-                0.3,
-            ));
-        }
+        let mut init = grey_blobs(&truth);
         // Two Gaussians start dead: the first refinement moves them onto live ones.
         init.opacity_logits[0] = -9.0;
         init.opacity_logits[1] = -9.0;
@@ -634,16 +620,7 @@ mod tests {
                 .map(|(&d, &t)| if t < 0.5 { d } else { 0.0 })
                 .collect()
         };
-        let mut init = Gaussians::default();
-        for i in 0..truth.len() {
-            let m = truth.means[i];
-            init.push(Gaussian::isotropic(
-                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
-                0.15,
-                [0.5, 0.5, 0.5],
-                0.3,
-            ));
-        }
+        let init = grey_blobs(&truth);
         let cfg = TrainConfig {
             steps: 300,
             ..TrainConfig::default()
