@@ -234,8 +234,8 @@ impl Backend for GpuBackend {
         }
         // Upload the target first (once per view) so the borrows below stay simple.
         self.target(view)?;
-        if let Some((map, valid)) = self.depth.for_view(&view.name)
-            && !self.depth_maps.contains_key(&view.name)
+        if !self.depth_maps.contains_key(&view.name)
+            && let Some((map, valid)) = self.depth.for_view(&view.name)
         {
             let buf = storage_from(&self.ctx, "LiDAR depth", map)?;
             self.depth_maps.insert(view.name.clone(), (buf, valid));
