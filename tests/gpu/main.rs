@@ -7,6 +7,7 @@ mod backward;
 mod chunks;
 mod common;
 mod context;
+mod depth;
 mod exposure;
 mod forward;
 mod mcmc;
