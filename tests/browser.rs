@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use common::*;
 use serde_json::{Value, json};
-use webdriver::{Browser, base64_encode, output_dir};
+use webdriver::{Browser, base64_encode, output_dir, processes_naming};
 
 async fn browser_or_skip(test: &str) -> Option<Browser> {
     match Browser::start().await {
@@ -20,6 +20,33 @@ async fn browser_or_skip(test: &str) -> Option<Browser> {
             eprintln!("skipping {test}: {why}");
             None
         }
+    }
+}
+
+/// Dropping a session ends its Chromium too (a killed chromedriver alone left its browsers
+/// running after the test run).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_dropped_browser_leaves_no_chromium_running() {
+    let Some(b) = browser_or_skip("browser cleanup test").await else {
+        return;
+    };
+    let profile = b.profile_dir().to_string_lossy().to_string();
+    assert!(
+        !processes_naming(&profile).is_empty(),
+        "no Chromium names the session's profile {profile}"
+    );
+    drop(b);
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let left = processes_naming(&profile);
+        if left.is_empty() {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "Chromium processes {left:?} still run after the session was dropped"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 

@@ -3,6 +3,7 @@
 //! (A client crate would bring a second HTTP stack for these dozen requests.)
 #![allow(dead_code)]
 
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -55,10 +56,12 @@ impl Browser {
             .and_then(|l| l.local_addr())
             .map_err(|e| e.to_string())?
             .port();
+        // Its own process group, so that the browsers it starts can be ended with it.
         let child = Command::new(&driver)
             .arg(format!("--port={port}"))
             .stdout(Stdio::null())
             .stderr(Stdio::null())
+            .process_group(0)
             .spawn()
             .map_err(|e| format!("cannot start {}: {e}", driver.display()))?;
         let http = reqwest::Client::builder()
@@ -252,11 +255,45 @@ fn save_png(v: &Value, path: &Path) {
     std::fs::write(path, png).expect("write screenshot");
 }
 
+impl Browser {
+    /// The browser's profile folder: every Chromium process of this session names it on its
+    /// command line.
+    pub fn profile_dir(&self) -> &Path {
+        self._profile.path()
+    }
+}
+
+/// Process ids whose command line contains `needle`.
+pub fn processes_naming(needle: &str) -> Vec<u32> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    entries
+        .flatten()
+        .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .map(|c| String::from_utf8_lossy(&c).contains(needle))
+                .unwrap_or(false)
+        })
+        .collect()
+}
+
 impl Drop for Browser {
+    /// Ends chromedriver and every browser it started, also when a test fails: a killed
+    /// chromedriver leaves its Chromium running, so the whole process group goes, then any
+    /// process still naming this session's profile folder.
     fn drop(&mut self) {
-        // chromedriver ends its browsers when it exits.
+        let group = format!("-{}", self.driver.id());
+        let _ = Command::new("kill").args(["-KILL", "--", &group]).status();
         let _ = self.driver.kill();
         let _ = self.driver.wait();
+        let profile = self._profile.path().to_string_lossy().to_string();
+        for pid in processes_naming(&profile) {
+            let _ = Command::new("kill")
+                .args(["-KILL", &pid.to_string()])
+                .status();
+        }
     }
 }
 
