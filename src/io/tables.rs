@@ -41,32 +41,41 @@ struct Table {
 }
 
 fn read_table(path: &Path) -> Result<Table, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::InvalidData => IoError::format(path, "not UTF-8 text"),
-        _ => IoError::Io {
-            path: path.to_path_buf(),
-            source: e,
-        },
+    let bytes = std::fs::read(path).map_err(|e| IoError::Io {
+        path: path.to_path_buf(),
+        source: e,
     })?;
-    let mut lines = text
-        .lines()
-        .enumerate()
-        .map(|(i, l)| (i + 1, l.trim()))
-        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-    let Some((_, header)) = lines.next() else {
+    // The `csv` crate (RFC 4180 quoting: a quoted field may hold commas and quotes).
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .comment(Some(b'#'))
+        .trim(csv::Trim::All)
+        .flexible(true)
+        .from_reader(bytes.as_slice());
+    let mut records = Vec::new();
+    for rec in reader.records() {
+        let rec = rec.map_err(|e| match e.kind() {
+            csv::ErrorKind::Utf8 { .. } => IoError::format(path, "not UTF-8 text"),
+            _ => IoError::format(path, e.to_string()),
+        })?;
+        if rec.iter().all(str::is_empty) {
+            continue;
+        }
+        let line = rec.position().map_or(0, |p| p.line() as usize);
+        records.push((line, rec.iter().map(str::to_string).collect::<Vec<_>>()));
+    }
+    let mut rows = records.into_iter();
+    let Some((_, header)) = rows.next() else {
         return Err(IoError::format(
             path,
             "empty table: a header row is required",
         ));
     };
-    let header = header
-        .split(',')
-        .map(|h| h.trim().trim_matches('"').to_ascii_lowercase())
-        .collect();
-    let rows = lines
-        .map(|(n, l)| (n, l.split(',').map(|c| c.trim().to_string()).collect()))
-        .collect();
-    Ok(Table { header, rows })
+    let header = header.iter().map(|h| h.to_ascii_lowercase()).collect();
+    Ok(Table {
+        header,
+        rows: rows.collect(),
+    })
 }
 
 impl Table {
@@ -211,6 +220,24 @@ mod tests {
         let f = write("x,y,dbh_cm\n1,2,30\n3,four,20\n");
         let e = read_field_dbh(f.path()).expect_err("bad number");
         assert!(e.to_string().contains("line 3"), "{e}");
+    }
+
+    #[test]
+    fn quoted_fields_may_hold_commas_and_quotes() {
+        let f = write(
+            "\"tree_id\",x,y,dbh_cm\n\"oak, the \"\"old\"\" one\",1.5,2,31.5\n\n# note\nbeech,3,4,20\n",
+        );
+        let trees = read_field_dbh(f.path()).expect("valid");
+        assert_eq!(trees.len(), 2);
+        assert_eq!(trees[0].tree_id.as_deref(), Some("oak, the \"old\" one"));
+        assert_eq!((trees[0].x, trees[0].dbh_cm), (1.5, 31.5));
+        assert_eq!(trees[1].tree_id.as_deref(), Some("beech"));
+        let e =
+            read_field_dbh(write("x,y,dbh_cm\n1,2,3\n\"4,5,6\n").path()).expect_err("open quote");
+        assert!(
+            e.to_string().contains("dbh_cm") || e.to_string().contains("line"),
+            "{e}"
+        );
     }
 
     #[test]
