@@ -14,38 +14,32 @@ pub const TREES_CSV_HEADER: &str =
 
 /// trees.csv as text: the header, then one line per tree; `dbh_gs_cm` and `gs_quality` are
 /// empty when absent. Coordinates with millimetre precision, DBH to 0.01 cm, RMS to 0.01 mm.
+/// Written with the `csv` crate, which quotes a field only where it must (a comma, quote or
+/// line break in it), so `io::tables` and any CSV reader read it back.
 pub fn trees_csv(rows: &[TreeRow]) -> String {
-    let mut s = String::with_capacity(64 * (rows.len() + 1));
-    s.push_str(TREES_CSV_HEADER);
-    s.push('\n');
+    let mut w = csv::WriterBuilder::new().from_writer(Vec::with_capacity(64 * (rows.len() + 1)));
+    // Writing to a Vec cannot fail but for a record of the wrong length, which the fixed
+    // header and the fixed fields below rule out.
+    let _ = w.write_record(TREES_CSV_HEADER.split(','));
     for r in rows {
         let gs = r.dbh_gs_cm.map(|v| format!("{v:.2}")).unwrap_or_default();
         let gs_quality = r.gs_quality.map(|q| q.as_str()).unwrap_or_default();
-        s.push_str(&format!(
-            "{},{:.3},{:.3},{:.3},{:.2},{},{},{:.2},{:.3},{},{}\n",
-            r.tree_id,
-            r.x,
-            r.y,
-            r.ground_z,
-            r.dbh_lidar_cm,
+        let _ = w.write_record([
+            r.tree_id.to_string(),
+            format!("{:.3}", r.x),
+            format!("{:.3}", r.y),
+            format!("{:.3}", r.ground_z),
+            format!("{:.2}", r.dbh_lidar_cm),
             gs,
-            r.n_points,
-            r.rms_mm,
-            r.arc_coverage,
-            csv_field(&r.quality),
-            gs_quality
-        ));
+            r.n_points.to_string(),
+            format!("{:.2}", r.rms_mm),
+            format!("{:.3}", r.arc_coverage),
+            r.quality.to_string(),
+            gs_quality.to_string(),
+        ]);
     }
-    s
-}
-
-/// Quotes a field holding a comma, quote or line break.
-fn csv_field(v: &str) -> String {
-    if v.contains([',', '"', '\n', '\r']) {
-        format!("\"{}\"", v.replace('"', "\"\""))
-    } else {
-        v.to_string()
-    }
+    let bytes = w.into_inner().unwrap_or_default();
+    String::from_utf8(bytes).unwrap_or_default()
 }
 
 /// trees.geojson as a JSON value: Point geometries at (x, y, ground_z), every row field as a

@@ -314,3 +314,20 @@ fn a_soft_centre_prior_holds_a_partial_arc_and_leaves_a_full_circle_its_own_cent
     );
     assert!((fit.fit.radius - 0.15).abs() < 0.002, "{fit:?}");
 }
+
+#[test]
+fn trees_csv_quotes_a_field_that_needs_it_and_reads_back() {
+    let odd = TreeRow {
+        quality: "odd, \"q\"".into(),
+        ..row(4, 1.0, 2.0, 20.0)
+    };
+    let text = trees_csv(std::slice::from_ref(&odd));
+    assert_eq!(
+        text.lines().nth(1),
+        Some("4,1.000,2.000,100.000,20.00,,42,3.50,0.750,\"odd, \"\"q\"\"\",")
+    );
+    let mut r = csv::Reader::from_reader(text.as_bytes());
+    let rec = r.records().next().expect("a row").expect("parses");
+    assert_eq!(rec.len(), 11);
+    assert_eq!(&rec[9], "odd, \"q\"");
+}
