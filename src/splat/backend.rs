@@ -169,8 +169,10 @@ pub struct CpuBackend {
     bind: Option<(semantic::AnchorIndex, BindConfig)>,
     /// dL/d(mean) of the latest step.
     last_mean_grads: Vec<[f32; 3]>,
-    /// The strategy's per-step terms (MCMC), if any.
+    /// The strategy's per-step terms (MCMC), if any, and the flags of the model's Gaussians
+    /// under them (set with the model or the terms).
     terms: Option<StepTerms>,
+    mcmc_flags: Vec<u32>,
     /// LiDAR depth supervision.
     depth: DepthTargets,
     /// The per-image exposures and their Adam state.
@@ -192,6 +194,7 @@ impl CpuBackend {
             bind: None,
             last_mean_grads: Vec::new(),
             terms: None,
+            mcmc_flags: Vec::new(),
             depth: DepthTargets::default(),
             exposure: ExposureState::new(0),
         }
@@ -232,6 +235,9 @@ impl Backend for CpuBackend {
         self.model = model.clone();
         self.adam = adam.clone();
         self.stats = DensifyStats::zeros(model.len());
+        if let Some(t) = self.terms.as_ref() {
+            self.mcmc_flags = mcmc::flags(&model.trunk_prob, t);
+        }
         Ok(())
     }
 
@@ -282,7 +288,7 @@ impl Backend for CpuBackend {
         let depth_grad = self
             .depth
             .for_view(&view.name)
-            .map(|(map, _)| depth::loss_and_grad(&render.depth, map, self.depth.weight).1);
+            .map(|map| depth::loss_and_grad(&render.depth, map, self.depth.weight).1);
         let (mut grads, grad_stat) = cpu::render_backward_depth(
             &self.model,
             &view.camera,
@@ -305,14 +311,10 @@ impl Backend for CpuBackend {
             }
             geo = l as f32;
         }
-        let flags = self
-            .terms
-            .as_ref()
-            .map(|terms| mcmc::flags(&self.model.trunk_prob, terms));
-        if let (Some(terms), Some(flags)) = (self.terms.as_ref(), flags.as_ref()) {
+        if let Some(terms) = self.terms.as_ref() {
             mcmc::regularise_grads(
                 &self.model,
-                flags,
+                &self.mcmc_flags,
                 terms,
                 &mut grads.opacity_logits,
                 &mut grads.log_scales,
@@ -331,8 +333,14 @@ impl Backend for CpuBackend {
         self.adam
             .step(&mut self.model, &grads, lr)
             .map_err(invalid)?;
-        if let (Some(terms), Some(flags)) = (self.terms.as_ref(), flags.as_ref()) {
-            mcmc::add_noise(&mut self.model, flags, terms, lr.position, self.adam.step);
+        if let Some(terms) = self.terms.as_ref() {
+            mcmc::add_noise(
+                &mut self.model,
+                &self.mcmc_flags,
+                terms,
+                lr.position,
+                self.adam.step,
+            );
         }
         if let Some((index, de)) = exposure_grad {
             self.exposure.adam_step(index, &de, lr.exposure);
@@ -398,6 +406,7 @@ impl Backend for CpuBackend {
 
     fn set_step_terms(&mut self, terms: Option<StepTerms>) -> Result<(), TrainError> {
         self.terms = terms;
+        self.mcmc_flags = terms.map_or_else(Vec::new, |t| mcmc::flags(&self.model.trunk_prob, &t));
         Ok(())
     }
 

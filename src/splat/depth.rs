@@ -29,15 +29,12 @@ pub struct DepthTargets {
 }
 
 impl DepthTargets {
-    /// The map of view `name` with its LiDAR pixel count, when supervision is on.
-    pub fn for_view(&self, name: &str) -> Option<(&[f32], usize)> {
+    /// The map of view `name`, when supervision is on.
+    pub fn for_view(&self, name: &str) -> Option<&[f32]> {
         if self.weight <= 0.0 {
             return None;
         }
-        self.maps
-            .get(name)
-            .map(|m| (m.as_slice(), valid_count(m)))
-            .filter(|(_, n)| *n > 0)
+        self.maps.get(name).map(Vec::as_slice)
     }
 }
 

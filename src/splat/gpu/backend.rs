@@ -235,9 +235,10 @@ impl Backend for GpuBackend {
         // Upload the target first (once per view) so the borrows below stay simple.
         self.target(view)?;
         if !self.depth_maps.contains_key(&view.name)
-            && let Some((map, valid)) = self.depth.for_view(&view.name)
+            && let Some(map) = self.depth.for_view(&view.name)
         {
             let buf = storage_from(&self.ctx, "LiDAR depth", map)?;
+            let valid = crate::splat::depth::valid_count(map);
             self.depth_maps.insert(view.name.clone(), (buf, valid));
         }
         let t = Instant::now();
