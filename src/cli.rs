@@ -102,7 +102,7 @@ pub struct BenchArgs {
     /// A COLMAP project to train on; without one a synthetic plot is generated.
     #[arg(long, env = "SYLVA_BENCH_COLMAP")]
     pub colmap: Option<PathBuf>,
-    /// Synthetic preset when no --colmap is given (tiny, plot, stand).
+    /// Synthetic preset when no --colmap is given (tiny, plot, stand, object).
     #[arg(long, env = "SYLVA_BENCH_PRESET", default_value = "tiny")]
     pub preset: String,
     /// Steps to time (the first step's shader compilation included).
@@ -173,7 +173,8 @@ pub struct TrainArgs {
 #[derive(Debug, Args)]
 pub struct SynthArgs {
     /// Scene preset: tiny (1-3 trees, 30 small images), plot (one large broadleaf tree), stand
-    /// (17 trees, canopy closure about 0.5).
+    /// (17 trees, canopy closure about 0.5), object (one tree in 71 close portrait phone-like
+    /// frames with a sparse SfM start).
     #[arg(long, env = "SYLVA_SYNTH_PRESET", default_value = "tiny")]
     pub preset: String,
     /// Random seed: the same seed gives byte-identical files.
@@ -746,7 +747,7 @@ impl Progress for LineProgress {
 
 async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
     let Some(preset) = crate::synth::Preset::from_name(&a.preset) else {
-        anyhow::bail!("unknown preset {:?}; presets: tiny, plot, stand", a.preset);
+        anyhow::bail!("unknown preset {:?}; presets: tiny, plot, stand, object", a.preset);
     };
     let mut p = crate::synth::SynthParams::new(preset);
     p.seed = a.seed;
@@ -954,9 +955,9 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             .ok_or_else(|| anyhow::anyhow!("{}: no images/ folder", colmap.display()))?;
         let model = crate::io::colmap::read_model(&project.sparse_dir, &crate::progress::NoProgress)?;
         println!(
-            "| device | resolution (px) | images | Gaussians | steps/s | s/step | projection ms | sort ms | raster ms | loss ms | backward ms | optimiser ms | peak RSS MiB |"
+            "| device | resolution (px) | images | Gaussians | tiles per Gaussian | steps/s | s/step | projection ms | sort ms | raster ms | loss ms | backward ms | optimiser ms | peak RSS MiB |"
         );
-        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
         for res in resolutions {
             let params = TrainParams {
                 steps: a.steps,
@@ -992,12 +993,17 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             let steps = f64::from(cfg.steps);
             let first = data.train.first().map(|v| (v.camera.width, v.camera.height)).unwrap_or((0, 0));
             println!(
-                "| {} | {}×{} | {} | {} | {:.2} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} |",
+                "| {} | {}×{} | {} | {} | {} | {:.2} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} |",
                 out.device,
                 first.0,
                 first.1,
                 data.train.len(),
                 n,
+                if t.intersections == 0 {
+                    "–".to_string()
+                } else {
+                    format!("{:.1}", t.intersections as f64 / steps / n.max(1) as f64)
+                },
                 out.steps_per_second,
                 1.0 / out.steps_per_second.max(1e-9),
                 t.projection_ms / steps,

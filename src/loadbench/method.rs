@@ -45,7 +45,7 @@ use crate::splat::rng::SplitMix64;
 /// Flags of `sylva bench method`.
 #[derive(Debug, Clone, Args)]
 pub struct MethodBenchArgs {
-    /// method: synthetic preset of the plots (tiny, plot, stand).
+    /// method: synthetic preset of the plots (tiny, plot, stand, object).
     #[arg(
         long = "method-preset",
         env = "SYLVA_BENCH_METHOD_PRESET",
@@ -449,7 +449,7 @@ fn rmse_bias(pairs: &[(f64, f64)]) -> (f64, f64) {
 /// Runs the benchmark and prints its table.
 pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
     let preset = crate::synth::Preset::from_name(&a.method_preset)
-        .with_context(|| format!("--method-preset {:?}: tiny, plot or stand", a.method_preset))?;
+        .with_context(|| format!("--method-preset {:?}: tiny, plot, stand or object", a.method_preset))?;
     let seeds: Vec<u64> = a
         .method_seeds
         .split(',')

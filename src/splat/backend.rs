@@ -50,6 +50,9 @@ pub struct PhaseTimes {
     pub loss_ms: f64,
     pub backward_ms: f64,
     pub optimizer_ms: f64,
+    /// Tile–Gaussian intersections (16×16 px tiles) summed over the steps; 0 where a backend
+    /// does not bin by tiles (the CPU reference).
+    pub intersections: u64,
 }
 
 /// What kind of device runs the steps; it sets the default Gaussian budget

@@ -39,7 +39,9 @@ pub struct Intrinsics {
 
 impl Intrinsics {
     pub fn new(width: u32, height: u32, pinhole: bool) -> Intrinsics {
-        let f = 0.5 * width as f64 / (0.5 * HFOV_DEG.to_radians()).tan();
+        // The field of view spans the longer side, so portrait frames (`object`) are a phone
+        // held upright rather than a wider lens.
+        let f = 0.5 * width.max(height) as f64 / (0.5 * HFOV_DEG.to_radians()).tan();
         Intrinsics {
             model: if pinhole {
                 CameraModel::Pinhole
@@ -177,6 +179,35 @@ pub fn plan_flight(plot: &Plot, flight: Flight, n: usize, seed: u64, ext: &str) 
                     alt * height,
                     aim * height,
                 );
+            }
+        }
+        Flight::Walk => {
+            // Two laps (close at the stem, a step back looking up), each frame with the
+            // wobble of a hand-held phone; the stem of the first tree is the centre.
+            let base = plot.trees.first().map_or(DVec3::ZERO, |t| t.base);
+            let near = n / 2;
+            for (lap, count) in [(0usize, near), (1, n - near)] {
+                let phase = rng.range(0.0, std::f64::consts::TAU);
+                for i in 0..count {
+                    let a = phase
+                        + std::f64::consts::TAU * i as f64 / count.max(1) as f64
+                        + rng.range(-0.04, 0.04);
+                    let r = if lap == 0 { 2.2 } else { 3.6 } + rng.range(-0.3, 0.3);
+                    let (x, y) = (base.x + r * a.cos(), base.y + r * a.sin());
+                    let ground = plot.scene.terrain.height(x, y);
+                    let c = DVec3::new(x, y, ground + rng.range(1.4, 1.75));
+                    let aim = if lap == 0 {
+                        rng.range(0.8, 2.0)
+                    } else {
+                        rng.range(2.0, 0.6 * height.max(3.5))
+                    };
+                    let target = DVec3::new(
+                        base.x + rng.range(-0.3, 0.3),
+                        base.y + rng.range(-0.3, 0.3),
+                        base.z + aim,
+                    );
+                    views.push(View::look_at(name(views.len()), c, target, DVec3::Z));
+                }
             }
         }
         Flight::GridOblique => {

@@ -272,6 +272,7 @@ impl Backend for GpuBackend {
             self.times.raster_ms += t.elapsed().as_secs_f64() * 1000.0;
             frame
         };
+        self.times.intersections += u64::from(frame.intersections);
         let (Some(target), Some((_, dl))) = (self.targets.get(&view.name), self.dl_dimage.as_ref())
         else {
             return Err(TrainError::Invalid("internal: missing step buffers".into()));
