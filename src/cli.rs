@@ -22,6 +22,8 @@ use crate::store::BlobStore;
 use crate::webhooks::{Dispatcher, Webhooks};
 use crate::worker::WorkerPool;
 
+mod keys;
+
 /// Sylva turns a forest plot (handheld LiDAR + UAV photos with a COLMAP model) into a
 /// Gaussian-splat digital twin in metric coordinates and a DBH inventory of every stem.
 #[derive(Debug, Parser)]
@@ -58,6 +60,10 @@ pub enum Command {
     /// finished longer ago than --job-retention-secs, remove orphaned folders; prints what
     /// it removed. `sylva serve` also sweeps every --gc-interval-secs.
     Gc(GcArgs),
+    /// Managed API keys in the job database: `sylva keys create --name N [--admin]
+    /// [--quota-jobs N] [--quota-bytes B] [--expires 90d]` prints a new key once;
+    /// `sylva keys list`; `sylva keys revoke ID|NAME`.
+    Keys(keys::KeysArgs),
 }
 
 #[derive(Debug, Args)]
@@ -420,6 +426,7 @@ pub async fn main(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(a) => bench(a).await,
         Command::Demo(a) => demo(a).await,
         Command::Gc(a) => gc(a).await,
+        Command::Keys(a) => keys::run(a).await,
     }
 }
 
@@ -488,6 +495,7 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
         gpu,
         lease: a.worker.lease(),
         webhooks: hooks.clone(),
+        keys_exist: Default::default(),
     };
     // Recovery runs before the address is announced, so whoever waits for it sees a settled
     // queue.
@@ -747,7 +755,10 @@ impl Progress for LineProgress {
 
 async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
     let Some(preset) = crate::synth::Preset::from_name(&a.preset) else {
-        anyhow::bail!("unknown preset {:?}; presets: tiny, plot, stand, object", a.preset);
+        anyhow::bail!(
+            "unknown preset {:?}; presets: tiny, plot, stand, object",
+            a.preset
+        );
     };
     let mut p = crate::synth::SynthParams::new(preset);
     p.seed = a.seed;

@@ -199,8 +199,10 @@ pub struct ApiArgs {
     #[arg(long, env = "SYLVA_LISTEN", default_value = "127.0.0.1:8080")]
     pub listen: SocketAddr,
 
-    /// Bearer tokens accepted by the API, comma-separated. None: authentication is off
-    /// (a local single-user run).
+    /// Static bearer tokens accepted by the API, comma-separated, each its own owner (for
+    /// fixed set-ups; `sylva keys create` makes managed keys with quotas, expiry and
+    /// revocation). With none and no managed key ever created, authentication is off (a local
+    /// single-user run).
     #[arg(
         long,
         env = "SYLVA_TOKEN",
@@ -208,6 +210,16 @@ pub struct ApiArgs {
         hide_env_values = true
     )]
     pub token: Vec<String>,
+
+    /// Seconds after `POST /v1/webhooks/secret/rotate` during which deliveries are signed with
+    /// the old secret too (a second `v1=` entry), so a receiver can switch without missing
+    /// one. Default 86400 (a day), as long as a receiver's operator may need to notice.
+    #[arg(
+        long,
+        env = "SYLVA_WEBHOOK_ROTATION_GRACE_SECS",
+        default_value_t = 86_400
+    )]
+    pub webhook_rotation_grace_secs: u64,
 
     /// Upload part size in bytes (default 8 MiB: large enough for throughput, small enough
     /// that a dropped connection loses little).

@@ -6,13 +6,14 @@
 use std::time::Duration;
 
 use axum::body::Body;
-use axum::extract::{Path, State};
+use axum::extract::{Extension, Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio_util::io::ReaderStream;
 
 use super::AppState;
+use super::auth::Caller;
 use super::jobs::{files_kept, load};
 use super::problem::ApiError;
 use crate::jobs::ArtifactRecord;
@@ -145,10 +146,11 @@ async fn serve(
 
 pub async fn get(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path((id, name)): Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let job = load(&state, &id).await?;
+    let job = load(&state, &caller, &id).await?;
     files_kept(&job)?;
     let name = name.trim_start_matches('/');
     let a = job
@@ -162,11 +164,12 @@ pub async fn get(
 /// The job's newest artifact whose file name is `file` (later stages win).
 async fn by_file_name(
     state: &AppState,
+    caller: &Caller,
     id: &str,
     file: &str,
     headers: &HeaderMap,
 ) -> Result<Response, ApiError> {
-    let job = load(state, id).await?;
+    let job = load(state, caller, id).await?;
     files_kept(&job)?;
     let a = job
         .artifacts
@@ -183,18 +186,20 @@ async fn by_file_name(
 
 pub async fn trees_csv(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    by_file_name(&state, &id, "trees.csv", &headers).await
+    by_file_name(&state, &caller, &id, "trees.csv", &headers).await
 }
 
 pub async fn trees_geojson(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    by_file_name(&state, &id, "trees.geojson", &headers).await
+    by_file_name(&state, &caller, &id, "trees.geojson", &headers).await
 }
 
 #[cfg(test)]

@@ -8,7 +8,7 @@
 use std::convert::Infallible;
 use std::time::Duration;
 
-use axum::extract::{Path, State};
+use axum::extract::{Extension, Path, State};
 use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -16,6 +16,7 @@ use futures::stream::{self, Stream};
 use serde_json::Value;
 
 use super::AppState;
+use super::auth::Caller;
 use super::jobs::{load, log_line};
 use super::problem::ApiError;
 use super::views;
@@ -102,10 +103,11 @@ async fn next_events(mut c: Cursor) -> Option<(Result<Event, Infallible>, Cursor
 
 pub async fn events(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    load(&state, &id).await?;
+    load(&state, &caller, &id).await?;
     let last_seq = headers
         .get("last-event-id")
         .and_then(|v| v.to_str().ok())

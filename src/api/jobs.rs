@@ -5,7 +5,7 @@ use std::collections::HashMap;
 
 use axum::Json;
 use axum::body::Bytes;
-use axum::extract::{FromRequest, Multipart, Path, Query, Request, State};
+use axum::extract::{Extension, FromRequest, Multipart, Path, Query, Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
@@ -30,7 +30,9 @@ struct JobCreate {
     webhook: Option<Value>,
 }
 
-pub async fn load(state: &AppState, id: &str) -> Result<JobRecord, ApiError> {
+/// The job `id` if `caller` may see it; another owner's job answers exactly as a missing one
+/// (404, the same body), so existence does not leak.
+pub async fn load(state: &AppState, caller: &Caller, id: &str) -> Result<JobRecord, ApiError> {
     if !valid_id(id) {
         return Err(ApiError::not_found(format!("no job {id}")));
     }
@@ -38,6 +40,7 @@ pub async fn load(state: &AppState, id: &str) -> Result<JobRecord, ApiError> {
         .db
         .get_job(id)
         .await?
+        .filter(|j| caller.sees(&j.owner))
         .ok_or_else(|| ApiError::not_found(format!("no job {id}")))
 }
 
@@ -123,19 +126,23 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
         serde_json::from_value(params.clone()).map_err(ApiError::internal)?;
     let id = new_id();
     let stages = parsed.stages();
+    // Idempotency keys are per owner: two keys may use the same value without meeting.
+    let scoped_key = key
+        .as_deref()
+        .map(|k| scope_idempotency_key(&caller.owner, k));
     let job = NewJob {
         id: &id,
         inputs: &inputs,
         params: &params,
         stages: &stages,
-        idempotency_key: key.as_deref(),
+        idempotency_key: scoped_key.as_deref(),
         request_hash: &hash,
         owner: &caller.owner,
         webhook: webhook.as_ref(),
     };
     let limits = Admission {
         max_queued: state.args.max_queued_jobs as i64,
-        max_active_per_owner: state.args.quota_jobs as i64,
+        max_active_per_owner: caller.quota_jobs.unwrap_or(state.args.quota_jobs as i64),
     };
     let created = state.db.create_job(&job, limits).await?;
     let (id, new) = match created {
@@ -144,7 +151,7 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
     };
     // Read the job before waking the workers, so the answer shows it as created (queued)
     // rather than whatever a worker did in between (a polling worker may still be quicker).
-    let job = load(&state, &id).await?;
+    let job = load(&state, &caller, &id).await?;
     if new {
         wake_workers(&state, &id).await;
         tracing::info!(job = %id, "job queued");
@@ -158,6 +165,16 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
         resp.headers_mut().insert(header::LOCATION, loc);
     }
     Ok(resp)
+}
+
+/// The stored form of an idempotency key: the owner id, a unit separator, then the key (the
+/// key alone with authentication off, as before tenancy), so keys never meet across owners.
+pub fn scope_idempotency_key(owner: &str, key: &str) -> String {
+    if owner.is_empty() {
+        key.to_string()
+    } else {
+        format!("{owner}\u{1f}{key}")
+    }
 }
 
 /// 410 Gone for a job whose files retention removed.
@@ -271,7 +288,7 @@ async fn multipart_inputs(
                 "part `{name}` ({filename}) is empty"
             )));
         }
-        if let Err(e) = uploads::check_byte_quota(state, &caller.owner, size).await {
+        if let Err(e) = uploads::check_byte_quota(state, caller, size).await {
             state.blobs.drop_parts(&id).await;
             return Err(e);
         }
@@ -354,6 +371,7 @@ fn parse_cursor(c: &str) -> Option<i64> {
 
 pub async fn list(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Query(q): Query<HashMap<String, String>>,
 ) -> Result<Response, ApiError> {
     let filter = match q.get("state") {
@@ -372,7 +390,10 @@ pub async fn list(
         ),
     };
     let limit = query_int(&q, "limit", 50, 1, 200)?;
-    let jobs = state.db.list_jobs(filter, cursor, limit).await?;
+    let jobs = state
+        .db
+        .list_jobs(caller.list_owner(), filter, cursor, limit)
+        .await?;
     let next = (jobs.len() as i64 == limit)
         .then(|| jobs.last().map(|j| j.seq.to_string()))
         .flatten();
@@ -385,16 +406,22 @@ pub async fn list(
 
 pub async fn get(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    Ok(Json(views::job(&load(&state, &id).await?, state.retention())).into_response())
+    Ok(Json(views::job(
+        &load(&state, &caller, &id).await?,
+        state.retention(),
+    ))
+    .into_response())
 }
 
 pub async fn delete(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    load(&state, &id).await?;
+    load(&state, &caller, &id).await?;
     state.db.delete_job(&id).await?;
     state.blobs.remove_job(&id).await?;
     tracing::info!(job = %id, "job deleted");
@@ -403,12 +430,13 @@ pub async fn delete(
 
 pub async fn log(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     Query(q): Query<HashMap<String, String>>,
 ) -> Result<Response, ApiError> {
     let since = query_int(&q, "since", 0, 0, i64::MAX)?;
     let limit = query_int(&q, "limit", 1000, 1, 10_000)?;
-    load(&state, &id).await?;
+    load(&state, &caller, &id).await?;
     let lines = state.db.log(&id, since, limit).await?;
     let next = lines.last().map(|l| l.seq).unwrap_or(since);
     let lines: Vec<Value> = lines.iter().map(log_line).collect();
@@ -427,9 +455,10 @@ pub fn log_line(l: &crate::jobs::LogLine) -> Value {
 
 pub async fn cancel(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    load(&state, &id).await?;
+    load(&state, &caller, &id).await?;
     let next = state.db.cancel(&id).await?;
     let _ = state
         .db
@@ -440,7 +469,7 @@ pub async fn cancel(
             &format!("cancel requested; job {}", next.as_str()),
         )
         .await;
-    let job = load(&state, &id).await?;
+    let job = load(&state, &caller, &id).await?;
     Ok((
         StatusCode::ACCEPTED,
         Json(views::job(&job, state.retention())),
@@ -458,10 +487,11 @@ struct RetryBody {
 
 pub async fn retry(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     body: Bytes,
 ) -> Result<Response, ApiError> {
-    files_kept(&load(&state, &id).await?)?;
+    files_kept(&load(&state, &caller, &id).await?)?;
     let req: RetryBody = if body.iter().all(u8::is_ascii_whitespace) {
         RetryBody::default()
     } else {
@@ -489,7 +519,7 @@ pub async fn retry(
         )
         .await;
     wake_workers(&state, &id).await;
-    let job = load(&state, &id).await?;
+    let job = load(&state, &caller, &id).await?;
     Ok((
         StatusCode::ACCEPTED,
         Json(views::job(&job, state.retention())),
@@ -508,9 +538,10 @@ async fn wake_workers(state: &AppState, id: &str) {
 
 pub async fn results(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    let job = load(&state, &id).await?;
+    let job = load(&state, &caller, &id).await?;
     let stages: serde_json::Map<String, Value> = job
         .stages
         .iter()

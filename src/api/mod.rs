@@ -56,6 +56,9 @@ pub struct AppState {
     pub lease: Duration,
     /// Webhook target policy and signing secrets.
     pub webhooks: crate::webhooks::Webhooks,
+    /// Set once a managed API key has been seen in the database: authentication stays on
+    /// from then on ([`auth::require_token`]).
+    pub keys_exist: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl AppState {
@@ -96,6 +99,7 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("GET", "/v1/jobs/{id}/artifacts/{*name}"),
     ("GET", "/v1/jobs/{id}/webhooks"),
     ("GET", "/v1/webhooks/secret"),
+    ("POST", "/v1/webhooks/secret/rotate"),
 ];
 
 async fn count_requests(State(state): State<AppState>, req: Request, next: Next) -> Response {
@@ -146,6 +150,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/artifacts/{*name}", get(artifacts::get))
         .route("/v1/jobs/{id}/webhooks", get(webhooks::deliveries))
         .route("/v1/webhooks/secret", get(webhooks::secret))
+        .route("/v1/webhooks/secret/rotate", post(webhooks::rotate))
         .layer(DefaultBodyLimit::max(json_limit))
         .layer(TimeoutLayer::with_status_code(
             StatusCode::REQUEST_TIMEOUT,

@@ -3,12 +3,13 @@
 use std::fmt::Write as _;
 
 use axum::Json;
-use axum::extract::State;
+use axum::extract::{Extension, State};
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde_json::json;
 
 use super::AppState;
+use super::auth::Caller;
 use super::problem::ApiError;
 use crate::jobs::DeliveryState;
 use crate::pipeline::{PipelineParams, Stage};
@@ -159,8 +160,12 @@ pub async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError
     Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], out).into_response())
 }
 
-pub async fn info(State(state): State<AppState>) -> Result<Response, ApiError> {
+pub async fn info(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+) -> Result<Response, ApiError> {
     let a = &state.args;
+    let auth = super::auth::auth_required(&state).await?;
     let queued = state
         .db
         .count_by_state()
@@ -177,7 +182,12 @@ pub async fn info(State(state): State<AppState>) -> Result<Response, ApiError> {
         "queue_depth": queued,
         "workers": workers,
         "gpu": state.gpu,
-        "auth": !a.token.is_empty(),
+        "auth": auth,
+        "caller": {
+            "owner": caller.owner,
+            "admin": caller.admin,
+            "key": caller.key_name,
+        },
         "stages": Stage::ALL.iter().map(|s| s.name()).collect::<Vec<_>>(),
         "limits": {
             "part_size": a.part_size,
@@ -187,8 +197,8 @@ pub async fn info(State(state): State<AppState>) -> Result<Response, ApiError> {
             "max_archive_entries": a.max_archive_entries,
             "max_unpacked_bytes": a.max_unpacked_bytes,
             "max_queued_jobs": a.max_queued_jobs,
-            "quota_bytes": a.quota_bytes,
-            "quota_jobs": a.quota_jobs,
+            "quota_bytes": caller.quota_bytes.map_or(a.quota_bytes, |q| q.max(0) as u64),
+            "quota_jobs": caller.quota_jobs.map_or(a.quota_jobs as i64, |q| q),
             "job_retention_secs": a.retention.job_retention_secs,
             "upload_ttl_secs": a.upload_ttl_secs,
         },

@@ -72,7 +72,9 @@ pub fn new_id() -> String {
     uuid::Uuid::now_v7().simple().to_string()
 }
 
-pub async fn load(state: &AppState, id: &str) -> Result<UploadRecord, ApiError> {
+/// The upload `id` if `caller` may see it; another owner's upload answers exactly as a
+/// missing one (404, the same body), so existence does not leak.
+pub async fn load(state: &AppState, caller: &Caller, id: &str) -> Result<UploadRecord, ApiError> {
     if !valid_id(id) {
         return Err(ApiError::not_found(format!("no upload {id}")));
     }
@@ -80,14 +82,23 @@ pub async fn load(state: &AppState, id: &str) -> Result<UploadRecord, ApiError> 
         .db
         .get_upload(id)
         .await?
+        .filter(|u| caller.sees(&u.owner))
         .ok_or_else(|| ApiError::not_found(format!("no upload {id}")))
 }
 
 /// Checks an upload request and records it; shared by `POST /v1/uploads` and one-request
 /// job submissions.
-/// 429 when `adding` more bytes would take `owner` past `--quota-bytes`.
-pub async fn check_byte_quota(state: &AppState, owner: &str, adding: u64) -> Result<(), ApiError> {
-    let quota = state.args.quota_bytes;
+/// 429 when `adding` more bytes would take `caller` past its byte quota (its key's own, or
+/// `--quota-bytes`).
+pub async fn check_byte_quota(
+    state: &AppState,
+    caller: &Caller,
+    adding: u64,
+) -> Result<(), ApiError> {
+    let owner = caller.owner.as_str();
+    let quota = caller
+        .quota_bytes
+        .map_or(state.args.quota_bytes, |q| q.max(0) as u64);
     if quota == 0 {
         return Ok(());
     }
@@ -112,7 +123,7 @@ pub async fn check_byte_quota(state: &AppState, owner: &str, adding: u64) -> Res
 
 pub async fn create_record(
     state: &AppState,
-    owner: &str,
+    caller: &Caller,
     req: UploadCreate,
 ) -> Result<UploadRecord, ApiError> {
     let a = &state.args;
@@ -152,7 +163,7 @@ pub async fn create_record(
             req.size, a.max_upload_bytes
         )));
     }
-    check_byte_quota(state, owner, req.size).await?;
+    check_byte_quota(state, caller, req.size).await?;
     let free = state.blobs.free_bytes()?;
     // The upload needs room for its parts and its assembled copy.
     if free < a.min_free_bytes.saturating_add(req.size.saturating_mul(2)) {
@@ -175,7 +186,7 @@ pub async fn create_record(
         expires_at: now + a.upload_ttl_secs as i64 * 1000,
         completed_at: None,
         parts: Vec::new(),
-        owner: owner.to_string(),
+        owner: caller.owner.clone(),
         expired: false,
     };
     state.db.create_upload(&rec).await?;
@@ -187,7 +198,7 @@ pub async fn create(
     Extension(caller): Extension<Caller>,
     Json(req): Json<UploadCreate>,
 ) -> Result<Response, ApiError> {
-    let rec = create_record(&state, &caller.owner, req).await?;
+    let rec = create_record(&state, &caller, req).await?;
     let mut resp = (StatusCode::CREATED, Json(views::upload(&rec))).into_response();
     if let Ok(loc) = HeaderValue::from_str(&format!("/v1/uploads/{}", rec.id)) {
         resp.headers_mut().insert(header::LOCATION, loc);
@@ -210,9 +221,10 @@ fn status_headers(u: &UploadRecord) -> HeaderMap {
 
 pub async fn status(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    let u = load(&state, &id).await?;
+    let u = load(&state, &caller, &id).await?;
     Ok((status_headers(&u), Json(views::upload(&u))).into_response())
 }
 
@@ -234,10 +246,11 @@ fn expired(u: &UploadRecord) -> Result<(), ApiError> {
 
 pub async fn put_part(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path((id, n)): Path<(String, i64)>,
     body: Body,
 ) -> Result<Response, ApiError> {
-    let u = load(&state, &id).await?;
+    let u = load(&state, &caller, &id).await?;
     if u.complete {
         return Err(ApiError::conflict("the upload is already complete"));
     }
@@ -279,9 +292,10 @@ impl Drop for CompletingGuard {
 
 pub async fn complete(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    let u = load(&state, &id).await?;
+    let u = load(&state, &caller, &id).await?;
     if u.complete {
         return Ok((status_headers(&u), Json(views::upload(&u))).into_response());
     }
@@ -308,7 +322,7 @@ pub async fn complete(
         CompletingGuard(id.clone())
     };
     finish_upload(&state, &u).await?;
-    let u = load(&state, &id).await?;
+    let u = load(&state, &caller, &id).await?;
     Ok((status_headers(&u), Json(views::upload(&u))).into_response())
 }
 

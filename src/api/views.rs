@@ -81,6 +81,7 @@ pub fn job(j: &JobRecord, retention: Option<std::time::Duration>) -> Value {
         .collect();
     json!({
         "id": j.id,
+        "owner": j.owner,
         "state": j.state.as_str(),
         "stage": j.stage,
         "stages": stages,
@@ -137,6 +138,7 @@ pub fn upload(u: &UploadRecord) -> Value {
     let received: Vec<i64> = u.parts.iter().map(|p| p.0).collect();
     json!({
         "id": u.id,
+        "owner": u.owner,
         "kind": u.kind.as_str(),
         "filename": u.filename,
         "size": u.size,

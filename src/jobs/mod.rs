@@ -12,6 +12,7 @@
 //! and workers, `--database postgres://...`). [`JobStore`] hides which: callers hold one type,
 //! and both backends keep the same semantics, checked by the same tests.
 
+pub mod keys;
 pub mod postgres;
 pub mod sqlite;
 mod store;

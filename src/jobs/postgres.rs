@@ -50,7 +50,7 @@ const LOG_INSERT_TRIES: usize = 16;
 /// The job queue, upload records and job log in a PostgreSQL database.
 #[derive(Clone)]
 pub struct PgJobs {
-    pool: PgPool,
+    pub(super) pool: PgPool,
 }
 
 fn parse_webhook(text: Option<String>) -> Result<Option<WebhookSpec>, DbError> {
@@ -470,18 +470,21 @@ impl PgJobs {
     /// Jobs newest first; `before_seq` is the cursor (the last seq of the previous page).
     pub async fn list_jobs(
         &self,
+        owner: Option<&str>,
         state: Option<JobState>,
         before_seq: Option<i64>,
         limit: i64,
     ) -> Result<Vec<JobRecord>, DbError> {
         let sql = format!(
             "SELECT {JOB_COLUMNS} FROM jobs WHERE ($1::text IS NULL OR state = $1) \
-             AND ($2::bigint IS NULL OR seq < $2) ORDER BY seq DESC LIMIT $3"
+             AND ($2::bigint IS NULL OR seq < $2) AND ($4::text IS NULL OR owner = $4) \
+             ORDER BY seq DESC LIMIT $3"
         );
         let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
             .bind(state.map(|s| s.as_str()))
             .bind(before_seq)
             .bind(limit)
+            .bind(owner)
             .fetch_all(&self.pool)
             .await?;
         let jobs = rows

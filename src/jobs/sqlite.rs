@@ -22,7 +22,7 @@ const BUSY_TIMEOUT: Duration = Duration::from_secs(30);
 /// The job queue, upload records and job log in one SQLite file.
 #[derive(Clone)]
 pub struct SqliteJobs {
-    pool: SqlitePool,
+    pub(super) pool: SqlitePool,
 }
 
 fn parse_json(text: Option<String>) -> Option<serde_json::Value> {
@@ -375,18 +375,20 @@ impl SqliteJobs {
     /// Jobs newest first; `before_seq` is the cursor (the last seq of the previous page).
     pub async fn list_jobs(
         &self,
+        owner: Option<&str>,
         state: Option<JobState>,
         before_seq: Option<i64>,
         limit: i64,
     ) -> Result<Vec<JobRecord>, DbError> {
         let sql = format!(
             "SELECT {JOB_COLUMNS} FROM jobs WHERE (?1 IS NULL OR state = ?1) AND (?2 IS NULL OR seq < ?2) \
-             ORDER BY seq DESC LIMIT ?3"
+             AND (?4 IS NULL OR owner = ?4) ORDER BY seq DESC LIMIT ?3"
         );
         let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
             .bind(state.map(|s| s.as_str()))
             .bind(before_seq)
             .bind(limit)
+            .bind(owner)
             .fetch_all(&self.pool)
             .await?;
         let jobs = rows

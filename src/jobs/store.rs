@@ -200,9 +200,11 @@ forward! {
     /// Which of `ids` still own files: uploads not expired, or jobs not purged.
     pub async fn live_ids(&self, table: LiveTable, ids: &[String]) -> Result<Vec<String>, DbError>;
 
-    /// Jobs newest first; `before_seq` is the cursor (the last seq of the previous page).
+    /// Jobs newest first, `owner`'s only unless `None`; `before_seq` is the cursor (the last
+    /// seq of the previous page).
     pub async fn list_jobs(
         &self,
+        owner: Option<&str>,
         state: Option<JobState>,
         before_seq: Option<i64>,
         limit: i64,
@@ -331,4 +333,27 @@ forward! {
 
     /// A server-wide setting: the stored value, or `value` stored now if there was none.
     pub async fn setting_or_insert(&self, name: &str, value: &str) -> Result<String, DbError>;
+
+    /// Stores a new managed API key; a name already used is a conflict.
+    pub async fn create_api_key(&self, k: &keys::ApiKey) -> Result<(), DbError>;
+
+    /// Every managed API key, oldest first (revoked ones included).
+    pub async fn api_keys(&self) -> Result<Vec<keys::ApiKey>, DbError>;
+
+    /// The managed key whose SHA-256 is `hash`, usable or not.
+    pub async fn api_key_by_hash(&self, hash: &str) -> Result<Option<keys::ApiKey>, DbError>;
+
+    /// Revokes the key with this id or name at `now` (Unix ms); `NotFound` when none.
+    pub async fn revoke_api_key(&self, id_or_name: &str, now: i64) -> Result<keys::ApiKey, DbError>;
+
+    /// The webhook secret generation of `owner`.
+    pub async fn secret_generation(&self, owner: &str) -> Result<keys::SecretGeneration, DbError>;
+
+    /// Moves `owner` to its next webhook secret, the previous one used for `grace_ms` more.
+    pub async fn rotate_secret(
+        &self,
+        owner: &str,
+        now: i64,
+        grace_ms: i64,
+    ) -> Result<keys::SecretGeneration, DbError>;
 }

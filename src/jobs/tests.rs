@@ -296,14 +296,14 @@ async fn the_same_idempotency_key_gives_the_same_job_and_a_full_queue_refuses(db
         matches!(r, Err(DbError::Invalid(ref m)) if m.contains("does not exist")),
         "{r:?}"
     );
-    let listed = db.list_jobs(None, None, 10).await.expect("list");
+    let listed = db.list_jobs(None, None, None, 10).await.expect("list");
     assert_eq!(
         listed.iter().map(|j| j.id.as_str()).collect::<Vec<_>>(),
         ["k4", "k1"],
         "newest first"
     );
     let page = db
-        .list_jobs(Some(JobState::Queued), Some(listed[0].seq), 10)
+        .list_jobs(None, Some(JobState::Queued), Some(listed[0].seq), 10)
         .await
         .expect("page");
     assert_eq!(page.len(), 1);

@@ -448,8 +448,12 @@ fn rmse_bias(pairs: &[(f64, f64)]) -> (f64, f64) {
 
 /// Runs the benchmark and prints its table.
 pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
-    let preset = crate::synth::Preset::from_name(&a.method_preset)
-        .with_context(|| format!("--method-preset {:?}: tiny, plot, stand or object", a.method_preset))?;
+    let preset = crate::synth::Preset::from_name(&a.method_preset).with_context(|| {
+        format!(
+            "--method-preset {:?}: tiny, plot, stand or object",
+            a.method_preset
+        )
+    })?;
     let seeds: Vec<u64> = a
         .method_seeds
         .split(',')

@@ -177,6 +177,7 @@ impl Server {
             gpu: None,
             lease: defaults.worker.lease(),
             webhooks,
+            keys_exist: Default::default(),
         };
         let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0)).await?;
         let addr = listener.local_addr()?;

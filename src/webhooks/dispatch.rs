@@ -16,7 +16,7 @@ use tokio::sync::watch;
 
 use super::Webhooks;
 use super::sign::{
-    DELIVERY_HEADER, EVENT_HEADER, SIGNATURE_HEADER, TIMESTAMP_HEADER, signature_header,
+    DELIVERY_HEADER, EVENT_HEADER, SIGNATURE_HEADER, TIMESTAMP_HEADER, signature_header_all,
 };
 use super::target::PolicyResolver;
 use crate::config::WebhookArgs;
@@ -185,15 +185,24 @@ impl Dispatcher {
             .policy
             .check_url(&d.url)
             .map_err(|e| (None, format!("refused: {e}")))?;
-        let t = now_ms().div_euclid(1000);
-        let secret = self.hooks.signer.secret(&d.owner);
+        let now = now_ms();
+        let t = now.div_euclid(1000);
+        let generation = self
+            .db
+            .secret_generation(&d.owner)
+            .await
+            .map_err(|e| (None, format!("cannot read the owner's webhook secret: {e}")))?;
+        let secrets = self
+            .hooks
+            .signer
+            .signing_secrets(&d.owner, &generation, now);
         let resp = self
             .client
             .post(url)
             .header(CONTENT_TYPE, "application/json")
             .header(
                 SIGNATURE_HEADER,
-                signature_header(&secret, t, d.body.as_bytes()),
+                signature_header_all(&secrets, t, d.body.as_bytes()),
             )
             .header(TIMESTAMP_HEADER, t.to_string())
             .header(EVENT_HEADER, &d.event)

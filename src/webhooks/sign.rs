@@ -8,12 +8,19 @@
 //! "sylva-webhook-secret/v1:" + owner id), so nothing per token is stored and every process
 //! with the same key derives the same secrets. The key is `--webhook-key`, or else a random
 //! one generated once and kept in the job database.
+//!
+//! Rotation is per owner (`POST /v1/webhooks/secret/rotate`): the database keeps each owner's
+//! generation, the derivation appends `#<generation>` after the first rotation, and for
+//! [`crate::config::WebhookArgs::webhook_rotation_grace_secs`] after a rotation deliveries
+//! carry two `v1=` signatures, the new secret's and the old one's, so receivers can switch
+//! at their own pace.
 
 use std::sync::Arc;
 
 use hmac::{Hmac, KeyInit, Mac};
 use sha2::Sha256;
 
+use crate::jobs::keys::SecretGeneration;
 use crate::jobs::{DbError, JobStore};
 
 type HmacSha256 = Hmac<Sha256>;
@@ -76,10 +83,29 @@ impl Signer {
     /// The webhook secret of `owner` ([`crate::jobs::owner_id`] of a token; "" with
     /// authentication off): `whsec_` and 64 hex digits.
     pub fn secret(&self, owner: &str) -> String {
+        self.secret_at(owner, 0)
+    }
+
+    /// The webhook secret of `owner` at rotation `generation` (0: never rotated, the same as
+    /// [`Signer::secret`]; each `POST /v1/webhooks/secret/rotate` moves one owner to the next).
+    pub fn secret_at(&self, owner: &str, generation: i64) -> String {
         let mut m = mac(&self.key);
         m.update(SECRET_CONTEXT.as_bytes());
         m.update(owner.as_bytes());
+        if generation > 0 {
+            m.update(format!("#{generation}").as_bytes());
+        }
         format!("{SECRET_PREFIX}{}", hex::encode(m.finalize().into_bytes()))
+    }
+
+    /// The secrets that sign `owner`'s deliveries at `now_ms`: the current one, then the
+    /// previous one while its grace period lasts.
+    pub fn signing_secrets(&self, owner: &str, g: &SecretGeneration, now_ms: i64) -> Vec<String> {
+        let mut out = vec![self.secret_at(owner, g.generation)];
+        if g.generation > 0 && now_ms < g.previous_until {
+            out.push(self.secret_at(owner, g.generation - 1));
+        }
+        out
     }
 }
 
@@ -94,7 +120,18 @@ pub fn signature(secret: &str, timestamp: i64, body: &[u8]) -> String {
 
 /// The `Sylva-Signature` value: `t=<timestamp>,v1=<signature>`.
 pub fn signature_header(secret: &str, timestamp: i64, body: &[u8]) -> String {
-    format!("t={timestamp},v1={}", signature(secret, timestamp, body))
+    signature_header_all(&[secret], timestamp, body)
+}
+
+/// The `Sylva-Signature` value with one `v1=` entry per secret, in order (during a rotation's
+/// grace period: the new secret's, then the old one's), so a receiver holding either verifies.
+pub fn signature_header_all<S: AsRef<str>>(secrets: &[S], timestamp: i64, body: &[u8]) -> String {
+    let mut h = format!("t={timestamp}");
+    for s in secrets {
+        h.push_str(",v1=");
+        h.push_str(&signature(s.as_ref(), timestamp, body));
+    }
+    h
 }
 
 /// Why a signature did not verify.
@@ -163,6 +200,33 @@ mod tests {
         assert!(a.secret("").starts_with("whsec_"));
         assert_eq!(a.secret("").len(), 6 + 64);
         assert_eq!(format!("{a:?}"), "Signer { key: *** }");
+    }
+
+    #[test]
+    fn a_rotation_changes_one_owners_secret_and_signs_with_both_during_the_grace() {
+        let s = Signer::from_key(b"key");
+        assert_eq!(s.secret_at("t1", 0), s.secret("t1"));
+        assert_ne!(s.secret_at("t1", 1), s.secret("t1"));
+        assert_ne!(s.secret_at("t1", 1), s.secret_at("t1", 2));
+        let g = SecretGeneration {
+            generation: 2,
+            rotated_at: 1_000,
+            previous_until: 5_000,
+        };
+        let during = s.signing_secrets("t1", &g, 4_999);
+        assert_eq!(during, vec![s.secret_at("t1", 2), s.secret_at("t1", 1)]);
+        assert_eq!(
+            s.signing_secrets("t1", &g, 5_000),
+            vec![s.secret_at("t1", 2)]
+        );
+        let body = b"{}";
+        let h = signature_header_all(&during, 100, body);
+        assert_eq!(verify(&s.secret_at("t1", 1), &h, body, 100, 300), Ok(()));
+        assert_eq!(verify(&s.secret_at("t1", 2), &h, body, 100, 300), Ok(()));
+        assert_eq!(
+            verify(&s.secret_at("t1", 0), &h, body, 100, 300),
+            Err(VerifyError::Mismatch)
+        );
     }
 
     #[test]

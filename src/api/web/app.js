@@ -57,6 +57,8 @@ function randomKey() {
 // ------------------------------------------------------------------ API and auth
 
 const TOKEN_KEY = 'sylva-token';
+/** Who the token is (`GET /v1/info` → caller): an admin key sees every owner's jobs. */
+const caller = { owner: '', admin: false, key: null };
 const auth = {
   get token() { return sessionStorage.getItem(TOKEN_KEY) || ''; },
   headers() { return this.token ? { Authorization: `Bearer ${this.token}` } : {}; },
@@ -189,10 +191,15 @@ function progressCell(p, state) {
   return el('div', { class: 'progress-cell' }, el('div', { class: 'bar' }, fill), el('span', { class: 'pct' }, `${Math.floor(p * 100)} %`));
 }
 
+/** Whose a job is, shown to an admin key (which sees everyone's); others see their own only. */
+function ownerNote(j) {
+  return caller.admin && j.owner ? ` · owner ${j.owner}` : '';
+}
+
 function jobRow(j) {
   const eta = j.eta_seconds != null ? ` · about ${duration(j.eta_seconds)} left` : '';
   const tr = el('tr', { 'data-job': j.id, onclick: () => { location.hash = `#/jobs/${j.id}`; } },
-    el('td', {}, el('a', { class: 'id', href: `#/jobs/${j.id}` }, j.id.slice(0, 8) + '…'), el('div', { class: 'hint' }, when(j.created_at))),
+    el('td', {}, el('a', { class: 'id', href: `#/jobs/${j.id}` }, j.id.slice(0, 8) + '…'), el('div', { class: 'hint' }, when(j.created_at) + ownerNote(j))),
     el('td', {}, el('span', { class: `badge ${j.state}`, 'data-state': j.state }, j.state)),
     el('td', {}, j.stage || (j.state === 'succeeded' ? 'done' : '')),
     el('td', {}, progressCell(j.progress, j.state), el('div', { class: 'hint' }, eta)));
@@ -430,7 +437,7 @@ function renderHeader(j) {
   const took = j.started_at && j.finished_at ? ` · took ${duration((Date.parse(j.finished_at) - Date.parse(j.started_at)) / 1000)}` : '';
   const eta = j.eta_seconds != null ? ` · about ${duration(j.eta_seconds)} left` : '';
   const until = j.params && j.params.until ? ` · runs until ${j.params.until}` : '';
-  $('#job-meta').textContent = `${Math.floor(j.progress * 100)} % · created ${when(j.created_at)}${took}${eta}${until} · attempt ${j.attempt}`;
+  $('#job-meta').textContent = `${Math.floor(j.progress * 100)} % · created ${when(j.created_at)}${took}${eta}${until} · attempt ${j.attempt}${ownerNote(j)}`;
   $('#job-cancel').disabled = TERMINAL.has(j.state) || j.state === 'canceling';
   $('#job-retry').disabled = !(j.state === 'failed' || j.state === 'canceled');
   const err = $('#job-error');
@@ -864,7 +871,9 @@ async function serverInfo() {
   try {
     const i = await apiJson('/v1/info');
     const gpu = i.gpu && (i.gpu.name || i.gpu.adapter) ? ` · GPU ${i.gpu.name || i.gpu.adapter}` : '';
-    $('#server-info').textContent = `v${i.version || '?'}${gpu}`;
+    Object.assign(caller, i.caller || {});
+    const who = caller.key ? ` · key ${caller.key}${caller.admin ? ' (admin: every owner\'s jobs)' : ''}` : '';
+    $('#server-info').textContent = `v${i.version || '?'}${gpu}${who}`;
   } catch { /* the header line is decoration */ }
 }
 
@@ -886,8 +895,8 @@ function start() {
   $('#viewer-stems').addEventListener('change', () => page.viewer && page.viewer.setStemsVisible($('#viewer-stems').checked));
   $('#viewer-reset').addEventListener('click', () => page.viewer && page.viewer.reset());
   window.addEventListener('hashchange', route);
-  serverInfo();
-  route();
+  // Who the key is decides whether the list shows owners: ask first, then route.
+  serverInfo().finally(route);
 }
 
 window.Sylva = { uploadStats, page, parseCsv, streamEvents };

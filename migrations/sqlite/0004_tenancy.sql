@@ -1,0 +1,29 @@
+-- Tenancy (issue 25): API keys as records, and webhook secrets that rotate one owner at a time.
+
+-- A managed API key. Only the SHA-256 of the key is kept; the key itself is shown once, when
+-- it is created. The records it owns carry its id as their owner id.
+CREATE TABLE api_keys (
+    id           TEXT PRIMARY KEY,
+    name         TEXT NOT NULL UNIQUE,
+    -- Hex SHA-256 of the whole key.
+    hash         TEXT NOT NULL UNIQUE,
+    -- The key's first characters, to recognise it in lists (never enough to use it).
+    prefix       TEXT NOT NULL,
+    admin        INTEGER NOT NULL DEFAULT 0,
+    -- Per-key quotas (NULL: the server's --quota-jobs / --quota-bytes).
+    quota_jobs   INTEGER,
+    quota_bytes  INTEGER,
+    created_at   INTEGER NOT NULL,
+    expires_at   INTEGER,
+    revoked_at   INTEGER
+);
+
+-- Webhook secret generation per owner: secrets are derived from the server key, the owner id
+-- and the generation; rotation bumps the generation and keeps the previous secret valid for
+-- deliveries until `previous_until` (Unix ms).
+CREATE TABLE webhook_secrets (
+    owner           TEXT PRIMARY KEY,
+    generation      INTEGER NOT NULL,
+    rotated_at      INTEGER NOT NULL,
+    previous_until  INTEGER NOT NULL
+);

@@ -1,0 +1,301 @@
+//! Managed API keys and per-owner webhook secret generations (issue 25), over both databases.
+//!
+//! A key is `sylva_` and 64 hex digits: 256 bits from the operating system's random source.
+//! Only its SHA-256 is stored; the key is printed once by `sylva keys create`. The records a
+//! key creates carry the key's id as their owner id ([`key_owner`]); static `--token` values keep
+//! theirs ([`super::owner_id`]).
+//!
+//! The queries below are written once: they use only SQL both databases speak, with `$N`
+//! placeholders (SQLite reads `$N` as a parameter too, numbered in order of first use), and
+//! integer columns for flags, so one macro body serves [`SqliteJobs`] and [`PgJobs`].
+
+use serde::Serialize;
+use sha2::{Digest, Sha256};
+use sqlx::Row;
+
+use super::DbError;
+use super::postgres::PgJobs;
+use super::sqlite::SqliteJobs;
+
+/// Prefix of every managed key, so one pasted in the wrong place is recognisable.
+pub const KEY_PREFIX: &str = "sylva_";
+/// Random bytes in a key (256 bits, the issue's floor).
+pub const KEY_BYTES: usize = 32;
+/// Characters of a key kept in its record and shown in lists (`sylva_` and 6 hex digits:
+/// 24 bits, useless to an attacker).
+pub const SHOWN_PREFIX_CHARS: usize = 12;
+
+/// A managed API key as stored (without the key itself).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ApiKey {
+    /// Stable id (`key_` and 16 hex digits), also the owner id of its records.
+    pub id: String,
+    /// Unique human name (`sylva keys create --name`).
+    pub name: String,
+    /// Hex SHA-256 of the key.
+    #[serde(skip)]
+    pub hash: String,
+    /// The key's first [`SHOWN_PREFIX_CHARS`] characters.
+    pub prefix: String,
+    /// Sees and manages every owner's records.
+    pub admin: bool,
+    /// Unfinished jobs this key may have (`None`: the server's `--quota-jobs`).
+    pub quota_jobs: Option<i64>,
+    /// Bytes this key may keep on the server (`None`: the server's `--quota-bytes`).
+    pub quota_bytes: Option<i64>,
+    /// Unix milliseconds.
+    pub created_at: i64,
+    /// Unix milliseconds after which the key is refused (`None`: never).
+    pub expires_at: Option<i64>,
+    /// Unix milliseconds at which it was revoked.
+    pub revoked_at: Option<i64>,
+}
+
+impl ApiKey {
+    /// The owner id of the records this key creates.
+    pub fn owner(&self) -> String {
+        key_owner(&self.id)
+    }
+
+    /// Whether the key is accepted at `now_ms`.
+    pub fn usable_at(&self, now_ms: i64) -> bool {
+        self.revoked_at.is_none() && self.expires_at.is_none_or(|e| now_ms < e)
+    }
+}
+
+/// The owner id of key `id`'s records: the id itself (`key_…`, never the shape of a static
+/// token's owner id, `t` and hex).
+pub fn key_owner(id: &str) -> String {
+    id.to_string()
+}
+
+/// Hex SHA-256 of a presented key: what [`ApiKey::hash`] stores. The key carries 256 random
+/// bits, so a fast hash is enough (no password stretching needed).
+pub fn key_hash(key: &str) -> String {
+    hex::encode(Sha256::digest(key.as_bytes()))
+}
+
+/// Whether `presented` has the shape of a managed key (it may still be unknown or revoked).
+pub fn looks_like_key(presented: &str) -> bool {
+    presented.len() == KEY_PREFIX.len() + 2 * KEY_BYTES
+        && presented.starts_with(KEY_PREFIX)
+        && presented[KEY_PREFIX.len()..]
+            .bytes()
+            .all(|b| b.is_ascii_hexdigit())
+}
+
+/// A new random key and its record (not yet stored).
+pub fn generate(
+    name: &str,
+    admin: bool,
+    quota_jobs: Option<i64>,
+    quota_bytes: Option<i64>,
+    expires_at: Option<i64>,
+    now_ms: i64,
+) -> Result<(String, ApiKey), DbError> {
+    let name = name.trim();
+    if name.is_empty() || name.len() > 100 || name.chars().any(char::is_control) {
+        return Err(DbError::Invalid(
+            "a key's name must be 1 to 100 printable characters".into(),
+        ));
+    }
+    let mut secret = [0u8; KEY_BYTES];
+    getrandom::fill(&mut secret)
+        .map_err(|e| DbError::Invalid(format!("no random source for a new key: {e}")))?;
+    let mut id = [0u8; 8];
+    getrandom::fill(&mut id)
+        .map_err(|e| DbError::Invalid(format!("no random source for a new key: {e}")))?;
+    let key = format!("{KEY_PREFIX}{}", hex::encode(secret));
+    let record = ApiKey {
+        id: format!("key_{}", hex::encode(id)),
+        name: name.to_string(),
+        hash: key_hash(&key),
+        prefix: key[..SHOWN_PREFIX_CHARS].to_string(),
+        admin,
+        quota_jobs,
+        quota_bytes,
+        created_at: now_ms,
+        expires_at,
+        revoked_at: None,
+    };
+    Ok((key, record))
+}
+
+/// Where an owner's webhook secret stands: its generation (0 until the first rotation) and,
+/// for a grace period after a rotation, the previous generation still signed with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub struct SecretGeneration {
+    pub generation: i64,
+    /// Unix ms of the last rotation (0: never rotated).
+    pub rotated_at: i64,
+    /// Unix ms until which the previous generation's secret is still used (0: none).
+    pub previous_until: i64,
+}
+
+const KEY_COLUMNS: &str = "id, name, hash, prefix, admin, quota_jobs, quota_bytes, created_at, \
+                           expires_at, revoked_at";
+
+/// The key store's queries, once for each database's connection pool.
+macro_rules! key_queries {
+    ($store:ty) => {
+        impl $store {
+            /// Stores a new key; a name already used is a conflict.
+            pub async fn create_api_key(&self, k: &ApiKey) -> Result<(), DbError> {
+                let taken: i64 =
+                    sqlx::query_scalar("SELECT COUNT(*) FROM api_keys WHERE name = $1")
+                        .bind(&k.name)
+                        .fetch_one(&self.pool)
+                        .await?;
+                if taken > 0 {
+                    return Err(DbError::Conflict(format!(
+                        "a key named {:?} exists already",
+                        k.name
+                    )));
+                }
+                sqlx::query(
+                    "INSERT INTO api_keys (id, name, hash, prefix, admin, quota_jobs, \
+                     quota_bytes, created_at, expires_at, revoked_at) \
+                     VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, NULL)",
+                )
+                .bind(&k.id)
+                .bind(&k.name)
+                .bind(&k.hash)
+                .bind(&k.prefix)
+                .bind(i64::from(k.admin))
+                .bind(k.quota_jobs)
+                .bind(k.quota_bytes)
+                .bind(k.created_at)
+                .bind(k.expires_at)
+                .execute(&self.pool)
+                .await?;
+                Ok(())
+            }
+
+            /// Every key, oldest first (revoked ones included).
+            pub async fn api_keys(&self) -> Result<Vec<ApiKey>, DbError> {
+                let sql = format!("SELECT {KEY_COLUMNS} FROM api_keys ORDER BY created_at, id");
+                let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+                    .fetch_all(&self.pool)
+                    .await?;
+                rows.iter().map(|r| key_from_row!(r)).collect()
+            }
+
+            /// The key whose hash is `hash`, usable or not.
+            pub async fn api_key_by_hash(&self, hash: &str) -> Result<Option<ApiKey>, DbError> {
+                let sql = format!("SELECT {KEY_COLUMNS} FROM api_keys WHERE hash = $1");
+                let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+                    .bind(hash)
+                    .fetch_optional(&self.pool)
+                    .await?;
+                row.map(|r| key_from_row!(&r)).transpose()
+            }
+
+            /// Revokes the key with this id or name at `now`; the revoked record, or
+            /// `NotFound`. Revoking twice keeps the first time.
+            pub async fn revoke_api_key(&self, id_or_name: &str, now: i64) -> Result<ApiKey, DbError> {
+                sqlx::query(
+                    "UPDATE api_keys SET revoked_at = $1 \
+                     WHERE (id = $2 OR name = $2) AND revoked_at IS NULL",
+                )
+                .bind(now)
+                .bind(id_or_name)
+                .execute(&self.pool)
+                .await?;
+                let sql =
+                    format!("SELECT {KEY_COLUMNS} FROM api_keys WHERE id = $1 OR name = $1");
+                let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+                    .bind(id_or_name)
+                    .fetch_optional(&self.pool)
+                    .await?;
+                row.map(|r| key_from_row!(&r))
+                    .transpose()?
+                    .ok_or(DbError::NotFound)
+            }
+
+            /// The webhook secret generation of `owner` (generation 0 when never rotated).
+            pub async fn secret_generation(&self, owner: &str) -> Result<SecretGeneration, DbError> {
+                let row = sqlx::query(
+                    "SELECT generation, rotated_at, previous_until FROM webhook_secrets \
+                     WHERE owner = $1",
+                )
+                .bind(owner)
+                .fetch_optional(&self.pool)
+                .await?;
+                match row {
+                    None => Ok(SecretGeneration::default()),
+                    Some(r) => Ok(SecretGeneration {
+                        generation: r.try_get("generation")?,
+                        rotated_at: r.try_get("rotated_at")?,
+                        previous_until: r.try_get("previous_until")?,
+                    }),
+                }
+            }
+
+            /// Moves `owner` to its next webhook secret at `now`, the previous one still in
+            /// use until `now + grace_ms`; the new state.
+            pub async fn rotate_secret(
+                &self,
+                owner: &str,
+                now: i64,
+                grace_ms: i64,
+            ) -> Result<SecretGeneration, DbError> {
+                sqlx::query(
+                    "INSERT INTO webhook_secrets (owner, generation, rotated_at, previous_until) \
+                     VALUES ($1, 1, $2, $3) \
+                     ON CONFLICT (owner) DO UPDATE SET generation = webhook_secrets.generation + 1, \
+                     rotated_at = excluded.rotated_at, previous_until = excluded.previous_until",
+                )
+                .bind(owner)
+                .bind(now)
+                .bind(now.saturating_add(grace_ms))
+                .execute(&self.pool)
+                .await?;
+                self.secret_generation(owner).await
+            }
+        }
+    };
+}
+
+/// An [`ApiKey`] from a row of [`KEY_COLUMNS`].
+macro_rules! key_from_row {
+    ($r:expr) => {{
+        let r = $r;
+        Ok::<ApiKey, DbError>(ApiKey {
+            id: r.try_get("id")?,
+            name: r.try_get("name")?,
+            hash: r.try_get("hash")?,
+            prefix: r.try_get("prefix")?,
+            admin: r.try_get::<i64, _>("admin")? != 0,
+            quota_jobs: r.try_get("quota_jobs")?,
+            quota_bytes: r.try_get("quota_bytes")?,
+            created_at: r.try_get("created_at")?,
+            expires_at: r.try_get("expires_at")?,
+            revoked_at: r.try_get("revoked_at")?,
+        })
+    }};
+}
+
+key_queries!(SqliteJobs);
+key_queries!(PgJobs);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_are_256_random_bits_and_only_their_hash_is_kept() {
+        let (a, ra) = generate("alice", false, None, None, None, 5).expect("key");
+        let (b, rb) = generate("bob", true, Some(3), None, Some(10), 5).expect("key");
+        assert!(looks_like_key(&a) && looks_like_key(&b));
+        assert_eq!(a.len(), KEY_PREFIX.len() + 64);
+        assert_ne!(a, b);
+        assert_ne!(ra.id, rb.id);
+        assert_eq!(ra.hash, key_hash(&a));
+        assert!(!ra.hash.contains(&a[KEY_PREFIX.len()..]));
+        assert_eq!(ra.prefix, a[..SHOWN_PREFIX_CHARS]);
+        assert!(ra.usable_at(6));
+        assert!(rb.usable_at(9) && !rb.usable_at(10));
+        assert!(!looks_like_key("sylva_xyz"));
+        assert!(generate(" ", false, None, None, None, 0).is_err());
+    }
+}
