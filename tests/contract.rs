@@ -129,9 +129,6 @@ async fn every_listed_route_reaches_a_handler() {
     assert_eq!(served, file);
 }
 
-/// The bearer token of the fuzzed server.
-const FUZZ_TOKEN: &str = "contract-fuzz-token";
-
 /// Examples per operation and phase (schemathesis `--max-examples`): enough for each check to
 /// see every operation many times, small enough for two to three minutes on two cores.
 /// `SYLVA_TEST_FUZZ_EXAMPLES` overrides it (to search harder by hand).
@@ -170,25 +167,11 @@ fn schemathesis() -> Result<PathBuf, String> {
         })
 }
 
-/// An HTTP client that sends the fuzzed server's bearer token.
-fn authed_client() -> reqwest::Client {
-    let mut headers = reqwest::header::HeaderMap::new();
-    headers.insert(
-        reqwest::header::AUTHORIZATION,
-        reqwest::header::HeaderValue::from_str(&format!("Bearer {FUZZ_TOKEN}")).expect("token"),
-    );
-    reqwest::Client::builder()
-        .default_headers(headers)
-        .timeout(Duration::from_secs(60))
-        .build()
-        .expect("client")
-}
-
 /// Real resources for the fuzzer to find through the listings and links: completed uploads
 /// and an open one, a canceled job and, newest (first in `GET /v1/jobs`, which the links
 /// follow), a job that succeeded and has artifacts. Queued jobs appear when the fuzzer retries.
-async fn seed_resources(data: &Path, base: &str) {
-    let c = authed_client();
+async fn seed_resources(data: &Path, base: &str, key: &str) {
+    let c = keyed_client(key);
     let fx = fixture();
     let inputs = upload_inputs(&c, base, &fx).await;
     c.post(format!("{base}/v1/uploads"))
@@ -238,11 +221,11 @@ async fn schemathesis_finds_no_contract_violation() {
     let data = dir.path().join("data");
     // No workers: nothing heavy runs while the API is fuzzed. Small, fixed limits: the answers
     // must not depend on the free space of the machine the test runs on.
+    // A managed key, as a cloud backend would hold (`sylva keys create`).
+    let key = Db::sqlite().create_key(&data, "fuzzer", &[]);
     let srv = serve(
         &data,
         &[
-            "--token",
-            FUZZ_TOKEN,
             "--workers",
             "0",
             "--max-upload-bytes",
@@ -251,11 +234,11 @@ async fn schemathesis_finds_no_contract_violation() {
             "0",
         ],
     );
-    seed_resources(&data, &srv.base).await;
+    seed_resources(&data, &srv.base, &key).await;
 
     let seed = std::env::var("SYLVA_TEST_FUZZ_SEED").unwrap_or(FUZZ_SEED.into());
     let examples = std::env::var("SYLVA_TEST_FUZZ_EXAMPLES").unwrap_or(FUZZ_EXAMPLES.into());
-    let auth = format!("Authorization: Bearer {FUZZ_TOKEN}");
+    let auth = format!("Authorization: Bearer {key}");
     let schema = format!("{}/openapi.yaml", srv.base);
     let config = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/schemathesis.toml");
     let args = [

@@ -1,6 +1,7 @@
 //! Webhooks through the real server: signed deliveries to a receiver on loopback that fails
 //! at first, retried with growing gaps and delivered once; pending deliveries surviving a
-//! SIGKILL; private targets refused at submission and again at delivery time.
+//! SIGKILL; private targets refused at submission and again at delivery time; per-key secret
+//! rotation with a grace period.
 
 mod common;
 
@@ -592,4 +593,87 @@ async fn a_finished_job_announces_its_stages_and_its_success() {
     assert_eq!(events[1].1["data"]["stage"]["name"], "ingest");
     let d = deliveries(&c, &srv.base, &id).await;
     assert_eq!(d["webhook"]["url"], url.as_str());
+}
+
+/// Whether any `v1=` entry of the hit's signature verifies under `secret`.
+fn any_signature_verifies(secret: &str, hit: &Hit) -> bool {
+    let header = hit.header("sylva-signature");
+    let t: Vec<&str> = header.split(',').filter(|p| p.starts_with("t=")).collect();
+    header
+        .split(',')
+        .filter(|p| p.starts_with("v1="))
+        .any(|v1| {
+            let mut one = hit.clone();
+            one.headers.insert(
+                "sylva-signature",
+                format!("{},{v1}", t.first().copied().unwrap_or(""))
+                    .parse()
+                    .expect("header"),
+            );
+            signature_verifies(secret, &one)
+        })
+}
+
+/// Rotation is per key: alice's new secret leaves bob's alone, and during the grace period a
+/// delivery carries the new and the old signature, either of which verifies.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_rotation_changes_one_keys_secret_and_both_secrets_verify_during_the_grace() {
+    let fx = fixture();
+    let db = Db::sqlite();
+    let data = fx.dir.path().join("data");
+    let alice_key = db.create_key(&data, "alice", &[]);
+    let bob_key = db.create_key(&data, "bob", &[]);
+    let mut flags = vec!["--workers", "0"];
+    flags.extend_from_slice(FAST);
+    let srv = db.serve(&data, &flags);
+    let base = srv.base.clone();
+    let c = client();
+    let old = secret(&c, &base, &alice_key).await;
+    let bob_before = secret(&c, &base, &bob_key).await;
+    let rotated: Value = c
+        .post(format!("{base}/v1/webhooks/secret/rotate"))
+        .bearer_auth(&alice_key)
+        .send()
+        .await
+        .expect("rotate")
+        .error_for_status()
+        .expect("200")
+        .json()
+        .await
+        .expect("json");
+    let new = rotated["secret"].as_str().expect("secret").to_string();
+    assert_ne!(new, old);
+    assert_eq!(rotated["generation"], 1);
+    assert_eq!(rotated["previous"]["secret"], old.as_str(), "{rotated}");
+    assert_eq!(secret(&c, &base, &alice_key).await, new);
+    assert_eq!(
+        secret(&c, &base, &bob_key).await,
+        bob_before,
+        "bob's secret moved"
+    );
+
+    let (receiver, url) = Receiver::start(0).await;
+    let alice = authed(&alice_key);
+    let inputs = upload_inputs(&alice, &base, &fx).await;
+    let job = create_job(
+        &alice,
+        &base,
+        &json!({ "inputs": inputs, "webhook": { "url": url } }),
+    )
+    .await;
+    let id = job["id"].as_str().expect("id").to_string();
+    cancel(&alice, &base, &id).await;
+    receiver
+        .wait("one delivery", Duration::from_secs(30), |h| !h.is_empty())
+        .await;
+    let hit = &receiver.hits()[0];
+    assert_eq!(
+        hit.header("sylva-signature").matches("v1=").count(),
+        2,
+        "{}",
+        hit.header("sylva-signature")
+    );
+    assert!(any_signature_verifies(&new, hit));
+    assert!(any_signature_verifies(&old, hit));
+    assert!(!any_signature_verifies(&bob_before, hit));
 }

@@ -209,6 +209,33 @@ impl Drop for Proc {
     }
 }
 
+/// A `sylva ARGS… --data DATA` command with no `SYLVA_*` variables from the test's
+/// environment.
+pub fn sylva_command(args: &[&str], data: &Path) -> Command {
+    let mut cmd = Command::new(BIN);
+    for (k, _) in std::env::vars() {
+        if k.starts_with("SYLVA_") {
+            cmd.env_remove(k);
+        }
+    }
+    cmd.args(args).arg("--data").arg(data);
+    cmd
+}
+
+/// An HTTP client that sends `Authorization: Bearer KEY` with every request.
+pub fn keyed_client(key: &str) -> Client {
+    let mut h = reqwest::header::HeaderMap::new();
+    h.insert(
+        reqwest::header::AUTHORIZATION,
+        format!("Bearer {key}").parse().expect("header"),
+    );
+    Client::builder()
+        .default_headers(h)
+        .timeout(Duration::from_secs(60))
+        .build()
+        .expect("client")
+}
+
 fn spawn(args: &[&str], data: &Path, ready_prefix: &str) -> Proc {
     spawn_with_env(args, data, ready_prefix, &[])
 }
@@ -221,16 +248,7 @@ fn spawn_with_env(
 ) -> Proc {
     let stderr = data.join(format!("stderr-{}.log", uuid::Uuid::new_v4().simple()));
     std::fs::create_dir_all(data).expect("data dir");
-    let mut cmd = Command::new(BIN);
-    for (k, _) in std::env::vars() {
-        if k.starts_with("SYLVA_") {
-            cmd.env_remove(k);
-        }
-    }
-    let mut child = cmd
-        .args(args)
-        .arg("--data")
-        .arg(data)
+    let mut child = sylva_command(args, data)
         .envs(env.iter().map(|(k, v)| (k, v)))
         .env("SYLVA_LOG", "info")
         .stdout(Stdio::piped())
@@ -375,6 +393,42 @@ impl Db {
             &self.env(),
         );
         self.check_backend(p)
+    }
+
+    /// `sylva keys create --name NAME EXTRA…` on this database: the new key.
+    pub fn create_key(&self, data: &Path, name: &str, extra: &[&str]) -> String {
+        let mut args = vec!["keys", "create", "--name", name];
+        args.extend_from_slice(extra);
+        if let Db::Postgres(pg, _) = self {
+            args.extend(["--database", pg.url.as_str()]);
+        }
+        let out = sylva_command(&args, data)
+            .output()
+            .expect("run sylva keys create");
+        assert!(
+            out.status.success(),
+            "sylva keys create failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let key = String::from_utf8_lossy(&out.stdout).trim().to_string();
+        assert!(key.starts_with("sylva_") && key.len() == 70, "{key:?}");
+        key
+    }
+
+    /// `sylva keys ACTION ARGS…` on this database; its output, failing the test on an error.
+    pub fn keys(&self, data: &Path, action: &str, args: &[&str]) -> String {
+        let mut all = vec!["keys", action];
+        all.extend_from_slice(args);
+        if let Db::Postgres(pg, _) = self {
+            all.extend(["--database", pg.url.as_str()]);
+        }
+        let out = sylva_command(&all, data).output().expect("run sylva keys");
+        assert!(
+            out.status.success(),
+            "sylva keys {action} failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
     }
 
     /// `sylva worker` on this database.
