@@ -143,7 +143,8 @@ pub struct JobRecord {
     pub updated_at: i64,
     pub started_at: Option<i64>,
     pub finished_at: Option<i64>,
-    /// Who submitted it ([`owner_id`] of the token; "" with authentication off).
+    /// Who submitted it: the managed key's id, [`owner_id`] of a static token, "" with
+    /// authentication off.
     pub owner: String,
     /// When retention removed its files (ms since the epoch); its artifacts are then gone.
     pub purged_at: Option<i64>,
@@ -265,7 +266,8 @@ pub struct UploadRecord {
     pub completed_at: Option<i64>,
     /// Received parts: (index, size in bytes).
     pub parts: Vec<(i64, i64)>,
-    /// Who created it ([`owner_id`] of the token; "" with authentication off).
+    /// Who created it: the managed key's id, [`owner_id`] of a static token, "" with
+    /// authentication off.
     pub owner: String,
     /// Removed by retention (an open upload past `expires_at`, or a finished one no job
     /// needs any more): its bytes are gone and it answers 410.
