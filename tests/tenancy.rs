@@ -121,6 +121,8 @@ async fn tenancy_matrix(db: Db) {
     for (method, path) in &ops {
         let id = if path.starts_with("/v1/uploads/") {
             &upload
+        } else if path.starts_with("/v1/keys/") {
+            &alice_owner
         } else {
             &job_id
         };
@@ -222,9 +224,60 @@ async fn tenancy_matrix(db: Db) {
         .expect("json");
     assert_eq!(a["id"], a2["id"], "alice's replay gives her job back");
 
+    // Keys over HTTP: admin keys only.
+    for c in [&alice, &bob] {
+        let r = c.get(format!("{base}/v1/keys")).send().await.expect("get");
+        expect_problem(r, StatusCode::FORBIDDEN).await;
+        let r = c
+            .post(format!("{base}/v1/keys"))
+            .json(&json!({ "name": "sneaky", "admin": true }))
+            .send()
+            .await
+            .expect("post");
+        expect_problem(r, StatusCode::FORBIDDEN).await;
+    }
+    let made = root
+        .post(format!("{base}/v1/keys"))
+        .json(&json!({ "name": "carol", "quota_jobs": 2 }))
+        .send()
+        .await
+        .expect("post");
+    assert_eq!(made.status(), StatusCode::CREATED);
+    let made: Value = made.json().await.expect("json");
+    let carol_key = made["key"].as_str().expect("key").to_string();
+    let carol_id = made["id"].as_str().expect("id").to_string();
+    assert_eq!(made["quota_jobs"], 2);
+    let (s, _) = status_of(&keyed_client(&carol_key), &format!("{base}/v1/jobs")).await;
+    assert_eq!(s, StatusCode::OK, "a key made over HTTP works at once");
+    let listed = get_json(&root, &format!("{base}/v1/keys")).await;
+    let text = listed.to_string();
+    assert!(text.contains("carol") && text.contains("alice"), "{listed}");
+    assert!(!text.contains(&carol_key[6..]), "a listed key shows its key");
+    let again = root
+        .post(format!("{base}/v1/keys"))
+        .json(&json!({ "name": "carol" }))
+        .send()
+        .await
+        .expect("post");
+    expect_problem(again, StatusCode::CONFLICT).await;
+    let r = bob
+        .delete(format!("{base}/v1/keys/{carol_id}"))
+        .send()
+        .await
+        .expect("delete");
+    expect_problem(r, StatusCode::NOT_FOUND).await;
+    let r = root
+        .delete(format!("{base}/v1/keys/{carol_id}"))
+        .send()
+        .await
+        .expect("delete");
+    assert_eq!(r.status(), StatusCode::OK);
+    let (s, _) = status_of(&keyed_client(&carol_key), &format!("{base}/v1/jobs")).await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED, "revoked over HTTP");
+
     // Keys never reach the log.
     let log = srv.stderr_text();
-    for key in [&alice_key, &bob_key, &root_key] {
+    for key in [&alice_key, &bob_key, &root_key, &carol_key] {
         assert!(!log.contains(&key[6..]), "a key reached the server log");
     }
 }

@@ -6,6 +6,7 @@ pub mod artifacts;
 pub mod auth;
 pub mod events;
 pub mod jobs;
+pub mod keys;
 pub mod problem;
 pub mod service;
 pub mod uploads;
@@ -100,6 +101,9 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("GET", "/v1/jobs/{id}/webhooks"),
     ("GET", "/v1/webhooks/secret"),
     ("POST", "/v1/webhooks/secret/rotate"),
+    ("GET", "/v1/keys"),
+    ("POST", "/v1/keys"),
+    ("DELETE", "/v1/keys/{id}"),
 ];
 
 async fn count_requests(State(state): State<AppState>, req: Request, next: Next) -> Response {
@@ -151,6 +155,8 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/webhooks", get(webhooks::deliveries))
         .route("/v1/webhooks/secret", get(webhooks::secret))
         .route("/v1/webhooks/secret/rotate", post(webhooks::rotate))
+        .route("/v1/keys", get(keys::list).post(keys::create))
+        .route("/v1/keys/{id}", axum::routing::delete(keys::revoke))
         .layer(DefaultBodyLimit::max(json_limit))
         .layer(TimeoutLayer::with_status_code(
             StatusCode::REQUEST_TIMEOUT,

@@ -169,12 +169,17 @@ pub async fn run(a: KeysArgs) -> anyhow::Result<ExitCode> {
         }
         KeysAction::Revoke { store, key } => {
             let db = open(&store).await?;
-            let k = db.revoke_api_key(&key, now).await.map_err(|e| match e {
-                DbError::NotFound => {
+            // An id first, then a name (names are unique; an id is never taken as a name).
+            let all = db.api_keys().await?;
+            let id = all
+                .iter()
+                .find(|k| k.id == key)
+                .or_else(|| all.iter().find(|k| k.name == key))
+                .map(|k| k.id.clone())
+                .ok_or_else(|| {
                     anyhow::anyhow!("no key with id or name {key:?} (see `sylva keys list`)")
-                }
-                other => other.into(),
-            })?;
+                })?;
+            let k = db.revoke_api_key(&id, now).await?;
             tracing::info!(
                 target: "audit",
                 key_id = %k.id,

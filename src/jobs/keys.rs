@@ -190,21 +190,19 @@ macro_rules! key_queries {
                 row.map(|r| key_from_row!(&r)).transpose()
             }
 
-            /// Revokes the key with this id or name at `now`; the revoked record, or
-            /// `NotFound`. Revoking twice keeps the first time.
-            pub async fn revoke_api_key(&self, id_or_name: &str, now: i64) -> Result<ApiKey, DbError> {
+            /// Revokes the key `id` at `now`; the revoked record, or `NotFound`. Revoking
+            /// twice keeps the first time.
+            pub async fn revoke_api_key(&self, id: &str, now: i64) -> Result<ApiKey, DbError> {
                 sqlx::query(
-                    "UPDATE api_keys SET revoked_at = $1 \
-                     WHERE (id = $2 OR name = $2) AND revoked_at IS NULL",
+                    "UPDATE api_keys SET revoked_at = $1 WHERE id = $2 AND revoked_at IS NULL",
                 )
                 .bind(now)
-                .bind(id_or_name)
+                .bind(id)
                 .execute(&self.pool)
                 .await?;
-                let sql =
-                    format!("SELECT {KEY_COLUMNS} FROM api_keys WHERE id = $1 OR name = $1");
+                let sql = format!("SELECT {KEY_COLUMNS} FROM api_keys WHERE id = $1");
                 let row = sqlx::query(sqlx::AssertSqlSafe(sql))
-                    .bind(id_or_name)
+                    .bind(id)
                     .fetch_optional(&self.pool)
                     .await?;
                 row.map(|r| key_from_row!(&r))

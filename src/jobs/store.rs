@@ -343,8 +343,8 @@ forward! {
     /// The managed key whose SHA-256 is `hash`, usable or not.
     pub async fn api_key_by_hash(&self, hash: &str) -> Result<Option<keys::ApiKey>, DbError>;
 
-    /// Revokes the key with this id or name at `now` (Unix ms); `NotFound` when none.
-    pub async fn revoke_api_key(&self, id_or_name: &str, now: i64) -> Result<keys::ApiKey, DbError>;
+    /// Revokes the key `id` at `now` (Unix ms); `NotFound` when none.
+    pub async fn revoke_api_key(&self, id: &str, now: i64) -> Result<keys::ApiKey, DbError>;
 
     /// The webhook secret generation of `owner`.
     pub async fn secret_generation(&self, owner: &str) -> Result<keys::SecretGeneration, DbError>;

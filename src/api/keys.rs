@@ -1,0 +1,164 @@
+//! Key routes for admin keys: list, create and revoke managed API keys over HTTP, as
+//! `sylva keys` does on the command line (a cloud backend that serves several customers makes
+//! one key per customer). Other callers get 403 on the collection and 404 on a key, as on any
+//! record they do not own.
+
+use axum::Json;
+use axum::extract::{Extension, Path, State};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::{Value, json};
+
+use super::AppState;
+use super::auth::Caller;
+use super::problem::ApiError;
+use crate::jobs::keys::{self, ApiKey};
+use crate::jobs::{DbError, now_ms, rfc3339};
+
+fn forbidden() -> ApiError {
+    ApiError::new(
+        StatusCode::FORBIDDEN,
+        "forbidden",
+        "managing API keys needs an admin key (sylva keys create --admin)",
+    )
+}
+
+/// A key as the API shows it: never the key itself, nor its hash.
+pub fn view(k: &ApiKey) -> Value {
+    let ts = |t: Option<i64>| t.map(rfc3339);
+    json!({
+        "id": k.id,
+        "name": k.name,
+        "prefix": k.prefix,
+        "admin": k.admin,
+        "quota_jobs": k.quota_jobs,
+        "quota_bytes": k.quota_bytes,
+        "created_at": rfc3339(k.created_at),
+        "expires_at": ts(k.expires_at),
+        "revoked_at": ts(k.revoked_at),
+        "owner": k.owner(),
+    })
+}
+
+/// `GET /v1/keys`: every managed key (admin only).
+pub async fn list(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+) -> Result<Response, ApiError> {
+    if !caller.admin {
+        return Err(forbidden());
+    }
+    let all: Vec<Value> = state.db.api_keys().await?.iter().map(view).collect();
+    Ok(Json(json!({ "keys": all })).into_response())
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KeyCreate {
+    name: String,
+    #[serde(default)]
+    admin: bool,
+    #[serde(default)]
+    quota_jobs: Option<u32>,
+    #[serde(default)]
+    quota_bytes: Option<u64>,
+    /// RFC 3339.
+    #[serde(default)]
+    expires_at: Option<String>,
+}
+
+/// `POST /v1/keys`: a new key, shown once in the answer (admin only).
+pub async fn create(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Json(req): Json<KeyCreate>,
+) -> Result<Response, ApiError> {
+    if !caller.admin {
+        return Err(forbidden());
+    }
+    let now = now_ms();
+    let expires_at = match req.expires_at.as_deref() {
+        None => None,
+        Some(t) => {
+            let at =
+                time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339)
+                    .map_err(|_| {
+                        ApiError::unprocessable("expires_at must be an RFC 3339 time")
+                            .with_error("expires_at", "not RFC 3339")
+                    })?;
+            let ms = i64::try_from(at.unix_timestamp_nanos() / 1_000_000).unwrap_or(i64::MAX);
+            if ms <= now {
+                return Err(ApiError::unprocessable("expires_at is in the past")
+                    .with_error("expires_at", "in the past"));
+            }
+            Some(ms)
+        }
+    };
+    let quota_bytes = match req.quota_bytes {
+        None => None,
+        Some(b) => Some(i64::try_from(b).map_err(|_| {
+            ApiError::unprocessable("quota_bytes is too large").with_error("quota_bytes", "too large")
+        })?),
+    };
+    let (key, record) = keys::generate(
+        &req.name,
+        req.admin,
+        req.quota_jobs.map(i64::from),
+        quota_bytes,
+        expires_at,
+        now,
+    )
+    .map_err(|e| ApiError::unprocessable(e.to_string()).with_error("name", e.to_string()))?;
+    state.db.create_api_key(&record).await.map_err(|e| match e {
+        DbError::Conflict(m) => ApiError::new(StatusCode::CONFLICT, "conflict", m),
+        other => other.into(),
+    })?;
+    tracing::info!(
+        target: "audit",
+        key_id = %record.id,
+        name = %record.name,
+        admin = record.admin,
+        by = %caller.owner,
+        "API key created"
+    );
+    let mut v = view(&record);
+    v["key"] = Value::String(key);
+    Ok((StatusCode::CREATED, Json(v)).into_response())
+}
+
+/// `DELETE /v1/keys/{id}`: revokes a key (admin only; others get 404, as for any record they
+/// do not own). An admin may not revoke the key it is calling with.
+pub async fn revoke(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let missing = || ApiError::not_found(format!("no key {id}"));
+    if !caller.admin || !id.starts_with("key_") {
+        return Err(missing());
+    }
+    if caller.owner == id {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "conflict",
+            "an admin key cannot revoke itself; revoke it with another admin key or `sylva keys revoke`",
+        ));
+    }
+    let k = state
+        .db
+        .revoke_api_key(&id, now_ms())
+        .await
+        .map_err(|e| match e {
+            DbError::NotFound => missing(),
+            other => other.into(),
+        })?;
+    tracing::info!(
+        target: "audit",
+        key_id = %k.id,
+        name = %k.name,
+        by = %caller.owner,
+        "API key revoked"
+    );
+    Ok(Json(view(&k)).into_response())
+}
