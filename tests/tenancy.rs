@@ -252,7 +252,10 @@ async fn tenancy_matrix(db: Db) {
     let listed = get_json(&root, &format!("{base}/v1/keys")).await;
     let text = listed.to_string();
     assert!(text.contains("carol") && text.contains("alice"), "{listed}");
-    assert!(!text.contains(&carol_key[6..]), "a listed key shows its key");
+    assert!(
+        !text.contains(&carol_key[6..]),
+        "a listed key shows its key"
+    );
     let again = root
         .post(format!("{base}/v1/keys"))
         .json(&json!({ "name": "carol" }))

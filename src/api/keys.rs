@@ -59,34 +59,51 @@ pub struct KeyCreate {
     name: String,
     #[serde(default)]
     admin: bool,
+    /// Read as numbers, so that `5.0` is the integer 5 as JSON Schema has it.
     #[serde(default)]
-    quota_jobs: Option<u32>,
+    quota_jobs: Option<f64>,
     #[serde(default)]
-    quota_bytes: Option<u64>,
+    quota_bytes: Option<f64>,
     /// RFC 3339.
     #[serde(default)]
     expires_at: Option<String>,
+}
+
+/// A whole number in `0..=max` from a JSON number (`5` or `5.0`).
+fn whole(field: &str, v: Option<f64>, max: f64) -> Result<Option<i64>, ApiError> {
+    match v {
+        None => Ok(None),
+        Some(x) if x.is_finite() && x.fract() == 0.0 && (0.0..=max).contains(&x) => {
+            Ok(Some(x as i64))
+        }
+        Some(_) => Err(ApiError::unprocessable(format!(
+            "{field} must be a whole number from 0 to {max}"
+        ))
+        .with_error(field, "not a whole number in range")),
+    }
 }
 
 /// `POST /v1/keys`: a new key, shown once in the answer (admin only).
 pub async fn create(
     State(state): State<AppState>,
     Extension(caller): Extension<Caller>,
-    Json(req): Json<KeyCreate>,
+    body: axum::body::Bytes,
 ) -> Result<Response, ApiError> {
+    // The right first, then the body: a non-admin learns nothing from its request's shape.
     if !caller.admin {
         return Err(forbidden());
     }
+    let Json(req) = Json::<KeyCreate>::from_bytes(&body)
+        .map_err(|e| ApiError::unprocessable(format!("the body: {}", e.body_text())))?;
     let now = now_ms();
     let expires_at = match req.expires_at.as_deref() {
         None => None,
         Some(t) => {
-            let at =
-                time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339)
-                    .map_err(|_| {
-                        ApiError::unprocessable("expires_at must be an RFC 3339 time")
-                            .with_error("expires_at", "not RFC 3339")
-                    })?;
+            let at = time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339)
+                .map_err(|_| {
+                    ApiError::unprocessable("expires_at must be an RFC 3339 time")
+                        .with_error("expires_at", "not RFC 3339")
+                })?;
             let ms = i64::try_from(at.unix_timestamp_nanos() / 1_000_000).unwrap_or(i64::MAX);
             if ms <= now {
                 return Err(ApiError::unprocessable("expires_at is in the past")
@@ -95,25 +112,25 @@ pub async fn create(
             Some(ms)
         }
     };
-    let quota_bytes = match req.quota_bytes {
-        None => None,
-        Some(b) => Some(i64::try_from(b).map_err(|_| {
-            ApiError::unprocessable("quota_bytes is too large").with_error("quota_bytes", "too large")
-        })?),
-    };
+    let quota_jobs = whole("quota_jobs", req.quota_jobs, f64::from(u32::MAX))?;
+    let quota_bytes = whole("quota_bytes", req.quota_bytes, i64::MAX as f64)?;
     let (key, record) = keys::generate(
         &req.name,
         req.admin,
-        req.quota_jobs.map(i64::from),
+        quota_jobs,
         quota_bytes,
         expires_at,
         now,
     )
     .map_err(|e| ApiError::unprocessable(e.to_string()).with_error("name", e.to_string()))?;
-    state.db.create_api_key(&record).await.map_err(|e| match e {
-        DbError::Conflict(m) => ApiError::new(StatusCode::CONFLICT, "conflict", m),
-        other => other.into(),
-    })?;
+    state
+        .db
+        .create_api_key(&record)
+        .await
+        .map_err(|e| match e {
+            DbError::Conflict(m) => ApiError::new(StatusCode::CONFLICT, "conflict", m),
+            other => other.into(),
+        })?;
     tracing::info!(
         target: "audit",
         key_id = %record.id,

@@ -186,19 +186,35 @@ fn the_object_preset_is_a_phone_walk_around_one_stem() {
     assert_eq!(Preset::from_name("object"), Some(Preset::Object));
     let (summary, art) = run(&p, dir.path(), &NoProgress).expect("generate");
     assert_eq!(summary.trees, 1);
-    assert_eq!((summary.width, summary.height), (72, 128), "portrait frames");
+    assert_eq!(
+        (summary.width, summary.height),
+        (72, 128),
+        "portrait frames"
+    );
     assert_eq!(art.views.len(), 16);
     let stem = art.plot.trees[0].base;
     for v in &art.views {
         let flat = (v.center - stem).truncate().length();
-        assert!((1.8..=4.0).contains(&flat), "{}: {flat} m from the stem", v.name);
+        assert!(
+            (1.8..=4.0).contains(&flat),
+            "{}: {flat} m from the stem",
+            v.name
+        );
         let ground = art.plot.scene.terrain.height(v.center.x, v.center.y);
         let eye = v.center.z - ground;
-        assert!((1.35..=1.8).contains(&eye), "{}: eye height {eye} m", v.name);
+        assert!(
+            (1.35..=1.8).contains(&eye),
+            "{}: eye height {eye} m",
+            v.name
+        );
         // The stem is in front of the camera and near the middle of the frame.
         let c = v.to_camera(stem + glam::DVec3::new(0.0, 0.0, 1.3));
         assert!(c.z > 0.0, "{}: the stem is behind the camera", v.name);
-        assert!((c.x / c.z).abs() < 0.5, "{}: the stem is off to the side", v.name);
+        assert!(
+            (c.x / c.z).abs() < 0.5,
+            "{}: the stem is off to the side",
+            v.name
+        );
     }
     // The field of view spans the longer (vertical) side, as a phone held upright.
     let fy_fov = 2.0 * (0.5 * 128.0 / art.intrinsics.f).atan().to_degrees();
