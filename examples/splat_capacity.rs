@@ -11,11 +11,11 @@
 
 use std::time::Instant;
 
+use sylva::rng::SplitMix64;
 use sylva::splat::camera::Camera;
 use sylva::splat::gpu::buffers::{read_buffer, storage_from};
 use sylva::splat::gpu::{GpuContext, GpuGrads, GpuSplats, Renderer};
 use sylva::splat::model::{Gaussian, Gaussians};
-use sylva::splat::rng::SplitMix64;
 
 fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> Result<T, String> {
     match args.iter().position(|a| a == name) {

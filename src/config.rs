@@ -9,7 +9,7 @@ use clap::Args;
 
 use crate::io::archive::ExtractLimits;
 use crate::jobs::{Database, DbError};
-use crate::pipeline::Stage;
+use crate::stage::Stage;
 
 const MIB: u64 = 1 << 20;
 const GIB: u64 = 1 << 30;

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use super::ForestError;
 use crate::progress::Progress;
-use crate::splat::rng::SplitMix64;
+use crate::rng::SplitMix64;
 
 /// Rows per parallel chunk (and per cancellation check).
 const CHUNK: usize = 16_384;

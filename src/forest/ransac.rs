@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::splat::rng::SplitMix64;
+use crate::rng::SplitMix64;
 
 use super::circle::{
     CircleFit, arc_coverage, fit_circle_weighted, refine_circle_geometric_with_prior,

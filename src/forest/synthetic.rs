@@ -12,7 +12,7 @@
 use glam::{DVec3, Vec2, Vec3};
 
 use crate::io::pointcloud::{CloudFormat, PointCloud};
-use crate::splat::rng::SplitMix64;
+use crate::rng::SplitMix64;
 
 /// What to generate.
 #[derive(Debug, Clone, PartialEq)]

@@ -5,7 +5,7 @@ use super::kmeans::{kmeans, standardise};
 use super::*;
 use crate::io::tables::FieldTree;
 use crate::progress::NoProgress;
-use crate::splat::rng::SplitMix64;
+use crate::rng::SplitMix64;
 
 fn ring(c: [f64; 2], r: f64, from_deg: f64, to_deg: f64, n: usize, noise: f64) -> Vec<[f64; 2]> {
     let mut rng = SplitMix64::new(3);

@@ -27,7 +27,7 @@ use super::index::par_map_chunked;
 use super::linalg::solve;
 use super::{GeomError, PointIndex, Similarity, covariance, symmetric_eigen3};
 use crate::progress::Progress;
-use crate::splat::rng::SplitMix64;
+use crate::rng::SplitMix64;
 
 /// Smallest pivot of the refinement's normal equations, relative to their largest diagonal
 /// entry, below which the system is degenerate.

@@ -22,7 +22,7 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use crate::pipeline::Stage;
+use crate::stage::Stage;
 
 pub use store::{Database, JobStore};
 pub use webhooks::{
@@ -96,7 +96,7 @@ string_enum!(
     }
 );
 
-pub use crate::pipeline::inspect::UploadKind;
+pub use crate::stage::UploadKind;
 
 /// The uploads a job reads, by upload id.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -28,7 +28,7 @@ use sqlx::{Connection, Postgres, Row, Transaction};
 use tokio::sync::Notify;
 
 use super::*;
-use crate::pipeline::{OutputFile, Stage};
+use crate::stage::{OutputFile, Stage};
 
 /// The channel `pg_notify` announces claimable jobs on. The payload (the job id, or the
 /// dead worker whose jobs became claimable) is for people watching; workers just claim.

@@ -14,7 +14,7 @@ use sqlx::sqlite::{
 use sqlx::{Row, Sqlite, Transaction};
 
 use super::*;
-use crate::pipeline::{OutputFile, Stage};
+use crate::stage::{OutputFile, Stage};
 
 /// How long a connection waits for another writer before giving up (SQLite busy_timeout).
 const BUSY_TIMEOUT: Duration = Duration::from_secs(30);

@@ -14,7 +14,7 @@ use tokio::sync::Notify;
 use super::postgres::PgJobs;
 use super::sqlite::SqliteJobs;
 use super::*;
-use crate::pipeline::{OutputFile, Stage};
+use crate::stage::{OutputFile, Stage};
 
 /// Where the job database lives, as given by `--database` (or its default).
 #[derive(Debug, Clone, PartialEq, Eq)]

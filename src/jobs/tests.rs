@@ -5,7 +5,8 @@
 use std::time::Duration;
 
 use super::*;
-use crate::pipeline::{PipelineParams, Stage};
+use crate::pipeline::PipelineParams;
+use crate::stage::Stage;
 
 #[path = "../../tests/common/postgres.rs"]
 mod test_postgres;

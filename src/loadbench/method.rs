@@ -39,8 +39,8 @@ use serde_json::Value;
 use crate::forest::{TreeRow, compare_with_field};
 use crate::pipeline::params::{DensifyStrategy, InitSource, PipelineParams, TrunkTerm};
 use crate::pipeline::{self, Stage, StageInputs};
+use crate::rng::SplitMix64;
 use crate::splat::model::sigmoid;
-use crate::splat::rng::SplitMix64;
 
 /// Flags of `sylva bench method`.
 #[derive(Debug, Clone, Args)]

@@ -617,7 +617,7 @@ mod tests {
             stem(Vec3::new(-2.0, 0.0, 1.0), Vec3::Z, 0.30),
         ];
         let p = params();
-        let mut rng = crate::splat::rng::SplitMix64::new(9);
+        let mut rng = crate::rng::SplitMix64::new(9);
         let means: Vec<[f32; 3]> = (0..20_000)
             .map(|_| {
                 let mut u = |lo: f64, hi: f64| (lo + (hi - lo) * rng.uniform()) as f32;

@@ -6,48 +6,13 @@
 
 use std::path::Path;
 
-use serde::{Deserialize, Serialize};
 use serde_json::json;
 
 use crate::io::archive::{self, ExtractLimits};
 use crate::io::{IoError, colmap, pointcloud, tables};
 use crate::progress::Progress;
 
-/// What an upload holds (docs/api.md "Kinds").
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum UploadKind {
-    /// A point cloud: LAS/LAZ/PLY/XYZ.
-    Lidar,
-    /// A zip or tar(.gz) of a COLMAP project: images/ and sparse/0 or sparse/.
-    Colmap,
-    /// Control point pairs (CSV).
-    ControlPoints,
-    /// Field-measured DBH (CSV).
-    FieldDbh,
-}
-
-impl UploadKind {
-    pub const ALL: &'static [UploadKind] = &[
-        UploadKind::Lidar,
-        UploadKind::Colmap,
-        UploadKind::ControlPoints,
-        UploadKind::FieldDbh,
-    ];
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            UploadKind::Lidar => "lidar",
-            UploadKind::Colmap => "colmap",
-            UploadKind::ControlPoints => "control_points",
-            UploadKind::FieldDbh => "field_dbh",
-        }
-    }
-
-    pub fn parse(s: &str) -> Option<Self> {
-        Self::ALL.iter().copied().find(|k| k.as_str() == s)
-    }
-}
+pub use crate::stage::UploadKind;
 
 /// Why an upload is unusable.
 #[derive(Debug, thiserror::Error)]

@@ -21,84 +21,13 @@ use std::fs;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::io::IoError;
 use crate::progress::Progress;
+pub use crate::stage::{OutputFile, Stage};
 pub use params::PipelineParams;
-
-/// The stages of a job, in order (docs/api.md).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize, JsonSchema,
-)]
-#[serde(rename_all = "lowercase")]
-pub enum Stage {
-    Ingest,
-    Register,
-    Anchors,
-    Segment,
-    Train,
-    Dbh,
-    Export,
-}
-
-impl Stage {
-    pub const ALL: [Stage; 7] = [
-        Stage::Ingest,
-        Stage::Register,
-        Stage::Anchors,
-        Stage::Segment,
-        Stage::Train,
-        Stage::Dbh,
-        Stage::Export,
-    ];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Stage::Ingest => "ingest",
-            Stage::Register => "register",
-            Stage::Anchors => "anchors",
-            Stage::Segment => "segment",
-            Stage::Train => "train",
-            Stage::Dbh => "dbh",
-            Stage::Export => "export",
-        }
-    }
-
-    pub fn from_name(name: &str) -> Option<Stage> {
-        Stage::ALL.into_iter().find(|s| s.name() == name)
-    }
-
-    pub fn index(self) -> usize {
-        self as usize
-    }
-
-    /// Share of a whole job's progress bar this stage takes; training dominates a real run.
-    pub fn weight(self) -> f64 {
-        match self {
-            Stage::Ingest => 0.05,
-            Stage::Register => 0.05,
-            Stage::Anchors => 0.05,
-            Stage::Segment => 0.10,
-            Stage::Train => 0.60,
-            Stage::Dbh => 0.05,
-            Stage::Export => 0.10,
-        }
-    }
-
-    /// Whether the stage needs the GPU slot while it runs.
-    pub fn uses_gpu(self) -> bool {
-        matches!(self, Stage::Train)
-    }
-}
-
-impl std::fmt::Display for Stage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
 
 /// The files a job starts from, already on local disk. `colmap` is a folder holding the
 /// COLMAP project (an uploaded archive is unpacked before the pipeline sees it).
@@ -183,18 +112,6 @@ impl StageContext<'_> {
 
 /// Name of the report every stage leaves in its folder.
 pub const REPORT_FILE: &str = "report.json";
-
-/// One file a finished stage produced.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct OutputFile {
-    /// Path relative to the job's work directory, with `/` separators (e.g. `ingest/report.json`).
-    pub name: String,
-    pub stage: Stage,
-    pub kind: String,
-    pub size: u64,
-    pub sha256: String,
-    pub content_type: String,
-}
 
 /// The result of a finished stage: its report (also written as `<stage>/report.json`) and
 /// every file it left.

@@ -1,7 +1,7 @@
 //! Tests of the metrics and report files.
 
 use super::*;
-use crate::splat::rng::SplitMix64;
+use crate::rng::SplitMix64;
 
 fn noise(n: usize, seed: u64) -> Vec<[f32; 3]> {
     let mut r = SplitMix64::new(seed);

@@ -1,8 +1,8 @@
 //! Tests of the SPZ writer and reader: a round trip within the quantisation steps.
 
 use super::*;
+use crate::rng::SplitMix64;
 use crate::splat::model::Gaussian;
-use crate::splat::rng::SplitMix64;
 
 fn random_model(n: usize, seed: u64, spread: f32) -> Gaussians {
     let mut rng = SplitMix64::new(seed);

@@ -1,8 +1,8 @@
 //! Tests of the INRIA PLY writer and reader.
 
 use super::*;
+use crate::rng::SplitMix64;
 use crate::splat::model::{Gaussian, SH_FLOATS};
-use crate::splat::rng::SplitMix64;
 
 fn random_model(n: usize, seed: u64) -> Gaussians {
     let mut rng = SplitMix64::new(seed);

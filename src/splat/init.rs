@@ -9,9 +9,9 @@
 use crate::splat::model::{Gaussian, Gaussians, SH_C0, SH_FLOATS};
 use rayon::prelude::*;
 
+use crate::rng::SplitMix64;
 use crate::splat::cameras::View;
 use crate::splat::packed_image::unpack;
-use crate::splat::rng::SplitMix64;
 
 /// Initial opacity, (0, 1). Reference `inverse_sigmoid(0.1 * ones)`; docs/method.md Stage 4.
 pub const INIT_OPACITY: f32 = 0.1;

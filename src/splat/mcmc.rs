@@ -29,8 +29,8 @@ use serde::{Deserialize, Serialize};
 
 use super::adam::AdamState;
 use super::model::{Gaussians, sigmoid};
-use super::rng::SplitMix64;
 use super::strategy::{RefineReport, Strategy, quat_to_matrix};
+use crate::rng::SplitMix64;
 
 /// The knobs of the MCMC strategy (defaults: Kheradmand et al. 2024 and gsplat's
 /// `MCMCStrategy` / `simple_trainer` MCMC preset).

@@ -25,7 +25,6 @@ pub mod mcmc;
 pub mod model;
 pub mod packed_image;
 pub mod plot;
-pub mod rng;
 pub mod semantic;
 pub mod strategy;
 pub mod trainer;

@@ -475,7 +475,7 @@ impl AnchorGrid {
 /// Gaussians near them (trunk ones with P in [0.6, 1], leaf ones below 0.3; every tenth moved
 /// 3 m off the anchors' box).
 pub fn test_scene(seed: u64, n: usize) -> (Gaussians, SemanticAnchors) {
-    let mut rng = super::rng::SplitMix64::new(seed);
+    let mut rng = crate::rng::SplitMix64::new(seed);
     let mut r = move || rng.uniform() as f32;
     let mut pts = Vec::new();
     let mut lab = Vec::new();

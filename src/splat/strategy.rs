@@ -11,9 +11,9 @@
 
 use crate::splat::model::{Gaussian, Gaussians, sigmoid};
 
+use crate::rng::SplitMix64;
 use crate::splat::adam::{AdamState, LearningRates};
 use crate::splat::config::TrainConfig;
-use crate::splat::rng::SplitMix64;
 
 /// Per-view screen-space statistics from one backward pass.
 #[derive(Debug, Clone, Copy)]

@@ -13,10 +13,10 @@ use super::eval::{EvalRegion, EvalReport, LossRecord, ViewMetrics, save_side_by_
 use super::exposure::EXPOSURE_FLOATS;
 use super::mcmc::McmcStrategy;
 use super::model::Gaussians;
-use super::rng::SplitMix64;
 use super::strategy::{DefaultStrategy, RefineReport, Strategy};
 use super::trunk_diag::TrunkMonitor;
 use crate::progress::Progress;
+use crate::rng::SplitMix64;
 
 /// How often the loss is read back and recorded, steps. One read per this many steps keeps a
 /// GPU backend from stalling on every step.

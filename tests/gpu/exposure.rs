@@ -5,6 +5,7 @@ use crate::common;
 
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
+use sylva::rng::SplitMix64;
 use sylva::splat::backend::Backend;
 use sylva::splat::camera::Camera;
 use sylva::splat::cameras::View;
@@ -18,7 +19,6 @@ use sylva::splat::gpu::exposure::{ExposureScratch, GpuExposure};
 use sylva::splat::gpu::{GpuBackend, GpuContext};
 use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
 use sylva::splat::packed_image::{PackedImage, pack};
-use sylva::splat::rng::SplitMix64;
 
 /// `n` transforms away from the identity: gains 0.7–1.3, cross terms and offsets ±0.05.
 fn random_state(n: usize, seed: u64) -> ExposureState {

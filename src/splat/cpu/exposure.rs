@@ -70,8 +70,8 @@ pub fn backward(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::rng::SplitMix64;
     use crate::splat::cpu::loss_and_grad_f64;
-    use crate::splat::rng::SplitMix64;
 
     const W: usize = 23;
     const H: usize = 17;

@@ -1,4 +1,6 @@
-//! A small seeded random number generator (SplitMix64) for densification and anchor sampling.
+//! A small seeded random number generator (SplitMix64), the one the library's sampling uses
+//! (densification, anchors, RANSAC, k-means, surface fitting): a base module every room may
+//! import.
 //!
 //! Densification must be reproducible from `TrainConfig::seed` and must not depend on the
 //! version of an external crate's stream, so the trainer carries its own 20-line generator
