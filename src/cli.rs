@@ -123,6 +123,10 @@ pub struct BenchArgs {
     /// gpu or cpu.
     #[arg(long, env = "SYLVA_BENCH_BACKEND", default_value = "gpu")]
     pub backend: String,
+    /// train: pixels per thread of the GPU rasters (1, 2, 4, 8 or 16; 0 = the device's
+    /// default: 8 on CPU adapters such as lavapipe, 1 on GPUs). For measuring the choice.
+    #[arg(long, env = "SYLVA_BENCH_RASTER_PIXELS", default_value_t = 0)]
+    pub raster_pixels: u32,
     #[command(flatten)]
     pub load: crate::loadbench::LoadArgs,
     #[command(flatten)]
@@ -940,6 +944,12 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         "cpu" => TrainBackend::Cpu,
         other => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
     };
+    if a.raster_pixels != 0 && !(a.raster_pixels.is_power_of_two() && a.raster_pixels <= 16) {
+        anyhow::bail!(
+            "--raster-pixels must be 1, 2, 4, 8 or 16 (0: the device's default), got {}",
+            a.raster_pixels
+        );
+    }
     let resolutions: Vec<u32> = a
         .resolution
         .split(',')
@@ -989,7 +999,14 @@ async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
                 crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
             }
             let n = init.len();
-            let mut backend = crate::pipeline::train::backend_for(&params)?;
+            let mut backend = if a.raster_pixels > 0 && backend == TrainBackend::Gpu {
+                let mut ctx = crate::splat::gpu::GpuContext::new()?;
+                ctx.raster_pixels = a.raster_pixels;
+                Box::new(crate::splat::gpu::GpuBackend::with_context(ctx, [0.0; 3])?)
+                    as Box<dyn crate::splat::backend::Backend>
+            } else {
+                crate::pipeline::train::backend_for(&params)?
+            };
             backend.set_timed(true);
             let mut strategy = crate::splat::trainer::default_strategy(&cfg);
             let out = crate::splat::trainer::train(

@@ -54,19 +54,15 @@ pub enum AtomicMode {
 /// once per 8 pixels (measured on lavapipe, 2 cores: docs/results/splatting.md, speed table).
 pub const RASTER_PIXELS_CPU: u32 = 8;
 
-/// The rasters' pixels per thread for `device_type`, unless `SYLVA_RASTER_PIXELS` (a power of two
-/// up to 16) says otherwise.
+/// The rasters' pixels per thread for `device_type`: [`RASTER_PIXELS_CPU`] on CPU adapters, 1
+/// on GPUs. A caller may set [`GpuContext::raster_pixels`] itself before building a renderer
+/// (`sylva bench train --raster-pixels`, the GPU tests); nothing reads the environment.
 fn raster_pixels_for(device_type: wgpu::DeviceType) -> u32 {
-    let default = if device_type == wgpu::DeviceType::Cpu {
+    if device_type == wgpu::DeviceType::Cpu {
         RASTER_PIXELS_CPU
     } else {
         1
-    };
-    std::env::var("SYLVA_RASTER_PIXELS")
-        .ok()
-        .and_then(|v| v.trim().parse::<u32>().ok())
-        .filter(|v| v.is_power_of_two() && *v <= 16)
-        .unwrap_or(default)
+    }
 }
 
 /// Adapter, device and queue, plus what the adapter can do.
@@ -91,7 +87,7 @@ pub struct GpuContext {
     /// slots and bands.
     pub chunk_cap_bytes: Option<u64>,
     /// Pixels per thread of both rasters (1, 2, 4, 8 or 16; see `raster_bwd.wgsl`):
-    /// [`RASTER_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, or `SYLVA_RASTER_PIXELS`.
+    /// [`RASTER_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, unless the caller sets it.
     /// Read when a [`crate::splat::gpu::Renderer`] is built.
     pub raster_pixels: u32,
     /// Adapter name and backend, for logs.
