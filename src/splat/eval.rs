@@ -322,32 +322,49 @@ pub struct LossRecord {
 /// the trunk monitor's columns `s_count,s_weight,slice_count,slice_in_s,geo_photo_grad_ratio,
 /// surface_offset_mm,surface_abs_mm` (empty on the steps it did not measure).
 pub fn write_loss_csv<W: Write>(out: W, records: &[LossRecord]) -> io::Result<()> {
-    let mut out = io::BufWriter::new(out);
-    writeln!(
-        out,
-        "step,loss,l1,ssim,n_gaussians,seconds,geo,s_count,s_weight,slice_count,slice_in_s,geo_photo_grad_ratio,surface_offset_mm,surface_abs_mm"
-    )?;
+    let mut w = csv::Writer::from_writer(out);
+    w.write_record([
+        "step",
+        "loss",
+        "l1",
+        "ssim",
+        "n_gaussians",
+        "seconds",
+        "geo",
+        "s_count",
+        "s_weight",
+        "slice_count",
+        "slice_in_s",
+        "geo_photo_grad_ratio",
+        "surface_offset_mm",
+        "surface_abs_mm",
+    ])?;
     let opt = |v: Option<f64>| v.map_or(String::new(), |x| format!("{x:.4}"));
     for r in records {
-        let trunk = r.trunk.map_or(",,,,,,".to_string(), |d| {
-            format!(
-                "{},{:.4},{},{},{},{},{}",
-                d.s_count,
-                d.s_weight,
-                d.slice_count,
+        let mut row = vec![
+            r.step.to_string(),
+            r.loss.to_string(),
+            r.l1.to_string(),
+            r.ssim.to_string(),
+            r.n_gaussians.to_string(),
+            format!("{:.3}", r.seconds),
+            r.geo.to_string(),
+        ];
+        match r.trunk {
+            Some(d) => row.extend([
+                d.s_count.to_string(),
+                format!("{:.4}", d.s_weight),
+                d.slice_count.to_string(),
                 opt(d.slice_in_s),
                 opt(d.geo_photo_grad_ratio),
                 opt(d.surface_offset_mm),
-                opt(d.surface_abs_mm)
-            )
-        });
-        writeln!(
-            out,
-            "{},{},{},{},{},{:.3},{},{trunk}",
-            r.step, r.loss, r.l1, r.ssim, r.n_gaussians, r.seconds, r.geo
-        )?;
+                opt(d.surface_abs_mm),
+            ]),
+            None => row.extend(std::iter::repeat_n(String::new(), 7)),
+        }
+        w.write_record(&row)?;
     }
-    out.flush()
+    w.flush()
 }
 
 #[cfg(test)]

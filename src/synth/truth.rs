@@ -5,7 +5,6 @@
 //! georeferenced-like offset), metres. `sfm_to_world` maps SfM coordinates to those
 //! coordinates: x_lidar = scale · R x_sfm + t, R given as rows.
 
-use std::fmt::Write as _;
 use std::path::Path;
 
 use glam::DVec3;
@@ -154,22 +153,57 @@ pub fn control_points(
 
 /// Writes field_dbh.csv (`tree_id,x,y,dbh_cm`).
 pub fn write_field_dbh(path: &Path, trees: &[TreeRecord]) -> Result<(), SynthError> {
-    let mut s = String::from("tree_id,x,y,dbh_cm\n");
-    for t in trees {
-        let _ = writeln!(s, "{},{:.4},{:.4},{:.4}", t.id, t.x, t.y, t.dbh_cm);
+    let rows = trees.iter().map(|t| {
+        vec![
+            t.id.to_string(),
+            format!("{:.4}", t.x),
+            format!("{:.4}", t.y),
+            format!("{:.4}", t.dbh_cm),
+        ]
+    });
+    write_csv(path, &["tree_id", "x", "y", "dbh_cm"], rows)
+}
+
+/// Writes a CSV table with the `csv` crate (fields quoted where they need it).
+fn write_csv(
+    path: &Path,
+    header: &[&str],
+    rows: impl Iterator<Item = Vec<String>>,
+) -> Result<(), SynthError> {
+    let fail = |e: csv::Error| SynthError::Io(IoError::io(path, std::io::Error::other(e)));
+    let mut w = csv::Writer::from_writer(Vec::new());
+    w.write_record(header).map_err(fail)?;
+    for r in rows {
+        w.write_record(&r).map_err(fail)?;
     }
-    write(path, s.as_bytes())
+    let bytes = w
+        .into_inner()
+        .map_err(|e| SynthError::Io(IoError::io(path, std::io::Error::other(e.to_string()))))?;
+    write(path, &bytes)
 }
 
 /// Writes control_points.csv (`name,sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z`).
 pub fn write_control_points(path: &Path, pairs: &[ControlPair]) -> Result<(), SynthError> {
-    let mut s = String::from("name,sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z\n");
-    for p in pairs {
+    let rows = pairs.iter().map(|p| {
         let [a, b, c] = p.sfm;
         let [x, y, z] = p.lidar;
-        let _ = writeln!(s, "{},{a},{b},{c},{x:.4},{y:.4},{z:.4}", p.name);
-    }
-    write(path, s.as_bytes())
+        vec![
+            p.name.clone(),
+            a.to_string(),
+            b.to_string(),
+            c.to_string(),
+            format!("{x:.4}"),
+            format!("{y:.4}"),
+            format!("{z:.4}"),
+        ]
+    });
+    write_csv(
+        path,
+        &[
+            "name", "sfm_x", "sfm_y", "sfm_z", "lidar_x", "lidar_y", "lidar_z",
+        ],
+        rows,
+    )
 }
 
 /// Writes labels.bin: one byte per LiDAR point in file order.
