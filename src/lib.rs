@@ -5,6 +5,10 @@
 //! import higher ones: `io` and `gpu` know nothing of the pipeline, the pipeline nothing of
 //! HTTP or SQL.
 
+// Lets code shared with the integration tests (tests/common/postgres.rs, compiled into the
+// job store's unit tests too) name this crate `sylva` from inside it.
+extern crate self as sylva;
+
 pub mod api;
 pub mod cli;
 pub mod config;
@@ -22,5 +26,7 @@ pub mod splat;
 pub mod stage;
 pub mod store;
 pub mod synth;
+#[doc(hidden)]
+pub mod testing;
 pub mod webhooks;
 pub mod worker;

@@ -17,7 +17,7 @@ async fn browser_or_skip(test: &str) -> Option<Browser> {
     match Browser::start().await {
         Ok(b) => Some(b),
         Err(why) => {
-            eprintln!("skipping {test}: {why}");
+            sylva::testing::skip("browser", &format!("{test}: {why}"));
             None
         }
     }

@@ -38,7 +38,7 @@ impl Tmpfs {
                 None
             }
             Err(e) => {
-                eprintln!("disk-full test skipped: no mount command ({e})");
+                sylva::testing::skip("mount", &format!("disk-full test: no mount command ({e})"));
                 let _ = std::fs::remove_dir(&dir);
                 None
             }

@@ -108,14 +108,14 @@ fn laspy_python() -> Option<PathBuf> {
         .arg(&venv)
         .status();
     if !made.is_ok_and(|s| s.success()) {
-        println!("skipping: cannot create a Python venv (python3 -m venv)");
+        sylva::testing::skip("pypi", "cannot create a Python venv (python3 -m venv)");
         return None;
     }
     let pip = Command::new(venv.join("bin/pip"))
         .args(["install", "-q", "laspy==2.6.1", "lazrs==0.7.0"])
         .status();
     if !pip.is_ok_and(|s| s.success()) || !ready(&python) {
-        println!("skipping: cannot install laspy and lazrs from PyPI");
+        sylva::testing::skip("pypi", "cannot install laspy and lazrs from PyPI");
         return None;
     }
     Some(python)
@@ -176,7 +176,10 @@ fn the_model_loads_in_colmap_where_installed() {
         .output()
         .is_ok_and(|o| o.status.success());
     if !has_colmap {
-        println!("skipping: the colmap program is not installed (Debian package colmap)");
+        sylva::testing::skip(
+            "colmap",
+            "the colmap program is not installed (Debian package colmap)",
+        );
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");

@@ -30,7 +30,7 @@ fn gpu_training_on_a_tiny_plot_beats_the_mean_colour_on_held_out_views() {
     let mut backend = match sylva::pipeline::train::backend_for(&params) {
         Ok(b) => b,
         Err(e) => {
-            eprintln!("skipping: {e}");
+            sylva::testing::skip("gpu", &e.to_string());
             return;
         }
     };

@@ -451,7 +451,7 @@ mod tests {
     #[test]
     fn real_plots_give_a_plausible_dtm() {
         let Some(dir) = crate::io::real_data_dir() else {
-            println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+            crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
             return;
         };
         for file in ["CSF_sample/sample.ply", "TreeLS_extdata/pine_plot.laz"] {

@@ -163,12 +163,12 @@ fn cancelling_stops_the_inventory() {
 
 fn real(file: &str) -> Option<PathBuf> {
     let Some(dir) = crate::io::real_data_dir() else {
-        println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+        crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
         return None;
     };
     let path = dir.join(file);
     if !path.is_file() {
-        println!("skipping: {} not found", path.display());
+        crate::testing::skip("real-data", &format!("{} not found", path.display()));
         return None;
     }
     Some(path)

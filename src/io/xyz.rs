@@ -286,7 +286,7 @@ mod tests {
     #[test]
     fn real_adtree_xyz_reads_fully() {
         let Some(dir) = real_data_dir() else {
-            println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+            crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
             return;
         };
         let path = dir.join("AdTree_trees/tree1.xyz");

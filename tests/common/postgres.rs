@@ -69,7 +69,7 @@ pub fn database() -> Option<TestDatabase> {
     let cluster = match CLUSTER.get_or_init(Cluster::start) {
         Ok(c) => c,
         Err(Unavailable::Absent(why)) => {
-            eprintln!("skipping the PostgreSQL case: {why}");
+            sylva::testing::skip("postgres", &format!("the PostgreSQL case: {why}"));
             return None;
         }
         Err(Unavailable::Broken(why)) => panic!("the test PostgreSQL did not start: {why}"),

@@ -53,7 +53,7 @@ pub fn bucket() -> Option<TestBucket> {
     let server = match SERVER.get_or_init(start) {
         Ok(s) => s,
         Err(why) if why.starts_with("skip: ") => {
-            eprintln!("S3 case skipped: {}", &why[6..]);
+            sylva::testing::skip("s3", &why[6..]);
             return None;
         }
         Err(why) => panic!("the test S3 server did not start: {why}"),

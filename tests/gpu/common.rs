@@ -18,7 +18,7 @@ pub fn context_with(mode: Option<AtomicMode>) -> Option<GpuContext> {
     match GpuContext::with_atomic_mode(mode) {
         Ok(c) => Some(c),
         Err(e) => {
-            eprintln!("skipping GPU test: {e}");
+            sylva::testing::skip("gpu", &format!("GPU test: {e}"));
             None
         }
     }

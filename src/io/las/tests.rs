@@ -127,7 +127,7 @@ fn wrong_declared_count_is_rejected() {
 #[test]
 fn real_las_and_laz_files_read_fully() {
     let Some(dir) = real_data_dir() else {
-        println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+        crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
         return;
     };
     for (file, expect, color) in [
@@ -349,7 +349,7 @@ fn fused_laz_reader_matches_the_las_crate_on_layered_format_7() {
 #[test]
 fn fused_laz_reader_matches_the_las_crate_on_real_files() {
     let Some(dir) = real_data_dir() else {
-        println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+        crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
         return;
     };
     for file in [

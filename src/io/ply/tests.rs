@@ -168,7 +168,7 @@ fn non_finite_vertex_is_rejected() {
 #[test]
 fn real_cloudcompare_ply_reads_fully() {
     let Some(dir) = real_data_dir() else {
-        println!("skipping: real data not found (set SYLVA_REAL_DATA)");
+        crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
         return;
     };
     let path = dir.join("CSF_sample/sample.ply");

@@ -15,14 +15,14 @@ fn device() -> Option<(wgpu::Device, wgpu::Queue)> {
         {
             Ok(a) => a,
             Err(e) => {
-                eprintln!("skipping GPU loss test: no adapter ({e})");
+                crate::testing::skip("gpu", &format!("GPU loss test: no adapter ({e})"));
                 return None;
             }
         };
     match pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor::default())) {
         Ok(dq) => Some(dq),
         Err(e) => {
-            eprintln!("skipping GPU loss test: no device ({e})");
+            crate::testing::skip("gpu", &format!("GPU loss test: no device ({e})"));
             None
         }
     }

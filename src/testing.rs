@@ -1,0 +1,71 @@
+//! Test support shared by the unit and integration tests: how a test that needs something the
+//! machine lacks (a GPU adapter, Chromium, PostgreSQL, the real clouds, …) stops.
+//!
+//! By default it prints why and passes, so `scripts/test` works on any machine. Where the
+//! environment variable `SYLVA_TEST_REQUIRE` names the capability (a comma-separated list, or
+//! `all`), the test fails instead: CI sets it for everything its machine installs, so a CI
+//! machine that silently lost lavapipe or PostgreSQL goes red rather than green.
+
+/// Capabilities tests may need, as `SYLVA_TEST_REQUIRE` names them.
+pub const CAPABILITIES: &[&str] = &[
+    "gpu",
+    "browser",
+    "postgres",
+    "s3",
+    "schemathesis",
+    "real-data",
+    "pypi",
+    "colmap",
+    "mount",
+];
+
+/// Whether `SYLVA_TEST_REQUIRE` (its value `required`) asks for `capability`.
+pub fn is_required(required: &str, capability: &str) -> bool {
+    required
+        .split(',')
+        .map(str::trim)
+        .any(|c| c == "all" || c == capability)
+}
+
+/// A test cannot run for want of `capability`: prints `why` and returns (the caller then
+/// returns too), or panics when `SYLVA_TEST_REQUIRE` requires the capability.
+pub fn skip(capability: &str, why: &str) {
+    skip_with(
+        &std::env::var("SYLVA_TEST_REQUIRE").unwrap_or_default(),
+        capability,
+        why,
+    );
+}
+
+/// [`skip`] with the value of `SYLVA_TEST_REQUIRE` given.
+pub fn skip_with(required: &str, capability: &str, why: &str) {
+    if is_required(required, capability) {
+        panic!("{capability} is required (SYLVA_TEST_REQUIRE={required}) but missing: {why}");
+    }
+    eprintln!("skipping ({capability} missing): {why}");
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn required_capabilities_are_named_or_all() {
+        assert!(is_required("gpu, postgres", "postgres"));
+        assert!(is_required("all", "browser"));
+        assert!(!is_required("gpu", "browser"));
+        assert!(!is_required("", "gpu"));
+        assert!(CAPABILITIES.contains(&"real-data"));
+    }
+
+    #[test]
+    #[should_panic(expected = "gpu is required")]
+    fn a_required_capability_fails_the_test() {
+        skip_with("postgres,gpu", "gpu", "no adapter");
+    }
+
+    #[test]
+    fn a_capability_not_required_only_prints() {
+        skip_with("postgres", "gpu", "no adapter");
+    }
+}
