@@ -78,12 +78,10 @@ async fn a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once(db: Db) 
     a.kill();
     // The restarted worker sees that the process holding the job is gone (same host) and
     // does not wait for the 60 s lease.
-    let restarted = std::time::Instant::now();
     let _b = db.worker(&data, &["--lease-secs", "60"]);
     let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(30), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     assert_eq!(job["attempt"], 2);
-    assert!(restarted.elapsed() < Duration::from_secs(30));
 }
 
 on_both_databases!(eight_clients_create_jobs_while_two_workers_claim_without_lock_errors);
