@@ -13,10 +13,6 @@ use serde::{Deserialize, Serialize};
 
 use crate::splat::packed_image::PackedImage;
 
-/// Side of the SSIM window, pixels (reference `ssim(window_size=11)`).
-pub const SSIM_WINDOW: usize = 11;
-/// Standard deviation of the SSIM window, pixels (reference `gaussian(window_size, 1.5)`).
-pub const SSIM_SIGMA: f32 = 1.5;
 /// PSNR reported for identical images, dB (instead of infinity, which JSON cannot hold).
 pub const PSNR_IDENTICAL: f32 = 100.0;
 
@@ -74,49 +70,8 @@ pub fn psnr(
     })
 }
 
-/// Normalised 1-D Gaussian window of the SSIM.
-fn window() -> [f32; SSIM_WINDOW] {
-    let half = (SSIM_WINDOW / 2) as f32;
-    let w: [f32; SSIM_WINDOW] = std::array::from_fn(|i| {
-        (-((i as f32 - half).powi(2)) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
-    });
-    let s: f32 = w.iter().sum();
-    w.map(|v| v / s)
-}
-
-/// "Same" separable convolution with zero padding.
-fn blur(x: &[f32], width: usize, height: usize, w: &[f32; SSIM_WINDOW]) -> Vec<f32> {
-    let r = (SSIM_WINDOW / 2) as isize;
-    let mut tmp = vec![0.0; x.len()];
-    for y in 0..height {
-        for i in 0..width {
-            tmp[y * width + i] = (-r..=r)
-                .filter_map(|d| {
-                    let j = i as isize + d;
-                    (0..width as isize)
-                        .contains(&j)
-                        .then(|| w[(d + r) as usize] * x[y * width + j as usize])
-                })
-                .sum();
-        }
-    }
-    let mut out = vec![0.0; x.len()];
-    for y in 0..height {
-        for i in 0..width {
-            out[y * width + i] = (-r..=r)
-                .filter_map(|d| {
-                    let j = y as isize + d;
-                    (0..height as isize)
-                        .contains(&j)
-                        .then(|| w[(d + r) as usize] * tmp[j as usize * width + i])
-                })
-                .sum();
-        }
-    }
-    out
-}
-
-/// Mean SSIM over pixels and channels (the loss's definition; see the module docs).
+/// Mean SSIM over pixels and channels: the loss's definition, computed by the CPU reference's
+/// one implementation ([`crate::splat::cpu::loss`], in f64).
 pub fn ssim(
     render: &[[f32; 3]],
     truth: &[[f32; 3]],
@@ -124,33 +79,14 @@ pub fn ssim(
     height: u32,
 ) -> Result<f32, EvalError> {
     check(render, truth, width, height)?;
-    const C1: f32 = 0.01 * 0.01;
-    const C2: f32 = 0.03 * 0.03;
-    let (w, h) = (width as usize, height as usize);
-    let win = window();
-    let mut total = 0.0f64;
-    for c in 0..3 {
-        let x: Vec<f32> = render.iter().map(|p| p[c]).collect();
-        let y: Vec<f32> = truth.iter().map(|p| p[c]).collect();
-        let prod = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(u, v)| u * v).collect::<Vec<f32>>();
-        let (mx, my) = (blur(&x, w, h, &win), blur(&y, w, h, &win));
-        let (sxx, syy, sxy) = (
-            blur(&prod(&x, &x), w, h, &win),
-            blur(&prod(&y, &y), w, h, &win),
-            blur(&prod(&x, &y), w, h, &win),
-        );
-        for k in 0..x.len() {
-            let (vx, vy, cxy) = (
-                sxx[k] - mx[k] * mx[k],
-                syy[k] - my[k] * my[k],
-                sxy[k] - mx[k] * my[k],
-            );
-            let num = (2.0 * mx[k] * my[k] + C1) * (2.0 * cxy + C2);
-            let den = (mx[k] * mx[k] + my[k] * my[k] + C1) * (vx + vy + C2);
-            total += (num / den) as f64;
-        }
-    }
-    Ok((total / (3 * render.len().max(1)) as f64) as f32)
+    let wide = |img: &[[f32; 3]]| img.iter().map(|p| p.map(f64::from)).collect::<Vec<_>>();
+    let s = crate::splat::cpu::loss::ssim_f64(
+        &wide(render),
+        &wide(truth),
+        width as usize,
+        height as usize,
+    );
+    Ok(s as f32)
 }
 
 /// Which pixels of the held-out views the metrics measure.

@@ -12,7 +12,7 @@ fn noise(n: usize, seed: u64) -> Vec<[f32; 3]> {
 
 /// SSIM with the 2-D window applied directly (no separability), zero padding.
 fn ssim_direct(a: &[[f32; 3]], b: &[[f32; 3]], w: usize, h: usize) -> f64 {
-    let g = window();
+    let g = crate::splat::cpu::loss::ssim_window();
     let mut total = 0.0;
     for c in 0..3 {
         for y in 0..h as isize {
@@ -24,7 +24,7 @@ fn ssim_direct(a: &[[f32; 3]], b: &[[f32; 3]], w: usize, h: usize) -> f64 {
                         if i < 0 || j < 0 || i >= w as isize || j >= h as isize {
                             continue;
                         }
-                        let k = (g[(dx + 5) as usize] * g[(dy + 5) as usize]) as f64;
+                        let k = g[(dx + 5) as usize] * g[(dy + 5) as usize];
                         let (p, q) = (
                             a[j as usize * w + i as usize][c] as f64,
                             b[j as usize * w + i as usize][c] as f64,

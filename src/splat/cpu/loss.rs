@@ -175,14 +175,3 @@ pub(crate) fn ssim_f64(a: &[[f64; 3]], b: &[[f64; 3]], width: usize, height: usi
         .sum::<f64>()
         / (a.len() * 3) as f64
 }
-
-/// PSNR in dB for images in [0, 1]: `10 log10(1 / MSE)`; infinite for identical images.
-pub(crate) fn psnr_f64(a: &[[f64; 3]], b: &[[f64; 3]]) -> f64 {
-    let se: f64 = a
-        .iter()
-        .zip(b)
-        .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).powi(2)))
-        .sum();
-    let mse = se / (a.len() * 3) as f64;
-    -10.0 * mse.log10()
-}

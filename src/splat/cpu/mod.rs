@@ -290,22 +290,3 @@ pub fn loss_and_grad_f64(
 fn to_f64(img: &[[f32; 3]]) -> Vec<[f64; 3]> {
     img.iter().map(|p| p.map(f64::from)).collect()
 }
-
-/// Mean SSIM over pixels and channels (11×11 Gaussian window, σ = 1.5, zero padding).
-pub fn ssim(a: &[[f32; 3]], b: &[[f32; 3]], width: u32, height: u32) -> Result<f64, CpuError> {
-    let n = width as usize * height as usize;
-    check_len(n, a.len())?;
-    check_len(n, b.len())?;
-    Ok(loss::ssim_f64(
-        &to_f64(a),
-        &to_f64(b),
-        width as usize,
-        height as usize,
-    ))
-}
-
-/// PSNR in dB of `a` against `b` (values in [0, 1]); `f64::INFINITY` for identical images.
-pub fn psnr(a: &[[f32; 3]], b: &[[f32; 3]]) -> Result<f64, CpuError> {
-    check_len(a.len(), b.len())?;
-    Ok(loss::psnr_f64(&to_f64(a), &to_f64(b)))
-}

@@ -6,9 +6,8 @@ use crate::splat::cpu::raster::T_MIN;
 use crate::splat::cpu::test_scenes::{
     mean_intensity, random_image, random_scene, small_camera, sub_pixel_grid, sub_pixel_grid_camera,
 };
-use crate::splat::cpu::{
-    CpuError, loss_and_grad_f64, psnr, render, render_backward, render_with, ssim,
-};
+use crate::splat::cpu::{CpuError, loss_and_grad_f64, render, render_backward, render_with};
+use crate::splat::eval::{PSNR_IDENTICAL, psnr, ssim};
 use crate::splat::model::{Gaussian, Gaussians};
 
 fn centred_camera() -> Camera {
@@ -247,9 +246,10 @@ fn loss_of_identical_images_and_known_ssim() {
     let (v, _) = loss_f64(&a, &a, w, h, false);
     assert!(v.loss.abs() < 1e-12 && (v.ssim - 1.0).abs() < 1e-12 && v.l1 == 0.0);
     let a32: Vec<[f32; 3]> = a.iter().map(|p| p.map(|x| x as f32)).collect();
-    assert_eq!(psnr(&a32, &a32).unwrap(), f64::INFINITY);
+    let (wu, hu) = (w as u32, h as u32);
+    assert_eq!(psnr(&a32, &a32, wu, hu).unwrap(), PSNR_IDENTICAL);
     let shifted: Vec<[f32; 3]> = a32.iter().map(|p| p.map(|x| x + 0.1)).collect();
-    assert!((psnr(&a32, &shifted).unwrap() - 20.0).abs() < 1e-4);
+    assert!((psnr(&a32, &shifted, wu, hu).unwrap() - 20.0).abs() < 1e-4);
     // SSIM is symmetric, 1 only for identical images, and a contrast change lowers it.
     let b32: Vec<[f32; 3]> = a32.iter().map(|p| p.map(|x| 0.5 * x + 0.25)).collect();
     let (s_ab, s_ba) = (
@@ -257,7 +257,7 @@ fn loss_of_identical_images_and_known_ssim() {
         ssim(&b32, &a32, w as u32, h as u32).unwrap(),
     );
     assert!(
-        (s_ab - s_ba).abs() < 1e-12 && s_ab < 0.99 && s_ab > 0.5,
+        (s_ab - s_ba).abs() < 1e-6 && s_ab < 0.99 && s_ab > 0.5,
         "{s_ab}"
     );
 }
