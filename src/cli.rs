@@ -1102,12 +1102,12 @@ async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
     // 3. The job: GPU when there is one, else the CPU reference on a small budget.
     let gpu = crate::gpu::probe().await;
     let params = match &gpu {
-        // A software adapter (lavapipe) gets a budget it finishes in a few minutes: an even
-        // draw of about a twentieth of the ~180 k anchors and short training.
+        // A software adapter (lavapipe) gets short training; its Gaussian budget is the
+        // device default (`max_gaussians` 0: pipeline::train::SOFTWARE_GPU_BUDGET), an even
+        // draw of about a twentieth of the ~180 k anchors.
         Some(g) if g.device_type == "cpu" => {
             eprintln!("training on {} (a software GPU: small budget)", g.name);
-            serde_json::json!({"train": {"steps": a.steps.unwrap_or(500), "resolution": 80,
-                "max_gaussians": 10000}})
+            serde_json::json!({"train": {"steps": a.steps.unwrap_or(500), "resolution": 80}})
         }
         Some(g) => {
             eprintln!("training on {}", g.name);
@@ -1115,8 +1115,9 @@ async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
         }
         None => {
             eprintln!("no GPU adapter: training on the CPU reference with a small budget");
+            // The CPU reference's default budget (pipeline::train::CPU_REFERENCE_BUDGET).
             serde_json::json!({"train": {"backend": "cpu", "steps": a.steps.unwrap_or(300),
-                "resolution": 80, "max_gaussians": 3000}})
+                "resolution": 80}})
         }
     };
     let part = |path: PathBuf| -> anyhow::Result<reqwest::multipart::Part> {

@@ -8,6 +8,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use super::Stage;
+use crate::splat::{bind, config, semantic};
 
 /// Everything a job can be told, grouped by stage.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -338,13 +339,13 @@ impl Default for TrainParams {
             sfm_fill_m: 0.1,
             sky_gaussians: 1000,
             semantic: TrunkTerm::Bind,
-            bind_band_m: 0.001,
-            bind_normal_scale_m: 0.005,
-            gamma_max: 0.02,
-            gamma_start: 3000,
-            gamma_end: 7000,
-            trunk_k: 8,
-            trunk_beta: 0.5,
+            bind_band_m: bind::DEFAULT_BAND_M,
+            bind_normal_scale_m: bind::DEFAULT_NORMAL_SCALE_M,
+            gamma_max: semantic::DEFAULT_GAMMA_MAX,
+            gamma_start: semantic::DEFAULT_GAMMA_START,
+            gamma_end: semantic::DEFAULT_GAMMA_END,
+            trunk_k: semantic::DEFAULT_TRUNK_K,
+            trunk_beta: semantic::DEFAULT_TRUNK_BETA,
             resolution: 1600,
             max_gaussians: 0,
             strategy: DensifyStrategy::Default,
@@ -353,10 +354,10 @@ impl Default for TrainParams {
             seed: 0,
             antialias: false,
             exposure: true,
-            exposure_lr_init: 0.01,
-            exposure_lr_final: 0.001,
-            exposure_lr_delay_steps: 0,
-            exposure_lr_delay_mult: 0.0,
+            exposure_lr_init: config::DEFAULT_LR_EXPOSURE_INIT,
+            exposure_lr_final: config::DEFAULT_LR_EXPOSURE_FINAL,
+            exposure_lr_delay_steps: config::DEFAULT_LR_EXPOSURE_DELAY_STEPS,
+            exposure_lr_delay_mult: config::DEFAULT_LR_EXPOSURE_DELAY_MULT,
         }
     }
 }

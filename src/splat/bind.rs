@@ -32,6 +32,13 @@ use super::model::Gaussians;
 use super::semantic::{AnchorIndex, SemanticAnchors};
 use crate::geom::surface::{SurfaceParams, surface_foot};
 
+/// Default largest offset of a bound centre from the LiDAR surface, metres (see
+/// [`BindConfig::band_m`]); `params.train.bind_band_m` takes it too.
+pub const DEFAULT_BAND_M: f64 = 0.001;
+/// Default largest standard deviation of a bound Gaussian along the normal, metres (see
+/// [`BindConfig::normal_scale_m`]); `params.train.bind_normal_scale_m` takes it too.
+pub const DEFAULT_NORMAL_SCALE_M: f64 = 0.005;
+
 /// The knobs of the binding.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -68,10 +75,10 @@ impl Default for BindConfig {
     fn default() -> Self {
         BindConfig {
             enabled: false,
-            band_m: 0.001,
+            band_m: DEFAULT_BAND_M as f32,
             surface_radius_m: 0.08,
             surface_max_rms_m: 0.02,
-            normal_scale_m: 0.005,
+            normal_scale_m: DEFAULT_NORMAL_SCALE_M as f32,
             min_trunk_prob: 0.5,
         }
     }

@@ -10,6 +10,16 @@ use serde::{Deserialize, Serialize};
 /// Number of steps the reference schedule is written for (Kerbl et al. 2023: 30 000 iterations).
 pub const REFERENCE_STEPS: u32 = 30_000;
 
+/// Default exposure learning rate at step 0 (reference `exposure_lr_init`); the one source of
+/// this default, which `params.train.exposure_lr_init` takes too.
+pub const DEFAULT_LR_EXPOSURE_INIT: f64 = 0.01;
+/// Default exposure learning rate at the last step (reference `exposure_lr_final`).
+pub const DEFAULT_LR_EXPOSURE_FINAL: f64 = 0.001;
+/// Default exposure ramp, steps (reference `exposure_lr_delay_steps`).
+pub const DEFAULT_LR_EXPOSURE_DELAY_STEPS: u32 = 0;
+/// Default exposure ramp multiplier (reference `exposure_lr_delay_mult`).
+pub const DEFAULT_LR_EXPOSURE_DELAY_MULT: f64 = 0.0;
+
 /// Everything the trainer needs to know besides the data.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -179,10 +189,10 @@ impl Default for TrainConfig {
             strategy: StrategyKind::Default,
             mcmc: Default::default(),
             exposure: false,
-            lr_exposure_init: 0.01,
-            lr_exposure_final: 0.001,
-            lr_exposure_delay_steps: 0,
-            lr_exposure_delay_mult: 0.0,
+            lr_exposure_init: DEFAULT_LR_EXPOSURE_INIT as f32,
+            lr_exposure_final: DEFAULT_LR_EXPOSURE_FINAL as f32,
+            lr_exposure_delay_steps: DEFAULT_LR_EXPOSURE_DELAY_STEPS,
+            lr_exposure_delay_mult: DEFAULT_LR_EXPOSURE_DELAY_MULT as f32,
         }
     }
 }

@@ -26,6 +26,18 @@ use serde::{Deserialize, Serialize};
 use super::model::Gaussians;
 use crate::geom::PointIndex;
 
+/// Default final weight of L_geo (docs/method.md; the paper finds 0.01–0.03 stable). The one
+/// source of this default: `params.train.gamma_max` takes it too.
+pub const DEFAULT_GAMMA_MAX: f64 = 0.02;
+/// Default step at which the L_geo ramp starts (docs/method.md T_start).
+pub const DEFAULT_GAMMA_START: u32 = 3000;
+/// Default step at which the ramp reaches gamma_max (docs/method.md T_end).
+pub const DEFAULT_GAMMA_END: u32 = 7000;
+/// Default number K of nearest trunk anchors (docs/method.md).
+pub const DEFAULT_TRUNK_K: u32 = 8;
+/// Default factor beta on their mean distance (docs/method.md).
+pub const DEFAULT_TRUNK_BETA: f64 = 0.5;
+
 /// The knobs of L_geo; every default is docs/method.md Stage 4's.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -59,12 +71,12 @@ impl Default for SemanticConfig {
     fn default() -> Self {
         SemanticConfig {
             enabled: false,
-            gamma_max: 0.02,
-            gamma_start: 3000,
-            gamma_end: 7000,
+            gamma_max: DEFAULT_GAMMA_MAX as f32,
+            gamma_start: DEFAULT_GAMMA_START,
+            gamma_end: DEFAULT_GAMMA_END,
             temperature_m: 0.02,
-            k: 8,
-            beta: 0.5,
+            k: DEFAULT_TRUNK_K,
+            beta: DEFAULT_TRUNK_BETA as f32,
             eps_m: 1e-6,
             weight_threshold: 0.5,
         }
