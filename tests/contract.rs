@@ -10,32 +10,6 @@ use common::*;
 use serde_json::json;
 use sylva::api::ROUTES;
 
-/// (METHOD, path) pairs of openapi.yaml's `paths`.
-fn openapi_operations() -> BTreeSet<(String, String)> {
-    let text = sylva::api::service::OPENAPI_YAML;
-    let mut ops = BTreeSet::new();
-    let mut in_paths = false;
-    let mut path = None;
-    for line in text.lines() {
-        if !line.starts_with(' ') && !line.is_empty() {
-            in_paths = line.starts_with("paths:");
-            continue;
-        }
-        if !in_paths {
-            continue;
-        }
-        if let Some(p) = line.strip_prefix("  /").and_then(|l| l.strip_suffix(':')) {
-            path = Some(format!("/{p}"));
-        } else if let Some(m) = line.strip_prefix("    ").and_then(|l| l.strip_suffix(':'))
-            && ["get", "put", "post", "delete", "head", "patch", "options"].contains(&m)
-            && let Some(p) = &path
-        {
-            ops.insert((m.to_uppercase(), p.clone()));
-        }
-    }
-    ops
-}
-
 fn routed_operations() -> BTreeSet<(String, String)> {
     ROUTES
         .iter()

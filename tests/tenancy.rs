@@ -13,27 +13,10 @@ use serde_json::{Value, json};
 
 /// (METHOD, path) of every operation in openapi.yaml whose path has a parameter.
 fn operations_with_path_parameters() -> Vec<(String, String)> {
-    let mut ops = Vec::new();
-    let mut in_paths = false;
-    let mut path: Option<String> = None;
-    for line in sylva::api::service::OPENAPI_YAML.lines() {
-        if !line.starts_with(' ') && !line.is_empty() {
-            in_paths = line.starts_with("paths:");
-            continue;
-        }
-        if !in_paths {
-            continue;
-        }
-        if let Some(p) = line.strip_prefix("  /").and_then(|l| l.strip_suffix(':')) {
-            path = Some(format!("/{p}"));
-        } else if let Some(m) = line.strip_prefix("    ").and_then(|l| l.strip_suffix(':'))
-            && ["get", "put", "post", "delete", "head", "patch"].contains(&m)
-            && let Some(p) = path.as_ref().filter(|p| p.contains('{'))
-        {
-            ops.push((m.to_uppercase(), p.clone()));
-        }
-    }
-    ops
+    openapi_operations()
+        .into_iter()
+        .filter(|(_, p)| p.contains('{'))
+        .collect()
 }
 
 /// `path` with its parameters filled: `{id}` by `id`, a part index 0, an artifact name.

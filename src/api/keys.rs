@@ -131,14 +131,7 @@ pub async fn create(
             DbError::Conflict(m) => ApiError::new(StatusCode::CONFLICT, "conflict", m),
             other => other.into(),
         })?;
-    tracing::info!(
-        target: "audit",
-        key_id = %record.id,
-        name = %record.name,
-        admin = record.admin,
-        by = %caller.owner,
-        "API key created"
-    );
+    keys::audit("created", &record, &caller.owner);
     let mut v = view(&record);
     v["key"] = Value::String(key);
     Ok((StatusCode::CREATED, Json(v)).into_response())
@@ -170,12 +163,6 @@ pub async fn revoke(
             DbError::NotFound => missing(),
             other => other.into(),
         })?;
-    tracing::info!(
-        target: "audit",
-        key_id = %k.id,
-        name = %k.name,
-        by = %caller.owner,
-        "API key revoked"
-    );
+    keys::audit("revoked", &k, &caller.owner);
     Ok(Json(view(&k)).into_response())
 }

@@ -144,13 +144,7 @@ pub async fn run(a: KeysArgs) -> anyhow::Result<ExitCode> {
                 DbError::Conflict(m) => anyhow::anyhow!("{m}; choose another --name"),
                 other => other.into(),
             })?;
-            tracing::info!(
-                target: "audit",
-                key_id = %record.id,
-                name = %record.name,
-                admin = record.admin,
-                "API key created"
-            );
+            keys::audit("created", &record, "cli");
             eprintln!(
                 "created {} ({}); the key is shown this once, keep it secret:",
                 record.id, record.name
@@ -180,12 +174,7 @@ pub async fn run(a: KeysArgs) -> anyhow::Result<ExitCode> {
                     anyhow::anyhow!("no key with id or name {key:?} (see `sylva keys list`)")
                 })?;
             let k = db.revoke_api_key(&id, now).await?;
-            tracing::info!(
-                target: "audit",
-                key_id = %k.id,
-                name = %k.name,
-                "API key revoked"
-            );
+            keys::audit("revoked", &k, "cli");
             println!("{}", describe(&k, now));
         }
     }

@@ -121,6 +121,19 @@ pub fn generate(
     Ok((key, record))
 }
 
+/// The audit line of a key's creation or revocation (`by`: the owner id of the admin key that
+/// did it, or `"cli"` for `sylva keys`). Never the key itself.
+pub fn audit(event: &str, k: &ApiKey, by: &str) {
+    tracing::info!(
+        target: "audit",
+        key_id = %k.id,
+        name = %k.name,
+        admin = k.admin,
+        by = %by,
+        "API key {event}"
+    );
+}
+
 /// Where an owner's webhook secret stands: its generation (0 until the first rotation) and,
 /// for a grace period after a rotation, the previous generation still signed with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]

@@ -641,3 +641,29 @@ pub async fn log_text(c: &Client, base: &str, id: &str) -> String {
         })
         .unwrap_or_default()
 }
+
+/// (METHOD, path) pairs of openapi.yaml's `paths`.
+pub fn openapi_operations() -> std::collections::BTreeSet<(String, String)> {
+    let text = sylva::api::service::OPENAPI_YAML;
+    let mut ops = std::collections::BTreeSet::new();
+    let mut in_paths = false;
+    let mut path = None;
+    for line in text.lines() {
+        if !line.starts_with(' ') && !line.is_empty() {
+            in_paths = line.starts_with("paths:");
+            continue;
+        }
+        if !in_paths {
+            continue;
+        }
+        if let Some(p) = line.strip_prefix("  /").and_then(|l| l.strip_suffix(':')) {
+            path = Some(format!("/{p}"));
+        } else if let Some(m) = line.strip_prefix("    ").and_then(|l| l.strip_suffix(':'))
+            && ["get", "put", "post", "delete", "head", "patch", "options"].contains(&m)
+            && let Some(p) = &path
+        {
+            ops.insert((m.to_uppercase(), p.clone()));
+        }
+    }
+    ops
+}
