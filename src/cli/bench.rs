@@ -1,0 +1,189 @@
+//! `sylva bench`: the benchmarks that print tables (train here; load, soak, geom and method
+//! in `loadbench`).
+
+use super::*;
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// What to measure: train (steps per second, where the step time goes, peak memory),
+    /// load (job status reads per second and latency of the HTTP API; flags marked `load:`)
+    /// or soak (many small jobs through `sylva serve` and `sylva worker` processes with random
+    /// cancels and one SIGKILL; jobs per hour, API latency and anything lost; flags marked
+    /// `soak:`, and --jobs) or geom (read, voxel, outlier filter, normals and ICP on a real
+    /// point cloud with per-phase peak memory; flags marked `geom:`) or method (the paper's
+    /// ablation plus Sylva's binding on generated plots: render quality, DBH from the
+    /// Gaussians and the LiDAR, trunk-surface distance; flags marked `method:`).
+    #[arg(env = "SYLVA_BENCH_WHAT", default_value = "train")]
+    pub what: String,
+    /// A COLMAP project to train on; without one a synthetic plot is generated.
+    #[arg(long, env = "SYLVA_BENCH_COLMAP")]
+    pub colmap: Option<PathBuf>,
+    /// Synthetic preset when no --colmap is given (tiny, plot, stand, object).
+    #[arg(long, env = "SYLVA_BENCH_PRESET", default_value = "tiny")]
+    pub preset: String,
+    /// Steps to time (the first step's shader compilation included).
+    #[arg(long, env = "SYLVA_BENCH_STEPS", default_value_t = 100)]
+    pub steps: u32,
+    /// Longest image side, pixels (comma-separated for several rows).
+    #[arg(long, env = "SYLVA_BENCH_RESOLUTION", default_value = "320")]
+    pub resolution: String,
+    /// Gaussians to train (a seeded subset of the SfM points; 0 = all).
+    #[arg(long, env = "SYLVA_BENCH_GAUSSIANS", default_value_t = 0)]
+    pub gaussians: u32,
+    /// gpu or cpu.
+    #[arg(long, env = "SYLVA_BENCH_BACKEND", default_value = "gpu")]
+    pub backend: String,
+    /// train: pixels per thread of the GPU rasters (1, 2, 4, 8 or 16; 0 = the device's
+    /// default: 8 on CPU adapters such as lavapipe, 1 on GPUs). For measuring the choice.
+    #[arg(long, env = "SYLVA_BENCH_RASTER_PIXELS", default_value_t = 0)]
+    pub raster_pixels: u32,
+    #[command(flatten)]
+    pub load: crate::loadbench::LoadArgs,
+    #[command(flatten)]
+    pub soak: crate::loadbench::soak::SoakArgs,
+    #[command(flatten)]
+    pub geom: crate::loadbench::geom::GeomBenchArgs,
+    #[command(flatten)]
+    pub method: crate::loadbench::method::MethodBenchArgs,
+}
+
+pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
+    use crate::pipeline::params::{TrainBackend, TrainParams};
+    if a.what == "load" {
+        crate::loadbench::run(&a.load).await?;
+        return Ok(ExitCode::SUCCESS);
+    }
+    if a.what == "soak" {
+        let nothing_lost = crate::loadbench::soak::run(a.load.jobs, &a.soak).await?;
+        return Ok(if nothing_lost {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::FAILURE
+        });
+    }
+    if a.what == "geom" {
+        let args = a.geom.clone();
+        tokio::task::spawn_blocking(move || crate::loadbench::geom::run(&args)).await??;
+        return Ok(ExitCode::SUCCESS);
+    }
+    if a.what == "method" {
+        let args = a.method.clone();
+        tokio::task::spawn_blocking(move || crate::loadbench::method::run(&args)).await??;
+        return Ok(ExitCode::SUCCESS);
+    }
+    if a.what != "train" {
+        anyhow::bail!(
+            "unknown benchmark {:?}; available: train, load, soak, geom, method",
+            a.what
+        );
+    }
+    let backend = match a.backend.as_str() {
+        "gpu" => TrainBackend::Gpu,
+        "cpu" => TrainBackend::Cpu,
+        other => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
+    };
+    if a.raster_pixels != 0 && !(a.raster_pixels.is_power_of_two() && a.raster_pixels <= 16) {
+        anyhow::bail!(
+            "--raster-pixels must be 1, 2, 4, 8 or 16 (0: the device's default), got {}",
+            a.raster_pixels
+        );
+    }
+    let resolutions: Vec<u32> = a
+        .resolution
+        .split(',')
+        .map(|r| r.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--resolution: {e}"))?;
+    tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+        let tmp = std::env::temp_dir().join(format!("sylva-bench-{}", std::process::id()));
+        let colmap = match &a.colmap {
+            Some(c) => c.clone(),
+            None => {
+                let preset = crate::synth::Preset::from_name(&a.preset)
+                    .ok_or_else(|| anyhow::anyhow!("unknown preset {:?}", a.preset))?;
+                let p = crate::synth::SynthParams::new(preset);
+                eprintln!("generating a synthetic {} plot…", a.preset);
+                crate::synth::generate(&p, &tmp, &crate::progress::NoProgress)?;
+                tmp.join("colmap")
+            }
+        };
+        let project = crate::io::colmap::find_project(&colmap)?;
+        let images = project
+            .images_dir
+            .clone()
+            .ok_or_else(|| anyhow::anyhow!("{}: no images/ folder", colmap.display()))?;
+        let model = crate::io::colmap::read_model(&project.sparse_dir, &crate::progress::NoProgress)?;
+        println!(
+            "| device | resolution (px) | images | Gaussians | tiles per Gaussian | steps/s | s/step | projection ms | sort ms | raster ms | loss ms | backward ms | optimiser ms | peak RSS MiB |"
+        );
+        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+        for res in resolutions {
+            let params = TrainParams {
+                steps: a.steps,
+                resolution: res,
+                max_gaussians: a.gaussians,
+                backend,
+                ..TrainParams::default()
+            };
+            let mut cfg = params.config();
+            // Time the steps themselves: no densification, no evaluation views.
+            cfg.densify_until = 0;
+            cfg.test_every = 0;
+            let data = crate::splat::dataset::load(&model, &images, cfg.resolution, 0, &crate::progress::NoProgress)?;
+            let mut init = crate::splat::init::from_sfm_points(&data.points, &data.colours)?;
+            let before = init.len();
+            crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None, 0);
+            if init.len() < before {
+                crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
+            }
+            let n = init.len();
+            let mut backend = if a.raster_pixels > 0 && backend == TrainBackend::Gpu {
+                let mut ctx = crate::splat::gpu::GpuContext::new()?;
+                ctx.raster_pixels = a.raster_pixels;
+                Box::new(crate::splat::gpu::GpuBackend::with_context(ctx, [0.0; 3])?)
+                    as Box<dyn crate::splat::backend::Backend>
+            } else {
+                crate::pipeline::train::backend_for(&params)?
+            };
+            backend.set_timed(true);
+            let mut strategy = crate::splat::trainer::default_strategy(&cfg);
+            let out = crate::splat::trainer::train(
+                backend.as_mut(),
+                &data,
+                init,
+                &cfg,
+                &mut strategy,
+                &crate::progress::NoProgress,
+            )?;
+            let t = out.phase_times;
+            let steps = f64::from(cfg.steps);
+            let first = data.train.first().map(|v| (v.camera.width, v.camera.height)).unwrap_or((0, 0));
+            println!(
+                "| {} | {}×{} | {} | {} | {} | {:.2} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} |",
+                out.device,
+                first.0,
+                first.1,
+                data.train.len(),
+                n,
+                if t.intersections == 0 {
+                    "–".to_string()
+                } else {
+                    format!("{:.1}", t.intersections as f64 / steps / n.max(1) as f64)
+                },
+                out.steps_per_second,
+                1.0 / out.steps_per_second.max(1e-9),
+                t.projection_ms / steps,
+                t.sort_ms / steps,
+                t.raster_ms / steps,
+                t.loss_ms / steps,
+                t.backward_ms / steps,
+                t.optimizer_ms / steps,
+                crate::loadbench::peak_rss_mib()
+            );
+        }
+        let _ = std::fs::remove_dir_all(&tmp);
+        Ok(())
+    })
+    .await??;
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,288 @@
+//! `sylva run`: the pipeline in-process on local files, without a server.
+
+use super::*;
+
+fn parse_stage(s: &str) -> Result<Stage, String> {
+    Stage::from_name(s).ok_or_else(|| {
+        format!(
+            "unknown stage {s:?}; stages: {}",
+            Stage::ALL.map(|s| s.name()).join(", ")
+        )
+    })
+}
+
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// The LiDAR point cloud (LAS, LAZ, PLY, XYZ), in metres.
+    #[arg(long, env = "SYLVA_LIDAR")]
+    pub lidar: PathBuf,
+    /// The COLMAP project: a folder (images/ and sparse/0 or sparse/) or a zip/tar(.gz) of one.
+    #[arg(long, env = "SYLVA_COLMAP")]
+    pub colmap: PathBuf,
+    /// Control point pairs (CSV: sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), at least 4.
+    #[arg(long, env = "SYLVA_CONTROL_POINTS")]
+    pub control_points: Option<PathBuf>,
+    /// Field-measured DBH (CSV: x,y,dbh_cm) for accuracy figures.
+    #[arg(long, env = "SYLVA_FIELD_DBH")]
+    pub field_dbh: Option<PathBuf>,
+    /// Output folder: each stage writes under <out>/<stage>/, and <out>/results.json gathers
+    /// every finished stage's report.
+    #[arg(long, env = "SYLVA_OUT")]
+    pub out: PathBuf,
+    /// Stop after this stage (ingest, register, anchors, segment, train, dbh, export).
+    #[arg(long, env = "SYLVA_UNTIL", value_parser = parse_stage)]
+    pub until: Option<Stage>,
+    /// Job parameters as a JSON file (the `params` object of the API; see `GET /v1/options`).
+    #[arg(long, env = "SYLVA_PARAMS")]
+    pub params: Option<PathBuf>,
+    /// Gaussians initialised from the LiDAR anchors (lidar, the paper's method) or the SfM
+    /// points (sfm, vanilla 3DGS); overrides the params file.
+    #[arg(long, env = "SYLVA_INIT")]
+    pub init: Option<String>,
+    /// What holds the trunk Gaussians: bind (Sylva's binding, the default), paper (the
+    /// paper's L_geo) or off; overrides the params file.
+    #[arg(long, env = "SYLVA_SEMANTIC")]
+    pub semantic: Option<String>,
+    /// Training steps; overrides the params file.
+    #[arg(long, env = "SYLVA_STEPS")]
+    pub steps: Option<u32>,
+    /// Longest image side for training, pixels; overrides the params file.
+    #[arg(long, env = "SYLVA_RESOLUTION")]
+    pub resolution: Option<u32>,
+    /// Where training runs: gpu or cpu; overrides the params file.
+    #[arg(long, env = "SYLVA_BACKEND")]
+    pub backend: Option<String>,
+    /// Densification: default or mcmc (needs `max_gaussians`); overrides the params file.
+    #[arg(long, env = "SYLVA_STRATEGY")]
+    pub strategy: Option<String>,
+    /// Weight of the LiDAR depth loss (0 = off); overrides the params file.
+    #[arg(long, env = "SYLVA_DEPTH_WEIGHT")]
+    pub depth_weight: Option<f64>,
+    /// Anti-aliased rasterisation in training and the held-out renders (Mip-Splatting's 2-D
+    /// filter), on or off; overrides the params file.
+    #[arg(long, env = "SYLVA_ANTIALIAS")]
+    pub antialias: Option<String>,
+    /// Per-image exposure compensation, on (the default of `params.train.exposure`) or off;
+    /// overrides the params file. On, the held-out metrics are of the photos' right halves.
+    #[arg(long, env = "SYLVA_EXPOSURE")]
+    pub exposure: Option<String>,
+    /// Log filter in tracing's syntax.
+    #[arg(long, env = "SYLVA_LOG", default_value = "warn")]
+    pub log: String,
+}
+
+/// `--strategy`'s value.
+pub(super) fn parse_strategy(s: &str) -> anyhow::Result<crate::pipeline::params::DensifyStrategy> {
+    use crate::pipeline::params::DensifyStrategy;
+    match s {
+        "default" => Ok(DensifyStrategy::Default),
+        "mcmc" => Ok(DensifyStrategy::Mcmc),
+        other => anyhow::bail!("--strategy must be default or mcmc, not {other:?}"),
+    }
+}
+
+/// Applies `sylva run`'s training flags to `params`.
+fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result<()> {
+    use crate::pipeline::params::{InitSource, TrainBackend, TrunkTerm};
+    let t = &mut params.train;
+    match a.init.as_deref() {
+        None => {}
+        Some("lidar") => t.init = InitSource::Lidar,
+        Some("sfm") => t.init = InitSource::Sfm,
+        Some(other) => anyhow::bail!("--init must be lidar or sfm, not {other:?}"),
+    }
+    match a.semantic.as_deref() {
+        None => {}
+        Some("bind") => t.semantic = TrunkTerm::Bind,
+        Some("paper") => t.semantic = TrunkTerm::Paper,
+        Some("off") => t.semantic = TrunkTerm::Off,
+        Some(other) => anyhow::bail!("--semantic must be bind, paper or off, not {other:?}"),
+    }
+    match a.backend.as_deref() {
+        None => {}
+        Some("gpu") => t.backend = TrainBackend::Gpu,
+        Some("cpu") => t.backend = TrainBackend::Cpu,
+        Some(other) => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
+    }
+    if let Some(s) = a.strategy.as_deref() {
+        t.strategy = parse_strategy(s)?;
+    }
+    if let Some(w) = a.depth_weight {
+        t.depth_weight = w;
+    }
+    if let Some(e) = a.exposure.as_deref() {
+        t.exposure = on_off("--exposure", e)?;
+    }
+    if let Some(s) = a.steps {
+        t.steps = s;
+    }
+    if let Some(r) = a.resolution {
+        t.resolution = r;
+    }
+    if let Some(v) = a.antialias.as_deref() {
+        t.antialias = on_off("--antialias", v)?;
+    }
+    Ok(())
+}
+
+/// `on` or `off` of flag `flag` as a bool; anything else is an error naming the flag.
+/// The value of an on/off flag.
+pub(super) fn on_off(flag: &str, value: &str) -> anyhow::Result<bool> {
+    match value {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => anyhow::bail!("{flag} must be on or off, not {other:?}"),
+    }
+}
+
+/// Adds the summary keys of results.json: `registration`, `render` = {psnr, ssim, views} and,
+/// with field data, `dbh` = {rmse_gs_cm, rmse_lidar_cm, bias_gs_cm, r2_gs, recall, matched,
+/// trunk_radial_dev_mm} (the last: how far the trunk Gaussians sit from the LiDAR stems).
+fn summarise(results: &mut serde_json::Map<String, serde_json::Value>) {
+    let pick = |stage: &str, key: &str| {
+        results
+            .get(stage)
+            .and_then(|r| r.get(key))
+            .filter(|v| !v.is_null())
+            .cloned()
+    };
+    let registration = results.get("register").cloned();
+    let render = pick("train", "render");
+    let dev = pick("dbh", "mean_radial_dev_mm");
+    let dbh = pick("dbh", "dbh").map(|mut d| {
+        if let (Some(obj), Some(dev)) = (d.as_object_mut(), dev) {
+            obj.insert("trunk_radial_dev_mm".into(), dev);
+        }
+        d
+    });
+    for (k, v) in [
+        ("registration", registration),
+        ("render", render),
+        ("dbh", dbh),
+    ] {
+        if let Some(v) = v {
+            results.insert(k.to_string(), v);
+        }
+    }
+}
+
+fn write_results(
+    out: &Path,
+    results: &serde_json::Map<String, serde_json::Value>,
+) -> anyhow::Result<()> {
+    let path = out.join("results.json");
+    let text = serde_json::to_vec_pretty(results)?;
+    pipeline::write_synced(&path, &text).with_context(|| format!("cannot write {}", path.display()))
+}
+
+pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
+    let store = StoreArgs {
+        data: PathBuf::new(),
+        database: None,
+        store: None,
+        log: a.log.clone(),
+        log_json: false,
+    };
+    init_tracing(&store);
+    let mut params: PipelineParams = match &a.params {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read {}", p.display()))?;
+            serde_json::from_str(&text)
+                .with_context(|| format!("{}: invalid parameters", p.display()))?
+        }
+        None => PipelineParams::default(),
+    };
+    if a.until.is_some() {
+        params.until = a.until;
+    }
+    apply_train_flags(&a, &mut params)?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
+    let colmap = if a.colmap.is_file() {
+        let dest = a.out.join("inputs").join("colmap");
+        if dest.exists() {
+            std::fs::remove_dir_all(&dest)?;
+        }
+        let src = a.colmap.clone();
+        let d2 = dest.clone();
+        tokio::task::spawn_blocking(move || {
+            archive::extract_archive(
+                &src,
+                &d2,
+                &ExtractLimits::default(),
+                &crate::progress::NoProgress,
+            )
+        })
+        .await?
+        .with_context(|| format!("{}: cannot unpack", a.colmap.display()))?;
+        dest
+    } else {
+        a.colmap.clone()
+    };
+    let inputs = StageInputs {
+        lidar: a.lidar.clone(),
+        colmap,
+        control_points: a.control_points.clone(),
+        field_dbh: a.field_dbh.clone(),
+    };
+    let cancel = CancelFlag::new();
+    {
+        let cancel = cancel.clone();
+        tokio::spawn(async move {
+            if tokio::signal::ctrl_c().await.is_ok() {
+                eprintln!("\ninterrupted: stopping after the current step");
+                cancel.cancel();
+            }
+        });
+    }
+    let mut results = serde_json::Map::new();
+    for stage in params.stages() {
+        let progress = Arc::new(ConsoleProgress {
+            stage,
+            cancel: cancel.clone(),
+            last: Mutex::new((Instant::now(), -1.0)),
+        });
+        let started = Instant::now();
+        let (inp, out, prm, p) = (
+            inputs.clone(),
+            a.out.clone(),
+            params.clone(),
+            progress.clone(),
+        );
+        let result = tokio::task::spawn_blocking(move || {
+            pipeline::execute_stage(stage, &inp, &out, &prm, p.as_ref())
+        })
+        .await?;
+        match result {
+            Ok(outcome) => {
+                progress.set(1.0);
+                eprintln!("  done in {:.1} s", started.elapsed().as_secs_f64());
+                results.insert(stage.name().to_string(), outcome.report);
+                summarise(&mut results);
+                write_results(&a.out, &results)?;
+            }
+            Err(e) => {
+                eprintln!();
+                write_results(&a.out, &results)?;
+                eprintln!("error: stage {stage} failed: {e}");
+                return Ok(ExitCode::FAILURE);
+            }
+        }
+    }
+    eprintln!("results: {}", a.out.join("results.json").display());
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::on_off;
+
+    #[test]
+    fn on_off_flags_parse_and_name_the_flag_on_error() {
+        assert!(on_off("--antialias", "on").expect("on"));
+        assert!(!on_off("--antialias", "off").expect("off"));
+        let err = on_off("--antialias", "yes").expect_err("not on/off");
+        assert!(err.to_string().contains("--antialias"), "{err}");
+    }
+}

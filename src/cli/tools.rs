@@ -1,0 +1,252 @@
+//! The one-off commands on local files: `sylva synth`, `sylva inventory`, `sylva train`.
+
+use super::run::{on_off, parse_strategy};
+use super::*;
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// The COLMAP project folder (images/ and sparse/0 or sparse/).
+    #[arg(long, env = "SYLVA_TRAIN_COLMAP")]
+    pub colmap: PathBuf,
+    /// Output folder.
+    #[arg(long, env = "SYLVA_TRAIN_OUT")]
+    pub out: PathBuf,
+    /// Optimisation steps (Kerbl et al. 2023: 30,000; the schedule scales with it).
+    #[arg(long, env = "SYLVA_TRAIN_STEPS", default_value_t = 30_000)]
+    pub steps: u32,
+    /// Longest image side in pixels; 0 keeps the photos' size.
+    #[arg(long, env = "SYLVA_TRAIN_RESOLUTION", default_value_t = 1600)]
+    pub resolution: u32,
+    /// `sfm` (the sparse points) or a splat PLY file to resume from.
+    #[arg(long, env = "SYLVA_TRAIN_INIT", default_value = "sfm")]
+    pub init: String,
+    /// gpu (default) or cpu (the exact reference, for tiny scenes only).
+    #[arg(long, env = "SYLVA_TRAIN_BACKEND", default_value = "gpu")]
+    pub backend: String,
+    /// Upper bound on the number of Gaussians; 0 = the device's default budget (none on a
+    /// hardware GPU, 10000 on a software GPU such as lavapipe, 3000 on the CPU reference).
+    #[arg(long, env = "SYLVA_TRAIN_MAX_GAUSSIANS", default_value_t = 0)]
+    pub max_gaussians: u32,
+    /// Densification: default (clone, split and prune by gradient) or mcmc (relocation under
+    /// the --max-gaussians budget, which it needs).
+    #[arg(long, env = "SYLVA_TRAIN_STRATEGY", default_value = "default")]
+    pub strategy: String,
+    /// Seed of the view order and densification sampling.
+    #[arg(long, env = "SYLVA_TRAIN_SEED", default_value_t = 0)]
+    pub seed: u64,
+    /// Anti-aliased rasterisation, on or off: Mip-Splatting's 2-D filter (a 0.3 px² blur with
+    /// opacity compensation) for training and the held-out renders; off is the reference
+    /// 3DGS dilation.
+    #[arg(long, env = "SYLVA_TRAIN_ANTIALIAS", default_value = "off")]
+    pub antialias: String,
+    /// Per-image exposure compensation, on or off (docs/splatting.md "Exposure"). On (the
+    /// default) learns a colour transform per photo and measures the held-out photos on
+    /// their right halves, their left halves training their exposure.
+    #[arg(long, env = "SYLVA_TRAIN_EXPOSURE", default_value = "on")]
+    pub exposure: String,
+}
+
+#[derive(Debug, Args)]
+pub struct SynthArgs {
+    /// Scene preset: tiny (1-3 trees, 30 small images), plot (one large broadleaf tree), stand
+    /// (17 trees, canopy closure about 0.5), object (one tree in 71 close portrait phone-like
+    /// frames with a sparse SfM start).
+    #[arg(long, env = "SYLVA_SYNTH_PRESET", default_value = "tiny")]
+    pub preset: String,
+    /// Random seed: the same seed gives byte-identical files.
+    #[arg(long, env = "SYLVA_SYNTH_SEED", default_value_t = 1)]
+    pub seed: u64,
+    /// Output folder (lidar.laz, colmap/, control_points.csv, field_dbh.csv, truth.json,
+    /// labels.bin).
+    #[arg(long, env = "SYLVA_SYNTH_OUT")]
+    pub out: PathBuf,
+    /// LiDAR range noise, standard deviation in centimetres (default 1 cm).
+    #[arg(long, env = "SYLVA_SYNTH_NOISE_CM", default_value_t = 1.0)]
+    pub noise_cm: f64,
+    /// Number of photos (default: the preset's).
+    #[arg(long, env = "SYLVA_SYNTH_IMAGES")]
+    pub images: Option<usize>,
+    /// Photo width in pixels (default: the preset's).
+    #[arg(long, env = "SYLVA_SYNTH_WIDTH")]
+    pub width: Option<u32>,
+    /// Photo height in pixels (default: the preset's).
+    #[arg(long, env = "SYLVA_SYNTH_HEIGHT")]
+    pub height: Option<u32>,
+    /// Write the COLMAP model in binary instead of text.
+    #[arg(long, env = "SYLVA_SYNTH_BINARY", default_value_t = false)]
+    pub binary: bool,
+    /// Trees without leaves (branches only).
+    #[arg(long, env = "SYLVA_SYNTH_LEAFLESS", default_value_t = false)]
+    pub leafless: bool,
+    /// Write PNG photos instead of JPEG.
+    #[arg(long, env = "SYLVA_SYNTH_PNG", default_value_t = false)]
+    pub png: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct InventoryArgs {
+    /// The point cloud (LAS, LAZ, PLY, E57, XYZ), in metres.
+    #[arg(env = "SYLVA_INVENTORY_CLOUD")]
+    pub cloud: PathBuf,
+    /// Where to write the inventory CSV.
+    #[arg(long, env = "SYLVA_INVENTORY_OUT", default_value = "trees.csv")]
+    pub out: PathBuf,
+    /// Also write the stems as GeoJSON points here.
+    #[arg(long, env = "SYLVA_INVENTORY_GEOJSON")]
+    pub geojson: Option<PathBuf>,
+    /// Field-measured DBH (CSV x,y,dbh_cm): match trees within 1 m and print the accuracy.
+    #[arg(long, env = "SYLVA_INVENTORY_FIELD")]
+    pub field: Option<PathBuf>,
+}
+
+pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
+    let Some(preset) = crate::synth::Preset::from_name(&a.preset) else {
+        anyhow::bail!(
+            "unknown preset {:?}; presets: tiny, plot, stand, object",
+            a.preset
+        );
+    };
+    let mut p = crate::synth::SynthParams::new(preset);
+    p.seed = a.seed;
+    p.noise_cm = a.noise_cm;
+    p.images = a.images.or(p.images);
+    p.width = a.width.or(p.width);
+    p.height = a.height.or(p.height);
+    p.binary = a.binary;
+    p.leafless = a.leafless;
+    p.png = a.png;
+    let out = a.out.clone();
+    let summary = tokio::task::spawn_blocking(move || {
+        crate::synth::generate(&p, &out, &LineProgress::new("synth"))
+    })
+    .await??;
+    eprintln!();
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(ExitCode::SUCCESS)
+}
+
+pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
+    let path = a.cloud.clone();
+    let (rows, cloud_points) = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+        let progress = LineProgress::new("inventory");
+        let cloud = crate::io::pointcloud::read_point_cloud(&path, &progress)?;
+        let inv = crate::forest::inventory(
+            &cloud,
+            &crate::forest::InventoryParams::default(),
+            &progress,
+        )?;
+        Ok((inv.trees, cloud.len()))
+    })
+    .await??;
+    eprintln!();
+    crate::forest::write_trees_csv(&a.out, &rows)?;
+    if let Some(g) = &a.geojson {
+        crate::forest::write_trees_geojson(g, &rows)?;
+    }
+    println!(
+        "{} stems from {} points; inventory in {}",
+        rows.len(),
+        cloud_points,
+        a.out.display()
+    );
+    if let Some(field) = &a.field {
+        let cmp = crate::forest::compare_with_field_file(&rows, field)?;
+        for line in crate::forest::accuracy_lines(&cmp) {
+            println!("{line}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
+    use crate::pipeline::params::{TrainBackend, TrainParams};
+    let backend = match a.backend.as_str() {
+        "gpu" => TrainBackend::Gpu,
+        "cpu" => TrainBackend::Cpu,
+        other => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
+    };
+    let params = TrainParams {
+        steps: a.steps,
+        resolution: a.resolution,
+        max_gaussians: a.max_gaussians,
+        strategy: parse_strategy(&a.strategy)?,
+        backend,
+        seed: a.seed,
+        antialias: on_off("--antialias", &a.antialias)?,
+        exposure: on_off("--exposure", &a.exposure)?,
+        ..TrainParams::default()
+    };
+    let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+        let progress = LineProgress::new("train");
+        let project = crate::io::colmap::find_project(&a.colmap)?;
+        let images = project.images_dir.clone().ok_or_else(|| {
+            anyhow::anyhow!(
+                "{}: no images/ folder beside the sparse model",
+                a.colmap.display()
+            )
+        })?;
+        let model = crate::io::colmap::read_model(&project.sparse_dir, &progress)?;
+        let mut backend = crate::pipeline::train::backend_for(&params)?;
+        let (params, budget_source) =
+            crate::pipeline::train::with_budget(&params, backend.device_kind());
+        let cfg = params.config();
+        progress.log(&format!(
+            "budget: {} Gaussians ({budget_source})",
+            match params.max_gaussians {
+                0 => "unbounded".to_string(),
+                n => n.to_string(),
+            }
+        ));
+        let data = crate::splat::dataset::load(
+            &model,
+            &images,
+            cfg.resolution,
+            cfg.test_every,
+            &progress,
+        )?;
+        let mut init = if a.init == "sfm" {
+            crate::splat::init::from_sfm_points(&data.points, &data.colours)?
+        } else {
+            let file =
+                std::fs::File::open(&a.init).map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?;
+            crate::splat::export::read_ply(std::io::BufReader::new(file))
+                .map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?
+        };
+        let before = init.len();
+        crate::pipeline::train::cap_gaussians(
+            &mut init,
+            params.max_gaussians,
+            params.seed,
+            None,
+            0,
+        );
+        if a.init == "sfm" && init.len() < before {
+            crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
+        }
+        let mut strategy = crate::splat::trainer::strategy_for(&cfg)?;
+        let outcome = crate::splat::trainer::train(
+            backend.as_mut(),
+            &data,
+            init,
+            &cfg,
+            strategy.as_mut(),
+            &progress,
+        )?;
+        crate::splat::trainer::write_outputs(&a.out, &outcome, &data)?;
+        Ok(outcome)
+    })
+    .await??;
+    eprintln!();
+    println!(
+        "held-out PSNR {:.2} dB, SSIM {:.3} over {} views, {} (mean colour {:.2} dB); {} Gaussians; {:.2} steps/s on {}",
+        outcome.eval.psnr,
+        outcome.eval.ssim,
+        outcome.eval.views.len(),
+        outcome.eval.region.describe(),
+        outcome.baseline_psnr,
+        outcome.model.len(),
+        outcome.steps_per_second,
+        outcome.device
+    );
+    Ok(ExitCode::SUCCESS)
+}
