@@ -5,7 +5,6 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
@@ -31,7 +30,7 @@ mod tools;
 
 pub use bench::BenchArgs;
 pub use demo::DemoArgs;
-use progress::{ConsoleProgress, LineProgress};
+use progress::ConsoleProgress;
 pub use run::RunArgs;
 pub use tools::{InventoryArgs, SynthArgs, TrainArgs};
 

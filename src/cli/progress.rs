@@ -1,70 +1,65 @@
-//! Progress printers on stderr: a bar per stage for `sylva run`, a line for one-off commands.
+//! The one progress printer of the command line: a bar on stderr (indicatif) for each stage of
+//! `sylva run` and for one-off commands, with the stage's messages printed above it. Where
+//! stderr is not a terminal the bar is hidden and only the messages are printed, so logs and
+//! test output stay readable.
 
-use super::*;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-/// A one-line progress bar on stderr for `sylva run`.
+use crate::progress::{CancelFlag, Progress};
+
+/// Steps of the bar: a fraction in [0, 1] is shown to 0.1 %.
+const STEPS: u64 = 1000;
+
 pub(super) struct ConsoleProgress {
-    pub(super) stage: Stage,
-    pub(super) cancel: CancelFlag,
-    pub(super) last: Mutex<(Instant, f64)>,
+    label: String,
+    bar: ProgressBar,
+    cancel: Option<CancelFlag>,
+}
+
+impl ConsoleProgress {
+    /// A bar named `label` (a stage's or a command's name); `cancel`, when given, is what
+    /// [`Progress::is_cancelled`] reports (Ctrl-C in `sylva run`).
+    pub(super) fn new(label: &str, cancel: Option<CancelFlag>) -> Self {
+        let bar = ProgressBar::with_draw_target(Some(STEPS), ProgressDrawTarget::stderr());
+        if let Ok(style) =
+            ProgressStyle::with_template("{prefix:>9} [{bar:30}] {percent:>3}% {elapsed}")
+        {
+            bar.set_style(style.progress_chars("#>."));
+        }
+        bar.set_prefix(label.to_string());
+        Self {
+            label: label.to_string(),
+            bar,
+            cancel,
+        }
+    }
+}
+
+impl Drop for ConsoleProgress {
+    fn drop(&mut self) {
+        self.bar.finish();
+    }
 }
 
 impl Progress for ConsoleProgress {
     fn set(&self, fraction: f64) {
-        let f = fraction.clamp(0.0, 1.0);
-        if let Ok(mut last) = self.last.lock()
-            && f > last.1
-            && (last.0.elapsed() > Duration::from_millis(100) || f >= 1.0)
-        {
-            *last = (Instant::now(), f);
-            let filled = (f * 30.0).round() as usize;
-            eprint!(
-                "\r{:>9} [{}{}] {:>3.0}%",
-                self.stage.name(),
-                "#".repeat(filled),
-                ".".repeat(30 - filled),
-                f * 100.0
-            );
+        let pos = (fraction.clamp(0.0, 1.0) * STEPS as f64).round() as u64;
+        // Never backwards: a stage's sub-steps may report out of order.
+        if pos > self.bar.position() {
+            self.bar.set_position(pos);
         }
     }
+
     fn log(&self, message: &str) {
-        eprintln!("\r{:>9}: {message}", self.stage.name());
+        let line = format!("{:>9}: {message}", self.label);
+        if self.bar.is_hidden() {
+            eprintln!("{line}");
+        } else {
+            self.bar.println(line);
+        }
     }
+
     fn is_cancelled(&self) -> bool {
-        self.cancel.is_cancelled()
-    }
-}
-
-/// A progress line on stderr for one-off commands.
-pub(super) struct LineProgress {
-    label: &'static str,
-    last: Mutex<(Instant, f64)>,
-}
-
-impl LineProgress {
-    pub(super) fn new(label: &'static str) -> Self {
-        Self {
-            label,
-            last: Mutex::new((Instant::now(), -1.0)),
-        }
-    }
-}
-
-impl Progress for LineProgress {
-    fn set(&self, fraction: f64) {
-        if let Ok(mut last) = self.last.lock()
-            && fraction > last.1 + 0.01
-            && last.0.elapsed() > Duration::from_millis(200)
-        {
-            *last = (Instant::now(), fraction);
-            eprint!(
-                "\r{}: {:>3.0}%",
-                self.label,
-                fraction.clamp(0.0, 1.0) * 100.0
-            );
-        }
-    }
-    fn log(&self, message: &str) {
-        eprintln!("\r{}: {message}", self.label);
+        self.cancel.as_ref().is_some_and(CancelFlag::is_cancelled)
     }
 }

@@ -238,11 +238,7 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     }
     let mut results = serde_json::Map::new();
     for stage in params.stages() {
-        let progress = Arc::new(ConsoleProgress {
-            stage,
-            cancel: cancel.clone(),
-            last: Mutex::new((Instant::now(), -1.0)),
-        });
+        let progress = Arc::new(ConsoleProgress::new(stage.name(), Some(cancel.clone())));
         let started = Instant::now();
         let (inp, out, prm, p) = (
             inputs.clone(),

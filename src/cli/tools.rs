@@ -117,7 +117,7 @@ pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
     p.png = a.png;
     let out = a.out.clone();
     let summary = tokio::task::spawn_blocking(move || {
-        crate::synth::generate(&p, &out, &LineProgress::new("synth"))
+        crate::synth::generate(&p, &out, &ConsoleProgress::new("synth", None))
     })
     .await??;
     eprintln!();
@@ -128,7 +128,7 @@ pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
 pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
     let path = a.cloud.clone();
     let (rows, cloud_points) = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
-        let progress = LineProgress::new("inventory");
+        let progress = ConsoleProgress::new("inventory", None);
         let cloud = crate::io::pointcloud::read_point_cloud(&path, &progress)?;
         let inv = crate::forest::inventory(
             &cloud,
@@ -177,7 +177,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         ..TrainParams::default()
     };
     let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
-        let progress = LineProgress::new("train");
+        let progress = ConsoleProgress::new("train", None);
         let project = crate::io::colmap::find_project(&a.colmap)?;
         let images = project.images_dir.clone().ok_or_else(|| {
             anyhow::anyhow!(
