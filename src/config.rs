@@ -101,8 +101,9 @@ pub struct WorkerArgs {
 
     /// Fault injection for tests only: `STAGE[:FRACTION]` makes this process kill itself with
     /// SIGKILL inside stage STAGE, at the stage's first progress report at or above FRACTION
-    /// in [0, 1] (default 0.5), to prove that a crash mid-stage loses nothing. Unset (the
-    /// default) in production.
+    /// in [0, 1] (default 0.5), to prove that a crash mid-stage loses nothing. Only in builds
+    /// with the `fault-injection` feature (the test suite's); a user's binary has no such flag.
+    #[cfg(feature = "fault-injection")]
     #[arg(long, env = "SYLVA_DEBUG_CRASH_AT")]
     pub debug_crash_at: Option<CrashPoint>,
 }
@@ -445,6 +446,7 @@ mod tests {
     }
 
     #[test]
+    #[cfg(feature = "fault-injection")]
     fn crash_points_name_a_stage_and_an_optional_fraction() {
         let w = W::parse_from(["x", "--debug-crash-at", "train:0.25"]).w;
         assert_eq!(

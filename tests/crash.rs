@@ -10,6 +10,10 @@
 //! the job must resume at that stage (earlier stages untouched), succeed, and match the
 //! reference: the same artifact names and the same metrics within a tolerance. The database
 //! must pass `PRAGMA integrity_check` after every crash, and every upload stays complete.
+//!
+//! Needs the `fault-injection` feature (scripts/test turns it on); without it this file is
+//! empty, as a user's binary has no `--debug-crash-at`.
+#![cfg(feature = "fault-injection")]
 
 mod common;
 

@@ -78,6 +78,22 @@ impl Progress for StageProgress {
     }
 }
 
+/// Where `--debug-crash-at` kills this process inside `stage` (builds with the
+/// `fault-injection` feature only; `None` otherwise).
+fn crash_point(args: &WorkerArgs, stage: Stage) -> Option<(Stage, f64)> {
+    #[cfg(feature = "fault-injection")]
+    {
+        args.debug_crash_at
+            .filter(|c| c.stage == stage)
+            .map(|c| (c.stage, c.fraction))
+    }
+    #[cfg(not(feature = "fault-injection"))]
+    {
+        let _ = (args, stage);
+        None
+    }
+}
+
 /// `--debug-crash-at`: kills this process with SIGKILL, as the kernel's OOM killer or a
 /// power cut would stop it (no unwinding, no destructors, no flush), from inside a stage.
 fn crash_now(stage: Stage, fraction: f64) -> ! {
@@ -377,11 +393,7 @@ impl WorkerPool {
             fraction_bits: AtomicU64::new(0f64.to_bits()),
             lines: Mutex::new(Vec::new()),
             cancel: CancelFlag::new(),
-            crash_at: self
-                .args
-                .debug_crash_at
-                .filter(|c| c.stage == stage)
-                .map(|c| (c.stage, c.fraction)),
+            crash_at: crash_point(&self.args, stage),
         });
 
         // Heartbeat: lease, progress, log lines, cancellation.
