@@ -1,5 +1,14 @@
-//! The GPU context. For now: find an adapter through wgpu (Vulkan; lavapipe on machines
-//! without a GPU) so `/v1/info` can say what the trainer will run on.
+//! The GPU layer under the trainer's kernels, on wgpu: the adapter probe `/v1/info` uses
+//! ([`probe`]), the device context with what the adapter can do ([`context`]), buffer and
+//! pipeline helpers ([`buffers`]), the prefix sum ([`scan`]) and radix sort ([`sort`]) any
+//! kernel may use, and per-pass timing ([`timing`]). The splatting kernels themselves are in
+//! `splat::gpu`.
+
+pub mod buffers;
+pub mod context;
+pub mod scan;
+pub mod sort;
+pub mod timing;
 
 use serde::Serialize;
 

@@ -24,9 +24,7 @@
 
 pub mod adam;
 pub mod backend;
-pub mod buffers;
 pub mod chunks;
-pub mod context;
 pub mod depth;
 pub mod exposure;
 pub mod frame;
@@ -38,12 +36,10 @@ pub mod project_bwd;
 pub mod raster_bwd;
 pub mod raster_fwd;
 pub mod renderer;
-pub mod scan;
 pub mod semantic;
-pub mod sort;
 pub mod splats;
-pub mod timing;
 
+pub use crate::gpu::{buffers, context, scan, sort, timing};
 pub use backend::GpuBackend;
 pub use context::{AtomicMode, GpuContext, GpuError};
 pub use frame::Frame;

@@ -1,12 +1,12 @@
 //! GPU exclusive prefix sum of `u32` (in place), hierarchical over blocks of 1024 elements.
 
-use crate::splat::gpu::buffers::{bind, grid, pipeline, storage_zeroed, uniform_from};
-use crate::splat::gpu::context::{GpuContext, GpuError};
+use crate::gpu::buffers::{bind, grid, pipeline, storage_zeroed, uniform_from};
+use crate::gpu::context::{GpuContext, GpuError};
 
 /// Elements scanned by one workgroup (256 threads × 4).
 pub const SCAN_BLOCK: u32 = 1024;
 
-const SOURCE: &str = include_str!("../../../shaders/scan.wgsl");
+const SOURCE: &str = include_str!("../../shaders/scan.wgsl");
 
 /// Pipelines of the scan; buffers are made per call (block sums are small: n / 1024).
 pub struct Scanner {

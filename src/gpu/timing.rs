@@ -3,7 +3,7 @@
 
 use std::time::Instant;
 
-use crate::splat::gpu::context::{GpuContext, GpuError};
+use crate::gpu::context::{GpuContext, GpuError};
 
 /// Wall-clock milliseconds per pass, measured on the CPU by submitting each pass separately and
 /// waiting for it (so only meaningful from the `*_timed` calls, which serialise the GPU).

@@ -2,7 +2,7 @@
 
 use wgpu::util::DeviceExt;
 
-use crate::splat::gpu::context::{GpuContext, GpuError};
+use crate::gpu::context::{GpuContext, GpuError};
 
 /// Usage of every storage buffer in this crate: bound in shaders, written from the CPU, copied
 /// out for read-back, cleared on the GPU.

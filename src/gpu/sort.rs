@@ -1,9 +1,9 @@
 //! Stable GPU radix sort of 64-bit keys held as two `u32` words (`hi`, `lo`) with a `u32` value,
 //! 4 bits per pass, least significant digit first (8 passes for `lo`, then as many as `hi` needs).
 
-use crate::splat::gpu::buffers::{bind, grid, pipeline, storage_zeroed, uniform_from};
-use crate::splat::gpu::context::{GpuContext, GpuError};
-use crate::splat::gpu::scan::Scanner;
+use crate::gpu::buffers::{bind, grid, pipeline, storage_zeroed, uniform_from};
+use crate::gpu::context::{GpuContext, GpuError};
+use crate::gpu::scan::Scanner;
 
 /// Elements per sort block (128 threads × 8).
 const BLOCK: u32 = 1024;
@@ -12,7 +12,7 @@ const RADIX_BITS: u32 = 4;
 /// Digit values per pass.
 const BINS: u32 = 1 << RADIX_BITS;
 
-const SOURCE: &str = include_str!("../../../shaders/sort.wgsl");
+const SOURCE: &str = include_str!("../../shaders/sort.wgsl");
 
 /// Radix sort pipelines.
 pub struct RadixSorter {
