@@ -1,6 +1,14 @@
 use clap::Parser;
 
 fn main() -> std::process::ExitCode {
+    // Mesa's Vulkan loader (lavapipe, on machines without a GPU) prints "XDG_RUNTIME_DIR is
+    // invalid or not set" on every device it opens when the variable is missing, as it is in
+    // containers and cron jobs; the temporary folder serves it as well.
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        // SAFETY: no other thread exists yet (the runtime is built below), so nothing reads
+        // the environment concurrently.
+        unsafe { std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir()) };
+    }
     let cli = sylva::cli::Cli::parse();
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
