@@ -98,19 +98,18 @@ pub async fn create(
     let now = now_ms();
     let expires_at = match req.expires_at.as_deref() {
         None => None,
-        Some(t) => {
-            let at = time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339)
-                .map_err(|_| {
+        Some(t) => Some(keys::expiry_from_rfc3339(t, now).map_err(|e| {
+            match e {
+                keys::ExpiryError::NotRfc3339 => {
                     ApiError::unprocessable("expires_at must be an RFC 3339 time")
                         .with_error("expires_at", "not RFC 3339")
-                })?;
-            let ms = i64::try_from(at.unix_timestamp_nanos() / 1_000_000).unwrap_or(i64::MAX);
-            if ms <= now {
-                return Err(ApiError::unprocessable("expires_at is in the past")
-                    .with_error("expires_at", "in the past"));
+                }
+                keys::ExpiryError::InThePast => {
+                    ApiError::unprocessable("expires_at is in the past")
+                        .with_error("expires_at", "in the past")
+                }
             }
-            Some(ms)
-        }
+        })?),
     };
     let quota_jobs = whole("quota_jobs", req.quota_jobs, f64::from(u32::MAX))?;
     let quota_bytes = whole("quota_bytes", req.quota_bytes, i64::MAX as f64)?;

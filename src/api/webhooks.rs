@@ -14,15 +14,20 @@ use crate::webhooks::sign::{DELIVERY_HEADER, EVENT_HEADER, SIGNATURE_HEADER, TIM
 
 /// The caller's webhook secret state as the API shows it.
 fn secret_view(state: &AppState, caller: &Caller, g: &SecretGeneration) -> Value {
-    let now = now_ms();
-    let previous = (g.generation > 0 && now < g.previous_until).then(|| {
+    // The same rule that picks the secrets deliveries are signed with: current, then the
+    // previous one while its grace period lasts.
+    let secrets = state
+        .webhooks
+        .signer
+        .signing_secrets(&caller.owner, g, now_ms());
+    let previous = secrets.get(1).map(|old| {
         json!({
-            "secret": state.webhooks.signer.secret_at(&caller.owner, g.generation - 1),
+            "secret": old,
             "valid_until": rfc3339(g.previous_until),
         })
     });
     json!({
-        "secret": state.webhooks.signer.secret_at(&caller.owner, g.generation),
+        "secret": secrets.first(),
         "generation": g.generation,
         "rotated_at": (g.rotated_at > 0).then(|| rfc3339(g.rotated_at)),
         "previous": previous,

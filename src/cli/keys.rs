@@ -72,13 +72,12 @@ pub fn parse_expiry(text: &str, now: i64) -> anyhow::Result<i64> {
         anyhow::ensure!(n > 0, "--expires {t:?}: the duration must be positive");
         return Ok(now.saturating_add(n.saturating_mul(ms)));
     }
-    let at = time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339)
-        .with_context(|| {
-            format!("--expires {t:?}: give an RFC 3339 time (2027-01-31T00:00:00Z) or a duration such as 90d, 12h, 30m")
-        })?;
-    let ms = (at.unix_timestamp_nanos() / 1_000_000) as i64;
-    anyhow::ensure!(ms > now, "--expires {t:?} is in the past");
-    Ok(ms)
+    keys::expiry_from_rfc3339(t, now).map_err(|e| match e {
+        keys::ExpiryError::NotRfc3339 => anyhow::anyhow!(
+            "--expires {t:?}: give an RFC 3339 time (2027-01-31T00:00:00Z) or a duration such as 90d, 12h, 30m"
+        ),
+        keys::ExpiryError::InThePast => anyhow::anyhow!("--expires {t:?} is in the past"),
+    })
 }
 
 fn describe(k: &keys::ApiKey, now: i64) -> String {

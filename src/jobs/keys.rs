@@ -84,6 +84,28 @@ pub fn looks_like_key(presented: &str) -> bool {
             .all(|b| b.is_ascii_hexdigit())
 }
 
+/// Why a key's expiry time was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExpiryError {
+    /// Not an RFC 3339 time.
+    NotRfc3339,
+    /// At or before now.
+    InThePast,
+}
+
+/// An expiry given as an RFC 3339 time, in Unix milliseconds; it must lie after `now_ms`.
+/// Shared by `sylva keys create --expires` and `POST /v1/keys`.
+pub fn expiry_from_rfc3339(text: &str, now_ms: i64) -> Result<i64, ExpiryError> {
+    let at =
+        time::OffsetDateTime::parse(text.trim(), &time::format_description::well_known::Rfc3339)
+            .map_err(|_| ExpiryError::NotRfc3339)?;
+    let ms = i64::try_from(at.unix_timestamp_nanos() / 1_000_000).unwrap_or(i64::MAX);
+    if ms <= now_ms {
+        return Err(ExpiryError::InThePast);
+    }
+    Ok(ms)
+}
+
 /// A new random key and its record (not yet stored).
 pub fn generate(
     name: &str,
