@@ -1,8 +1,8 @@
 //! The job queue and upload records on PostgreSQL, for many API replicas and workers on
 //! many machines (`--database postgres://...`).
 //!
-//! The semantics are SQLite's (src/jobs/sqlite.rs), statement for statement; what differs
-//! is how concurrent transactions are kept apart. SQLite runs one writer at a time, so a
+//! The queries are SQLite's, written once in `src/jobs/queries.rs` and included here; what
+//! this file adds is how concurrent transactions are kept apart. SQLite runs one writer at a time, so a
 //! read followed by a write is atomic. PostgreSQL runs many at once under READ COMMITTED,
 //! so every transaction that reads before it writes locks what it read:
 //! - a claim picks its job with `FOR UPDATE SKIP LOCKED`: concurrent workers take different

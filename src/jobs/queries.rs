@@ -18,6 +18,8 @@
 // on SQLite). Run `rustfmt --edition 2024 src/jobs/queries.rs` after editing: `cargo fmt` does
 // not reach an included file.
 
+use super::keys::{ApiKey, KEY_COLUMNS, SecretGeneration};
+
 fn parse_webhook(text: Option<String>) -> Result<Option<WebhookSpec>, DbError> {
     text.map(|t| serde_json::from_str(&t))
         .transpose()
@@ -1292,5 +1294,134 @@ fn delivery_record_from_row(r: &DbRow) -> Result<DeliveryRecord, DbError> {
         last_error: r.try_get("last_error")?,
         created_at: r.try_get("created_at")?,
         finished_at: r.try_get("finished_at")?,
+    })
+}
+
+// ---------------------------------------------------------------- managed API keys
+
+impl Store {
+    /// Stores a new key; a name already used is a conflict.
+    pub async fn create_api_key(&self, k: &ApiKey) -> Result<(), DbError> {
+        let taken: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM api_keys WHERE name = $1")
+            .bind(&k.name)
+            .fetch_one(&self.pool)
+            .await?;
+        if taken > 0 {
+            return Err(DbError::Conflict(format!(
+                "a key named {:?} exists already",
+                k.name
+            )));
+        }
+        sqlx::query(
+            "INSERT INTO api_keys (id, name, hash, prefix, admin, quota_jobs, \
+             quota_bytes, created_at, expires_at, revoked_at) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, NULL)",
+        )
+        .bind(&k.id)
+        .bind(&k.name)
+        .bind(&k.hash)
+        .bind(&k.prefix)
+        .bind(i64::from(k.admin))
+        .bind(k.quota_jobs)
+        .bind(k.quota_bytes)
+        .bind(k.created_at)
+        .bind(k.expires_at)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Every key, oldest first (revoked ones included).
+    pub async fn api_keys(&self) -> Result<Vec<ApiKey>, DbError> {
+        let sql = format!("SELECT {KEY_COLUMNS} FROM api_keys ORDER BY created_at, id");
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(key_from_row).collect()
+    }
+
+    /// The key whose hash is `hash`, usable or not.
+    pub async fn api_key_by_hash(&self, hash: &str) -> Result<Option<ApiKey>, DbError> {
+        let sql = format!("SELECT {KEY_COLUMNS} FROM api_keys WHERE hash = $1");
+        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(hash)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.map(|r| key_from_row(&r)).transpose()
+    }
+
+    /// Revokes the key `id` at `now`; the revoked record, or `NotFound`. Revoking
+    /// twice keeps the first time.
+    pub async fn revoke_api_key(&self, id: &str, now: i64) -> Result<ApiKey, DbError> {
+        sqlx::query("UPDATE api_keys SET revoked_at = $1 WHERE id = $2 AND revoked_at IS NULL")
+            .bind(now)
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        let sql = format!("SELECT {KEY_COLUMNS} FROM api_keys WHERE id = $1");
+        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.map(|r| key_from_row(&r))
+            .transpose()?
+            .ok_or(DbError::NotFound)
+    }
+
+    /// The webhook secret generation of `owner` (generation 0 when never rotated).
+    pub async fn secret_generation(&self, owner: &str) -> Result<SecretGeneration, DbError> {
+        let row = sqlx::query(
+            "SELECT generation, rotated_at, previous_until FROM webhook_secrets \
+             WHERE owner = $1",
+        )
+        .bind(owner)
+        .fetch_optional(&self.pool)
+        .await?;
+        match row {
+            None => Ok(SecretGeneration::default()),
+            Some(r) => Ok(SecretGeneration {
+                generation: r.try_get("generation")?,
+                rotated_at: r.try_get("rotated_at")?,
+                previous_until: r.try_get("previous_until")?,
+            }),
+        }
+    }
+
+    /// Moves `owner` to its next webhook secret at `now`, the previous one still in
+    /// use until `now + grace_ms`; the new state.
+    pub async fn rotate_secret(
+        &self,
+        owner: &str,
+        now: i64,
+        grace_ms: i64,
+    ) -> Result<SecretGeneration, DbError> {
+        sqlx::query(
+            "INSERT INTO webhook_secrets (owner, generation, rotated_at, previous_until) \
+             VALUES ($1, 1, $2, $3) \
+             ON CONFLICT (owner) DO UPDATE SET generation = webhook_secrets.generation + 1, \
+             rotated_at = excluded.rotated_at, previous_until = excluded.previous_until",
+        )
+        .bind(owner)
+        .bind(now)
+        .bind(now.saturating_add(grace_ms))
+        .execute(&self.pool)
+        .await?;
+        self.secret_generation(owner).await
+    }
+}
+
+/// An [`ApiKey`] from a row of [`KEY_COLUMNS`].
+fn key_from_row(r: &DbRow) -> Result<ApiKey, DbError> {
+    Ok(ApiKey {
+        id: r.try_get("id")?,
+        name: r.try_get("name")?,
+        hash: r.try_get("hash")?,
+        prefix: r.try_get("prefix")?,
+        admin: r.try_get::<i64, _>("admin")? != 0,
+        quota_jobs: r.try_get("quota_jobs")?,
+        quota_bytes: r.try_get("quota_bytes")?,
+        created_at: r.try_get("created_at")?,
+        expires_at: r.try_get("expires_at")?,
+        revoked_at: r.try_get("revoked_at")?,
     })
 }

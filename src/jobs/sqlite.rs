@@ -2,7 +2,9 @@
 //! every transaction that reads before it writes, so concurrent API writes and claims wait
 //! for each other instead of failing with "database is locked").
 //!
-//! This is the default backend: one file under the data directory, nothing else to run.
+//! This is the default backend: one file under the data directory, nothing else to run. The
+//! queries are written once for both databases in `src/jobs/queries.rs` and included here
+//! below the few pieces SQLite spells its own way.
 
 use std::path::Path;
 use std::time::Duration;
