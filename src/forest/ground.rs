@@ -450,12 +450,10 @@ mod tests {
 
     #[test]
     fn real_plots_give_a_plausible_dtm() {
-        let Some(dir) = crate::io::real_data_dir() else {
-            crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
-            return;
-        };
         for file in ["CSF_sample/sample.ply", "TreeLS_extdata/pine_plot.laz"] {
-            let path = dir.join(file);
+            let Some(path) = crate::io::real_data(file) else {
+                continue;
+            };
             let cloud =
                 crate::io::pointcloud::read_point_cloud(&path, &NoProgress).expect("read cloud");
             let r =

@@ -1,7 +1,6 @@
 //! End-to-end tests of the forest room: the inventory on a generated plot with known truth,
 //! and on the real public clouds (skipped with a message when they are absent).
 
-use std::path::PathBuf;
 
 use super::synthetic::{PlotSpec, SyntheticPlot, synthetic_plot};
 use super::*;
@@ -161,22 +160,9 @@ fn cancelling_stops_the_inventory() {
     assert!(matches!(r, Err(ForestError::Cancelled)), "{r:?}");
 }
 
-fn real(file: &str) -> Option<PathBuf> {
-    let Some(dir) = crate::io::real_data_dir() else {
-        crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
-        return None;
-    };
-    let path = dir.join(file);
-    if !path.is_file() {
-        crate::testing::skip("real-data", &format!("{} not found", path.display()));
-        return None;
-    }
-    Some(path)
-}
-
 #[test]
 fn pine_plot_gives_a_dbh_with_quality_figures_for_every_stem() {
-    let Some(path) = real("TreeLS_extdata/pine_plot.laz") else {
+    let Some(path) = crate::io::real_data("TreeLS_extdata/pine_plot.laz") else {
         return;
     };
     let cloud = read_point_cloud(&path, &NoProgress).expect("read");
@@ -213,7 +199,7 @@ fn pine_plot_gives_a_dbh_with_quality_figures_for_every_stem() {
 
 #[test]
 fn single_pine_gives_one_tree_of_about_25_cm() {
-    let Some(path) = real("TreeLS_extdata/pine.laz") else {
+    let Some(path) = crate::io::real_data("TreeLS_extdata/pine.laz") else {
         return;
     };
     let cloud = read_point_cloud(&path, &NoProgress).expect("read");
@@ -225,7 +211,7 @@ fn single_pine_gives_one_tree_of_about_25_cm() {
 
 #[test]
 fn lidr_trunk_slice_gives_one_trunk_circle() {
-    let Some(path) = real("lidR_extdata/dbh.laz") else {
+    let Some(path) = crate::io::real_data("lidR_extdata/dbh.laz") else {
         return;
     };
     let cloud = read_point_cloud(&path, &NoProgress).expect("read");

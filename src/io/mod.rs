@@ -121,22 +121,33 @@ pub(crate) fn file_len(path: &Path) -> Result<u64, IoError> {
         .map_err(|e| IoError::io(path, e))
 }
 
-/// The folder of real public point clouds used by the real-data tests: `$SYLVA_REAL_DATA`,
-/// else `$CARGO_MANIFEST_DIR/../shared/data/real`, else `/work/shared/data/real`.
+/// The real public point cloud `rel` (a path such as `TreeLS_extdata/pine.laz`) for the
+/// real-data tests: the first of `$SYLVA_REAL_DATA`, `$CARGO_MANIFEST_DIR/../shared/data/real`
+/// and the small set committed in `tests/data/real` that holds it. `None`, after printing why
+/// (`testing::skip`), when none does.
 #[cfg(test)]
-pub(crate) fn real_data_dir() -> Option<PathBuf> {
-    if let Some(dir) = std::env::var_os("SYLVA_REAL_DATA") {
-        let dir = PathBuf::from(dir);
-        if dir.is_dir() {
-            return Some(dir);
+pub(crate) fn real_data(rel: &str) -> Option<PathBuf> {
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dirs = std::env::var_os("SYLVA_REAL_DATA")
+        .map(PathBuf::from)
+        .into_iter()
+        .chain([
+            manifest.join("../shared/data/real"),
+            manifest.join("tests/data/real"),
+        ]);
+    let mut looked = Vec::new();
+    for dir in dirs {
+        let path = dir.join(rel);
+        if path.is_file() {
+            return Some(path);
         }
+        looked.push(dir.display().to_string());
     }
-    let beside = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/real");
-    if beside.is_dir() {
-        return Some(beside);
-    }
-    let fallback = PathBuf::from("/work/shared/data/real");
-    fallback.is_dir().then_some(fallback)
+    crate::testing::skip(
+        "real-data",
+        &format!("{rel} is in none of {} (set SYLVA_REAL_DATA)", looked.join(", ")),
+    );
+    None
 }
 
 #[cfg(test)]

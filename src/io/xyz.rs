@@ -197,7 +197,7 @@ pub fn read_xyz(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoEr
 mod tests {
     use super::*;
     use crate::io::pointcloud::{inspect_point_cloud, read_point_cloud};
-    use crate::io::real_data_dir;
+    use crate::io::real_data;
     use crate::progress::NoProgress;
 
     fn write(dir: &Path, name: &str, text: &str) -> std::path::PathBuf {
@@ -285,11 +285,9 @@ mod tests {
 
     #[test]
     fn real_adtree_xyz_reads_fully() {
-        let Some(dir) = real_data_dir() else {
-            crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
+        let Some(path) = real_data("AdTree_trees/tree1.xyz") else {
             return;
         };
-        let path = dir.join("AdTree_trees/tree1.xyz");
         assert_eq!(inspect_xyz(&path).unwrap().columns, 3);
         let c = read_point_cloud(&path, &NoProgress).unwrap();
         let lines = std::fs::read_to_string(&path).unwrap();

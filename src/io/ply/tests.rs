@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::io::pointcloud::{inspect_point_cloud, read_point_cloud};
-use crate::io::real_data_dir;
+use crate::io::real_data;
 use crate::progress::NoProgress;
 use glam::Vec3;
 
@@ -167,11 +167,9 @@ fn non_finite_vertex_is_rejected() {
 
 #[test]
 fn real_cloudcompare_ply_reads_fully() {
-    let Some(dir) = real_data_dir() else {
-        crate::testing::skip("real-data", "real data not found (set SYLVA_REAL_DATA)");
+    let Some(path) = real_data("CSF_sample/sample.ply") else {
         return;
     };
-    let path = dir.join("CSF_sample/sample.ply");
     let info = inspect_ply(&path).unwrap();
     assert_eq!(info.vertex_count, 100_000);
     let c = read_point_cloud(&path, &NoProgress).unwrap();
