@@ -88,29 +88,16 @@ pub fn fit_circle_weighted(points: &[[f64; 2]], weights: Option<&[f64]>) -> Opti
     })
 }
 
-/// Solves a 3×3 system by Cramer's rule; `None` when the determinant is negligible relative
-/// to the data scale (collinear or coincident points).
+/// Solves a 3×3 system; `None` when its determinant is negligible relative to the data scale
+/// (collinear or coincident points).
 fn solve3(a: [[f64; 3]; 3], b: [f64; 3], scale: f64) -> Option<[f64; 3]> {
-    let det = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
-    let d = det(&a);
+    let d = glam::DMat3::from_cols_array_2d(&a).determinant();
     // The determinant scales like n³ · (length²)²; compare with that magnitude.
     let mag = a[2][2].powi(3) * scale * scale;
     if !d.is_finite() || d.abs() <= 1e-12 * mag {
         return None;
     }
-    let mut out = [0.0; 3];
-    for (k, slot) in out.iter_mut().enumerate() {
-        let mut m = a;
-        for r in 0..3 {
-            m[r][k] = b[r];
-        }
-        *slot = det(&m) / d;
-    }
-    out.iter().all(|v| v.is_finite()).then_some(out)
+    crate::geom::solve3(a, b)
 }
 
 /// Weighted RMS of the geometric residuals `|p - centre| - r` (weights default to 1).

@@ -1,14 +1,21 @@
-//! Small dense linear systems of the registration solvers (ICP point-to-plane, the surface
-//! refinement): at most 7 unknowns (rotation, translation, scale).
+//! Sylva's dense linear algebra, on nalgebra: the small systems of the registration solvers
+//! (ICP point-to-plane, the surface refinement: at most 7 unknowns), the circle fits' 3×3
+//! systems and the symmetric eigenproblem of Horn's quaternion method.
+//!
+//! Two pieces stay hand-written, each for a measured or structural reason:
+//! - [`super::symmetric_eigen3`], the closed-form 3×3 eigen-decomposition used once per point
+//!   for normals and eigen-features (see its module for the timing against nalgebra);
+//! - `splat::cpu::linalg`, the CPU twin of the splatting kernels' matrix and quaternion maths,
+//!   which follows the WGSL operation for operation so the two agree to float rounding.
 
-/// Solves the leading `dim`×`dim` system `a x = b` (`dim` ≤ 7) by Gaussian elimination with
+use nalgebra::{DMatrix, DVector, Matrix4};
+
+/// Solves the leading `dim`×`dim` system `a x = b` (`dim` ≤ 7) by LU decomposition with
 /// partial pivoting; `None` when a pivot is at most `rel_pivot` times the largest diagonal
 /// entry (a degenerate system) or the solution is not finite.
-// Index loops mirror the matrix algebra.
-#[allow(clippy::needless_range_loop)]
 pub(crate) fn solve(
-    mut a: [[f64; 7]; 7],
-    mut b: [f64; 7],
+    a: [[f64; 7]; 7],
+    b: [f64; 7],
     dim: usize,
     rel_pivot: f64,
 ) -> Option<[f64; 7]> {
@@ -16,44 +23,35 @@ pub(crate) fn solve(
     if scale.is_nan() || scale <= 0.0 {
         return None;
     }
-    for col in 0..dim {
-        let piv = (col..dim).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[piv][col].abs() <= rel_pivot * scale {
-            return None;
-        }
-        a.swap(col, piv);
-        b.swap(col, piv);
-        for r in col + 1..dim {
-            let f = a[r][col] / a[col][col];
-            for k in col..dim {
-                a[r][k] -= f * a[col][k];
-            }
-            b[r] -= f * b[col];
-        }
+    let lu = DMatrix::from_fn(dim, dim, |r, c| a[r][c]).lu();
+    // `!(… > …)` also refuses a NaN pivot.
+    if lu.u().diagonal().iter().any(|p| !(p.abs() > rel_pivot * scale)) {
+        return None;
     }
-    let mut x = [0.0; 7];
-    for r in (0..dim).rev() {
-        let s: f64 = (r + 1..dim).map(|k| a[r][k] * x[k]).sum();
-        x[r] = (b[r] - s) / a[r][r];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
+    let x = lu.solve(&DVector::from_column_slice(&b[..dim]))?;
+    let mut out = [0.0; 7];
+    out[..dim].copy_from_slice(x.as_slice());
+    out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn solves_a_pivoting_system_and_refuses_a_singular_one() {
-        let mut a = [[0.0; 7]; 7];
-        a[0] = [0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-        a[1] = [3.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-        let x = solve(a, [4.0, 5.0, 0.0, 0.0, 0.0, 0.0, 0.0], 2, 1e-12).expect("regular");
-        assert!(
-            (x[0] - 1.0).abs() < 1e-12 && (x[1] - 2.0).abs() < 1e-12,
-            "{x:?}"
-        );
-        a[1] = [0.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-        assert!(solve(a, [4.0, 8.0, 0.0, 0.0, 0.0, 0.0, 0.0], 2, 1e-12).is_none());
-    }
+/// Solves the 3×3 system `a x = b` (row-major `a[i][j]`); `None` when it is singular or the
+/// solution is not finite. The caller judges near-singularity on its own scale first.
+pub(crate) fn solve3(a: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let m = nalgebra::Matrix3::from_fn(|r, c| a[r][c]);
+    let x = m.lu().solve(&nalgebra::Vector3::from(b))?;
+    let out = [x[0], x[1], x[2]];
+    out.iter().all(|v| v.is_finite()).then_some(out)
 }
+
+/// The unit eigenvector of the largest eigenvalue of the symmetric 4×4 matrix `a` (row-major);
+/// its sign is arbitrary.
+pub(crate) fn top_eigenvector4(a: [[f64; 4]; 4]) -> [f64; 4] {
+    let eig = Matrix4::from_fn(|r, c| a[r][c]).symmetric_eigen();
+    let top = (0..4)
+        .max_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j]))
+        .unwrap_or(0);
+    let v = eig.eigenvectors.column(top);
+    [v[0], v[1], v[2], v[3]]
+}
+
+

@@ -35,6 +35,7 @@ pub use normals::{
 pub use outliers::{
     OutlierFilter, OutlierParams, statistical_outlier_filter, statistical_outlier_filter_with_index,
 };
+pub(crate) use linalg::solve3;
 pub use pca::{SymmetricEigen3, covariance, symmetric_eigen3};
 pub use similarity::{Similarity, SimilarityFit, similarity_from_pairs, weighted_similarity};
 pub use voxel::{VoxelDownsample, VoxelParams, voxel_downsample};

@@ -1,6 +1,6 @@
-//! Small dense linear algebra in f64: neighbourhood covariance, the closed-form symmetric
-//! 3×3 eigen-decomposition used per point, and a cyclic Jacobi solver for small symmetric
-//! matrices (the 4×4 of Horn's quaternion method, and a reference for the 3×3 path).
+//! Neighbourhood covariance and the closed-form symmetric 3×3 eigen-decomposition used once
+//! per point (normals, eigen-features, stem axes), in f64. Other dense linear algebra is
+//! nalgebra's (`geom::linalg`).
 
 use glam::{DMat3, DVec3, Vec3};
 
@@ -139,59 +139,6 @@ fn orth_null_vector(m: DMat3, lambda: f64, u: DVec3) -> DVec3 {
     (e1 * t.cos() + e2 * t.sin()).normalize()
 }
 
-// Index loops mirror the matrix algebra.
-#[allow(clippy::needless_range_loop)]
-/// Cyclic Jacobi eigen-decomposition of a symmetric N×N matrix (row-major `a[i][j]`).
-/// Returns eigenvalues in descending order and the matching eigenvectors as rows.
-pub(crate) fn jacobi_eigen<const N: usize>(mut a: [[f64; N]; N]) -> ([f64; N], [[f64; N]; N]) {
-    let mut v = [[0.0; N]; N];
-    for (i, row) in v.iter_mut().enumerate() {
-        row[i] = 1.0;
-    }
-    for _sweep in 0..64 {
-        let off: f64 = (0..N)
-            .flat_map(|i| (0..N).filter(move |&j| j != i).map(move |j| (i, j)))
-            .map(|(i, j)| a[i][j] * a[i][j])
-            .sum();
-        let diag: f64 = (0..N).map(|i| a[i][i] * a[i][i]).sum();
-        if off <= 1e-30 * diag.max(1e-300) {
-            break;
-        }
-        for p in 0..N {
-            for q in p + 1..N {
-                if a[p][q].abs() < 1e-300 {
-                    continue;
-                }
-                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-                let t = if theta == 0.0 { 1.0 } else { t };
-                let c = 1.0 / (t * t + 1.0).sqrt();
-                let s = t * c;
-                for k in 0..N {
-                    let (akp, akq) = (a[k][p], a[k][q]);
-                    a[k][p] = c * akp - s * akq;
-                    a[k][q] = s * akp + c * akq;
-                }
-                for k in 0..N {
-                    let (apk, aqk) = (a[p][k], a[q][k]);
-                    a[p][k] = c * apk - s * aqk;
-                    a[q][k] = s * apk + c * aqk;
-                }
-                for row in v.iter_mut() {
-                    let (vp, vq) = (row[p], row[q]);
-                    row[p] = c * vp - s * vq;
-                    row[q] = s * vp + c * vq;
-                }
-            }
-        }
-    }
-    let mut order: [usize; N] = std::array::from_fn(|i| i);
-    order.sort_by(|&i, &j| a[j][j].total_cmp(&a[i][i]));
-    let values = order.map(|i| a[i][i]);
-    let vectors = order.map(|i| std::array::from_fn(|k| v[k][i]));
-    (values, vectors)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -240,13 +187,12 @@ mod tests {
                 let res = (a * v - v * e.values[k]).length();
                 assert!(res < 1e-6 * want[0].max(1.0), "residual {res} case {case}");
             }
-            let (jv, _) = jacobi_eigen([
-                a.x_axis.to_array(),
-                a.y_axis.to_array(),
-                a.z_axis.to_array(),
-            ]);
+            // nalgebra's iterative solver agrees.
+            let m = nalgebra::Matrix3::from_fn(|r, c| a.col(c)[r]);
+            let mut nv: Vec<f64> = m.symmetric_eigenvalues().iter().copied().collect();
+            nv.sort_by(|x, y| y.total_cmp(x));
             for k in 0..3 {
-                assert!((jv[k] - want[k]).abs() < 1e-9);
+                assert!((nv[k] - want[k]).abs() < 1e-9);
             }
         }
     }

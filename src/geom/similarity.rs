@@ -10,7 +10,8 @@ use glam::{DMat3, DQuat, DVec3, Vec3};
 use serde::{Deserialize, Serialize};
 
 use super::GeomError;
-use super::pca::{jacobi_eigen, symmetric_eigen3};
+use super::linalg::top_eigenvector4;
+use super::pca::symmetric_eigen3;
 
 /// A similarity transform x' = scale * rotation * x + translation (7 DoF).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -192,8 +193,7 @@ pub(crate) fn fit_similarity(
         [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
         [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
     ];
-    let (_, vecs) = jacobi_eigen(nmat);
-    let q = vecs[0];
+    let q = top_eigenvector4(nmat);
     let quat = DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize();
     let rotation = DMat3::from_quat(quat);
 

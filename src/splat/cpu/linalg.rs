@@ -1,5 +1,11 @@
 //! Small dense 3×3 / 2×3 helpers in f64 and the quaternion → rotation map with its
 //! vector-Jacobian product (quaternion order (w, x, y, z), docs/splatting.md "Model").
+//!
+//! Hand-written rather than glam or nalgebra on purpose: this is the CPU twin of the
+//! projection kernels (`shaders/project*.wgsl`), and each helper performs the kernel's
+//! operations in the kernel's order and layout (row-major 2×3 Jacobians, which neither crate
+//! has), so the twin tests compare the two to float rounding. The rest of Sylva's dense
+//! linear algebra is nalgebra's (`geom::linalg`).
 
 /// A 3×3 matrix, row-major.
 pub type Mat3 = [[f64; 3]; 3];
