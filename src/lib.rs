@@ -10,7 +10,6 @@
 extern crate self as sylva;
 
 pub mod api;
-pub mod cli;
 pub mod config;
 pub mod forest;
 pub mod gc;
@@ -18,7 +17,6 @@ pub mod geom;
 pub mod gpu;
 pub mod io;
 pub mod jobs;
-pub mod loadbench;
 pub mod pipeline;
 pub mod progress;
 pub mod rng;
