@@ -4,6 +4,10 @@
 //! stages (`pipeline`, built on `io`) → artifacts (`store`) → HTTP out. Lower rooms never
 //! import higher ones: `io` and `gpu` know nothing of the pipeline, the pipeline nothing of
 //! HTTP or SQL.
+//!
+//! The command line (clap) and the benchmarks (`sylva bench …`) are the binary's, in
+//! `src/main.rs`; the settings in [`config`] are plain structs, which derive clap's `Args` only
+//! under the `cli` feature (on by default) for the binary to flatten into its commands.
 
 // Lets code shared with the integration tests (tests/common/postgres.rs, compiled into the
 // job store's unit tests too) name this crate `sylva` from inside it.

@@ -1,5 +1,5 @@
 //! The `sylva` binary: the command line (`cli`, clap) and the benchmarks it runs (`loadbench`),
-//! on top of the library.
+//! on top of the library. Built only with the `cli` feature (on by default).
 
 use clap::Parser;
 
