@@ -27,6 +27,19 @@ fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> Result<
     }
 }
 
+/// Peak resident memory of this process in MiB, from /proc/self/status (Linux); 0 elsewhere.
+/// (The same reading as `sylva bench`'s tables.)
+fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let n: usize = arg(&args, "--gaussians", 3_000_000)?;
@@ -100,7 +113,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         frame.slots.used(),
         frame.slots.per_slot,
         frame.bands.len(),
-        sylva::loadbench::peak_rss_mib()
+        peak_rss_mib()
     );
     Ok(())
 }

@@ -1,4 +1,10 @@
+//! The `sylva` binary: the command line (`cli`, clap) and the benchmarks it runs (`loadbench`),
+//! on top of the library. Built only with the `cli` feature (on by default).
+
 use clap::Parser;
+
+mod cli;
+mod loadbench;
 
 fn main() -> std::process::ExitCode {
     // Mesa's Vulkan loader (lavapipe, on machines without a GPU) prints "XDG_RUNTIME_DIR is
@@ -9,7 +15,7 @@ fn main() -> std::process::ExitCode {
         // the environment concurrently.
         unsafe { std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir()) };
     }
-    let cli = sylva::cli::Cli::parse();
+    let cli = cli::Cli::parse();
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -20,7 +26,7 @@ fn main() -> std::process::ExitCode {
             return std::process::ExitCode::FAILURE;
         }
     };
-    match runtime.block_on(sylva::cli::main(cli)) {
+    match runtime.block_on(cli::main(cli)) {
         Ok(code) => code,
         Err(e) => {
             eprintln!("error: {e:#}");

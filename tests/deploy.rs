@@ -2,13 +2,24 @@
 //! deploy/Dockerfile, deploy/compose.yaml and deploy/k8s/ names a real subcommand and real
 //! flags, every `SYLVA_*` variable they (and deploy/README.md) set is one the CLI reads, the
 //! YAML parses, and the health checks and probes point at routes the API serves, on the port
-//! it listens on. The CLI is read through clap (`sylva::cli::Cli`), not by running the binary.
+//! it listens on. The CLI is read through clap (the binary's `cli::Cli`), not by running the
+//! binary.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use clap::CommandFactory;
 use serde_norway::Value;
+
+// The command line is the binary's (src/main.rs), not the library's: its two modules are
+// compiled into this test as they are into the binary, so that clap's definition of every
+// subcommand, flag and variable can be read here. Only `Cli` is used.
+#[allow(dead_code, unused_imports)]
+#[path = "../src/cli/mod.rs"]
+mod cli;
+#[allow(dead_code, unused_imports)]
+#[path = "../src/loadbench/mod.rs"]
+mod loadbench;
 
 fn deploy_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy")
@@ -27,7 +38,7 @@ struct Surface {
 
 /// Every subcommand's flags and variables, by subcommand name.
 fn cli() -> BTreeMap<String, Surface> {
-    let mut cmd = sylva::cli::Cli::command();
+    let mut cmd = cli::Cli::command();
     // Built, so that clap's own --help and --version are listed too.
     cmd.build();
     cmd.get_subcommands()

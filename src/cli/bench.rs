@@ -48,7 +48,7 @@ pub struct BenchArgs {
 }
 
 pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
-    use crate::pipeline::params::{TrainBackend, TrainParams};
+    use sylva::pipeline::params::{TrainBackend, TrainParams};
     if a.what == "load" {
         crate::loadbench::run(&a.load).await?;
         return Ok(ExitCode::SUCCESS);
@@ -99,20 +99,20 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         let colmap = match &a.colmap {
             Some(c) => c.clone(),
             None => {
-                let preset = crate::synth::Preset::from_name(&a.preset)
+                let preset = sylva::synth::Preset::from_name(&a.preset)
                     .ok_or_else(|| anyhow::anyhow!("unknown preset {:?}", a.preset))?;
-                let p = crate::synth::SynthParams::new(preset);
+                let p = sylva::synth::SynthParams::new(preset);
                 eprintln!("generating a synthetic {} plot…", a.preset);
-                crate::synth::generate(&p, &tmp, &crate::progress::NoProgress)?;
+                sylva::synth::generate(&p, &tmp, &sylva::progress::NoProgress)?;
                 tmp.join("colmap")
             }
         };
-        let project = crate::io::colmap::find_project(&colmap)?;
+        let project = sylva::io::colmap::find_project(&colmap)?;
         let images = project
             .images_dir
             .clone()
             .ok_or_else(|| anyhow::anyhow!("{}: no images/ folder", colmap.display()))?;
-        let model = crate::io::colmap::read_model(&project.sparse_dir, &crate::progress::NoProgress)?;
+        let model = sylva::io::colmap::read_model(&project.sparse_dir, &sylva::progress::NoProgress)?;
         println!(
             "| device | resolution (px) | images | Gaussians | tiles per Gaussian | steps/s | s/step | projection ms | sort ms | raster ms | loss ms | backward ms | optimiser ms | peak RSS MiB |"
         );
@@ -129,31 +129,31 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             // Time the steps themselves: no densification, no evaluation views.
             cfg.densify_until = 0;
             cfg.test_every = 0;
-            let data = crate::splat::dataset::load(&model, &images, cfg.resolution, 0, &crate::progress::NoProgress)?;
-            let mut init = crate::splat::init::from_sfm_points(&data.points, &data.colours)?;
+            let data = sylva::splat::dataset::load(&model, &images, cfg.resolution, 0, &sylva::progress::NoProgress)?;
+            let mut init = sylva::splat::init::from_sfm_points(&data.points, &data.colours)?;
             let before = init.len();
-            crate::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None, 0);
+            sylva::pipeline::train::cap_gaussians(&mut init, params.max_gaussians, params.seed, None, 0);
             if init.len() < before {
-                crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
+                sylva::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
             }
             let n = init.len();
             let mut backend = if a.raster_pixels > 0 && backend == TrainBackend::Gpu {
-                let mut ctx = crate::splat::gpu::GpuContext::new()?;
+                let mut ctx = sylva::splat::gpu::GpuContext::new()?;
                 ctx.raster_pixels = a.raster_pixels;
-                Box::new(crate::splat::gpu::GpuBackend::with_context(ctx, [0.0; 3])?)
-                    as Box<dyn crate::splat::backend::Backend>
+                Box::new(sylva::splat::gpu::GpuBackend::with_context(ctx, [0.0; 3])?)
+                    as Box<dyn sylva::splat::backend::Backend>
             } else {
-                crate::pipeline::train::backend_for(&params)?
+                sylva::pipeline::train::backend_for(&params)?
             };
             backend.set_timed(true);
-            let mut strategy = crate::splat::trainer::default_strategy(&cfg);
-            let out = crate::splat::trainer::train(
+            let mut strategy = sylva::splat::trainer::default_strategy(&cfg);
+            let out = sylva::splat::trainer::train(
                 backend.as_mut(),
                 &data,
                 init,
                 &cfg,
                 &mut strategy,
-                &crate::progress::NoProgress,
+                &sylva::progress::NoProgress,
             )?;
             let t = out.phase_times;
             let steps = f64::from(cfg.steps);

@@ -28,9 +28,9 @@ pub(super) async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
         eprintln!("generating a synthetic plot in {} …", plot.display());
         let (dir, seed) = (plot.clone(), a.seed);
         tokio::task::spawn_blocking(move || {
-            let mut p = crate::synth::SynthParams::new(crate::synth::Preset::Tiny);
+            let mut p = sylva::synth::SynthParams::new(sylva::synth::Preset::Tiny);
             p.seed = seed;
-            crate::synth::generate(&p, &dir, &crate::progress::NoProgress)
+            sylva::synth::generate(&p, &dir, &sylva::progress::NoProgress)
         })
         .await??;
     }
@@ -71,7 +71,7 @@ pub(super) async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
         anyhow::bail!("the server did not start on {base} (is the port taken? use --listen)");
     }
     // 3. The job: GPU when there is one, else the CPU reference on a small budget.
-    let gpu = crate::gpu::probe().await;
+    let gpu = sylva::gpu::probe().await;
     let params = match &gpu {
         // A software adapter (lavapipe) gets short training; its Gaussian budget is the
         // device default (`max_gaussians` 0: pipeline::train::SOFTWARE_GPU_BUDGET), an even

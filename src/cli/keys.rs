@@ -8,8 +8,8 @@ use std::process::ExitCode;
 use anyhow::Context;
 use clap::{Args, Subcommand};
 
-use crate::config::{StoreArgs, init_tracing};
-use crate::jobs::{DbError, JobStore, keys, now_ms, rfc3339};
+use sylva::config::{StoreArgs, init_tracing};
+use sylva::jobs::{DbError, JobStore, keys, now_ms, rfc3339};
 
 #[derive(Debug, Args)]
 pub struct KeysArgs {

@@ -5,7 +5,7 @@
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-use crate::progress::{CancelFlag, Progress};
+use sylva::progress::{CancelFlag, Progress};
 
 /// Steps of the bar: a fraction in [0, 1] is shown to 0.1 %.
 const STEPS: u64 = 1000;

@@ -72,8 +72,8 @@ pub struct RunArgs {
 }
 
 /// `--strategy`'s value.
-pub(super) fn parse_strategy(s: &str) -> anyhow::Result<crate::pipeline::params::DensifyStrategy> {
-    use crate::pipeline::params::DensifyStrategy;
+pub(super) fn parse_strategy(s: &str) -> anyhow::Result<sylva::pipeline::params::DensifyStrategy> {
+    use sylva::pipeline::params::DensifyStrategy;
     match s {
         "default" => Ok(DensifyStrategy::Default),
         "mcmc" => Ok(DensifyStrategy::Mcmc),
@@ -83,7 +83,7 @@ pub(super) fn parse_strategy(s: &str) -> anyhow::Result<crate::pipeline::params:
 
 /// Applies `sylva run`'s training flags to `params`.
 fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result<()> {
-    use crate::pipeline::params::{InitSource, TrainBackend, TrunkTerm};
+    use sylva::pipeline::params::{InitSource, TrainBackend, TrunkTerm};
     let t = &mut params.train;
     match a.init.as_deref() {
         None => {}
@@ -211,7 +211,7 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
                 &src,
                 &d2,
                 &ExtractLimits::default(),
-                &crate::progress::NoProgress,
+                &sylva::progress::NoProgress,
             )
         })
         .await?

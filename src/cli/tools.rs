@@ -100,13 +100,13 @@ pub struct InventoryArgs {
 }
 
 pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
-    let Some(preset) = crate::synth::Preset::from_name(&a.preset) else {
+    let Some(preset) = sylva::synth::Preset::from_name(&a.preset) else {
         anyhow::bail!(
             "unknown preset {:?}; presets: tiny, plot, stand, object",
             a.preset
         );
     };
-    let mut p = crate::synth::SynthParams::new(preset);
+    let mut p = sylva::synth::SynthParams::new(preset);
     p.seed = a.seed;
     p.noise_cm = a.noise_cm;
     p.images = a.images.or(p.images);
@@ -117,7 +117,7 @@ pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
     p.png = a.png;
     let out = a.out.clone();
     let summary = tokio::task::spawn_blocking(move || {
-        crate::synth::generate(&p, &out, &ConsoleProgress::new("synth", None))
+        sylva::synth::generate(&p, &out, &ConsoleProgress::new("synth", None))
     })
     .await??;
     eprintln!();
@@ -129,19 +129,19 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
     let path = a.cloud.clone();
     let (rows, cloud_points) = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
         let progress = ConsoleProgress::new("inventory", None);
-        let cloud = crate::io::pointcloud::read_point_cloud(&path, &progress)?;
-        let inv = crate::forest::inventory(
+        let cloud = sylva::io::pointcloud::read_point_cloud(&path, &progress)?;
+        let inv = sylva::forest::inventory(
             &cloud,
-            &crate::forest::InventoryParams::default(),
+            &sylva::forest::InventoryParams::default(),
             &progress,
         )?;
         Ok((inv.trees, cloud.len()))
     })
     .await??;
     eprintln!();
-    crate::forest::write_trees_csv(&a.out, &rows)?;
+    sylva::forest::write_trees_csv(&a.out, &rows)?;
     if let Some(g) = &a.geojson {
-        crate::forest::write_trees_geojson(g, &rows)?;
+        sylva::forest::write_trees_geojson(g, &rows)?;
     }
     println!(
         "{} stems from {} points; inventory in {}",
@@ -150,8 +150,8 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
         a.out.display()
     );
     if let Some(field) = &a.field {
-        let cmp = crate::forest::compare_with_field_file(&rows, field)?;
-        for line in crate::forest::accuracy_lines(&cmp) {
+        let cmp = sylva::forest::compare_with_field_file(&rows, field)?;
+        for line in sylva::forest::accuracy_lines(&cmp) {
             println!("{line}");
         }
     }
@@ -159,7 +159,7 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
 }
 
 pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
-    use crate::pipeline::params::{TrainBackend, TrainParams};
+    use sylva::pipeline::params::{TrainBackend, TrainParams};
     let backend = match a.backend.as_str() {
         "gpu" => TrainBackend::Gpu,
         "cpu" => TrainBackend::Cpu,
@@ -178,17 +178,17 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
     };
     let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
         let progress = ConsoleProgress::new("train", None);
-        let project = crate::io::colmap::find_project(&a.colmap)?;
+        let project = sylva::io::colmap::find_project(&a.colmap)?;
         let images = project.images_dir.clone().ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: no images/ folder beside the sparse model",
                 a.colmap.display()
             )
         })?;
-        let model = crate::io::colmap::read_model(&project.sparse_dir, &progress)?;
-        let mut backend = crate::pipeline::train::backend_for(&params)?;
+        let model = sylva::io::colmap::read_model(&project.sparse_dir, &progress)?;
+        let mut backend = sylva::pipeline::train::backend_for(&params)?;
         let (params, budget_source) =
-            crate::pipeline::train::with_budget(&params, backend.device_kind());
+            sylva::pipeline::train::with_budget(&params, backend.device_kind());
         let cfg = params.config();
         progress.log(&format!(
             "budget: {} Gaussians ({budget_source})",
@@ -197,7 +197,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
                 n => n.to_string(),
             }
         ));
-        let data = crate::splat::dataset::load(
+        let data = sylva::splat::dataset::load(
             &model,
             &images,
             cfg.resolution,
@@ -205,15 +205,15 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             &progress,
         )?;
         let mut init = if a.init == "sfm" {
-            crate::splat::init::from_sfm_points(&data.points, &data.colours)?
+            sylva::splat::init::from_sfm_points(&data.points, &data.colours)?
         } else {
             let file =
                 std::fs::File::open(&a.init).map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?;
-            crate::splat::export::read_ply(std::io::BufReader::new(file))
+            sylva::splat::export::read_ply(std::io::BufReader::new(file))
                 .map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?
         };
         let before = init.len();
-        crate::pipeline::train::cap_gaussians(
+        sylva::pipeline::train::cap_gaussians(
             &mut init,
             params.max_gaussians,
             params.seed,
@@ -221,10 +221,10 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             0,
         );
         if a.init == "sfm" && init.len() < before {
-            crate::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
+            sylva::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
         }
-        let mut strategy = crate::splat::trainer::strategy_for(&cfg)?;
-        let outcome = crate::splat::trainer::train(
+        let mut strategy = sylva::splat::trainer::strategy_for(&cfg)?;
+        let outcome = sylva::splat::trainer::train(
             backend.as_mut(),
             &data,
             init,
@@ -232,7 +232,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             strategy.as_mut(),
             &progress,
         )?;
-        crate::splat::trainer::write_outputs(&a.out, &outcome, &data)?;
+        sylva::splat::trainer::write_outputs(&a.out, &outcome, &data)?;
         Ok(outcome)
     })
     .await??;

@@ -35,11 +35,11 @@ use glam::{DMat3, DVec3, Vec3};
 use serde::Serialize;
 
 use super::peak_rss_mib;
-use crate::geom::{
+use sylva::geom::{
     IcpMethod, IcpParams, NormalOrientation, NormalParams, OutlierParams, RobustKernel, Similarity,
     VoxelParams, estimate_normals, icp, statistical_outlier_filter, voxel_downsample,
 };
-use crate::progress::NoProgress;
+use sylva::progress::NoProgress;
 
 /// Default edge of the ICP tile, metres: the square whose corner is the cloud's minimum x, y
 /// rounded down to whole metres (all heights kept). At 10 m, on the tiled benchmark plot, this
@@ -181,7 +181,7 @@ pub fn run(a: &GeomBenchArgs) -> anyhow::Result<Vec<GeomRow>> {
     );
 
     let t = Clock::start();
-    let cloud = crate::io::pointcloud::read_point_cloud(input, &NoProgress)
+    let cloud = sylva::io::pointcloud::read_point_cloud(input, &NoProgress)
         .with_context(|| format!("reading {}", input.display()))?;
     let (secs, cpu) = t.read();
     let file_bytes = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);

@@ -36,11 +36,11 @@ use clap::Args;
 use glam::DVec3;
 use serde_json::Value;
 
-use crate::forest::{TreeRow, compare_with_field};
-use crate::pipeline::params::{DensifyStrategy, InitSource, PipelineParams, TrunkTerm};
-use crate::pipeline::{self, Stage, StageInputs};
-use crate::rng::SplitMix64;
-use crate::splat::model::sigmoid;
+use sylva::forest::{TreeRow, compare_with_field};
+use sylva::pipeline::params::{DensifyStrategy, InitSource, PipelineParams, TrunkTerm};
+use sylva::pipeline::{self, Stage, StageInputs};
+use sylva::rng::SplitMix64;
+use sylva::splat::model::sigmoid;
 
 /// Flags of `sylva bench method`.
 #[derive(Debug, Clone, Args)]
@@ -188,7 +188,7 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
 /// A progress sink that prints the stage's log lines.
 struct Log(&'static str);
 
-impl crate::progress::Progress for Log {
+impl sylva::progress::Progress for Log {
     fn set(&self, _fraction: f64) {}
     fn log(&self, message: &str) {
         eprintln!("    {}: {message}", self.0);
@@ -202,16 +202,16 @@ fn read_json(path: &Path) -> anyhow::Result<Value> {
 
 /// Generates plot `seed` (once) and runs stages ingest to segment on it (once).
 fn prepare_plot(
-    preset: crate::synth::Preset,
+    preset: sylva::synth::Preset,
     seed: u64,
     dir: &Path,
 ) -> anyhow::Result<StageInputs> {
     let plot = dir.join("plot");
     if !plot.join("truth.json").is_file() {
         eprintln!("generating {} …", plot.display());
-        let mut p = crate::synth::SynthParams::new(preset);
+        let mut p = sylva::synth::SynthParams::new(preset);
         p.seed = seed;
-        crate::synth::generate(&p, &plot, &crate::progress::NoProgress)?;
+        sylva::synth::generate(&p, &plot, &sylva::progress::NoProgress)?;
     }
     let inputs = StageInputs {
         lidar: plot.join("lidar.laz"),
@@ -296,8 +296,8 @@ fn run_arm(
     params.train.resolution = a.method_resolution;
     params.train.max_gaussians = a.method_cap;
     params.train.backend = match a.method_backend.as_str() {
-        "cpu" => crate::pipeline::params::TrainBackend::Cpu,
-        _ => crate::pipeline::params::TrainBackend::Gpu,
+        "cpu" => sylva::pipeline::params::TrainBackend::Cpu,
+        _ => sylva::pipeline::params::TrainBackend::Gpu,
     };
     let weight = if arm.depth {
         format!("-w{}", a.method_depth_weight)
@@ -334,8 +334,8 @@ fn run_arm(
         .field_dbh
         .as_deref()
         .context("the plot has no field_dbh.csv")?;
-    let field = crate::io::tables::read_field_dbh(field_path)?;
-    let cmp = compare_with_field(&rows, &field, crate::forest::accuracy::MATCH_DISTANCE_M);
+    let field = sylva::io::tables::read_field_dbh(field_path)?;
+    let cmp = compare_with_field(&rows, &field, sylva::forest::accuracy::MATCH_DISTANCE_M);
     let trees = cmp
         .matches
         .iter()
@@ -368,7 +368,7 @@ fn truth_offsets(
     min_opacity: f32,
 ) -> anyhow::Result<Vec<f64>> {
     let file = std::fs::File::open(splats).with_context(|| splats.display().to_string())?;
-    let g = crate::splat::export::read_ply(std::io::BufReader::new(file))?;
+    let g = sylva::splat::export::read_ply(std::io::BufReader::new(file))?;
     let truth = read_json(truth)?;
     let v3 = |v: &Value| -> Option<DVec3> {
         Some(DVec3::new(v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?))
@@ -448,7 +448,7 @@ fn rmse_bias(pairs: &[(f64, f64)]) -> (f64, f64) {
 
 /// Runs the benchmark and prints its table.
 pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
-    let preset = crate::synth::Preset::from_name(&a.method_preset).with_context(|| {
+    let preset = sylva::synth::Preset::from_name(&a.method_preset).with_context(|| {
         format!(
             "--method-preset {:?}: tiny, plot, stand or object",
             a.method_preset

@@ -32,13 +32,13 @@ use rand_chacha::ChaCha8Rng;
 use rand_core::{RngCore, SeedableRng};
 use tokio::sync::{Notify, oneshot};
 
-use crate::api::{self, AppState, Counters};
-use crate::config::{ApiArgs, WorkerArgs};
-use crate::jobs::{
+use sylva::api::{self, AppState, Counters};
+use sylva::config::{ApiArgs, WorkerArgs};
+use sylva::jobs::{
     Admission, Created, Database, JobInputs, JobStore, NewJob, UploadKind, UploadRecord, now_ms,
 };
-use crate::pipeline::PipelineParams;
-use crate::store::BlobStore;
+use sylva::pipeline::PipelineParams;
+use sylva::store::BlobStore;
 
 /// Connections of the job database pool: the same as `sylva serve` opens.
 const POOL_CONNECTIONS: u32 = 16;
@@ -145,7 +145,7 @@ struct ServeDefaults {
     #[command(flatten)]
     worker: WorkerArgs,
     #[command(flatten)]
-    webhooks: crate::config::WebhookArgs,
+    webhooks: sylva::config::WebhookArgs,
 }
 
 /// The API running in this process, without workers.
@@ -167,7 +167,7 @@ impl Server {
         let blobs = BlobStore::open(data)?;
         let defaults = ServeDefaults::try_parse_from(["sylva-bench-load"])?;
         let token = defaults.api.token.first().cloned();
-        let webhooks = crate::webhooks::Webhooks::open(&db, &defaults.webhooks).await?;
+        let webhooks = sylva::webhooks::Webhooks::open(&db, &defaults.webhooks).await?;
         let state = AppState {
             db: db.clone(),
             blobs,

@@ -133,7 +133,7 @@ impl Cluster {
         let root = std::env::temp_dir().join(format!(
             "sylva-bench-pg-{}-{}",
             std::process::id(),
-            crate::jobs::now_ms()
+            sylva::jobs::now_ms()
         ));
         std::fs::create_dir_all(&root)
             .map_err(|e| Unavailable::Broken(format!("{}: {e}", root.display())))?;

@@ -38,7 +38,7 @@ use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 
 use super::{ScratchDir, quantile_ms};
-use crate::jobs::JobStore;
+use sylva::jobs::JobStore;
 
 /// Unfinished jobs kept per worker slot: enough that no worker ever waits for work, few enough
 /// that submissions go on for most of the run (and so across the restart).
@@ -601,9 +601,9 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
     {
         let (dir, seed) = (plot.clone(), a.seed);
         tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-            let mut p = crate::synth::SynthParams::new(crate::synth::Preset::Tiny);
+            let mut p = sylva::synth::SynthParams::new(sylva::synth::Preset::Tiny);
             p.seed = seed;
-            crate::synth::generate(&p, &dir, &crate::progress::NoProgress)?;
+            sylva::synth::generate(&p, &dir, &sylva::progress::NoProgress)?;
             let file = std::fs::File::create(dir.join("colmap.tar"))?;
             let mut tar = tar::Builder::new(file);
             tar.append_dir_all(".", dir.join("colmap"))?;

@@ -11,15 +11,15 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use tokio::sync::{Notify, watch};
 
-use crate::api::{self, AppState, Counters};
-use crate::config::{ApiArgs, RetentionArgs, StoreArgs, WebhookArgs, WorkerArgs, init_tracing};
-use crate::io::archive::{self, ExtractLimits};
-use crate::jobs::JobStore;
-use crate::pipeline::{self, PipelineParams, Stage, StageInputs};
-use crate::progress::{CancelFlag, Progress};
-use crate::store::BlobStore;
-use crate::webhooks::{Dispatcher, Webhooks};
-use crate::worker::WorkerPool;
+use sylva::api::{self, AppState, Counters};
+use sylva::config::{ApiArgs, RetentionArgs, StoreArgs, WebhookArgs, WorkerArgs, init_tracing};
+use sylva::io::archive::{self, ExtractLimits};
+use sylva::jobs::JobStore;
+use sylva::pipeline::{self, PipelineParams, Stage, StageInputs};
+use sylva::progress::{CancelFlag, Progress};
+use sylva::store::BlobStore;
+use sylva::webhooks::{Dispatcher, Webhooks};
+use sylva::worker::WorkerPool;
 
 mod bench;
 mod demo;
@@ -165,7 +165,7 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
     init_tracing(&a.store);
     a.worker.validate().map_err(anyhow::Error::msg)?;
     let (db, blobs) = open_store(&a.store).await?;
-    let gpu = tokio::time::timeout(Duration::from_secs(10), crate::gpu::probe())
+    let gpu = tokio::time::timeout(Duration::from_secs(10), sylva::gpu::probe())
         .await
         .ok()
         .flatten();
@@ -195,7 +195,7 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
         .context("cannot build the webhook client")?;
     let dispatcher = tokio::spawn(dispatcher.run(stop_rx.clone()));
     let sweeper = (a.api.retention.gc_interval_secs > 0).then(|| {
-        tokio::spawn(crate::gc::run_periodically(
+        tokio::spawn(sylva::gc::run_periodically(
             db.clone(),
             blobs.clone(),
             a.api.retention.clone(),
@@ -235,7 +235,7 @@ async fn serve(a: ServeArgs) -> anyhow::Result<()> {
 async fn gc(a: GcArgs) -> anyhow::Result<ExitCode> {
     init_tracing(&a.store);
     let (db, blobs) = open_store(&a.store).await?;
-    let report = crate::gc::sweep(&db, &blobs, &a.retention)
+    let report = sylva::gc::sweep(&db, &blobs, &a.retention)
         .await
         .context("retention sweep")?;
     println!(
