@@ -1,7 +1,6 @@
 //! End-to-end tests of the forest room: the inventory on a generated plot with known truth,
 //! and on the real public clouds (skipped with a message when they are absent).
 
-
 use super::synthetic::{PlotSpec, SyntheticPlot, synthetic_plot};
 use super::*;
 use crate::io::pointcloud::read_point_cloud;

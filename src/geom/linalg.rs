@@ -13,19 +13,18 @@ use nalgebra::{DMatrix, DVector, Matrix4};
 /// Solves the leading `dim`×`dim` system `a x = b` (`dim` ≤ 7) by LU decomposition with
 /// partial pivoting; `None` when a pivot is at most `rel_pivot` times the largest diagonal
 /// entry (a degenerate system) or the solution is not finite.
-pub(crate) fn solve(
-    a: [[f64; 7]; 7],
-    b: [f64; 7],
-    dim: usize,
-    rel_pivot: f64,
-) -> Option<[f64; 7]> {
+pub(crate) fn solve(a: [[f64; 7]; 7], b: [f64; 7], dim: usize, rel_pivot: f64) -> Option<[f64; 7]> {
     let scale = (0..dim).map(|i| a[i][i].abs()).fold(0.0, f64::max);
     if scale.is_nan() || scale <= 0.0 {
         return None;
     }
     let lu = DMatrix::from_fn(dim, dim, |r, c| a[r][c]).lu();
-    // `!(… > …)` also refuses a NaN pivot.
-    if lu.u().diagonal().iter().any(|p| !(p.abs() > rel_pivot * scale)) {
+    if lu
+        .u()
+        .diagonal()
+        .iter()
+        .any(|p| p.is_nan() || p.abs() <= rel_pivot * scale)
+    {
         return None;
     }
     let x = lu.solve(&DVector::from_column_slice(&b[..dim]))?;
@@ -53,5 +52,3 @@ pub(crate) fn top_eigenvector4(a: [[f64; 4]; 4]) -> [f64; 4] {
     let v = eig.eigenvectors.column(top);
     [v[0], v[1], v[2], v[3]]
 }
-
-

@@ -28,6 +28,7 @@ pub use icp::{
     IcpMethod, IcpParams, IcpResult, IcpWeights, RobustKernel, icp, icp_weighted, icp_with_index,
 };
 pub use index::{Neighbour, PointIndex};
+pub(crate) use linalg::solve3;
 pub use normals::{
     EigenFeatures, NormalOrientation, NormalParams, Normals, eigen_features, estimate_normals,
     estimate_normals_with_index,
@@ -35,7 +36,6 @@ pub use normals::{
 pub use outliers::{
     OutlierFilter, OutlierParams, statistical_outlier_filter, statistical_outlier_filter_with_index,
 };
-pub(crate) use linalg::solve3;
 pub use pca::{SymmetricEigen3, covariance, symmetric_eigen3};
 pub use similarity::{Similarity, SimilarityFit, similarity_from_pairs, weighted_similarity};
 pub use voxel::{VoxelDownsample, VoxelParams, voxel_downsample};

@@ -145,7 +145,10 @@ pub(crate) fn real_data(rel: &str) -> Option<PathBuf> {
     }
     crate::testing::skip(
         "real-data",
-        &format!("{rel} is in none of {} (set SYLVA_REAL_DATA)", looked.join(", ")),
+        &format!(
+            "{rel} is in none of {} (set SYLVA_REAL_DATA)",
+            looked.join(", ")
+        ),
     );
     None
 }
