@@ -1,6 +1,13 @@
 //! Neighbourhood covariance and the closed-form symmetric 3×3 eigen-decomposition used once
 //! per point (normals, eigen-features, stem axes), in f64. Other dense linear algebra is
 //! nalgebra's (`geom::linalg`).
+//!
+//! Why the 3×3 decomposition stays hand-written: it runs once per point of every cloud, and
+//! on 2 000 000 random symmetric matrices it took 256–275 ns each against 485–489 ns for
+//! nalgebra 0.34's `SymmetricEigen` (1.8–1.9× slower; release build, one core of this 2-core
+//! machine with builds running beside it, so the ratio is the figure to read; 2026-11-26, a
+//! scratch program timing both on the same matrices). The unit test below holds the two to
+//! agreement.
 
 use glam::{DMat3, DVec3, Vec3};
 
