@@ -1,0 +1,400 @@
+//! Coordinate reference systems (issue 27): which CRS a cloud's coordinates are in, read from
+//! a LAS/LAZ file's projection records or given by the user (`EPSG:32649`, WKT, or a PROJ
+//! string), and the transform of its coordinates to WGS84 longitude and latitude for GeoJSON
+//! (RFC 7946 §4 requires WGS84).
+//!
+//! The transforms are `proj4rs`'s (a pure-Rust port of PROJ.4's projections, no C library to
+//! install), the EPSG definitions are `crs-definitions`' (the EPSG registry as PROJ strings and
+//! WKT), and WKT without an EPSG code is turned into a PROJ string by `proj4wkt`. Nothing here
+//! writes a projection formula of its own.
+//!
+//! LAS 1.4 (ASPRS R15, §2.5) stores the CRS either as OGC WKT (record `LASF_Projection`/2112,
+//! in a VLR or an EVLR) or as GeoTIFF keys (`LASF_Projection`/34735, the GeoKeyDirectoryTag of
+//! GeoTIFF 1.0 §2.4). Of the keys, `ProjectedCSTypeGeoKey` (3072) and `GeographicTypeGeoKey`
+//! (2048) name an EPSG code; a user-defined CRS (code 32767) spelled out key by key is refused
+//! with a message asking for `--crs`.
+
+use proj4rs::proj::Proj;
+
+/// User id of the LAS records that hold a CRS.
+pub const LAS_PROJECTION_USER_ID: &str = "LASF_Projection";
+/// LAS record id of OGC WKT (math transform or coordinate system WKT).
+pub const LAS_WKT_RECORD: u16 = 2112;
+/// LAS record id of the GeoTIFF GeoKeyDirectoryTag.
+pub const LAS_GEOKEY_RECORD: u16 = 34735;
+
+/// GeoTIFF key naming a projected CRS by EPSG code.
+const PROJECTED_CS_TYPE_KEY: u16 = 3072;
+/// GeoTIFF key naming a geographic CRS by EPSG code.
+const GEOGRAPHIC_TYPE_KEY: u16 = 2048;
+/// GeoTIFF's "user-defined" code: the CRS is spelled out in further keys.
+const USER_DEFINED: u16 = 32767;
+
+/// Why a CRS could not be read or used.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CrsError {
+    /// The text is not an EPSG code, WKT or PROJ string this module understands.
+    #[error("{0}")]
+    Unreadable(String),
+    /// An EPSG code the registry does not list.
+    #[error(
+        "EPSG:{0} is not in the EPSG registry Sylva carries; give the CRS as WKT or a PROJ string"
+    )]
+    UnknownEpsg(u32),
+    /// The transform failed (a point outside the projection's domain, for instance).
+    #[error("cannot transform coordinates from {from} to WGS84: {why}")]
+    Transform { from: String, why: String },
+}
+
+/// A coordinate reference system: what a cloud's x, y (and z) mean on the Earth.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Crs {
+    /// Its EPSG code, when it has one.
+    pub epsg: Option<u32>,
+    /// The definition as given or read (WKT, a PROJ string, or the EPSG registry's WKT).
+    pub definition: String,
+    /// The PROJ string `proj4rs` transforms with.
+    proj: String,
+}
+
+impl Crs {
+    /// The CRS with EPSG code `code`.
+    pub fn from_epsg(code: u32) -> Result<Self, CrsError> {
+        let code16 = u16::try_from(code).map_err(|_| CrsError::UnknownEpsg(code))?;
+        let def = crs_definitions::from_code(code16).ok_or(CrsError::UnknownEpsg(code))?;
+        Ok(Self {
+            epsg: Some(code),
+            definition: def.wkt.to_string(),
+            proj: def.proj4.to_string(),
+        })
+    }
+
+    /// Reads a CRS as a user writes one (`--crs`, the job's `crs` parameter): `EPSG:32649`
+    /// (any case, also `epsg:32649` or a bare code), OGC WKT (1 or 2), or a PROJ string
+    /// (`+proj=utm +zone=49 …`).
+    pub fn parse(text: &str) -> Result<Self, CrsError> {
+        let text = text.trim();
+        if text.is_empty() {
+            return Err(CrsError::Unreadable("the CRS is empty".into()));
+        }
+        let code = text
+            .get(..5)
+            .filter(|p| p.eq_ignore_ascii_case("epsg:"))
+            .map_or(text, |_| &text[5..]);
+        if let Ok(code) = code.trim().parse::<u32>() {
+            return Self::from_epsg(code);
+        }
+        if text.starts_with('+') {
+            Proj::from_proj_string(text).map_err(|e| {
+                CrsError::Unreadable(format!("the PROJ string {text:?} is not usable: {e}"))
+            })?;
+            return Ok(Self {
+                epsg: None,
+                definition: text.to_string(),
+                proj: text.to_string(),
+            });
+        }
+        if text.contains('[') {
+            return Self::from_wkt(text);
+        }
+        Err(CrsError::Unreadable(format!(
+            "{text:?} is not a CRS: give EPSG:<code>, WKT or a PROJ string (+proj=…)"
+        )))
+    }
+
+    /// A CRS from OGC WKT: by its EPSG code when the outermost object carries one
+    /// (`AUTHORITY["EPSG","32649"]` or `ID["EPSG",32649]`), else converted to a PROJ string.
+    pub fn from_wkt(wkt: &str) -> Result<Self, CrsError> {
+        let wkt = wkt.trim().trim_end_matches('\0').trim();
+        if let Some(code) = outer_epsg(wkt)
+            && let Ok(mut crs) = Self::from_epsg(code)
+        {
+            crs.definition = wkt.to_string();
+            return Ok(crs);
+        }
+        let proj = proj4wkt::wkt_to_projstring(wkt)
+            .map_err(|e| CrsError::Unreadable(format!("the WKT is not readable: {e}")))?
+            .to_string();
+        Proj::from_proj_string(&proj).map_err(|e| {
+            CrsError::Unreadable(format!("the WKT's projection is not supported: {e}"))
+        })?;
+        Ok(Self {
+            epsg: None,
+            definition: wkt.to_string(),
+            proj,
+        })
+    }
+
+    /// A CRS from a GeoTIFF GeoKeyDirectory (the u16 words of LAS record 34735); `None` when
+    /// the keys name no CRS.
+    pub fn from_geokeys(words: &[u16]) -> Result<Option<Self>, CrsError> {
+        let Some(&[_version, _revision, _minor, count]) = words
+            .get(..4)
+            .map(|h| <&[u16; 4]>::try_from(h).expect("a slice of 4"))
+        else {
+            return Err(CrsError::Unreadable(
+                "the GeoKeyDirectory is shorter than its header".into(),
+            ));
+        };
+        let mut projected = None;
+        let mut geographic = None;
+        for k in 0..usize::from(count) {
+            let Some(entry) = words.get(4 + 4 * k..8 + 4 * k) else {
+                return Err(CrsError::Unreadable(format!(
+                    "the GeoKeyDirectory declares {count} keys but holds {}",
+                    (words.len() - 4) / 4
+                )));
+            };
+            // (key id, TIFF tag location, count, value): location 0 keeps the value inline.
+            let (key, location, value) = (entry[0], entry[1], entry[3]);
+            if location != 0 {
+                continue;
+            }
+            match key {
+                PROJECTED_CS_TYPE_KEY => projected = Some(value),
+                GEOGRAPHIC_TYPE_KEY => geographic = Some(value),
+                _ => {}
+            }
+        }
+        match projected.or(geographic) {
+            None => Ok(None),
+            Some(USER_DEFINED) => Err(CrsError::Unreadable(
+                "the file's CRS is user-defined GeoTIFF keys, which Sylva does not read; \
+                 give it with --crs (EPSG:<code>, WKT or a PROJ string)"
+                    .into(),
+            )),
+            Some(code) => Self::from_epsg(u32::from(code)).map(Some),
+        }
+    }
+
+    /// The CRS a LAS/LAZ file's records declare: WKT first (LAS 1.4 requires it for point
+    /// formats 6–10), else GeoTIFF keys; `None` when the file names none. `records` yields
+    /// (user id, record id, data) of every VLR and EVLR.
+    pub fn from_las_records<'a>(
+        records: impl IntoIterator<Item = (&'a str, u16, &'a [u8])>,
+    ) -> Result<Option<Self>, CrsError> {
+        let mut wkt = None;
+        let mut keys = None;
+        for (user, record, data) in records {
+            if user.trim_end_matches('\0') != LAS_PROJECTION_USER_ID {
+                continue;
+            }
+            match record {
+                LAS_WKT_RECORD => wkt = Some(String::from_utf8_lossy(data).into_owned()),
+                LAS_GEOKEY_RECORD => {
+                    keys = Some(
+                        data.chunks_exact(2)
+                            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+                            .collect::<Vec<u16>>(),
+                    )
+                }
+                _ => {}
+            }
+        }
+        if let Some(wkt) = wkt.filter(|w| !w.trim_matches(['\0', ' ']).is_empty()) {
+            return Self::from_wkt(&wkt).map(Some);
+        }
+        match keys {
+            Some(words) => Self::from_geokeys(&words),
+            None => Ok(None),
+        }
+    }
+
+    /// How the CRS is named to people: `EPSG:32649`, or "custom" with the start of its
+    /// definition.
+    pub fn label(&self) -> String {
+        match self.epsg {
+            Some(code) => format!("EPSG:{code}"),
+            None => {
+                let short: String = self.definition.chars().take(60).collect();
+                format!(
+                    "custom ({short}{})",
+                    if short.len() < self.definition.len() {
+                        "…"
+                    } else {
+                        ""
+                    }
+                )
+            }
+        }
+    }
+
+    /// Whether coordinates are longitude and latitude in degrees (not metres).
+    pub fn is_geographic(&self) -> bool {
+        self.proj.contains("+proj=longlat") || self.proj.contains("+proj=latlong")
+    }
+
+    /// Transforms `points` (x, y in this CRS: metres, or degrees when geographic) to WGS84
+    /// (longitude, latitude) in degrees, in place.
+    pub fn to_wgs84(&self, points: &mut [(f64, f64)]) -> Result<(), CrsError> {
+        let fail = |why: String| CrsError::Transform {
+            from: self.label(),
+            why,
+        };
+        let from = Proj::from_proj_string(&self.proj).map_err(|e| fail(e.to_string()))?;
+        let to = Proj::from_proj_string(crs_definitions::EPSG_4326.proj4)
+            .map_err(|e| fail(e.to_string()))?;
+        let geographic = self.is_geographic();
+        for p in points.iter_mut() {
+            let mut xyz = if geographic {
+                (p.0.to_radians(), p.1.to_radians(), 0.0)
+            } else {
+                (p.0, p.1, 0.0)
+            };
+            proj4rs::transform::transform(&from, &to, &mut xyz).map_err(|e| fail(e.to_string()))?;
+            let (lon, lat) = (xyz.0.to_degrees(), xyz.1.to_degrees());
+            if !(lon.is_finite() && lat.is_finite() && lat.abs() <= 90.0) {
+                return Err(fail(format!(
+                    "({}, {}) has no place on the Earth",
+                    p.0, p.1
+                )));
+            }
+            *p = (lon, lat);
+        }
+        Ok(())
+    }
+}
+
+/// The EPSG code of a WKT's outermost object: its last `AUTHORITY["EPSG","N"]` (WKT 1) or
+/// `ID["EPSG",N]` (WKT 2) at bracket depth 1.
+fn outer_epsg(wkt: &str) -> Option<u32> {
+    let mut depth = 0usize;
+    let mut found = None;
+    let bytes = wkt.as_bytes();
+    for (i, &b) in bytes.iter().enumerate() {
+        match b {
+            b'[' | b'(' => depth += 1,
+            b']' | b')' => depth = depth.saturating_sub(1),
+            _ if depth == 1 => {
+                let rest = &wkt[i..];
+                let tail = rest
+                    .strip_prefix("AUTHORITY[")
+                    .or_else(|| rest.strip_prefix("ID["));
+                if let Some(tail) = tail {
+                    let inner = tail.split(']').next().unwrap_or("");
+                    let mut parts = inner.split(',').map(|s| s.trim().trim_matches('"'));
+                    if parts.next().is_some_and(|a| a.eq_ignore_ascii_case("EPSG")) {
+                        found = parts.next().and_then(|c| c.parse().ok());
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    found
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// UTM zone 49N (EPSG:32649) on its central meridian: E 500 000 m lies on 111° E, and
+    /// N 3 000 000 m at 27.1224696° N, the latitude whose WGS84 meridian arc is
+    /// 3 000 000 / k0 (k0 = 0.9996), found independently by bisection on the arc's series.
+    #[test]
+    fn utm_49n_reaches_wgs84_degrees() {
+        let crs = Crs::parse("EPSG:32649").expect("epsg");
+        assert_eq!(crs.epsg, Some(32649));
+        assert_eq!(crs.label(), "EPSG:32649");
+        assert!(!crs.is_geographic());
+        let mut p = [(500_000.0, 3_000_000.0), (600_000.0, 3_000_000.0)];
+        crs.to_wgs84(&mut p).expect("transform");
+        assert!((p[0].0 - 111.0).abs() < 1e-9, "{p:?}");
+        assert!((p[0].1 - 27.122_469_6).abs() < 1e-6, "{p:?}");
+        // 100 km east at 27° N is about 1.01° of longitude.
+        assert!((p[1].0 - 112.0).abs() < 0.05 && p[1].1 < p[0].1, "{p:?}");
+    }
+
+    #[test]
+    fn users_write_a_crs_three_ways_and_bad_ones_are_refused_plainly() {
+        assert_eq!(Crs::parse(" epsg:4326 ").expect("4326").epsg, Some(4326));
+        assert_eq!(Crs::parse("25832").expect("code").epsg, Some(25832));
+        let proj = Crs::parse("+proj=utm +zone=33 +datum=WGS84 +units=m +no_defs").expect("proj");
+        assert_eq!(proj.epsg, None);
+        let wkt = crs_definitions::from_code(32633).expect("def").wkt;
+        assert_eq!(Crs::parse(wkt).expect("wkt").epsg, Some(32633));
+        let err = Crs::parse("EPSG:99999999").expect_err("unknown");
+        assert!(err.to_string().contains("EPSG:99999999"), "{err}");
+        let err = Crs::parse("the plot's grid").expect_err("prose");
+        assert!(err.to_string().contains("EPSG:<code>"), "{err}");
+        assert!(Crs::parse("").is_err());
+    }
+
+    #[test]
+    fn wkt_without_a_code_still_transforms() {
+        // EPSG:32633's WKT with its authorities removed: read through proj4wkt.
+        let wkt = crs_definitions::from_code(32633).expect("def").wkt;
+        let bare: String = strip_authorities(wkt);
+        let crs = Crs::from_wkt(&bare).expect("bare wkt");
+        assert_eq!(crs.epsg, None);
+        assert!(crs.label().starts_with("custom ("));
+        let mut a = [(500_000.0, 5_000_000.0)];
+        let mut b = a;
+        crs.to_wgs84(&mut a).expect("bare");
+        Crs::from_epsg(32633)
+            .expect("epsg")
+            .to_wgs84(&mut b)
+            .expect("epsg");
+        assert!(
+            (a[0].0 - b[0].0).abs() < 1e-9 && (a[0].1 - b[0].1).abs() < 1e-9,
+            "{a:?} {b:?}"
+        );
+    }
+
+    fn strip_authorities(wkt: &str) -> String {
+        let mut out = String::new();
+        let mut rest = wkt;
+        while let Some(i) = rest.find(",AUTHORITY[") {
+            out.push_str(&rest[..i]);
+            let after = &rest[i + 1..];
+            let end = after.find(']').map_or(after.len(), |e| e + 1);
+            rest = &after[end..];
+        }
+        out.push_str(rest);
+        out
+    }
+
+    #[test]
+    fn las_records_give_the_crs_by_wkt_or_geotiff_keys() {
+        let wkt = crs_definitions::from_code(32649).expect("def").wkt;
+        let crs = Crs::from_las_records([("LASF_Projection", LAS_WKT_RECORD, wkt.as_bytes())])
+            .expect("wkt record")
+            .expect("a crs");
+        assert_eq!(crs.epsg, Some(32649));
+        // GeoKeyDirectory: version 1.1.0, 3 keys: model type projected, raster type, 3072 = 32649.
+        let words: [u16; 16] = [1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32649];
+        let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+        let crs = Crs::from_las_records([
+            ("LASF_Spec", 3, &b"x"[..]),
+            ("LASF_Projection\0", LAS_GEOKEY_RECORD, &bytes[..]),
+        ])
+        .expect("keys")
+        .expect("a crs");
+        assert_eq!(crs.epsg, Some(32649));
+        assert_eq!(Crs::from_las_records([]).expect("none"), None);
+        let user: [u16; 8] = [1, 1, 0, 1, 3072, 0, 1, USER_DEFINED];
+        let bytes: Vec<u8> = user.iter().flat_map(|w| w.to_le_bytes()).collect();
+        let err = Crs::from_las_records([("LASF_Projection", LAS_GEOKEY_RECORD, &bytes[..])])
+            .expect_err("user-defined");
+        assert!(err.to_string().contains("--crs"), "{err}");
+        let short: Vec<u8> = [1u16, 1, 0, 5]
+            .iter()
+            .flat_map(|w| w.to_le_bytes())
+            .collect();
+        assert!(
+            Crs::from_las_records([("LASF_Projection", LAS_GEOKEY_RECORD, &short[..])]).is_err()
+        );
+    }
+
+    #[test]
+    fn geographic_coordinates_pass_through_in_degrees() {
+        let crs = Crs::from_epsg(4326).expect("4326");
+        assert!(crs.is_geographic());
+        let mut p = [(13.4, 52.5)];
+        crs.to_wgs84(&mut p).expect("identity");
+        assert!(
+            (p[0].0 - 13.4).abs() < 1e-9 && (p[0].1 - 52.5).abs() < 1e-9,
+            "{p:?}"
+        );
+    }
+}
