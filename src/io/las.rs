@@ -43,6 +43,23 @@ pub struct LasInfo {
     pub offset: [f64; 3],
     /// True when the point format carries RGB.
     pub has_color: bool,
+    /// The CRS the file's projection records declare (`EPSG:32649`, or `custom (…)`); `None`
+    /// when it declares none or it could not be read (see `crs_problem`).
+    pub crs: Option<String>,
+    /// Why the file's projection records could not be read, when they could not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub crs_problem: Option<String>,
+}
+
+/// The CRS a LAS/LAZ header's projection records (VLRs and EVLRs) declare; `None` when none.
+pub fn las_crs(header: &::las::Header) -> Result<Option<super::crs::Crs>, super::crs::CrsError> {
+    super::crs::Crs::from_las_records(
+        header
+            .vlrs()
+            .iter()
+            .chain(header.evlrs())
+            .map(|v| (v.user_id.as_str(), v.record_id, v.data.as_slice())),
+    )
 }
 
 /// Maps a `las` crate error: I/O errors on content (end of file, invalid data, decoder
@@ -98,6 +115,10 @@ pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
     }
     let t = header.transforms();
     let b = header.bounds();
+    let (crs, crs_problem) = match las_crs(&header) {
+        Ok(c) => (c.map(|c| c.label()), None),
+        Err(e) => (None, Some(e.to_string())),
+    };
     Ok(LasInfo {
         version: format!("{}.{}", raw.version.major, raw.version.minor),
         point_format: raw.point_data_record_format & 0x3f,
@@ -109,6 +130,8 @@ pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
         scale: [t.x.scale, t.y.scale, t.z.scale],
         offset: [t.x.offset, t.y.offset, t.z.offset],
         has_color: fmt.has_color,
+        crs,
+        crs_problem,
     })
 }
 

@@ -445,3 +445,78 @@ fn fused_laz_reader_reports_progress_and_stops_on_cancel() {
     let last = p.last.lock().map(|l| *l).unwrap_or(0.0);
     assert!(last > 0.0 && last < 1.0, "{last}");
 }
+
+/// A 3-point LAS 1.2 file whose header carries `vlrs`.
+fn las_with_vlrs(path: &Path, vlrs: Vec<::las::Vlr>) {
+    let mut builder = ::las::Builder::from((1, 2));
+    builder.vlrs = vlrs;
+    let t = |offset: f64| ::las::Transform {
+        scale: 0.001,
+        offset,
+    };
+    builder.transforms = ::las::Vector {
+        x: t(500_000.0),
+        y: t(3_000_000.0),
+        z: t(0.0),
+    };
+    let header = builder.into_header().unwrap();
+    let mut w = ::las::Writer::from_path(path, header).unwrap();
+    for i in 0..3 {
+        w.write_point(::las::Point {
+            x: 500_000.0 + f64::from(i),
+            y: 3_000_000.0,
+            z: 10.0,
+            ..Default::default()
+        })
+        .unwrap();
+    }
+    w.close().unwrap();
+}
+
+fn projection_vlr(record_id: u16, data: Vec<u8>) -> ::las::Vlr {
+    ::las::Vlr {
+        user_id: "LASF_Projection".into(),
+        record_id,
+        description: String::new(),
+        data,
+    }
+}
+
+#[test]
+fn inspection_names_the_crs_the_projection_records_declare() {
+    let dir = tempfile::tempdir().unwrap();
+    let keys = |code: u16| -> Vec<u8> {
+        [1u16, 1, 0, 2, 1024, 0, 1, 1, 3072, 0, 1, code]
+            .iter()
+            .flat_map(|w| w.to_le_bytes())
+            .collect()
+    };
+    let utm = dir.path().join("utm.las");
+    las_with_vlrs(&utm, vec![projection_vlr(34735, keys(32649))]);
+    let info = inspect_las(&utm).unwrap();
+    assert_eq!(info.crs.as_deref(), Some("EPSG:32649"));
+    assert_eq!(info.crs_problem, None);
+
+    let wkt = dir.path().join("wkt.las");
+    let text = crate::io::crs::Crs::from_epsg(25832).unwrap().definition;
+    las_with_vlrs(&wkt, vec![projection_vlr(2112, text.into_bytes())]);
+    assert_eq!(
+        inspect_las(&wkt).unwrap().crs.as_deref(),
+        Some("EPSG:25832")
+    );
+
+    let none = dir.path().join("none.las");
+    las_with_vlrs(&none, Vec::new());
+    let info = inspect_las(&none).unwrap();
+    assert_eq!((info.crs, info.crs_problem), (None, None));
+
+    // A user-defined CRS spelled out key by key is not read; the file is still accepted.
+    let custom = dir.path().join("custom.las");
+    las_with_vlrs(&custom, vec![projection_vlr(34735, keys(32767))]);
+    let info = inspect_las(&custom).unwrap();
+    assert_eq!(info.crs, None);
+    assert!(
+        info.crs_problem.as_deref().unwrap_or("").contains("--crs"),
+        "{info:?}"
+    );
+}
