@@ -1,19 +1,20 @@
-//! Times the inventory on a ~10-million-point synthetic plot (the generated 20 × 20 m plot
-//! tiled) and on TreeLS pine_plot.laz, and prints a table: points, stems, seconds per phase.
+//! Times the inventory on generated plots (`sylva synth`'s stand preset, LiDAR only: the
+//! 14-tree, 1 M-point plot of the forest tests, then a stand of POINTS points with as many
+//! points per tree) and on TreeLS pine_plot.laz, and prints a table: points, stems, seconds
+//! per phase.
 //!
-//! `cargo run --release --example inventory_bench [POINTS [CLOUD...]]` (default 10e6: the
-//! plot is tiled n × n times with n chosen to come closest to POINTS; 0 skips the synthetic
-//! plots). Each CLOUD (e.g. the 9.2 M-point cloud of ../shared/bench/make_plot10m.py) is
-//! timed too. CPU s: user + system seconds of all threads, so on a shared machine CPU s / 2
-//! is what two free cores would need at best.
+//! `cargo run --release --example inventory_bench [POINTS [CLOUD...]]` (default 10e6; 0 skips
+//! the generated plots). Each CLOUD (e.g. the 9.2 M-point cloud of
+//! ../shared/bench/make_plot10m.py) is timed too. CPU s: user + system seconds of all
+//! threads, so on a shared machine CPU s / 2 is what two free cores would need at best.
 
 use std::time::Instant;
 
-use sylva::forest::synthetic::{PlotSpec, synthetic_plot, tile_plot};
 use sylva::forest::{InventoryParams, compare_with_field, inventory};
 use sylva::io::pointcloud::{PointCloud, read_point_cloud};
 use sylva::io::tables::FieldTree;
 use sylva::progress::NoProgress;
+use sylva::synth::{Preset, SynthParams, lidar_plot};
 
 /// CPU seconds (user + system, all threads) this process has used so far, from
 /// /proc/self/stat (Linux; USER_HZ = 100 ticks per second); `None` elsewhere.
@@ -101,27 +102,46 @@ fn main() {
     }
 }
 
+/// The forest tests' plot (14 trees of the stand preset, 1 M points, no colour), then a
+/// stand of `target` points with as many trees as keep its points per tree (at most 500).
 fn synthetic(target: f64) {
-    let spec = PlotSpec {
-        leaf_discs: 600,
-        ..PlotSpec::default()
+    let small = SynthParams {
+        seed: 1,
+        trees: Some(14),
+        lidar_points: Some(1_000_000),
+        stem_dbh_cm: vec![8.0, 60.0],
+        lidar_rgb: false,
+        ..SynthParams::new(Preset::Stand)
     };
-    let plot = synthetic_plot(&spec);
-    let tiles = (target / plot.cloud.len() as f64).sqrt().round().max(1.0) as usize;
-    let (cloud, trees) = tile_plot(&plot, spec.size_m, tiles, tiles);
-    let field: Vec<FieldTree> = trees
-        .iter()
-        .map(|t| FieldTree {
-            tree_id: None,
-            x: cloud.offset.x + t.base.x as f64,
-            y: cloud.offset.y + t.base.y as f64,
-            dbh_cm: t.dbh_cm as f64,
-        })
-        .collect();
-    run("synthetic 20 m plot", &plot.cloud, None);
-    run(
-        &format!("synthetic {tiles}x{tiles} tiles"),
-        &cloud,
-        Some(&field),
-    );
+    let trees = ((14.0 * target / 1e6).round() as usize).clamp(1, 500);
+    let large = SynthParams {
+        trees: Some(trees),
+        lidar_points: Some(target.round() as usize),
+        ..small.clone()
+    };
+    for (name, p) in [
+        ("synthetic stand, 14 trees".to_string(), small),
+        (format!("synthetic stand, {trees} trees"), large),
+    ] {
+        let t = Instant::now();
+        let plot = match lidar_plot(&p, &NoProgress) {
+            Ok(plot) => plot,
+            Err(e) => {
+                println!("| {name} | generation failed: {e} |");
+                continue;
+            }
+        };
+        eprintln!("{name}: generated in {:.1} s", t.elapsed().as_secs_f64());
+        let field: Vec<FieldTree> = plot
+            .trees
+            .iter()
+            .map(|t| FieldTree {
+                tree_id: None,
+                x: plot.cloud.offset.x + t.base.x,
+                y: plot.cloud.offset.y + t.base.y,
+                dbh_cm: t.dbh_m * 100.0,
+            })
+            .collect();
+        run(&name, &plot.cloud, Some(&field));
+    }
 }

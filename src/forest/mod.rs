@@ -23,7 +23,6 @@ mod stem_axis;
 mod stem_base;
 pub mod stem_labels;
 pub mod stems;
-pub mod synthetic;
 
 #[cfg(test)]
 mod tests;

@@ -16,7 +16,7 @@
 //!
 //! The raster confidence cannot tell a right alignment from a wrong one reliably, so stage
 //! `register` runs ICP and the surface refinement from every candidate and decides on how
-//! well the SfM points then lie on the LiDAR cloud (`pipeline::register::verify_candidates`).
+//! well the SfM points then lie on the LiDAR cloud ([`super::register::verify_candidates`]).
 
 use glam::{DMat3, DVec3, Vec3};
 use serde::{Deserialize, Serialize};

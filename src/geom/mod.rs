@@ -1,5 +1,8 @@
 //! Point-cloud geometry core: the spatial index, voxel homogenisation, the statistical outlier
-//! filter, normals and eigen features, closed-form similarity (Umeyama) and ICP.
+//! filter, normals and eigen features, closed-form similarity (Umeyama) and ICP, and the
+//! registration science built on them: the automatic coarse alignment ([`coarse`]), the
+//! surface refinement ([`surface`]) and what stage `register` does with them ([`register`]:
+//! two-phase ICP, refinement passes, verifying the automatic candidates).
 //!
 //! Everything here works on plain slices of `glam::Vec3` positions in metres relative to a
 //! local origin (f32 keeps sub-millimetre precision over a plot), with optional `[u8; 3]`
@@ -19,6 +22,7 @@ mod normals;
 mod orient;
 mod outliers;
 mod pca;
+pub mod register;
 mod similarity;
 pub mod surface;
 mod voxel;

@@ -84,7 +84,7 @@ pub struct RegisterParams {
     /// and asks for control points (default 0.5). The confidence comes from ICP run from each
     /// coarse candidate: how many SfM points, and how many of those standing above the
     /// ground, then lie on the LiDAR cloud, and by how much the best candidate beats the best
-    /// distinct other (`pipeline::register::verify_candidates`).
+    /// distinct other (`geom::register::verify_candidates`).
     pub min_confidence: f64,
     /// After the automatic alignment's ICP and surface passes, at least this share of the
     /// SfM points must lie within 6 cm of the thinned LiDAR cloud, or the stage refuses

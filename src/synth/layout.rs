@@ -44,6 +44,9 @@ pub struct LayoutParams {
     pub seed: u64,
     pub trees: Option<usize>,
     pub leafless: bool,
+    /// DBH of the first trees, centimetres, in place of the draw (see
+    /// [`super::SynthParams::stem_dbh_cm`]).
+    pub stem_dbh_cm: Vec<f64>,
 }
 
 /// Lognormal DBH (cm) truncated to the species range.
@@ -70,7 +73,8 @@ pub fn build_plot(p: &LayoutParams) -> Plot {
     // Sizes first, then the plot radius they imply, then positions.
     let mut specs: Vec<TreeSpec> = (0..n)
         .map(|i| {
-            let d_cm = draw_dbh_cm(&mut rng, sp.dbh_cm);
+            let drawn = draw_dbh_cm(&mut rng, sp.dbh_cm);
+            let d_cm = p.stem_dbh_cm.get(i).copied().unwrap_or(drawn);
             let height = sp.height_m(d_cm) * rng.range(0.92, 1.08);
             let lean = sp.max_lean_deg * rng.uniform().powi(2);
             TreeSpec {

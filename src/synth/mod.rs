@@ -11,6 +11,10 @@
 //!
 //! Output layout under `out/`: `lidar.laz`, `labels.bin`, `colmap/images/`,
 //! `colmap/sparse/0/` (text, or binary), `control_points.csv`, `field_dbh.csv`, `truth.json`.
+//!
+//! [`lidar_plot`] gives the scene's LiDAR side alone, in memory (the scan, its labels and the
+//! trees' truth, no photos and no files): the generated plot of the forest room's tests and
+//! of `examples/inventory_bench.rs`.
 
 pub mod bvh;
 pub mod camera;
@@ -108,28 +112,16 @@ pub(crate) fn run(
 
     // 1. Scene.
     progress.log("synth: building the scene");
-    let plot = layout::build_plot(&LayoutParams {
-        config: cfg,
-        seed: params.seed,
-        trees: params.trees,
-        leafless: params.leafless,
-    });
+    let plot = layout::build_plot(&layout_params(params));
     let closure = layout::canopy_closure(&plot);
     lap("scene", &mut timings);
     cancelled()?;
 
     // 2. LiDAR.
     progress.log("synth: scanning");
-    let lidar_params = lidar::LidarParams {
-        points: params.lidar_points.unwrap_or(cfg.lidar_points),
-        noise_m: params.noise_cm / 100.0,
-        max_range_m: params.max_range_m as f32,
-        dropout: 0.01,
-        rgb: params.lidar_rgb,
-    };
     let scan = lidar::scan(
         &plot,
-        &lidar_params,
+        &lidar_params(params),
         params.seed,
         &SubProgress::new(progress, 0.0, 0.4),
     )?;
@@ -303,6 +295,72 @@ pub(crate) fn run(
             model,
         },
     ))
+}
+
+/// The layout's inputs from the parameters.
+fn layout_params(params: &SynthParams) -> LayoutParams {
+    LayoutParams {
+        config: params.preset.config(),
+        seed: params.seed,
+        trees: params.trees,
+        leafless: params.leafless,
+        stem_dbh_cm: params.stem_dbh_cm.clone(),
+    }
+}
+
+/// The scanner's settings from the parameters (beam dropout 1 % at normal incidence and short
+/// range).
+fn lidar_params(params: &SynthParams) -> lidar::LidarParams {
+    lidar::LidarParams {
+        points: params
+            .lidar_points
+            .unwrap_or(params.preset.config().lidar_points),
+        noise_m: params.noise_cm / 100.0,
+        max_range_m: params.max_range_m as f32,
+        dropout: 0.01,
+        rgb: params.lidar_rgb,
+    }
+}
+/// A LiDAR-only plot in memory: the scene of [`generate`] and its handheld scan, without
+/// photos, SfM model or files. The cloud is the one `generate` writes to `lidar.laz` for the
+/// same parameters (before the LAS format's millimetre quantisation); `labels` is
+/// `labels.bin` (one [`scene::Label`] per point, as u8) and `trees` the truth of every tree.
+pub struct LidarPlot {
+    /// The scan: positions in the scene frame (metres, origin at the plot centre), `offset`
+    /// the parameters' `geo_offset`, intensity, and colour when `lidar_rgb` is set.
+    pub cloud: PointCloud,
+    /// One label per point: 0 ground, 1 wood (stems and branches), 2 leaf, 3 other (stones,
+    /// shrubs).
+    pub labels: Vec<u8>,
+    /// What is true of each tree (scene frame: add `cloud.offset` for file coordinates).
+    pub trees: Vec<trees::TreeTruth>,
+    /// Radius of the plot disc around the origin, metres.
+    pub radius_m: f64,
+}
+
+/// Builds the scene of `params` and scans it (phases 1 and 2 of [`generate`]); the photo
+/// settings (`images`, `width`, `height`, `points3d`, ...) are not used. For tests and
+/// benchmarks of the LiDAR side, which then need neither the renderer's time nor a folder.
+pub fn lidar_plot(params: &SynthParams, progress: &dyn Progress) -> Result<LidarPlot, SynthError> {
+    params::check(params)?;
+    let plot = layout::build_plot(&layout_params(params));
+    if progress.is_cancelled() {
+        return Err(SynthError::Cancelled);
+    }
+    let scan = lidar::scan(&plot, &lidar_params(params), params.seed, progress)?;
+    progress.set(1.0);
+    Ok(LidarPlot {
+        cloud: PointCloud {
+            offset: DVec3::from_array(params.geo_offset),
+            positions: scan.positions,
+            colors: scan.colors,
+            intensity: Some(scan.intensity),
+            format: CloudFormat::Laz,
+        },
+        labels: scan.labels,
+        trees: plot.trees,
+        radius_m: plot.radius_m,
+    })
 }
 
 /// Writes one image as JPEG (quality 92) or PNG.

@@ -47,6 +47,12 @@ pub struct SynthParams {
     /// Offset from scene to LiDAR file coordinates, metres (default 500000, 4000000, 50: a
     /// UTM-like easting/northing that exercises f64 handling).
     pub geo_offset: [f64; 3],
+    /// DBH of the first trees, centimetres, in place of the species' draw (default empty:
+    /// every tree drawn). Entries beyond the plot's number of trees are unused; the other
+    /// draws stay as they were, so the remaining trees keep their own sizes. Tests use it to
+    /// put the ends of a DBH range (the 8 and 60 cm of the forest tests) into a plot.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stem_dbh_cm: Vec<f64>,
 }
 
 impl SynthParams {
@@ -71,6 +77,7 @@ impl SynthParams {
             max_range_m: 80.0,
             lidar_rgb: true,
             geo_offset: [500_000.0, 4_000_000.0, 50.0],
+            stem_dbh_cm: Vec::new(),
         }
     }
 }
@@ -165,6 +172,13 @@ pub(crate) fn check(params: &SynthParams) -> Result<(), SynthError> {
         .all(|v| v.is_finite() && v.abs() < 1e8)
     {
         return bad("geo_offset must be finite and below 1e8 m");
+    }
+    if !params
+        .stem_dbh_cm
+        .iter()
+        .all(|d| d.is_finite() && (2.0..=300.0).contains(d))
+    {
+        return bad("stem_dbh_cm must be between 2 and 300 cm");
     }
     Ok(())
 }

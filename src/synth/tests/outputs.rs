@@ -220,3 +220,56 @@ fn the_object_preset_is_a_phone_walk_around_one_stem() {
     let fy_fov = 2.0 * (0.5 * 128.0 / art.intrinsics.f).atan().to_degrees();
     assert!((fy_fov - crate::synth::camera::HFOV_DEG).abs() < 1e-6);
 }
+
+#[test]
+fn lidar_plot_is_the_scan_generate_writes_and_stem_dbh_sets_the_first_trees() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let p = SynthParams {
+        images: Some(3),
+        trees: Some(3),
+        stem_dbh_cm: vec![9.0, 40.0],
+        ..small(4)
+    };
+    generate(&p, dir.path(), &NoProgress).expect("generate");
+    let plot = lidar_plot(&p, &NoProgress).expect("lidar plot");
+    let cloud = read_point_cloud(&dir.path().join("lidar.laz"), &NoProgress).expect("laz");
+    let labels = std::fs::read(dir.path().join("labels.bin")).expect("labels");
+    assert_eq!(plot.labels, labels);
+    assert_eq!(plot.cloud.len(), cloud.len());
+    assert_eq!(plot.cloud.offset, DVec3::from_array(p.geo_offset));
+    // The same points, up to the LAS format's millimetre quantisation.
+    for i in (0..cloud.len()).step_by(97) {
+        let d = (plot.cloud.world(i) - cloud.world(i)).abs().max_element();
+        assert!(d <= 0.001, "point {i} differs by {d} m");
+    }
+    assert_eq!(plot.cloud.colors.as_deref(), cloud.colors.as_deref());
+    // The first two trees take the given DBH; the third keeps its draw.
+    let t = truth(dir.path());
+    let dbh: Vec<f64> = plot.trees.iter().map(|t| t.dbh_m * 100.0).collect();
+    assert_eq!(dbh.len(), 3);
+    assert!(
+        (dbh[0] - 9.0).abs() < 1e-9 && (dbh[1] - 40.0).abs() < 1e-9,
+        "{dbh:?}"
+    );
+    for (k, d) in dbh.iter().enumerate() {
+        let written = t["trees"][k]["dbh_cm"].as_f64().expect("dbh_cm");
+        assert!((written - d).abs() < 1e-9, "tree {k}: {written} vs {d}");
+    }
+    let drawn = lidar_plot(
+        &SynthParams {
+            stem_dbh_cm: Vec::new(),
+            ..p.clone()
+        },
+        &NoProgress,
+    )
+    .expect("lidar plot");
+    assert!((drawn.trees[2].dbh_m - plot.trees[2].dbh_m).abs() < 1e-12);
+    let bad = SynthParams {
+        stem_dbh_cm: vec![0.5],
+        ..p
+    };
+    assert!(matches!(
+        lidar_plot(&bad, &NoProgress),
+        Err(SynthError::InvalidParams(_))
+    ));
+}
