@@ -5,7 +5,8 @@
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
 use sylva::splat::camera::Camera;
-use sylva::splat::gpu::{AtomicMode, GpuContext};
+use sylva::splat::gpu::buffers::storage_from;
+use sylva::splat::gpu::{AtomicMode, Frame, GpuContext, GpuGrads, GpuSplats, Renderer};
 use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
 
 /// A GPU context, or `None` (with the reason printed) when this machine has no adapter.
@@ -143,4 +144,20 @@ pub fn sub_pixel_grid(seed: u64) -> Gaussians {
 pub fn mean_intensity(image: &[[f32; 3]]) -> f64 {
     let sum: f64 = image.iter().flatten().map(|&v| f64::from(v)).sum();
     sum / (3 * image.len().max(1)) as f64
+}
+
+/// The backward pass of `frame` (rendered from `splats`) for the dL/dimage `dl`: the gradients,
+/// on the GPU.
+pub fn gpu_grads(
+    ctx: &GpuContext,
+    renderer: &Renderer,
+    (splats, frame): (&GpuSplats, &Frame),
+    dl: &[[f32; 3]],
+) -> GpuGrads {
+    let dl_buf = storage_from(ctx, "dl", dl).expect("buffer");
+    let grads = GpuGrads::new(ctx, splats.count).expect("grads");
+    renderer
+        .backward(ctx, splats, frame, &dl_buf, &grads)
+        .expect("backward");
+    grads
 }
