@@ -9,9 +9,15 @@ mod webdriver;
 use std::path::Path;
 use std::time::Duration;
 
+use tempfile::TempDir;
+
 use common::*;
 use serde_json::{Value, json};
 use webdriver::{Browser, base64_encode, output_dir, processes_naming};
+
+/// A script that is truthy once the jobs list says it has none.
+const NO_JOBS: &str =
+    "return document.querySelector('#jobs-note').textContent.startsWith('No jobs')";
 
 async fn browser_or_skip(test: &str) -> Option<Browser> {
     match Browser::start().await {
@@ -21,6 +27,28 @@ async fn browser_or_skip(test: &str) -> Option<Browser> {
             None
         }
     }
+}
+
+/// A browser, or `None` (with the reason printed) where there is none; then a fresh folder
+/// and `sylva serve` with `flags` over its `data`.
+async fn browser_and_server(test: &str, flags: &[&str]) -> Option<(Browser, TempDir, Proc)> {
+    let b = browser_or_skip(test).await?;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let srv = serve(&dir.path().join("data"), flags);
+    Some((b, dir, srv))
+}
+
+/// As [`browser_and_server`], with the browser on the server's home page once `ready` (what,
+/// and a script that is truthy then) holds, within 20 s.
+async fn home_page(
+    test: &str,
+    flags: &[&str],
+    (what, ready): (&str, &str),
+) -> Option<(Browser, TempDir, Proc)> {
+    let (b, dir, srv) = browser_and_server(test, flags).await?;
+    b.goto(&format!("{}/", srv.base)).await;
+    b.wait_for(what, ready, 20).await;
+    Some((b, dir, srv))
 }
 
 /// Dropping a session ends its Chromium too (a killed chromedriver alone left its browsers
@@ -36,42 +64,32 @@ async fn a_dropped_browser_leaves_no_chromium_running() {
         "no Chromium names the session's profile {profile}"
     );
     drop(b);
-    let deadline = std::time::Instant::now() + Duration::from_secs(10);
-    loop {
+    poll_until(Duration::from_secs(10), 100, async || {
         let left = processes_naming(&profile);
         if left.is_empty() {
-            break;
+            return Ok(());
         }
-        assert!(
-            std::time::Instant::now() < deadline,
+        Err(format!(
             "Chromium processes {left:?} still run after the session was dropped"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+        ))
+    })
+    .await;
 }
 
 /// Submits the plot in one multipart request and waits for the job to succeed.
 async fn finished_segment_job(base: &str, plot: &Path) -> Value {
     let c = client();
-    let part = |name: &str| {
-        let bytes = std::fs::read(plot.join(name)).expect("read input");
-        reqwest::multipart::Part::bytes(bytes).file_name(name.to_string())
-    };
-    let form = reqwest::multipart::Form::new()
-        .part("lidar", part("lidar.laz"))
-        .part("colmap", part("colmap.zip"))
-        .part("control_points", part("control_points.csv"))
-        .part("field_dbh", part("field_dbh.csv"))
-        .text("params", r#"{"until":"segment"}"#);
-    let resp = c
-        .post(format!("{base}/v1/jobs"))
-        .multipart(form)
-        .send()
-        .await
-        .expect("submit");
+    let form = multipart(&[
+        ("lidar", plot.join("lidar.laz")),
+        ("colmap", plot.join("colmap.zip")),
+        ("control_points", plot.join("control_points.csv")),
+        ("field_dbh", plot.join("field_dbh.csv")),
+    ]);
+    let form = form.text("params", r#"{"until":"segment"}"#);
+    let resp = send(c.post(format!("{base}/v1/jobs")).multipart(form)).await;
     assert_eq!(resp.status(), 202, "{:?}", resp.text().await);
     let job: Value = resp.json().await.expect("json");
-    let id = job["id"].as_str().expect("id").to_string();
+    let id = id_of(&job);
     let (job, _) = wait_job(&c, base, &id, Duration::from_secs(600), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     job
@@ -79,22 +97,14 @@ async fn finished_segment_job(base: &str, plot: &Path) -> Value {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
-    let Some(b) = browser_or_skip("job page test").await else {
+    let Some((b, dir, srv)) = browser_and_server("job page test", &[]).await else {
         return;
     };
-    let dir = tempfile::tempdir().expect("tempdir");
     let plot = synthetic_plot(dir.path(), 1);
-    let srv = serve(&dir.path().join("data"), &[]);
     let job = finished_segment_job(&srv.base, &plot).await;
     let id = job["id"].as_str().expect("id");
-    let csv = client()
-        .get(format!("{}/v1/jobs/{id}/trees.csv", srv.base))
-        .send()
-        .await
-        .expect("csv")
-        .text()
-        .await
-        .expect("text");
+    let csv = send(client().get(format!("{}/v1/jobs/{id}/trees.csv", srv.base))).await;
+    let csv = csv.text().await.expect("text");
     let ids: Vec<String> = csv
         .lines()
         .skip(1)
@@ -110,23 +120,20 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
     b.wait_for(
         "the inventory table",
         &format!("return document.querySelectorAll('#trees tbody tr').length === {n}"),
-        Duration::from_secs(60),
+        60,
     )
     .await;
     let shown = b
-        .exec(
-            "return [...document.querySelectorAll('#trees tbody tr')].map(r => r.dataset.tree)",
-            json!([]),
-        )
+        .eval("return [...document.querySelectorAll('#trees tbody tr')].map(r => r.dataset.tree)")
         .await;
     assert_eq!(shown, json!(ids));
     // Sorting by DBH, both ways.
     let dbh_col = "return [...document.querySelectorAll('#trees tbody tr')].map(r => Number(r.children[4].textContent))";
     b.click("#trees th[data-col=dbh_lidar_cm]").await;
-    let up: Vec<f64> = serde_json::from_value(b.exec(dbh_col, json!([])).await).expect("numbers");
+    let up: Vec<f64> = serde_json::from_value(b.eval(dbh_col).await).expect("numbers");
     assert!(up.windows(2).all(|w| w[0] <= w[1]), "ascending: {up:?}");
     b.click("#trees th[data-col=dbh_lidar_cm]").await;
-    let down: Vec<f64> = serde_json::from_value(b.exec(dbh_col, json!([])).await).expect("numbers");
+    let down: Vec<f64> = serde_json::from_value(b.eval(dbh_col).await).expect("numbers");
     assert!(
         down.windows(2).all(|w| w[0] >= w[1]),
         "descending: {down:?}"
@@ -134,10 +141,7 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
 
     // The stage timeline and the live log.
     let stages = b
-        .exec(
-            "return [...document.querySelectorAll('#timeline tr')].map(r => [r.dataset.stage, r.children[1].textContent, r.children[3].textContent])",
-            json!([]),
-        )
+        .eval("return [...document.querySelectorAll('#timeline tr')].map(r => [r.dataset.stage, r.children[1].textContent, r.children[3].textContent])")
         .await;
     let stages = stages.as_array().expect("rows");
     assert_eq!(stages.len(), 4, "{stages:?}");
@@ -145,17 +149,10 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
         assert_eq!(s[1], "done", "{s}");
         assert!(!s[2].as_str().unwrap_or("").is_empty(), "no duration: {s}");
     }
-    b.wait_for(
-        "log lines",
-        "return document.querySelectorAll('#log > span').length > 3",
-        Duration::from_secs(30),
-    )
-    .await;
+    let some_lines = "return document.querySelectorAll('#log > span').length > 3";
+    b.wait_for("log lines", some_lines, 30).await;
     let reg = b
-        .exec(
-            "return document.querySelector('#registration').textContent",
-            json!([]),
-        )
+        .eval("return document.querySelector('#registration').textContent")
         .await;
     assert!(
         reg.as_str().unwrap_or("").contains("control_points"),
@@ -166,19 +163,16 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
     b.wait_for(
         "the viewer",
         "return window.Sylva.page.viewer && window.Sylva.page.viewer.splats && document.querySelectorAll('.stem-label').length > 0",
-        Duration::from_secs(60),
+        60,
     )
     .await;
     let labels = b
-        .exec(
-            "return [...document.querySelectorAll('.stem-label')].map(l => l.textContent)",
-            json!([]),
-        )
+        .eval("return [...document.querySelectorAll('.stem-label')].map(l => l.textContent)")
         .await;
     assert_eq!(labels.as_array().map(Vec::len), Some(n), "{labels}");
     assert!(labels[0].as_str().unwrap_or("").contains(" cm"), "{labels}");
     let px = b
-        .exec("return window.Sylva.page.viewer.drawnPixels()", json!([]))
+        .eval("return window.Sylva.page.viewer.drawnPixels()")
         .await;
     let drawn = px["drawn"].as_f64().unwrap_or(0.0);
     let total = px["total"].as_f64().unwrap_or(1.0);
@@ -191,17 +185,10 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
     // A click on a stem label shows its 1.3 m slice with the LiDAR circle and points.
     b.click(&format!(".stem-label[data-stem=\"{}\"]", ids[0]))
         .await;
-    b.wait_for(
-        "the stem panel",
-        "return !document.querySelector('#stem-panel').hidden",
-        Duration::from_secs(10),
-    )
-    .await;
+    let panel = "return !document.querySelector('#stem-panel').hidden";
+    b.wait_for("the stem panel", panel, 10).await;
     let slice = b
-        .exec(
-            "const s = document.querySelector('#stem-plot svg'); return { circle: s.querySelectorAll('circle.fit-lidar').length, points: s.querySelectorAll('circle:not([class])').length, title: document.querySelector('#stem-title').textContent }",
-            json!([]),
-        )
+        .eval("const s = document.querySelector('#stem-plot svg'); return { circle: s.querySelectorAll('circle.fit-lidar').length, points: s.querySelectorAll('circle:not([class])').length, title: document.querySelector('#stem-title').textContent }")
         .await;
     assert_eq!(slice["circle"], 1, "{slice}");
     assert!(slice["points"].as_u64().unwrap_or(0) > 10, "{slice}");
@@ -211,7 +198,7 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
 
     // The CSV download hands over the inventory file.
     let dl = b
-        .exec(
+        .eval(
             "return new Promise(resolve => {
                const click = HTMLAnchorElement.prototype.click, make = URL.createObjectURL;
                let blob = null;
@@ -223,7 +210,6 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
                };
                document.querySelector('#dl-csv').click();
              })",
-            json!([]),
         )
         .await;
     assert!(dl["name"].as_str().unwrap_or("").ends_with(".csv"), "{dl}");
@@ -235,7 +221,7 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
     b.wait_for(
         "the jobs list",
         &format!("const r = document.querySelector('tr[data-job=\"{id}\"] .badge'); return r && r.dataset.state === 'succeeded'"),
-        Duration::from_secs(30),
+        30,
     )
     .await;
     b.screenshot(&shots.join("jobs.png")).await;
@@ -243,49 +229,36 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn upload_through_the_form_creates_a_job_followed_live_and_retries_a_failed_part() {
-    let Some(b) = browser_or_skip("upload test").await else {
+    // Small parts so the LiDAR file goes in several.
+    let flags = ["--part-size", "262144"];
+    let empty = ("the empty jobs list", NO_JOBS);
+    let Some((b, dir, srv)) = home_page("upload test", &flags, empty).await else {
         return;
     };
-    let dir = tempfile::tempdir().expect("tempdir");
     let plot = synthetic_plot(dir.path(), 1);
-    // Small parts so the LiDAR file goes in several.
-    let srv = serve(&dir.path().join("data"), &["--part-size", "262144"]);
-    b.goto(&format!("{}/", srv.base)).await;
-    b.wait_for(
-        "the empty jobs list",
-        "return document.querySelector('#jobs-note').textContent.startsWith('No jobs')",
-        Duration::from_secs(20),
-    )
-    .await;
     // The first PUT of a part fails as a dropped connection would.
-    b.exec(
-        "const open = XMLHttpRequest.prototype.open, send = XMLHttpRequest.prototype.send;
+    b.eval("const open = XMLHttpRequest.prototype.open, send = XMLHttpRequest.prototype.send;
          window.__failed = 0;
          XMLHttpRequest.prototype.open = function (m, u) { this.__part = m === 'PUT' && u.includes('/parts/'); return open.apply(this, arguments); };
          XMLHttpRequest.prototype.send = function (body) {
            if (this.__part && window.__failed < 1) { window.__failed++; setTimeout(() => this.onerror(new ProgressEvent('error')), 20); return; }
            return send.call(this, body);
-         };",
-        json!([]),
-    )
+         };")
     .await;
     let path = |f: &str| plot.join(f).to_string_lossy().to_string();
     b.send_keys("#in-lidar", &path("lidar.laz")).await;
     b.send_keys("#in-colmap", &path("colmap.zip")).await;
     b.send_keys("#in-control", &path("control_points.csv"))
         .await;
-    b.exec(
-        "document.querySelector('#in-until').value = 'ingest'",
-        json!([]),
-    )
-    .await;
+    b.eval("document.querySelector('#in-until').value = 'ingest'")
+        .await;
     b.click("#upload-submit").await;
 
     let id = b
         .wait_for(
             "the job page",
             "const m = location.hash.match(/^#\\/jobs\\/([0-9a-f]{32})/); return m && m[1]",
-            Duration::from_secs(120),
+            120,
         )
         .await;
     let id = id.as_str().expect("id").to_string();
@@ -293,10 +266,10 @@ async fn upload_through_the_form_creates_a_job_followed_live_and_retries_a_faile
     b.wait_for(
         "the job to succeed on the page",
         "return document.querySelector('#job-state').dataset.state === 'succeeded'",
-        Duration::from_secs(120),
+        120,
     )
     .await;
-    let stats = b.exec("return window.Sylva.uploadStats", json!([])).await;
+    let stats = b.eval("return window.Sylva.uploadStats").await;
     assert!(stats["retries"].as_u64().unwrap_or(0) >= 1, "{stats}");
     let lidar_parts = std::fs::metadata(plot.join("lidar.laz"))
         .expect("size")
@@ -336,18 +309,14 @@ fn splat_file(n: usize) -> Vec<u8> {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn splat_files_are_parsed_and_drawn() {
-    let Some(b) = browser_or_skip("splat viewer test").await else {
-        return;
-    };
-    let dir = tempfile::tempdir().expect("tempdir");
-    let srv = serve(&dir.path().join("data"), &["--workers", "0"]);
-    b.goto(&format!("{}/", srv.base)).await;
-    b.wait_for(
+    let flags = ["--workers", "0"];
+    let scripts = (
         "the page scripts",
         "return window.SylvaViewer && window.Sylva",
-        Duration::from_secs(20),
-    )
-    .await;
+    );
+    let Some((b, _dir, _srv)) = home_page("splat viewer test", &flags, scripts).await else {
+        return;
+    };
     let n = 400;
     let bytes = splat_file(n);
     let v = b
@@ -404,38 +373,21 @@ async fn splat_files_are_parsed_and_drawn() {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn the_page_asks_once_for_a_token_when_the_server_needs_one() {
-    let Some(b) = browser_or_skip("token test").await else {
-        return;
-    };
-    let dir = tempfile::tempdir().expect("tempdir");
-    let srv = serve(
-        &dir.path().join("data"),
-        &["--workers", "0", "--token", "s3cret-token"],
-    );
-    b.goto(&format!("{}/", srv.base)).await;
-    b.wait_for(
+    let flags = ["--workers", "0", "--token", "s3cret-token"];
+    let dialog = (
         "the token dialog",
         "return !document.querySelector('#token-dialog').hidden",
-        Duration::from_secs(20),
-    )
-    .await;
+    );
+    let Some((b, _dir, _srv)) = home_page("token test", &flags, dialog).await else {
+        return;
+    };
     b.send_keys("#token-input", "s3cret-token").await;
     b.click("#token-form button[type=submit]").await;
-    b.wait_for(
-        "the jobs list",
-        "return document.querySelector('#jobs-note').textContent.startsWith('No jobs')",
-        Duration::from_secs(20),
-    )
-    .await;
-    let kept = b
-        .exec("return sessionStorage.getItem('sylva-token')", json!([]))
-        .await;
+    b.wait_for("the jobs list", NO_JOBS, 20).await;
+    let kept = b.eval("return sessionStorage.getItem('sylva-token')").await;
     assert_eq!(kept, "s3cret-token");
     let dialog_hidden = b
-        .exec(
-            "return document.querySelector('#token-dialog').hidden",
-            json!([]),
-        )
+        .eval("return document.querySelector('#token-dialog').hidden")
         .await;
     assert_eq!(dialog_hidden, true);
 }

@@ -2,34 +2,27 @@
 
 mod common;
 
+use std::path::Path;
 use std::process::Command;
 
 use common::*;
-use serde_json::Value;
 
 #[test]
 fn run_until_ingest_writes_stage_folders_and_results() {
     let fx = fixture();
     let out = fx.dir.path().join("out");
-    let status = Command::new(BIN)
-        .args(["run", "--until", "ingest", "--lidar"])
-        .arg(&fx.lidar)
-        .arg("--colmap")
-        .arg(&fx.colmap_zip)
-        .arg("--control-points")
-        .arg(&fx.control_points)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .expect("run");
-    assert!(
-        status.status.success(),
-        "{}",
-        String::from_utf8_lossy(&status.stderr)
+    succeeds(
+        Command::new(BIN)
+            .args(["run", "--until", "ingest", "--lidar"])
+            .arg(&fx.lidar)
+            .arg("--colmap")
+            .arg(&fx.colmap_zip)
+            .arg("--control-points")
+            .arg(&fx.control_points)
+            .arg("--out")
+            .arg(&out),
     );
-    let results: Value =
-        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
-            .expect("json");
+    let results = read_json(&out.join("results.json"));
     assert_eq!(results["ingest"]["lidar"]["points"], fx.lidar_points);
     assert_eq!(results["ingest"]["control_points"], 4);
     assert!(out.join("ingest/cloud.ply").is_file());
@@ -55,9 +48,7 @@ fn run_stops_with_a_clear_error_when_registration_is_impossible() {
     // The fixture's photos do not show its LiDAR scene: registration must refuse, not guess.
     assert!(stderr.contains("stage register failed"), "{stderr}");
     assert!(stderr.contains("control points are required"), "{stderr}");
-    let results: Value =
-        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
-            .expect("json");
+    let results = read_json(&out.join("results.json"));
     assert!(results.get("ingest").is_some());
     assert!(results.get("register").is_none());
 }
@@ -111,46 +102,27 @@ fn every_flag_is_documented_and_mirrored_by_an_environment_variable() {
     }
 }
 
+/// `sylva run` on the generated plot in `plot` (its four inputs) with `flags`, into `out`.
+fn run_on_plot(plot: &Path, flags: &[&str], out: &Path) -> Command {
+    let mut cmd = Command::new(BIN);
+    cmd.args(["run", "--lidar"]).arg(plot.join("lidar.laz"));
+    cmd.arg("--colmap").arg(plot.join("colmap"));
+    cmd.arg("--control-points")
+        .arg(plot.join("control_points.csv"));
+    cmd.arg("--field-dbh").arg(plot.join("field_dbh.csv"));
+    cmd.args(flags).arg("--out").arg(out);
+    cmd
+}
+
 #[test]
 fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let plot = dir.path().join("plot");
-    let synth = Command::new(BIN)
-        .args(["synth", "--preset", "tiny", "--seed", "2", "--out"])
-        .arg(&plot)
-        .output()
-        .expect("synth");
-    assert!(
-        synth.status.success(),
-        "{}",
-        String::from_utf8_lossy(&synth.stderr)
-    );
+    let plot = synth_plot(dir.path(), 2);
     let out = dir.path().join("out");
-    let run = Command::new(BIN)
-        .args(["run", "--until", "segment", "--lidar"])
-        .arg(plot.join("lidar.laz"))
-        .arg("--colmap")
-        .arg(plot.join("colmap"))
-        .arg("--control-points")
-        .arg(plot.join("control_points.csv"))
-        .arg("--field-dbh")
-        .arg(plot.join("field_dbh.csv"))
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .expect("run");
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let results: Value =
-        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
-            .expect("json");
+    succeeds(&mut run_on_plot(&plot, &["--until", "segment"], &out));
+    let results = read_json(&out.join("results.json"));
     let seg = &results["segment"];
-    let truth: Value =
-        serde_json::from_slice(&std::fs::read(plot.join("truth.json")).expect("truth"))
-            .expect("json");
+    let truth = read_json(&plot.join("truth.json"));
     let n_true = truth["trees"].as_array().map_or(0, Vec::len);
     assert!(n_true > 0);
     // Every generated stem is found and matched to its field record within 1 m.
@@ -183,53 +155,25 @@ fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
 #[test]
 fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let plot = dir.path().join("plot");
-    let synth = Command::new(BIN)
-        .args(["synth", "--preset", "tiny", "--seed", "3", "--out"])
-        .arg(&plot)
-        .output()
-        .expect("synth");
-    assert!(
-        synth.status.success(),
-        "{}",
-        String::from_utf8_lossy(&synth.stderr)
-    );
+    let plot = synth_plot(dir.path(), 3);
     let params = dir.path().join("params.json");
     std::fs::write(&params, r#"{"train": {"max_gaussians": 1500}}"#).expect("params");
     let out = dir.path().join("out");
-    let run = Command::new(BIN)
-        .args(["run", "--lidar"])
-        .arg(plot.join("lidar.laz"))
-        .arg("--colmap")
-        .arg(plot.join("colmap"))
-        .arg("--control-points")
-        .arg(plot.join("control_points.csv"))
-        .arg("--field-dbh")
-        .arg(plot.join("field_dbh.csv"))
-        .arg("--params")
-        .arg(&params)
-        .args([
-            "--backend",
-            "cpu",
-            "--steps",
-            "60",
-            "--resolution",
-            "48",
-            "--init",
-            "lidar",
-        ])
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .expect("run");
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let results: Value =
-        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
-            .expect("json");
+    let params = params.to_str().expect("path");
+    let flags = [
+        "--params",
+        params,
+        "--backend",
+        "cpu",
+        "--steps",
+        "60",
+        "--resolution",
+        "48",
+        "--init",
+        "lidar",
+    ];
+    succeeds(&mut run_on_plot(&plot, &flags, &out));
+    let results = read_json(&out.join("results.json"));
     let train = &results["train"];
     assert_eq!(
         train["gaussians"]["initial"].as_u64(),
@@ -271,9 +215,7 @@ fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters
     assert!(String::from_utf8_lossy(&ply[..512]).contains("element vertex 1500"));
     let compact = std::fs::metadata(out.join("export/splats.splat")).expect("splat");
     assert_eq!(compact.len(), 1500 * 32);
-    let frame: Value =
-        serde_json::from_slice(&std::fs::read(out.join("export/frame.json")).expect("frame"))
-            .expect("json");
+    let frame = read_json(&out.join("export/frame.json"));
     assert!(
         frame["offset"].is_array() && frame["sfm_to_lidar"]["scale"].is_number(),
         "{frame}"

@@ -39,24 +39,12 @@ async fn every_listed_route_reaches_a_handler() {
     let dir = tempfile::tempdir().expect("tempdir");
     let srv = serve(&dir.path().join("data"), &["--workers", "0"]);
     let c = client();
-    let upload: serde_json::Value = c
-        .post(format!("{}/v1/uploads", srv.base))
-        .json(&serde_json::json!({ "kind": "lidar", "filename": "a.las", "size": 10 }))
-        .send()
-        .await
-        .expect("create upload")
-        .json()
-        .await
-        .expect("json");
+    let upload = open_upload(&c, &srv.base, "lidar", "a.las", 10).await;
     let upload_id = upload["id"].as_str().expect("id");
     for (method, path) in ROUTES {
         if *method == "HEAD" {
             let url = path.replace("{id}", upload_id);
-            let r = c
-                .head(format!("{}{url}", srv.base))
-                .send()
-                .await
-                .expect("head");
+            let r = send(c.head(format!("{}{url}", srv.base))).await;
             assert_eq!(r.status(), reqwest::StatusCode::OK, "HEAD {path}");
             continue;
         }
@@ -91,11 +79,7 @@ async fn every_listed_route_reaches_a_handler() {
         );
     }
     // The served contract is the file in the repository.
-    let served = c
-        .get(format!("{}/openapi.yaml", srv.base))
-        .send()
-        .await
-        .expect("get");
+    let served = send(c.get(format!("{}/openapi.yaml", srv.base))).await;
     assert_eq!(served.headers()["content-type"], "application/yaml");
     let served = served.text().await.expect("text");
     let file = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/openapi.yaml"))
@@ -118,27 +102,7 @@ const FUZZ_DEADLINE: Duration = Duration::from_secs(15 * 60);
 /// Where schemathesis is: `SYLVA_TEST_SCHEMATHESIS` (its path, or `none` to skip), else the
 /// test virtual environment that scripts/test makes (target/test-venv), else `PATH`.
 fn schemathesis() -> Result<PathBuf, String> {
-    if let Ok(v) = std::env::var("SYLVA_TEST_SCHEMATHESIS") {
-        if v == "none" {
-            return Err("SYLVA_TEST_SCHEMATHESIS=none".into());
-        }
-        return Ok(PathBuf::from(v));
-    }
-    let venv = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/test-venv/bin/schemathesis");
-    if venv.is_file() {
-        return Ok(venv);
-    }
-    std::env::var_os("PATH")
-        .and_then(|p| {
-            std::env::split_paths(&p)
-                .map(|d| d.join("schemathesis"))
-                .find(|p| p.is_file())
-        })
-        .ok_or_else(|| {
-            "schemathesis is not installed (scripts/test installs it into target/test-venv; \
-             or set SYLVA_TEST_SCHEMATHESIS)"
-                .into()
-        })
+    test_tool("SYLVA_TEST_SCHEMATHESIS", "schemathesis")
 }
 
 /// Real resources for the fuzzer to find through the listings and links: completed uploads
@@ -148,28 +112,18 @@ async fn seed_resources(data: &Path, base: &str, key: &str) {
     let c = keyed_client(key);
     let fx = fixture();
     let inputs = upload_inputs(&c, base, &fx).await;
-    c.post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "field_dbh", "filename": "open.csv", "size": 100 }))
-        .send()
-        .await
-        .expect("open upload")
-        .error_for_status()
-        .expect("201");
-    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
-    let canceled = create_job(&c, base, &body).await;
-    let id = canceled["id"].as_str().expect("id");
-    let r = c
-        .post(format!("{base}/v1/jobs/{id}/cancel"))
-        .send()
-        .await
-        .expect("cancel");
+    let open = json!({ "kind": "field_dbh", "filename": "open.csv", "size": 100 });
+    let r = send(c.post(format!("{base}/v1/uploads")).json(&open)).await;
+    r.error_for_status().expect("201");
+    let body = job_until(&inputs, "ingest");
+    let id = submit(&c, base, &body).await;
+    let r = send(c.post(format!("{base}/v1/jobs/{id}/cancel"))).await;
     assert_eq!(r.status(), reqwest::StatusCode::ACCEPTED);
     // One job runs (ingest only, no GPU) on a worker of its own, which then stops: the server
     // under test has none, so nothing heavy runs while it is fuzzed.
     let mut w = worker(data, &["--poll-ms", "50"]);
-    let done = create_job(&c, base, &body).await;
-    let id = done["id"].as_str().expect("id");
-    let (job, _) = wait_job(&c, base, id, Duration::from_secs(180), is_terminal).await;
+    let id = submit(&c, base, &body).await;
+    let (job, _) = wait_job(&c, base, &id, Duration::from_secs(180), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     assert!(
         job["artifacts"].as_array().is_some_and(|a| !a.is_empty()),

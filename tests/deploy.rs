@@ -139,6 +139,20 @@ fn port_of(listen: &str) -> Option<u16> {
     listen.rsplit(':').next()?.parse().ok()
 }
 
+/// The subcommand that a container's arguments run (without any, the image's CMD: `serve`),
+/// checked as [`check_invocation`] does, and the environment variables it reads.
+fn invocation(
+    cli: &BTreeMap<String, Surface>,
+    args: Option<&Value>,
+    at: &str,
+    errors: &mut Vec<String>,
+) -> Option<(String, BTreeSet<String>)> {
+    let args = args.map(strings).unwrap_or_else(|| vec!["serve".into()]);
+    let sub = check_invocation(cli, &args, at, errors)?;
+    let envs = envs_of(cli, &[sub.as_str()]);
+    Some((sub, envs))
+}
+
 fn strings(v: &Value) -> Vec<String> {
     match v {
         Value::Sequence(items) => items
@@ -255,15 +269,9 @@ fn compose_file_parses_and_uses_real_flags_and_variables() {
             continue;
         }
         let at = format!("compose service {name}");
-        // Without `command`, the image's CMD (`serve`) runs.
-        let args = svc
-            .get("command")
-            .map(strings)
-            .unwrap_or_else(|| vec!["serve".into()]);
-        let Some(sub) = check_invocation(&cli, &args, &at, &mut errors) else {
+        let Some((sub, envs)) = invocation(&cli, svc.get("command"), &at, &mut errors) else {
             continue;
         };
-        let envs = envs_of(&cli, &[sub.as_str()]);
         let env = svc
             .get("environment")
             .and_then(Value::as_mapping)
@@ -356,14 +364,9 @@ fn kubernetes_manifests_parse_and_probe_real_routes() {
             continue;
         }
         let at = format!("{file} container {}", c["name"].as_str().unwrap_or("?"));
-        let args = c
-            .get("args")
-            .map(strings)
-            .unwrap_or_else(|| vec!["serve".into()]);
-        let Some(sub) = check_invocation(&cli, &args, &at, &mut errors) else {
+        let Some((sub, envs)) = invocation(&cli, c.get("args"), &at, &mut errors) else {
             continue;
         };
-        let envs = envs_of(&cli, &[sub.as_str()]);
         for e in c
             .get("env")
             .and_then(Value::as_sequence)

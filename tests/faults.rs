@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use common::*;
-use reqwest::StatusCode;
-use serde_json::{Value, json};
+use reqwest::{Client, StatusCode};
+use serde_json::Value;
 
 /// A tmpfs mounted at a fresh folder, unmounted when dropped.
 struct Tmpfs {
@@ -43,6 +43,13 @@ impl Tmpfs {
                 None
             }
         }
+    }
+}
+
+impl Tmpfs {
+    /// The data folder of the test's `sylva serve` on this disk.
+    fn data(&self) -> PathBuf {
+        self.dir.join("data")
     }
 }
 
@@ -89,37 +96,38 @@ async fn assert_intact(path: &Path) {
     assert_eq!(check.0, "ok");
 }
 
+/// Waits for job `id` to end (60 s at most), asserting that it failed with a disk-full (507)
+/// problem; the job.
+async fn fails_with_507(c: &Client, base: &str, id: &str) -> Value {
+    let (job, _) = wait_job(c, base, id, Duration::from_secs(60), is_terminal).await;
+    assert_eq!(job["state"], "failed", "{job}");
+    assert_eq!(job["error"]["status"], 507, "{job}");
+    job
+}
+
+/// Retries job `id`, asserting 202; its id.
+async fn retried(c: &Client, base: &str, id: String) -> String {
+    let r = send(c.post(format!("{base}/v1/jobs/{id}/retry"))).await;
+    assert_eq!(r.status(), StatusCode::ACCEPTED);
+    id
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_full_disk_gives_507_and_a_failed_stage_and_the_database_survives() {
     let Some(fs) = Tmpfs::mount("24m") else {
         return;
     };
     let fx = fixture();
-    let data = fs.dir.join("data");
-    let srv = serve(&data, &["--min-free-bytes", "0"]);
-    let (c, base) = (client(), srv.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
+    let srv = serve(&fs.data(), &["--min-free-bytes", "0"]);
+    let (c, base, inputs) = client_with_inputs(&srv, &fx).await;
     // An upload opened before the disk fills.
-    let pending: Value = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "lidar", "filename": "late.las", "size": 200_000 }))
-        .send()
-        .await
-        .expect("create")
-        .json()
-        .await
-        .expect("json");
-    let pending = pending["id"].as_str().expect("id").to_string();
+    let pending = id_of(&open_upload(&c, &base, "lidar", "late.las", 200_000).await);
+    let late_part = || put_part(&c, &base, &pending, 0, vec![7u8; 200_000]);
 
     let filler = fill(&fs.dir);
 
     // A part that cannot be stored: 507, as a problem.
-    let r = c
-        .put(format!("{base}/v1/uploads/{pending}/parts/0"))
-        .body(vec![7u8; 200_000])
-        .send()
-        .await
-        .expect("part");
+    let r = late_part().await;
     // The body may be left unread: the answer says the connection will not be reused.
     assert_eq!(
         r.headers().get("connection").map(|v| v.as_bytes()),
@@ -128,25 +136,16 @@ async fn a_full_disk_gives_507_and_a_failed_stage_and_the_database_survives() {
         r.headers()
     );
     let p = expect_problem(r, StatusCode::INSUFFICIENT_STORAGE).await;
-    assert!(
-        p["detail"].as_str().expect("detail").contains("disk"),
-        "{p}"
-    );
+    assert!(detail(&p).contains("disk"), "{p}");
 
     // A job on the full disk: refused with 507 at creation, or accepted and its stage
     // fails with a disk-full problem. Never a 500, never stuck.
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": inputs, "params": { "until": "ingest" } }))
-        .send()
-        .await
-        .expect("create job");
+    let body = job_until(&inputs, "ingest");
+    let r = send(c.post(format!("{base}/v1/jobs")).json(&body)).await;
     let failed_job = if r.status() == StatusCode::ACCEPTED {
         let job: Value = r.json().await.expect("json");
-        let id = job["id"].as_str().expect("id").to_string();
-        let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
-        assert_eq!(job["state"], "failed", "{job}");
-        assert_eq!(job["error"]["status"], 507, "{job}");
+        let id = id_of(&job);
+        fails_with_507(&c, &base, &id).await;
         Some(id)
     } else {
         expect_problem(r, StatusCode::INSUFFICIENT_STORAGE).await;
@@ -154,45 +153,23 @@ async fn a_full_disk_gives_507_and_a_failed_stage_and_the_database_survives() {
     };
 
     // The service is still up while the disk is full.
-    let live = c.get(format!("{base}/livez")).send().await.expect("livez");
-    assert_eq!(live.status(), StatusCode::OK);
-    let list = c.get(format!("{base}/v1/jobs")).send().await.expect("list");
-    assert_eq!(list.status(), StatusCode::OK);
+    for path in ["/livez", "/v1/jobs"] {
+        let r = send(c.get(format!("{base}{path}"))).await;
+        assert_eq!(r.status(), StatusCode::OK, "{path}");
+    }
 
     // Space comes back: the same work goes through, and the database is intact.
     std::fs::remove_file(&filler).expect("free the disk");
     let id = match failed_job {
-        Some(id) => {
-            let r = c
-                .post(format!("{base}/v1/jobs/{id}/retry"))
-                .send()
-                .await
-                .expect("retry");
-            assert_eq!(r.status(), StatusCode::ACCEPTED);
-            id
-        }
-        None => {
-            let job = create_job(
-                &c,
-                &base,
-                &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
-            )
-            .await;
-            job["id"].as_str().expect("id").to_string()
-        }
+        Some(id) => retried(&c, &base, id).await,
+        None => submit(&c, &base, &body).await,
     };
     let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
-    let r = c
-        .put(format!("{base}/v1/uploads/{pending}/parts/0"))
-        .body(vec![7u8; 200_000])
-        .send()
-        .await
-        .expect("part");
-    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(late_part().await.status(), StatusCode::OK);
 
     drop(srv);
-    assert_intact(&data.join("sylva.db")).await;
+    assert_intact(&fs.data().join("sylva.db")).await;
 }
 
 /// The disk fills while a stage runs: the stage fails with a disk-full (507) problem, the
@@ -204,11 +181,10 @@ async fn a_disk_that_fills_during_a_stage_fails_it_with_507_and_a_retry_succeeds
         return;
     };
     let fx = fixture();
-    let data = fs.dir.join("data");
     let db = fx.dir.path().join("sylva.db");
     let db_arg = db.display().to_string();
     let srv = serve(
-        &data,
+        &fs.data(),
         &[
             "--min-free-bytes",
             "0",
@@ -218,36 +194,22 @@ async fn a_disk_that_fills_during_a_stage_fails_it_with_507_and_a_retry_succeeds
             "1500",
         ],
     );
-    let (c, base) = (client(), srv.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let job = create_job(
-        &c,
-        &base,
-        &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let (c, base, inputs) = client_with_inputs(&srv, &fx).await;
+    let id = submit(&c, &base, &job_until(&inputs, "ingest")).await;
     // The stage has started (it waits 1.5 s before its work): now the disk fills.
     wait_job(&c, &base, &id, Duration::from_secs(30), |j| {
         j["state"] == "running"
     })
     .await;
     let filler = fill(&fs.dir);
-    let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
-    assert_eq!(job["state"], "failed", "{job}");
-    assert_eq!(job["error"]["status"], 507, "{job}");
+    let job = fails_with_507(&c, &base, &id).await;
     assert_eq!(job["error"]["stage"], "ingest", "{job}");
     assert_eq!(stage(&job, "ingest")["state"], "failed", "{job}");
-    let live = c.get(format!("{base}/livez")).send().await.expect("livez");
+    let live = send(c.get(format!("{base}/livez"))).await;
     assert_eq!(live.status(), StatusCode::OK);
 
     std::fs::remove_file(&filler).expect("free the disk");
-    let r = c
-        .post(format!("{base}/v1/jobs/{id}/retry"))
-        .send()
-        .await
-        .expect("retry");
-    assert_eq!(r.status(), StatusCode::ACCEPTED);
+    let id = retried(&c, &base, id).await;
     let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
 

@@ -7,22 +7,8 @@ mod common;
 use std::time::Duration;
 
 use common::*;
-use reqwest::header::{AUTHORIZATION, HeaderMap, HeaderValue};
 use reqwest::{Client, StatusCode};
-use serde_json::{Value, json};
-
-fn client_for(token: &str) -> Client {
-    let mut h = HeaderMap::new();
-    h.insert(
-        AUTHORIZATION,
-        HeaderValue::from_str(&format!("Bearer {token}")).expect("header"),
-    );
-    Client::builder()
-        .default_headers(h)
-        .timeout(Duration::from_secs(60))
-        .build()
-        .expect("client")
-}
+use serde_json::json;
 
 fn retry_after(r: &reqwest::Response) -> u64 {
     r.headers()
@@ -32,12 +18,10 @@ fn retry_after(r: &reqwest::Response) -> u64 {
         .expect("a Retry-After in seconds")
 }
 
-async fn open_upload(c: &Client, base: &str, size: u64) -> reqwest::Response {
-    c.post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "lidar", "filename": "more.las", "size": size }))
-        .send()
-        .await
-        .expect("create upload")
+/// Opens an upload of `size` bytes; the answer.
+async fn open_more(c: &Client, base: &str, size: u64) -> reqwest::Response {
+    let body = json!({ "kind": "lidar", "filename": "more.las", "size": size });
+    send(c.post(format!("{base}/v1/uploads")).json(&body)).await
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -69,95 +53,50 @@ async fn quotas_are_per_token_and_retention_removes_files_but_keeps_records() {
         ],
     );
     let base = srv.base.clone();
-    let (alice, bob) = (client_for("alice-token"), client_for("bob-token"));
+    let (alice, bob) = (keyed_client("alice-token"), keyed_client("bob-token"));
     let a_inputs = upload_inputs(&alice, &base, &fx).await;
-    let body = json!({ "inputs": a_inputs, "params": { "until": "ingest" } });
-    let first = create_job(&alice, &base, &body).await;
-    let first = first["id"].as_str().expect("id").to_string();
+    let body = job_until(&a_inputs, "ingest");
+    let first = submit(&alice, &base, &body).await;
+    let new_job = |c: &Client| c.post(format!("{base}/v1/jobs")).json(&body);
 
     // A second unfinished job for the same token: 429 with Retry-After.
-    let r = alice
-        .post(format!("{base}/v1/jobs"))
-        .json(&body)
-        .send()
-        .await
-        .expect("second job");
+    let r = send(new_job(&alice)).await;
     assert!(retry_after(&r) >= 1);
     let p = expect_problem(r, StatusCode::TOO_MANY_REQUESTS).await;
     assert_eq!(p["type"], "urn:sylva:problem:quota-exceeded", "{p}");
     // Bob has his own quota, and cannot use Alice's uploads.
-    let r = bob
-        .post(format!("{base}/v1/jobs"))
-        .json(&body)
-        .send()
-        .await
-        .expect("bob with alice's inputs");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+    send_problem(new_job(&bob), StatusCode::UNPROCESSABLE_ENTITY).await;
     let b_inputs = upload_inputs(&bob, &base, &fx).await;
-    let bobs = create_job(
-        &bob,
-        &base,
-        &json!({ "inputs": b_inputs, "params": { "until": "ingest" } }),
-    )
-    .await;
-    let bobs = bobs["id"].as_str().expect("id").to_string();
+    let bobs = submit(&bob, &base, &job_until(&b_inputs, "ingest")).await;
 
     // Stored bytes: Alice's inputs leave less than 2000 bytes of her quota.
-    let r = open_upload(&alice, &base, 2000).await;
+    let r = open_more(&alice, &base, 2000).await;
     assert!(retry_after(&r) >= 1);
     let p = expect_problem(r, StatusCode::TOO_MANY_REQUESTS).await;
-    assert!(
-        p["detail"].as_str().expect("detail").contains("quota"),
-        "{p}"
-    );
+    assert!(detail(&p).contains("quota"), "{p}");
     // A small one fits; left open, it expires after --upload-ttl-secs and the sweep
     // removes its bytes (and gives the quota back).
-    let r = open_upload(&alice, &base, 500).await;
+    let r = open_more(&alice, &base, 500).await;
     assert_eq!(r.status(), StatusCode::CREATED);
-    let open: Value = r.json().await.expect("json");
-    let open = open["id"].as_str().expect("id").to_string();
-    let r = alice
-        .put(format!("{base}/v1/uploads/{open}/parts/0"))
-        .body(vec![1u8; 500])
-        .send()
-        .await
-        .expect("part");
-    assert_eq!(r.status(), StatusCode::OK);
+    let open = id_of(&r.json().await.expect("json"));
+    let part = || put_part(&alice, &base, &open, 0, vec![1u8; 500]);
+    assert_eq!(part().await.status(), StatusCode::OK);
     assert!(data.join("uploads").join(&open).exists());
-    let deadline = std::time::Instant::now() + Duration::from_secs(30);
-    loop {
-        let u: Value = alice
-            .get(format!("{base}/v1/uploads/{open}"))
-            .send()
-            .await
-            .expect("status")
-            .json()
-            .await
-            .expect("json");
+    poll_until(Duration::from_secs(30), 200, async || {
+        let u = send_json(alice.get(format!("{base}/v1/uploads/{open}"))).await;
         if u["state"] == "expired" && !data.join("uploads").join(&open).exists() {
-            break;
+            return Ok(());
         }
-        assert!(
-            std::time::Instant::now() < deadline,
-            "never swept: {u}; {}",
-            srv.stderr_text()
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
-    let r = alice
-        .put(format!("{base}/v1/uploads/{open}/parts/0"))
-        .body(vec![1u8; 500])
-        .send()
-        .await
-        .expect("part");
-    expect_problem(r, StatusCode::GONE).await;
+        Err(format!("never swept: {u}; {}", srv.stderr_text()))
+    })
+    .await;
+    expect_problem(part().await, StatusCode::GONE).await;
 
     // Once the first job has finished, Alice may submit again.
     let (job, _) = wait_job(&alice, &base, &first, Duration::from_secs(60), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     assert!(job["expires_at"].is_null(), "retention is off: {job}");
-    let second = create_job(&alice, &base, &body).await;
-    let second = second["id"].as_str().expect("id").to_string();
+    let second = submit(&alice, &base, &body).await;
     wait_job(&alice, &base, &second, Duration::from_secs(60), is_terminal).await;
     wait_job(&bob, &base, &bobs, Duration::from_secs(60), is_terminal).await;
     drop(srv);
@@ -183,13 +122,11 @@ async fn quotas_are_per_token_and_retention_removes_files_but_keeps_records() {
         .expect("an artifact")
         .to_string();
     tokio::time::sleep(Duration::from_millis(1200)).await;
-    let out = std::process::Command::new(BIN)
-        .args(["gc", "--job-retention-secs", "1", "--data"])
-        .arg(&data)
-        .output()
-        .expect("sylva gc");
+    let out = succeeds(&mut sylva_command(
+        &["gc", "--job-retention-secs", "1"],
+        &data,
+    ));
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}");
     let count = |label: &str| -> u64 {
         text.lines()
             .find_map(|l| l.strip_prefix(label))
@@ -211,37 +148,16 @@ async fn quotas_are_per_token_and_retention_removes_files_but_keeps_records() {
     assert_eq!(job["artifacts"], json!([]), "{job}");
     assert!(!data.join("jobs").join(&first).exists(), "files left");
     for path in [artifact, format!("/v1/jobs/{first}/trees.csv")] {
-        let r = alice
-            .get(format!("{base}{path}"))
-            .send()
-            .await
-            .expect("get");
-        expect_problem(r, StatusCode::GONE).await;
+        send_problem(alice.get(format!("{base}{path}")), StatusCode::GONE).await;
     }
-    let r = alice
-        .post(format!("{base}/v1/jobs/{first}/retry"))
-        .send()
-        .await
-        .expect("retry");
-    expect_problem(r, StatusCode::GONE).await;
+    let retry = alice.post(format!("{base}/v1/jobs/{first}/retry"));
+    send_problem(retry, StatusCode::GONE).await;
     // The record, its stage metrics and its log stay.
-    let r = alice
-        .get(format!("{base}/v1/jobs/{first}/results"))
-        .send()
-        .await
-        .expect("results");
+    let r = send(alice.get(format!("{base}/v1/jobs/{first}/results"))).await;
     assert_eq!(r.status(), StatusCode::OK);
     assert!(log_text(&alice, &base, &first).await.contains("ingest"));
     // A job on expired inputs: 410 naming the upload.
-    let r = alice
-        .post(format!("{base}/v1/jobs"))
-        .json(&body)
-        .send()
-        .await
-        .expect("job on expired inputs");
-    let p = expect_problem(r, StatusCode::GONE).await;
-    assert!(
-        p["detail"].as_str().expect("detail").contains("expired"),
-        "{p}"
-    );
+    let new_job = alice.post(format!("{base}/v1/jobs")).json(&body);
+    let p = send_problem(new_job, StatusCode::GONE).await;
+    assert!(detail(&p).contains("expired"), "{p}");
 }

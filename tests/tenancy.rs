@@ -26,7 +26,9 @@ fn fill(path: &str, id: &str) -> String {
         .replace("{name}", "ingest/report.json")
 }
 
-async fn send(c: &Client, method: &str, url: &str) -> (StatusCode, Value) {
+/// `method url` as `c`, with a body for PUT and POST: the status and the JSON answer (null
+/// when there is none).
+async fn try_route(c: &Client, method: &str, url: &str) -> (StatusCode, Value) {
     let m = Method::from_bytes(method.as_bytes()).expect("method");
     let mut req = c.request(m, url);
     if method == "PUT" {
@@ -34,7 +36,7 @@ async fn send(c: &Client, method: &str, url: &str) -> (StatusCode, Value) {
     } else if method == "POST" {
         req = req.header("content-type", "application/json").body("{}");
     }
-    let r = req.send().await.expect("request");
+    let r = send(req).await;
     let status = r.status();
     let text = r.text().await.unwrap_or_default();
     (status, serde_json::from_str(&text).unwrap_or(Value::Null))
@@ -70,22 +72,13 @@ async fn tenancy_matrix(db: Db) {
         keyed_client(&bob_key),
         keyed_client(&root_key),
     );
-    let anonymous = client();
-    let r = anonymous
-        .get(format!("{base}/v1/jobs"))
-        .send()
-        .await
-        .expect("get");
-    assert_eq!(
-        r.status(),
-        StatusCode::UNAUTHORIZED,
-        "keys exist: auth is on"
-    );
+    let (s, _) = status_of(&client(), &format!("{base}/v1/jobs")).await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED, "keys exist: auth is on");
 
     let inputs = upload_inputs(&alice, &base, &fx).await;
     let upload = inputs["lidar"].as_str().expect("upload id").to_string();
     let job = create_job(&alice, &base, &json!({ "inputs": inputs })).await;
-    let job_id = job["id"].as_str().expect("job id").to_string();
+    let job_id = id_of(&job);
     let alice_info: Value = get_json(&alice, &format!("{base}/v1/info")).await;
     let alice_owner = alice_info["caller"]["owner"]
         .as_str()
@@ -109,14 +102,14 @@ async fn tenancy_matrix(db: Db) {
         } else {
             &job_id
         };
-        let (status, body) = send(&bob, method, &format!("{base}{}", fill(path, id))).await;
+        let (status, body) = try_route(&bob, method, &format!("{base}{}", fill(path, id))).await;
         assert_eq!(
             status,
             StatusCode::NOT_FOUND,
             "{method} {path}: another key's record must answer 404, got {status}: {body}"
         );
         let (m_status, m_body) =
-            send(&bob, method, &format!("{base}{}", fill(path, missing))).await;
+            try_route(&bob, method, &format!("{base}{}", fill(path, missing))).await;
         assert_eq!(m_status, StatusCode::NOT_FOUND, "{method} {path} (missing)");
         if method != "HEAD" {
             assert_eq!(
@@ -145,35 +138,25 @@ async fn tenancy_matrix(db: Db) {
         "{all}"
     );
     // The admin reads and manages alice's records.
-    let r = root
-        .get(format!("{base}/v1/jobs/{job_id}/log"))
-        .send()
-        .await
-        .expect("log");
-    assert_eq!(r.status(), StatusCode::OK);
-    let r = root
-        .get(format!("{base}/v1/uploads/{upload}"))
-        .send()
-        .await
-        .expect("upload");
-    assert_eq!(r.status(), StatusCode::OK);
+    for path in [
+        format!("/v1/jobs/{job_id}/log"),
+        format!("/v1/uploads/{upload}"),
+    ] {
+        let (s, _) = status_of(&root, &format!("{base}{path}")).await;
+        assert_eq!(s, StatusCode::OK, "{path}");
+    }
 
     // Bob cannot use alice's upload as a job input: the same answer as a missing upload.
-    let theirs = bob
-        .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": { "lidar": upload, "colmap": inputs["colmap"] } }))
-        .send()
-        .await
-        .expect("post");
+    let with_lidar = |lidar: &str| {
+        let inputs = json!({ "lidar": lidar, "colmap": inputs["colmap"] });
+        bob.post(format!("{base}/v1/jobs"))
+            .json(&json!({ "inputs": inputs }))
+    };
+    let theirs = send(with_lidar(&upload)).await;
     let theirs_status = theirs.status();
     let theirs_body: Value = theirs.json().await.expect("json");
     assert!(theirs_status.is_client_error(), "{theirs_body}");
-    let none = bob
-        .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": { "lidar": missing, "colmap": inputs["colmap"] } }))
-        .send()
-        .await
-        .expect("post");
+    let none = send(with_lidar(missing)).await;
     assert_eq!(none.status(), theirs_status);
     let none_body: Value = none.json().await.expect("json");
     assert_eq!(
@@ -187,48 +170,28 @@ async fn tenancy_matrix(db: Db) {
         c.post(format!("{base}/v1/jobs"))
             .header("idempotency-key", "nightly-plot-7")
             .json(&json!({ "inputs": inputs }))
-            .send()
     };
-    let a: Value = post(&alice, &inputs)
-        .await
-        .expect("post")
-        .json()
-        .await
-        .expect("json");
-    let b = post(&bob, &bob_inputs).await.expect("post");
+    let a = send_json(post(&alice, &inputs)).await;
+    let b = send(post(&bob, &bob_inputs)).await;
     assert_eq!(b.status(), StatusCode::ACCEPTED);
     let b: Value = b.json().await.expect("json");
     assert_ne!(a["id"], b["id"], "bob was given alice's job: {b}");
-    let a2: Value = post(&alice, &inputs)
-        .await
-        .expect("post")
-        .json()
-        .await
-        .expect("json");
+    let a2 = send_json(post(&alice, &inputs)).await;
     assert_eq!(a["id"], a2["id"], "alice's replay gives her job back");
 
     // Keys over HTTP: admin keys only.
+    let keys = format!("{base}/v1/keys");
+    let new_key = |c: &Client, key: Value| c.post(&keys).json(&key);
     for c in [&alice, &bob] {
-        let r = c.get(format!("{base}/v1/keys")).send().await.expect("get");
-        expect_problem(r, StatusCode::FORBIDDEN).await;
-        let r = c
-            .post(format!("{base}/v1/keys"))
-            .json(&json!({ "name": "sneaky", "admin": true }))
-            .send()
-            .await
-            .expect("post");
-        expect_problem(r, StatusCode::FORBIDDEN).await;
+        send_problem(c.get(&keys), StatusCode::FORBIDDEN).await;
+        let sneaky = new_key(c, json!({ "name": "sneaky", "admin": true }));
+        send_problem(sneaky, StatusCode::FORBIDDEN).await;
     }
-    let made = root
-        .post(format!("{base}/v1/keys"))
-        .json(&json!({ "name": "carol", "quota_jobs": 2 }))
-        .send()
-        .await
-        .expect("post");
+    let made = send(new_key(&root, json!({ "name": "carol", "quota_jobs": 2 }))).await;
     assert_eq!(made.status(), StatusCode::CREATED);
     let made: Value = made.json().await.expect("json");
     let carol_key = made["key"].as_str().expect("key").to_string();
-    let carol_id = made["id"].as_str().expect("id").to_string();
+    let carol_id = id_of(&made);
     assert_eq!(made["quota_jobs"], 2);
     let (s, _) = status_of(&keyed_client(&carol_key), &format!("{base}/v1/jobs")).await;
     assert_eq!(s, StatusCode::OK, "a key made over HTTP works at once");
@@ -239,25 +202,11 @@ async fn tenancy_matrix(db: Db) {
         !text.contains(&carol_key[6..]),
         "a listed key shows its key"
     );
-    let again = root
-        .post(format!("{base}/v1/keys"))
-        .json(&json!({ "name": "carol" }))
-        .send()
-        .await
-        .expect("post");
-    expect_problem(again, StatusCode::CONFLICT).await;
-    let r = bob
-        .delete(format!("{base}/v1/keys/{carol_id}"))
-        .send()
-        .await
-        .expect("delete");
-    expect_problem(r, StatusCode::NOT_FOUND).await;
-    let r = root
-        .delete(format!("{base}/v1/keys/{carol_id}"))
-        .send()
-        .await
-        .expect("delete");
-    assert_eq!(r.status(), StatusCode::OK);
+    let again = new_key(&root, json!({ "name": "carol" }));
+    send_problem(again, StatusCode::CONFLICT).await;
+    let carol = format!("{keys}/{carol_id}");
+    send_problem(bob.delete(&carol), StatusCode::NOT_FOUND).await;
+    assert_eq!(send(root.delete(&carol)).await.status(), StatusCode::OK);
     let (s, _) = status_of(&keyed_client(&carol_key), &format!("{base}/v1/jobs")).await;
     assert_eq!(s, StatusCode::UNAUTHORIZED, "revoked over HTTP");
 
@@ -270,8 +219,9 @@ async fn tenancy_matrix(db: Db) {
 
 on_both_databases!(tenancy_matrix);
 
+/// GET `url` as `c`: the status and the text of the answer.
 async fn status_of(c: &Client, url: &str) -> (StatusCode, String) {
-    let r = c.get(url).send().await.expect("get");
+    let r = send(c.get(url)).await;
     let s = r.status();
     (s, r.text().await.unwrap_or_default())
 }
@@ -330,14 +280,10 @@ async fn an_expired_key_is_refused_and_quotas_are_per_key() {
     assert_eq!(info["limits"]["quota_jobs"], 1, "{info}");
     assert_eq!(info["caller"]["key"], "one-job");
     let inputs = upload_inputs(&c, &base, &fx).await;
-    create_job(&c, &base, &json!({ "inputs": inputs })).await;
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": inputs }))
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::TOO_MANY_REQUESTS).await;
+    let body = json!({ "inputs": inputs });
+    create_job(&c, &base, &body).await;
+    let second = c.post(format!("{base}/v1/jobs")).json(&body);
+    send_problem(second, StatusCode::TOO_MANY_REQUESTS).await;
 
     // Past its expiry the first key is refused, saying why.
     tokio::time::sleep(Duration::from_millis(3200)).await;

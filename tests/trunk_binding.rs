@@ -87,20 +87,9 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
     if !gpu {
         eprintln!("no GPU adapter: both arms train on the CPU reference (100 steps)");
     }
-    let (bind_train, bind_dbh) = arm(
-        &shared,
-        &dir.path().join("bind"),
-        &inputs,
-        TrunkTerm::Bind,
-        gpu,
-    );
-    let (paper_train, paper_dbh) = arm(
-        &shared,
-        &dir.path().join("paper"),
-        &inputs,
-        TrunkTerm::Paper,
-        gpu,
-    );
+    let [(bind_train, bind_dbh), (paper_train, paper_dbh)] =
+        [("bind", TrunkTerm::Bind), ("paper", TrunkTerm::Paper)]
+            .map(|(name, term)| arm(&shared, &dir.path().join(name), &inputs, term, gpu));
     println!("bind: {bind_dbh}\npaper: {paper_dbh}");
 
     // The binding: surfels from step 0, held on the surface at every measurement.

@@ -90,15 +90,14 @@ impl Receiver {
 
     /// Waits until `done(hits)` holds.
     async fn wait(&self, what: &str, timeout: Duration, done: impl Fn(&[Hit]) -> bool) {
-        let deadline = Instant::now() + timeout;
-        while !done(&self.hits()) {
-            assert!(
-                Instant::now() < deadline,
-                "timed out waiting for {what}: {:?}",
-                self.hits()
-            );
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
+        poll_until(timeout, 20, async || {
+            let hits = self.hits();
+            if done(&hits) {
+                return Ok(());
+            }
+            Err(format!("waiting for {what}: {hits:?}"))
+        })
+        .await;
     }
 }
 
@@ -126,45 +125,26 @@ fn signature_verifies(secret: &str, hit: &Hit) -> bool {
     mac.verify_slice(&sig).is_ok()
 }
 
+/// Sends `req`, asserting a 2xx answer; its JSON body.
+async fn ok_json(req: reqwest::RequestBuilder) -> Value {
+    let r = send(req).await.error_for_status().expect("2xx");
+    r.json().await.expect("json")
+}
+
+/// The webhook secret of `token` (none: the anonymous owner's).
 async fn secret(c: &Client, base: &str, token: &str) -> String {
-    let v: Value = c
-        .get(format!("{base}/v1/webhooks/secret"))
-        .bearer_auth(token)
-        .send()
-        .await
-        .expect("secret")
-        .error_for_status()
-        .expect("200")
-        .json()
-        .await
-        .expect("json");
+    let v = ok_json(
+        c.get(format!("{base}/v1/webhooks/secret"))
+            .bearer_auth(token),
+    )
+    .await;
     assert_eq!(v["algorithm"], "HMAC-SHA256");
     v["secret"].as_str().expect("secret").to_string()
 }
 
-fn authed(token: &str) -> Client {
-    let mut h = reqwest::header::HeaderMap::new();
-    h.insert(
-        reqwest::header::AUTHORIZATION,
-        format!("Bearer {token}").parse().expect("header"),
-    );
-    Client::builder()
-        .default_headers(h)
-        .timeout(Duration::from_secs(60))
-        .build()
-        .expect("client")
-}
-
+/// The webhook and deliveries of `job`.
 async fn deliveries(c: &Client, base: &str, job: &str) -> Value {
-    c.get(format!("{base}/v1/jobs/{job}/webhooks"))
-        .send()
-        .await
-        .expect("deliveries")
-        .error_for_status()
-        .expect("200")
-        .json()
-        .await
-        .expect("json")
+    ok_json(c.get(format!("{base}/v1/jobs/{job}/webhooks"))).await
 }
 
 /// Polls the job's deliveries until `done` holds; returns them.
@@ -175,28 +155,35 @@ async fn wait_deliveries(
     timeout: Duration,
     done: impl Fn(&Value) -> bool,
 ) -> Value {
-    let deadline = Instant::now() + timeout;
-    loop {
+    poll_until(timeout, 50, async || {
         let d = deliveries(c, base, job).await;
         if done(&d) {
-            return d;
+            return Ok(d);
         }
-        assert!(Instant::now() < deadline, "timed out: {d}");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+        Err(d.to_string())
+    })
+    .await
 }
 
+/// The first delivery of a job's deliveries.
 fn first_delivery(d: &Value) -> &Value {
     &d["deliveries"][0]
 }
 
+/// Cancels `job`, asserting a 2xx answer.
 async fn cancel(c: &Client, base: &str, job: &str) {
-    c.post(format!("{base}/v1/jobs/{job}/cancel"))
-        .send()
-        .await
-        .expect("cancel")
-        .error_for_status()
-        .expect("202");
+    let r = send(c.post(format!("{base}/v1/jobs/{job}/cancel"))).await;
+    r.error_for_status().expect("202");
+}
+
+/// `flags`, then [`FAST`].
+fn fast(flags: &[&'static str]) -> Vec<&'static str> {
+    [flags, FAST].concat()
+}
+
+/// The body of a job over `inputs` with `webhook`.
+fn hooked(inputs: &Value, webhook: Value) -> Value {
+    json!({ "inputs": inputs, "webhook": webhook })
 }
 
 /// Fast retries for tests: 200 ms doubling up to 2 s, looked for every 50 ms.
@@ -214,21 +201,17 @@ const FAST: &[&str] = &[
 
 async fn deliveries_are_signed_retried_with_growing_gaps_and_delivered_once(db: Db) {
     let fx = fixture();
-    let mut flags = vec!["--workers", "0", "--token", "alpha,bravo"];
-    flags.extend_from_slice(FAST);
-    let srv = db.serve(&fx.dir.path().join("data"), &flags);
+    let flags = fast(&["--workers", "0", "--token", "alpha,bravo"]);
+    let srv = db.serve(&fx.data, &flags);
     let base = srv.base.clone();
-    let c = authed("alpha");
+    let c = keyed_client("alpha");
     let (receiver, url) = Receiver::start(3).await;
 
     let inputs = upload_inputs(&c, &base, &fx).await;
-    let job = create_job(
-        &c,
-        &base,
-        &json!({ "inputs": inputs, "params": { "until": "ingest" }, "webhook": { "url": url } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let body =
+        json!({ "inputs": inputs, "params": { "until": "ingest" }, "webhook": { "url": url } });
+    let job = create_job(&c, &base, &body).await;
+    let id = id_of(&job);
     assert_eq!(job["webhook"]["url"], url.as_str());
     assert_eq!(
         job["webhook"]["events"],
@@ -312,21 +295,13 @@ on_both_databases!(deliveries_are_signed_retried_with_growing_gaps_and_delivered
 
 async fn pending_deliveries_survive_a_killed_server(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let mut flags = vec!["--workers", "0"];
-    flags.extend_from_slice(FAST);
-    let mut srv = db.serve(&data, &flags);
+    let flags = fast(&["--workers", "0"]);
+    let mut srv = db.serve(&fx.data, &flags);
     let c = client();
     let (receiver, url) = Receiver::start(0).await;
     receiver.down.store(true, Ordering::SeqCst);
     let inputs = upload_inputs(&c, &srv.base, &fx).await;
-    let job = create_job(
-        &c,
-        &srv.base,
-        &json!({ "inputs": inputs, "webhook": { "url": url } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let id = submit(&c, &srv.base, &hooked(&inputs, json!({ "url": url }))).await;
     cancel(&c, &srv.base, &id).await;
     let d = wait_deliveries(&c, &srv.base, &id, Duration::from_secs(20), |d| {
         first_delivery(d)["attempts"].as_i64() >= Some(2)
@@ -342,7 +317,7 @@ async fn pending_deliveries_survive_a_killed_server(db: Db) {
     assert!(before >= 2 && receiver.hits().iter().all(|h| h.answered == 503));
     receiver.down.store(false, Ordering::SeqCst);
 
-    let srv = db.serve(&data, &flags);
+    let srv = db.serve(&fx.data, &flags);
     receiver
         .wait(
             "the delivery after the restart",
@@ -366,14 +341,13 @@ async fn pending_deliveries_survive_a_killed_server(db: Db) {
 }
 on_both_databases!(pending_deliveries_survive_a_killed_server);
 
+/// Submits a job over `inputs` with `webhook`, asserting a 422 that names a `webhook` field;
+/// the problem.
 async fn refused(c: &Client, base: &str, inputs: &Value, webhook: Value) -> Value {
     let r = c
         .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": inputs, "webhook": webhook }))
-        .send()
-        .await
-        .expect("post");
-    let p = expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+        .json(&hooked(inputs, webhook));
+    let p = send_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(
         p["errors"]
             .as_array()
@@ -388,8 +362,7 @@ async fn refused(c: &Client, base: &str, inputs: &Value, webhook: Value) -> Valu
 #[tokio::test(flavor = "multi_thread")]
 async fn private_and_malformed_targets_are_refused_at_submission() {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let srv = serve(&data, &["--workers", "0"]);
+    let srv = serve(&fx.data, &["--workers", "0"]);
     let c = client();
     let inputs = upload_inputs(&c, &srv.base, &fx).await;
     for url in [
@@ -430,100 +403,49 @@ async fn private_and_malformed_targets_are_refused_at_submission() {
     let jobs: Value = get_json(&c, &format!("{}/v1/jobs", srv.base)).await;
     assert_eq!(jobs["jobs"].as_array().map(Vec::len), Some(0), "{jobs}");
     // A public literal address is accepted without any lookup.
-    let job = create_job(
-        &c,
-        &srv.base,
-        &json!({ "inputs": inputs, "webhook": { "url": "https://8.8.8.8/x", "events": ["job.failed", "job.failed"] } }),
-    )
-    .await;
+    let twice = json!({ "url": "https://8.8.8.8/x", "events": ["job.failed", "job.failed"] });
+    let job = create_job(&c, &srv.base, &hooked(&inputs, twice)).await;
     assert_eq!(job["webhook"]["events"], json!(["job.failed"]));
 
     // The webhook is part of the request an Idempotency-Key stands for.
     let keyed = |hook: &str| {
         c.post(format!("{}/v1/jobs", srv.base))
             .header("Idempotency-Key", "hooked-once")
-            .json(&json!({ "inputs": inputs, "webhook": { "url": hook } }))
-            .send()
+            .json(&hooked(&inputs, json!({ "url": hook })))
     };
-    let first: Value = keyed("https://8.8.8.8/a")
-        .await
-        .expect("post")
-        .json()
-        .await
-        .expect("json");
-    let again: Value = keyed("https://8.8.8.8/a")
-        .await
-        .expect("post")
-        .json()
-        .await
-        .expect("json");
+    let first = send_json(keyed("https://8.8.8.8/a")).await;
+    let again = send_json(keyed("https://8.8.8.8/a")).await;
     assert_eq!(first["id"], again["id"]);
-    expect_problem(
-        keyed("https://8.8.8.8/b").await.expect("post"),
-        StatusCode::UNPROCESSABLE_ENTITY,
-    )
-    .await;
+    send_problem(keyed("https://8.8.8.8/b"), StatusCode::UNPROCESSABLE_ENTITY).await;
 
     // A one-request multipart submission takes a `webhook` part, checked the same way.
-    let form = reqwest::multipart::Form::new()
-        .part(
-            "lidar",
-            reqwest::multipart::Part::bytes(std::fs::read(&fx.lidar).expect("read"))
-                .file_name("plot.las"),
-        )
-        .part(
-            "colmap",
-            reqwest::multipart::Part::bytes(std::fs::read(&fx.colmap_zip).expect("read"))
-                .file_name("project.zip"),
-        )
+    let form = multipart(&[("lidar", &fx.lidar), ("colmap", &fx.colmap_zip)])
         .text("webhook", r#"{"url": "http://10.0.0.1/hook"}"#);
-    let r = c
-        .post(format!("{}/v1/jobs", srv.base))
-        .multipart(form)
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+    let r = c.post(format!("{}/v1/jobs", srv.base)).multipart(form);
+    send_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
     drop(srv);
 
     // An allowed network lets its addresses through, and only those.
     let srv = serve(
-        &data,
+        &fx.data,
         &["--workers", "0", "--webhook-allow-cidr", "127.0.0.0/8"],
     );
-    create_job(
-        &c,
-        &srv.base,
-        &json!({ "inputs": inputs, "webhook": { "url": "http://127.0.0.1:9/hook" } }),
-    )
-    .await;
-    refused(
-        &c,
-        &srv.base,
-        &inputs,
-        json!({ "url": "http://10.1.2.3/hook" }),
-    )
-    .await;
+    let allowed = json!({ "url": "http://127.0.0.1:9/hook" });
+    create_job(&c, &srv.base, &hooked(&inputs, allowed)).await;
+    let outside = json!({ "url": "http://10.1.2.3/hook" });
+    refused(&c, &srv.base, &inputs, outside).await;
 }
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_target_no_longer_allowed_is_refused_at_delivery_and_says_why() {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
     let (receiver, url) = Receiver::start(0).await;
     let c = client();
     // Accepted while the server allowed private targets ...
-    let mut flags = vec!["--workers", "0"];
-    flags.extend_from_slice(FAST);
-    let srv = serve(&data, &flags);
+    let flags = fast(&["--workers", "0"]);
+    let srv = serve(&fx.data, &flags);
     let inputs = upload_inputs(&c, &srv.base, &fx).await;
-    let job = create_job(
-        &c,
-        &srv.base,
-        &json!({ "inputs": inputs, "webhook": { "url": url } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let id = submit(&c, &srv.base, &hooked(&inputs, json!({ "url": url }))).await;
     drop(srv);
     // ... then delivered by a server that does not: the receiver is never contacted.
     let strict: Vec<&str> = flags
@@ -532,7 +454,7 @@ async fn a_target_no_longer_allowed_is_refused_at_delivery_and_says_why() {
         .filter(|f| *f != "--webhook-allow-private")
         .chain(["--webhook-max-attempts", "2"])
         .collect();
-    let srv = serve(&data, &strict);
+    let srv = serve(&fx.data, &strict);
     cancel(&c, &srv.base, &id).await;
     let d = wait_deliveries(&c, &srv.base, &id, Duration::from_secs(20), |d| {
         first_delivery(d)["state"] == "failed"
@@ -553,9 +475,8 @@ async fn a_target_no_longer_allowed_is_refused_at_delivery_and_says_why() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_finished_job_announces_its_stages_and_its_success() {
     let fx = fixture();
-    let mut flags = vec![];
-    flags.extend_from_slice(FAST);
-    let srv = serve(&fx.dir.path().join("data"), &flags);
+    let flags = fast(&[]);
+    let srv = serve(&fx.data, &flags);
     let c = client();
     let (receiver, url) = Receiver::start(0).await;
     let inputs = upload_inputs(&c, &srv.base, &fx).await;
@@ -569,7 +490,7 @@ async fn a_finished_job_announces_its_stages_and_its_success() {
         }),
     )
     .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let id = id_of(&job);
     let (done, _) = wait_job(&c, &srv.base, &id, Duration::from_secs(120), is_terminal).await;
     assert_eq!(done["state"], "succeeded", "{done}");
     receiver
@@ -620,27 +541,16 @@ fn any_signature_verifies(secret: &str, hit: &Hit) -> bool {
 async fn a_rotation_changes_one_keys_secret_and_both_secrets_verify_during_the_grace() {
     let fx = fixture();
     let db = Db::sqlite();
-    let data = fx.dir.path().join("data");
-    let alice_key = db.create_key(&data, "alice", &[]);
-    let bob_key = db.create_key(&data, "bob", &[]);
-    let mut flags = vec!["--workers", "0"];
-    flags.extend_from_slice(FAST);
-    let srv = db.serve(&data, &flags);
+    let alice_key = db.create_key(&fx.data, "alice", &[]);
+    let bob_key = db.create_key(&fx.data, "bob", &[]);
+    let flags = fast(&["--workers", "0"]);
+    let srv = db.serve(&fx.data, &flags);
     let base = srv.base.clone();
     let c = client();
     let old = secret(&c, &base, &alice_key).await;
     let bob_before = secret(&c, &base, &bob_key).await;
-    let rotated: Value = c
-        .post(format!("{base}/v1/webhooks/secret/rotate"))
-        .bearer_auth(&alice_key)
-        .send()
-        .await
-        .expect("rotate")
-        .error_for_status()
-        .expect("200")
-        .json()
-        .await
-        .expect("json");
+    let rotate = c.post(format!("{base}/v1/webhooks/secret/rotate"));
+    let rotated = ok_json(rotate.bearer_auth(&alice_key)).await;
     let new = rotated["secret"].as_str().expect("secret").to_string();
     assert_ne!(new, old);
     assert_eq!(rotated["generation"], 1);
@@ -653,15 +563,9 @@ async fn a_rotation_changes_one_keys_secret_and_both_secrets_verify_during_the_g
     );
 
     let (receiver, url) = Receiver::start(0).await;
-    let alice = authed(&alice_key);
+    let alice = keyed_client(&alice_key);
     let inputs = upload_inputs(&alice, &base, &fx).await;
-    let job = create_job(
-        &alice,
-        &base,
-        &json!({ "inputs": inputs, "webhook": { "url": url } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let id = submit(&alice, &base, &hooked(&inputs, json!({ "url": url }))).await;
     cancel(&alice, &base, &id).await;
     receiver
         .wait("one delivery", Duration::from_secs(30), |h| !h.is_empty())

@@ -6,26 +6,29 @@ mod common;
 use std::time::Duration;
 
 use common::*;
+use reqwest::Client;
 use serde_json::json;
+
+/// A server without workers on `db` over the fixture's data, the fixture's inputs uploaded,
+/// worker A started with `a_flags` and a job up to ingest submitted: the server, A, the
+/// client with the base URL, and the job's id.
+async fn job_for_a(
+    db: &Db,
+    fx: &Fixture,
+    a_flags: &[&str],
+) -> (Proc, Proc, (Client, String), String) {
+    let api = db.serve(&fx.data, &["--workers", "0"]);
+    let (c, base, inputs) = client_with_inputs(&api, fx).await;
+    let a = db.worker(&fx.data, a_flags);
+    let id = submit(&c, &base, &job_until(&inputs, "ingest")).await;
+    (api, a, (c, base), id)
+}
 
 on_both_databases!(killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2);
 async fn killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let api = db.serve(&data, &["--workers", "0"]);
-    let (c, base) = (client(), api.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let mut a = db.worker(
-        &data,
-        &["--lease-secs", "2", "--debug-stage-pause-ms", "60000"],
-    );
-    let job = create_job(
-        &c,
-        &base,
-        &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let a_flags = ["--lease-secs", "2", "--debug-stage-pause-ms", "60000"];
+    let (_api, mut a, (c, base), id) = job_for_a(&db, &fx, &a_flags).await;
     let (running, _) = wait_job(&c, &base, &id, Duration::from_secs(60), |j| {
         j["state"] == "running" && stage(j, "ingest")["state"] == "running"
     })
@@ -33,7 +36,7 @@ async fn killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2(db: Db) {
     assert_eq!(running["attempt"], 1);
 
     // A second worker is already running; the first dies mid-stage without a word.
-    let _b = db.worker(&data, &["--lease-secs", "2", "--poll-ms", "50"]);
+    let _b = db.worker(&fx.data, &["--lease-secs", "2", "--poll-ms", "50"]);
     a.kill();
     let killed_at = std::time::Instant::now();
     let (job, progress) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
@@ -56,21 +59,8 @@ async fn killed_worker_job_is_reclaimed_after_the_lease_with_attempt_2(db: Db) {
 on_both_databases!(a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once);
 async fn a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let api = db.serve(&data, &["--workers", "0"]);
-    let (c, base) = (client(), api.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let mut a = db.worker(
-        &data,
-        &["--lease-secs", "60", "--debug-stage-pause-ms", "60000"],
-    );
-    let job = create_job(
-        &c,
-        &base,
-        &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let a_flags = ["--lease-secs", "60", "--debug-stage-pause-ms", "60000"];
+    let (_api, mut a, (c, base), id) = job_for_a(&db, &fx, &a_flags).await;
     wait_job(&c, &base, &id, Duration::from_secs(60), |j| {
         stage(j, "ingest")["state"] == "running"
     })
@@ -78,7 +68,7 @@ async fn a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once(db: Db) 
     a.kill();
     // The restarted worker sees that the process holding the job is gone (same host) and
     // does not wait for the 60 s lease.
-    let _b = db.worker(&data, &["--lease-secs", "60"]);
+    let _b = db.worker(&fx.data, &["--lease-secs", "60"]);
     let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(30), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     assert_eq!(job["attempt"], 2);
@@ -87,42 +77,29 @@ async fn a_restarted_worker_recovers_the_jobs_of_a_dead_process_at_once(db: Db) 
 on_both_databases!(eight_clients_create_jobs_while_two_workers_claim_without_lock_errors);
 async fn eight_clients_create_jobs_while_two_workers_claim_without_lock_errors(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let api = db.serve(&data, &["--workers", "0"]);
-    let base = api.base.clone();
-    let c = client();
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let w1 = db.worker(&data, &["--poll-ms", "50"]);
-    let w2 = db.worker(&data, &["--poll-ms", "50"]);
-    let mut tasks = Vec::new();
-    for client_no in 0..8 {
+    let api = db.serve(&fx.data, &["--workers", "0"]);
+    let (c, base, inputs) = client_with_inputs(&api, &fx).await;
+    let w1 = db.worker(&fx.data, &["--poll-ms", "50"]);
+    let w2 = db.worker(&fx.data, &["--poll-ms", "50"]);
+    let ids = jobs_from_clients(8, |client_no, c| {
         let (base, inputs) = (base.clone(), inputs.clone());
-        tasks.push(tokio::spawn(async move {
-            let c = client();
+        async move {
             let mut ids = Vec::new();
             for k in 0..3 {
                 let body = json!({ "inputs": inputs, "params": { "until": "ingest", "ingest": { "decode_images": k % 2 == 0 } } });
-                let r = c
-                    .post(format!("{base}/v1/jobs"))
-                    .header("idempotency-key", format!("client-{client_no}-job-{k}"))
-                    .json(&body)
-                    .send()
-                    .await
-                    .expect("create");
+                let key = format!("client-{client_no}-job-{k}");
+                let r = send(c.post(format!("{base}/v1/jobs")).header("idempotency-key", key).json(&body)).await;
                 assert_eq!(r.status(), reqwest::StatusCode::ACCEPTED, "{:?}", r.text().await);
                 let v: serde_json::Value = r.json().await.expect("json");
-                ids.push(v["id"].as_str().expect("id").to_string());
+                ids.push(id_of(&v));
                 // Poll in between, as clients do.
-                let r = c.get(format!("{base}/v1/jobs?limit=5")).send().await.expect("list");
+                let r = send(c.get(format!("{base}/v1/jobs?limit=5"))).await;
                 assert_eq!(r.status(), reqwest::StatusCode::OK);
             }
             ids
-        }));
-    }
-    let mut ids = Vec::new();
-    for t in tasks {
-        ids.extend(t.await.expect("client task"));
-    }
+        }
+    })
+    .await;
     assert_eq!(ids.len(), 24);
     for id in &ids {
         let (job, _) = wait_job(&c, &base, id, Duration::from_secs(240), is_terminal).await;
@@ -147,6 +124,22 @@ async fn eight_clients_create_jobs_while_two_workers_claim_without_lock_errors(d
     assert!(claimed_by.len() >= 2, "{claimed_by:?}");
 }
 
+/// The ids of the jobs that `clients` concurrent clients create, each as `jobs(client_no, c)`
+/// does with a client `c` of its own, in the clients' order.
+async fn jobs_from_clients<F>(clients: usize, jobs: impl Fn(usize, Client) -> F) -> Vec<String>
+where
+    F: Future<Output = Vec<String>> + Send + 'static,
+{
+    let tasks: Vec<_> = (0..clients)
+        .map(|n| tokio::spawn(jobs(n, client())))
+        .collect();
+    let mut ids = Vec::new();
+    for t in tasks {
+        ids.extend(t.await.expect("client task"));
+    }
+    ids
+}
+
 /// The workers that claimed a job, in order, from its log (`claimed by worker W`, then
 /// `resumed at stage S by worker W (attempt N)`).
 async fn claimants(c: &reqwest::Client, base: &str, id: &str) -> Vec<String> {
@@ -167,45 +160,37 @@ fn of_process(worker: &str, pid: u32) -> bool {
 on_both_databases!(three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill);
 async fn three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let api = db.serve(&data, &["--workers", "0"]);
-    let (c, base) = (client(), api.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
+    let api = db.serve(&fx.data, &["--workers", "0"]);
+    let (c, base, inputs) = client_with_inputs(&api, &fx).await;
     let body = move |k: usize| json!({ "inputs": inputs, "params": { "until": "ingest", "ingest": { "decode_images": k.is_multiple_of(2) } } });
 
     // Worker A takes the first job and stalls in its stage until it is killed.
     let mut a = db.worker(
-        &data,
+        &fx.data,
         &["--lease-secs", "3", "--debug-stage-pause-ms", "60000"],
     );
     let a_pid = a.child.id();
-    let first = create_job(&c, &base, &body(0)).await;
-    let first = first["id"].as_str().expect("id").to_string();
+    let first = submit(&c, &base, &body(0)).await;
     wait_job(&c, &base, &first, Duration::from_secs(60), |j| {
         stage(j, "ingest")["state"] == "running"
     })
     .await;
 
     // B and C join, and 29 more jobs arrive from three clients at once.
-    let b = db.worker(&data, &["--poll-ms", "200"]);
-    let w_c = db.worker(&data, &["--poll-ms", "200"]);
-    let mut tasks = Vec::new();
-    for client_no in 0..3 {
+    let b = db.worker(&fx.data, &["--poll-ms", "200"]);
+    let w_c = db.worker(&fx.data, &["--poll-ms", "200"]);
+    let mut ids = vec![first.clone()];
+    let more = jobs_from_clients(3, |client_no, c| {
         let (base, body) = (base.clone(), body.clone());
-        tasks.push(tokio::spawn(async move {
-            let c = client();
+        async move {
             let mut ids = Vec::new();
             for k in (1..30).filter(|k| k % 3 == client_no) {
-                let job = create_job(&c, &base, &body(k)).await;
-                ids.push(job["id"].as_str().expect("id").to_string());
+                ids.push(submit(&c, &base, &body(k)).await);
             }
             ids
-        }));
-    }
-    let mut ids = vec![first.clone()];
-    for t in tasks {
-        ids.extend(t.await.expect("client task"));
-    }
+        }
+    });
+    ids.extend(more.await);
     assert_eq!(ids.len(), 30);
 
     // A dies mid-job without a word (SIGKILL).
@@ -268,9 +253,8 @@ async fn three_worker_processes_run_thirty_jobs_once_each_across_a_sigkill(db: D
 #[tokio::test(flavor = "multi_thread")]
 async fn a_hung_stage_fails_at_its_runtime_limit() {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
     let srv = serve(
-        &data,
+        &fx.data,
         &[
             "--debug-stage-pause-ms",
             "600000",
@@ -278,28 +262,24 @@ async fn a_hung_stage_fails_at_its_runtime_limit() {
             "3600,ingest=1",
         ],
     );
-    let (c, base) = (client(), srv.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
+    let (c, base, inputs) = client_with_inputs(&srv, &fx).await;
+    let body = job_until(&inputs, "ingest");
     let started = std::time::Instant::now();
-    let job = create_job(&c, &base, &body).await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let id = submit(&c, &base, &body).await;
     let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
     assert_eq!(job["state"], "failed", "{job}");
     assert_eq!(
         job["error"]["type"], "urn:sylva:problem:stage-timeout",
         "{job}"
     );
-    let detail = job["error"]["detail"].as_str().expect("detail");
-    assert!(detail.contains("limit of 1 s"), "{detail}");
+    assert!(detail(&job["error"]).contains("limit of 1 s"), "{job}");
     assert_eq!(stage(&job, "ingest")["state"], "failed");
     assert!(
         started.elapsed() < Duration::from_secs(30),
         "stopped long after its limit"
     );
     // The worker is free again: the next job is claimed (and stopped the same way).
-    let next = create_job(&c, &base, &body).await;
-    let nid = next["id"].as_str().expect("id").to_string();
+    let nid = submit(&c, &base, &body).await;
     let (next, _) = wait_job(&c, &base, &nid, Duration::from_secs(60), is_terminal).await;
     assert_eq!(next["error"]["type"], "urn:sylva:problem:stage-timeout");
 }
@@ -308,9 +288,7 @@ async fn a_hung_stage_fails_at_its_runtime_limit() {
 #[test]
 fn a_bad_stage_limit_is_refused_at_start() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let out = std::process::Command::new(BIN)
-        .args(["worker", "--max-stage-secs", "train=soon", "--data"])
-        .arg(dir.path())
+    let out = sylva_command(&["worker", "--max-stage-secs", "train=soon"], dir.path())
         .output()
         .expect("run");
     assert!(!out.status.success());
@@ -327,21 +305,8 @@ fn a_bad_stage_limit_is_refused_at_start() {
 on_both_databases!(a_frozen_worker_loses_its_job_after_the_lease_and_is_fenced_when_it_thaws);
 async fn a_frozen_worker_loses_its_job_after_the_lease_and_is_fenced_when_it_thaws(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let api = db.serve(&data, &["--workers", "0"]);
-    let (c, base) = (client(), api.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let a = db.worker(
-        &data,
-        &["--lease-secs", "2", "--debug-stage-pause-ms", "3000"],
-    );
-    let job = create_job(
-        &c,
-        &base,
-        &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let a_flags = ["--lease-secs", "2", "--debug-stage-pause-ms", "3000"];
+    let (_api, a, (c, base), id) = job_for_a(&db, &fx, &a_flags).await;
     wait_job(&c, &base, &id, Duration::from_secs(60), |j| {
         stage(j, "ingest")["state"] == "running"
     })
@@ -349,7 +314,7 @@ async fn a_frozen_worker_loses_its_job_after_the_lease_and_is_fenced_when_it_tha
     let pid = a.child.id() as libc::pid_t;
     // SAFETY: signals to our own child process.
     assert_eq!(unsafe { libc::kill(pid, libc::SIGSTOP) }, 0);
-    let _b = db.worker(&data, &["--lease-secs", "2", "--poll-ms", "50"]);
+    let _b = db.worker(&fx.data, &["--lease-secs", "2", "--poll-ms", "50"]);
     let (job, _) = wait_job(&c, &base, &id, Duration::from_secs(60), is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     assert_eq!(job["attempt"], 2, "{job}");
@@ -359,15 +324,14 @@ async fn a_frozen_worker_loses_its_job_after_the_lease_and_is_fenced_when_it_tha
     assert_eq!(unsafe { libc::kill(pid, libc::SIGCONT) }, 0);
     // The thawed worker wakes inside its stage pause, finishes the stage and tries to record
     // it: refused, since the job is no longer its own.
-    let deadline = std::time::Instant::now() + Duration::from_secs(30);
-    while !a.stderr_text().contains("lease lost") {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "the thawed worker never noticed: {}",
-            a.stderr_text()
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+    poll_until(Duration::from_secs(30), 200, async || {
+        let text = a.stderr_text();
+        if text.contains("lease lost") {
+            return Ok(());
+        }
+        Err(format!("the thawed worker never noticed: {text}"))
+    })
+    .await;
     let after = get_job(&c, &base, &id).await;
     assert_eq!(after["state"], "succeeded", "{after}");
     assert_eq!(after["attempt"], 2);
@@ -405,58 +369,39 @@ async fn cancel_frees_the_gpu_slot_within_a_second() {
     });
     let body =
         json!({ "inputs": inputs, "params": { "until": "train", "train": { "backend": "cpu" } } });
-    let a = create_job(&c, &base, &body).await;
-    let a = a["id"].as_str().expect("id").to_string();
+    let a = submit(&c, &base, &body).await;
     let (job, _) = wait_job(&c, &base, &a, Duration::from_secs(300), |j| {
         is_terminal(j) || stage(j, "train")["state"] == "running"
     })
     .await;
     assert_eq!(job["state"], "running", "{job}");
-    let b = create_job(&c, &base, &body).await;
-    let b = b["id"].as_str().expect("id").to_string();
-    let deadline = std::time::Instant::now() + Duration::from_secs(300);
-    while !log_text(&c, &base, &b)
-        .await
-        .contains("waiting for a GPU slot")
-    {
+    let b = submit(&c, &base, &body).await;
+    poll_until(Duration::from_secs(300), 100, async || {
+        if log_text(&c, &base, &b)
+            .await
+            .contains("waiting for a GPU slot")
+        {
+            return Ok(());
+        }
         let job = get_job(&c, &base, &b).await;
-        assert!(
-            std::time::Instant::now() < deadline && !is_terminal(&job),
-            "the second job never waited for the GPU: {job}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+        let why = format!("the second job never waited for the GPU: {job}");
+        assert!(!is_terminal(&job), "{why}");
+        Err(why)
+    })
+    .await;
 
     let asked = time::OffsetDateTime::now_utc();
-    let r = c
-        .post(format!("{base}/v1/jobs/{a}/cancel"))
-        .send()
-        .await
-        .expect("cancel");
-    assert_eq!(r.status(), reqwest::StatusCode::ACCEPTED);
+    let cancel = |id: &str| send(c.post(format!("{base}/v1/jobs/{id}/cancel")));
+    assert_eq!(cancel(&a).await.status(), reqwest::StatusCode::ACCEPTED);
     // The second job's log says when it got the slot (server clock, the same machine's).
-    let deadline = std::time::Instant::now() + Duration::from_secs(30);
-    let acquired = loop {
-        let r: serde_json::Value = c
-            .get(format!("{base}/v1/jobs/{b}/log"))
-            .send()
-            .await
-            .expect("log")
-            .json()
-            .await
-            .expect("json");
-        let line = r["lines"].as_array().and_then(|lines| {
-            lines
-                .iter()
-                .find(|l| l["message"] == "GPU slot acquired")
-                .cloned()
-        });
-        if let Some(line) = line {
-            break line;
-        }
-        assert!(std::time::Instant::now() < deadline, "slot never handed on");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    };
+    let acquired = poll_until(Duration::from_secs(30), 50, async || {
+        let lines = log_lines(&c, &base, &b).await;
+        let line = lines
+            .into_iter()
+            .find(|l| l["message"] == "GPU slot acquired");
+        line.ok_or_else(|| "slot never handed on".to_string())
+    })
+    .await;
     let at = time::OffsetDateTime::parse(
         acquired["ts"].as_str().expect("ts"),
         &time::format_description::well_known::Rfc3339,
@@ -469,8 +414,5 @@ async fn cancel_frees_the_gpu_slot_within_a_second() {
     );
     let (job, _) = wait_job(&c, &base, &a, Duration::from_secs(10), is_terminal).await;
     assert_eq!(job["state"], "canceled");
-    c.post(format!("{base}/v1/jobs/{b}/cancel"))
-        .send()
-        .await
-        .expect("cancel b");
+    cancel(&b).await;
 }

@@ -151,25 +151,56 @@ async fn with_jobs(db: &JobStore, jobs: usize) -> Vec<String> {
     ids
 }
 
+/// `db.claim(...)`, which must give a job.
+async fn claimed(db: &JobStore, worker: &str, lease: Duration, max_attempts: i64) -> Claim {
+    let claim = db.claim(worker, lease, max_attempts).await.expect("claim");
+    claim.expect("a job")
+}
+
+/// Stage ingest of `job` run to its end by the claim holding `token` (attempt `attempt`):
+/// started, then finished with `metrics` and the job at `progress`.
+async fn run_ingest(
+    db: &JobStore,
+    (job, token): (&str, &str),
+    attempt: i64,
+    metrics: serde_json::Value,
+    progress: f64,
+) {
+    let stage = Stage::Ingest;
+    db.start_stage(job, token, stage, attempt)
+        .await
+        .expect("start");
+    let finished = db.finish_stage(job, token, stage, &metrics, &[], progress);
+    finished.await.expect("checkpoint");
+}
+
+/// The deliveries due now, claimed for `lease` (10 at most).
+async fn due_deliveries(db: &JobStore, lease: Duration) -> Vec<Delivery> {
+    db.claim_deliveries(lease, 10).await.expect("claim")
+}
+
+/// Records `outcome` for delivery `id` as the claim holding `token`: whether it was recorded.
+async fn finish_delivery(
+    db: &JobStore,
+    (id, token): (&str, &str),
+    outcome: &DeliveryOutcome,
+) -> bool {
+    db.finish_delivery(id, token, outcome)
+        .await
+        .expect("finish")
+}
+
 async fn a_worker_that_lost_its_lease_cannot_write(db: JobStore) {
     let job = with_jobs(&db, 1).await.remove(0);
     let short = Duration::from_millis(50);
-    let a = db
-        .claim("A", short, 5)
-        .await
-        .expect("claim")
-        .expect("a job");
+    let a = claimed(&db, "A", short, 5).await;
     assert_eq!(a.attempt, 1);
     assert!(
         db.claim("B", short, 5).await.expect("claim").is_none(),
         "leased"
     );
     tokio::time::sleep(Duration::from_millis(80)).await;
-    let b = db
-        .claim("B", short, 5)
-        .await
-        .expect("claim")
-        .expect("expired lease");
+    let b = claimed(&db, "B", short, 5).await;
     assert_eq!(b.attempt, 2);
     // A is fenced out of every write.
     let r = db
@@ -198,25 +229,9 @@ async fn a_worker_that_lost_its_lease_cannot_write(db: JobStore) {
         Heartbeat::Lost
     );
     // B writes its checkpoint; a later claim resumes after it.
-    db.start_stage(&job, &b.token, Stage::Ingest, 2)
-        .await
-        .expect("start");
-    db.finish_stage(
-        &job,
-        &b.token,
-        Stage::Ingest,
-        &serde_json::json!({"n": 1}),
-        &[],
-        0.05,
-    )
-    .await
-    .expect("checkpoint");
+    run_ingest(&db, (&job, &b.token), 2, serde_json::json!({"n": 1}), 0.05).await;
     tokio::time::sleep(Duration::from_millis(80)).await;
-    let c = db
-        .claim("C", short, 5)
-        .await
-        .expect("claim")
-        .expect("expired");
+    let c = claimed(&db, "C", short, 5).await;
     assert_eq!(c.done, vec!["ingest".to_string()]);
     assert!(c.progress >= 0.05);
     let j = db.get_job(&job).await.expect("get").expect("job");
@@ -244,27 +259,16 @@ on_both_backends!(a_job_whose_workers_keep_dying_fails_after_max_attempts);
 async fn heartbeat_sees_cancel_and_progress_never_decreases(db: JobStore) {
     let job = with_jobs(&db, 1).await.remove(0);
     let lease = Duration::from_secs(30);
-    let a = db.claim("A", lease, 3).await.expect("claim").expect("job");
-    assert_eq!(
-        db.heartbeat(&job, &a.token, lease, 0.4, None)
-            .await
-            .expect("hb"),
-        Heartbeat::Ok
-    );
-    db.heartbeat(&job, &a.token, lease, 0.2, None)
-        .await
-        .expect("hb");
+    let a = claimed(&db, "A", lease, 3).await;
+    let beat = |progress| db.heartbeat(&job, &a.token, lease, progress, None);
+    assert_eq!(beat(0.4).await.expect("hb"), Heartbeat::Ok);
+    beat(0.2).await.expect("hb");
     assert_eq!(
         db.get_job(&job).await.expect("get").expect("job").progress,
         0.4
     );
     assert_eq!(db.cancel(&job).await.expect("cancel"), JobState::Canceling);
-    assert_eq!(
-        db.heartbeat(&job, &a.token, lease, 0.5, None)
-            .await
-            .expect("hb"),
-        Heartbeat::CancelRequested
-    );
+    assert_eq!(beat(0.5).await.expect("hb"), Heartbeat::CancelRequested);
     db.finish_job(&job, &a.token, &RunEnd::Canceled { stage: None })
         .await
         .expect("end");
@@ -361,20 +365,8 @@ on_both_backends!(a_completed_upload_takes_no_more_parts);
 async fn retry_resumes_at_the_first_unfinished_stage(db: JobStore) {
     let job = with_jobs(&db, 1).await.remove(0);
     let lease = Duration::from_secs(30);
-    let a = db.claim("A", lease, 3).await.expect("claim").expect("job");
-    db.start_stage(&job, &a.token, Stage::Ingest, 1)
-        .await
-        .expect("start");
-    db.finish_stage(
-        &job,
-        &a.token,
-        Stage::Ingest,
-        &serde_json::json!({}),
-        &[],
-        0.1,
-    )
-    .await
-    .expect("done");
+    let a = claimed(&db, "A", lease, 3).await;
+    run_ingest(&db, (&job, &a.token), 1, serde_json::json!({}), 0.1).await;
     assert!(matches!(
         db.retry(&job, None).await,
         Err(DbError::Conflict(_))
@@ -408,7 +400,7 @@ async fn retry_resumes_at_the_first_unfinished_stage(db: JobStore) {
     assert_eq!(j.attempt, 0);
     assert!(j.error.is_none());
     assert_eq!(j.progress, Stage::Ingest.weight());
-    let b = db.claim("B", lease, 3).await.expect("claim").expect("job");
+    let b = claimed(&db, "B", lease, 3).await;
     assert_eq!(b.done, vec!["ingest".to_string()]);
     db.finish_job(&job, &b.token, &RunEnd::Succeeded)
         .await
@@ -481,16 +473,10 @@ async fn workers_are_counted_and_dead_ones_recovered(db: JobStore) {
     db.register_worker("alive", "host-a", std::process::id())
         .await
         .expect("register");
-    assert_eq!(
-        db.live_workers(Duration::from_secs(60)).await.expect("n"),
-        2
-    );
+    let live = async || db.live_workers(Duration::from_secs(60)).await.expect("n");
+    assert_eq!(live().await, 2);
     let lease = Duration::from_secs(600);
-    let c = db
-        .claim("dead", lease, 3)
-        .await
-        .expect("claim")
-        .expect("job");
+    let c = claimed(&db, "dead", lease, 3).await;
     assert_eq!(c.job_id, job);
     assert!(db.claim("alive", lease, 3).await.expect("claim").is_none());
     let recovered = db
@@ -498,21 +484,11 @@ async fn workers_are_counted_and_dead_ones_recovered(db: JobStore) {
         .await
         .expect("recover");
     assert_eq!(recovered, 1);
-    let again = db
-        .claim("alive", lease, 3)
-        .await
-        .expect("claim")
-        .expect("job");
+    let again = claimed(&db, "alive", lease, 3).await;
     assert_eq!(again.attempt, 2);
-    assert_eq!(
-        db.live_workers(Duration::from_secs(60)).await.expect("n"),
-        1
-    );
+    assert_eq!(live().await, 1);
     db.unregister_worker("alive").await.expect("unregister");
-    assert_eq!(
-        db.live_workers(Duration::from_secs(60)).await.expect("n"),
-        0
-    );
+    assert_eq!(live().await, 0);
     db.ping().await.expect("ping");
 }
 on_both_backends!(workers_are_counted_and_dead_ones_recovered);
@@ -648,11 +624,7 @@ async fn owners_have_quotas_and_retention_expires_uploads_and_purges_jobs(db: Jo
         .expect("another owner's job");
 
     // a1 runs and finishes; then the quota has room again.
-    let c = db
-        .claim("w", Duration::from_secs(30), 5)
-        .await
-        .expect("claim")
-        .expect("a job");
+    let c = claimed(&db, "w", Duration::from_secs(30), 5).await;
     assert_eq!(c.job_id, "a1");
     db.finish_job("a1", &c.token, &RunEnd::Succeeded)
         .await
@@ -678,25 +650,17 @@ async fn owners_have_quotas_and_retention_expires_uploads_and_purges_jobs(db: Jo
     let j = db.get_job("a1").await.expect("get").expect("kept");
     assert!(j.purged_at.is_some() && j.artifacts.is_empty());
     // The orphan sweep's question: which of these still own files?
-    let ask = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-    let mut live = db
-        .live_ids(LiveTable::Jobs, &ask(&["a1", "a2", "n1", "nope"]))
-        .await
-        .expect("live jobs");
-    live.sort();
-    assert_eq!(live, ["a2", "n1"]);
-    let mut live = db
-        .live_ids(LiveTable::Uploads, &ask(&["open", "la", "ca", "nope"]))
-        .await
-        .expect("live uploads");
-    live.sort();
-    assert_eq!(live, ["ca", "la"]);
-    assert!(
-        db.live_ids(LiveTable::Jobs, &[])
-            .await
-            .expect("none")
-            .is_empty()
-    );
+    let live = async |table: LiveTable, ids: &[&str]| {
+        let ids: Vec<String> = ids.iter().map(|s| s.to_string()).collect();
+        let mut live = db.live_ids(table, &ids).await.expect("live ids");
+        live.sort();
+        live
+    };
+    let jobs = live(LiveTable::Jobs, &["a1", "a2", "n1", "nope"]).await;
+    assert_eq!(jobs, ["a2", "n1"]);
+    let uploads = live(LiveTable::Uploads, &["open", "la", "ca", "nope"]).await;
+    assert_eq!(uploads, ["ca", "la"]);
+    assert!(live(LiveTable::Jobs, &[]).await.is_empty());
     // a2 (queued) still reads la and ca: they stay until it too is purged or deleted.
     assert!(
         db.expire_uploads(now, now, 100)
@@ -764,9 +728,8 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
     );
     // Nothing to announce before the end.
     assert!(
-        db.claim_deliveries(Duration::from_secs(60), 10)
+        due_deliveries(&db, Duration::from_secs(60))
             .await
-            .expect("claim")
             .is_empty()
     );
     db.cancel(&plain).await.expect("cancel");
@@ -779,7 +742,7 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
 
     // One claim holds it: a second dispatcher gets nothing while the lease lives.
     let lease = Duration::from_secs(60);
-    let mut got = db.claim_deliveries(lease, 10).await.expect("claim");
+    let mut got = due_deliveries(&db, lease).await;
     assert_eq!(got.len(), 1);
     let d = got.remove(0);
     assert_eq!(
@@ -791,12 +754,7 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
     assert_eq!(b["id"], d.id.as_str());
     assert_eq!(b["type"], "job.canceled");
     assert_eq!(b["data"]["job"]["state"], "canceled");
-    assert!(
-        db.claim_deliveries(lease, 10)
-            .await
-            .expect("claim")
-            .is_empty()
-    );
+    assert!(due_deliveries(&db, lease).await.is_empty());
 
     // Only the claim's token records an outcome; a retry is due after its delay.
     let retry = |delay_ms| DeliveryOutcome::Retry {
@@ -804,32 +762,14 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
         error: "the receiver answered 500".into(),
         delay_ms,
     };
-    assert!(
-        !db.finish_delivery(&d.id, "not-the-token", &retry(0))
-            .await
-            .expect("finish")
-    );
-    assert!(
-        db.finish_delivery(&d.id, &d.token, &retry(0))
-            .await
-            .expect("finish")
-    );
-    let again = db.claim_deliveries(lease, 10).await.expect("claim");
+    assert!(!finish_delivery(&db, (&d.id, "not-the-token"), &retry(0)).await);
+    assert!(finish_delivery(&db, (&d.id, &d.token), &retry(0)).await);
+    let again = due_deliveries(&db, lease).await;
     assert_eq!(again.len(), 1);
     assert_eq!(again[0].attempts, 2);
     assert_eq!(again[0].body, d.body, "every attempt sends the same bytes");
-    assert!(
-        db.finish_delivery(&d.id, &again[0].token, &retry(60_000))
-            .await
-            .expect("finish")
-    );
-    assert!(
-        db.claim_deliveries(lease, 10)
-            .await
-            .expect("claim")
-            .is_empty(),
-        "not yet due"
-    );
+    assert!(finish_delivery(&db, (&d.id, &again[0].token), &retry(60_000)).await);
+    assert!(due_deliveries(&db, lease).await.is_empty(), "not yet due");
     let listed = db.job_deliveries("hooked").await.expect("list");
     assert_eq!(listed[0].attempts, 2);
     assert_eq!(listed[0].last_status, Some(500));
@@ -842,32 +782,17 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
     // A lease that runs out lets another dispatcher take over; the first is fenced.
     create_with_webhook(&db, "second", WebhookEvent::DEFAULT).await;
     db.cancel("second").await.expect("cancel");
-    let first = db
-        .claim_deliveries(Duration::from_millis(1), 10)
-        .await
-        .expect("claim");
+    let first = due_deliveries(&db, Duration::from_millis(1)).await;
     assert_eq!(first.len(), 1);
     tokio::time::sleep(Duration::from_millis(30)).await;
-    let taken = db.claim_deliveries(lease, 10).await.expect("claim");
+    let taken = due_deliveries(&db, lease).await;
     assert_eq!(taken.len(), 1);
     assert_eq!(taken[0].id, first[0].id);
     assert_eq!(taken[0].attempts, 2);
     let delivered = DeliveryOutcome::Delivered { status: 204 };
-    assert!(
-        !db.finish_delivery(&first[0].id, &first[0].token, &delivered)
-            .await
-            .expect("finish")
-    );
-    assert!(
-        db.finish_delivery(&taken[0].id, &taken[0].token, &delivered)
-            .await
-            .expect("finish")
-    );
-    assert!(
-        !db.finish_delivery(&taken[0].id, &taken[0].token, &delivered)
-            .await
-            .expect("finish")
-    );
+    assert!(!finish_delivery(&db, (&first[0].id, &first[0].token), &delivered).await);
+    assert!(finish_delivery(&db, (&taken[0].id, &taken[0].token), &delivered).await);
+    assert!(!finish_delivery(&db, (&taken[0].id, &taken[0].token), &delivered).await);
     let rec = db.job_deliveries("second").await.expect("list").remove(0);
     assert_eq!(rec.state, DeliveryState::Delivered);
     assert_eq!((rec.last_status, rec.next_attempt_at), (Some(204), None));
@@ -876,20 +801,12 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
     // Given up: failed, never claimed again.
     create_with_webhook(&db, "third", WebhookEvent::DEFAULT).await;
     db.cancel("third").await.expect("cancel");
-    let d = db
-        .claim_deliveries(lease, 10)
-        .await
-        .expect("claim")
-        .remove(0);
+    let d = due_deliveries(&db, lease).await.remove(0);
     let give_up = DeliveryOutcome::GiveUp {
         status: None,
         error: "refused: 10.0.0.1 is a private address".into(),
     };
-    assert!(
-        db.finish_delivery(&d.id, &d.token, &give_up)
-            .await
-            .expect("finish")
-    );
+    assert!(finish_delivery(&db, (&d.id, &d.token), &give_up).await);
     let rec = db.job_deliveries("third").await.expect("list").remove(0);
     assert_eq!(rec.state, DeliveryState::Failed);
     assert!(rec.last_error.is_some_and(|e| e.contains("private")));
@@ -919,24 +836,12 @@ async fn stages_and_the_end_of_a_run_are_announced_as_the_webhook_asks(db: JobSt
     )
     .await;
     let lease = Duration::from_secs(30);
-    let c = db.claim("W", lease, 3).await.expect("claim").expect("job");
-    db.start_stage("run", &c.token, Stage::Ingest, 1)
-        .await
-        .expect("start");
-    db.finish_stage(
-        "run",
-        &c.token,
-        Stage::Ingest,
-        &serde_json::json!({}),
-        &[],
-        0.1,
-    )
-    .await
-    .expect("checkpoint");
+    let c = claimed(&db, "W", lease, 3).await;
+    run_ingest(&db, ("run", &c.token), 1, serde_json::json!({}), 0.1).await;
     db.finish_job("run", &c.token, &RunEnd::Succeeded)
         .await
         .expect("end");
-    let sent = db.claim_deliveries(lease, 10).await.expect("claim");
+    let sent = due_deliveries(&db, lease).await;
     let events: Vec<&str> = sent.iter().map(|d| d.event.as_str()).collect();
     assert_eq!(events, ["stage.finished", "job.succeeded"]);
     assert_eq!(body(&sent[0])["data"]["stage"]["name"], "ingest");
@@ -949,7 +854,7 @@ async fn stages_and_the_end_of_a_run_are_announced_as_the_webhook_asks(db: JobSt
     assert!(db.claim("W", short, 1).await.expect("claim").is_some());
     tokio::time::sleep(Duration::from_millis(40)).await;
     assert!(db.claim("W", short, 1).await.expect("claim").is_none());
-    let sent = db.claim_deliveries(lease, 10).await.expect("claim");
+    let sent = due_deliveries(&db, lease).await;
     assert_eq!(sent.len(), 1);
     assert_eq!(sent[0].event, "job.failed");
     assert!(
@@ -976,23 +881,13 @@ async fn retention_forgets_finished_deliveries_and_keeps_pending_ones(db: JobSto
         create_with_webhook(&db, id, WebhookEvent::DEFAULT).await;
         db.cancel(id).await.expect("cancel");
     }
-    let claimed = db
-        .claim_deliveries(Duration::from_secs(60), 10)
-        .await
-        .expect("claim");
+    let claimed = due_deliveries(&db, Duration::from_secs(60)).await;
     let sent = claimed
         .iter()
         .find(|d| d.job_id == "sent")
         .expect("a delivery for `sent`");
-    assert!(
-        db.finish_delivery(
-            &sent.id,
-            &sent.token,
-            &DeliveryOutcome::Delivered { status: 204 }
-        )
-        .await
-        .expect("finish")
-    );
+    let delivered = DeliveryOutcome::Delivered { status: 204 };
+    assert!(finish_delivery(&db, (&sent.id, &sent.token), &delivered).await);
     let mut purged = db.purge_jobs(now_ms() + 10, 100).await.expect("purge");
     purged.sort();
     assert_eq!(purged, ["owed", "sent"]);

@@ -6,50 +6,24 @@ use super::common::*;
 #[tokio::test(flavor = "multi_thread")]
 async fn auth_on_requires_a_bearer_token_and_never_logs_it() {
     let fx = fixture();
-    let srv = serve(
-        &fx.dir.path().join("data"),
-        &["--token", "s3cret-token-value,second-token"],
-    );
+    let srv = serve(&fx.data, &["--token", "s3cret-token-value,second-token"]);
     let (c, base) = (client(), srv.base.clone());
-    let r = c.get(format!("{base}/v1/jobs")).send().await.expect("get");
+    let jobs = format!("{base}/v1/jobs");
+    let r = send(c.get(&jobs)).await;
     assert_eq!(r.headers()["www-authenticate"], "Bearer");
     expect_problem(r, StatusCode::UNAUTHORIZED).await;
-    let r = c
-        .get(format!("{base}/v1/jobs"))
-        .bearer_auth("wrong")
-        .send()
-        .await
-        .expect("get");
-    expect_problem(r, StatusCode::UNAUTHORIZED).await;
-    let r = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({}))
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::UNAUTHORIZED).await;
+    send_problem(c.get(&jobs).bearer_auth("wrong"), StatusCode::UNAUTHORIZED).await;
+    let new_upload = c.post(format!("{base}/v1/uploads")).json(&json!({}));
+    send_problem(new_upload, StatusCode::UNAUTHORIZED).await;
     for token in ["s3cret-token-value", "second-token"] {
-        let r = c
-            .get(format!("{base}/v1/jobs"))
-            .bearer_auth(token)
-            .send()
-            .await
-            .expect("get");
+        let r = send(c.get(&jobs).bearer_auth(token)).await;
         assert_eq!(r.status(), StatusCode::OK);
     }
     for open in ["/livez", "/readyz", "/metrics", "/openapi.yaml", "/"] {
-        let r = c.get(format!("{base}{open}")).send().await.expect("get");
+        let r = send(c.get(format!("{base}{open}"))).await;
         assert_eq!(r.status(), StatusCode::OK, "{open} is public");
     }
-    let info: Value = c
-        .get(format!("{base}/v1/info"))
-        .bearer_auth("second-token")
-        .send()
-        .await
-        .expect("get")
-        .json()
-        .await
-        .expect("json");
+    let info = send_json(c.get(format!("{base}/v1/info")).bearer_auth("second-token")).await;
     assert_eq!(info["auth"], true);
     drop(c);
     assert!(
@@ -61,153 +35,74 @@ async fn auth_on_requires_a_bearer_token_and_never_logs_it() {
 #[tokio::test(flavor = "multi_thread")]
 async fn errors_are_problem_json_with_real_status_codes() {
     let fx = fixture();
-    let srv = serve(
-        &fx.dir.path().join("data"),
-        &["--max-json-bytes", "2000", "--workers", "0"],
-    );
+    let srv = serve(&fx.data, &["--max-json-bytes", "2000", "--workers", "0"]);
     let (c, base) = (client(), srv.base.clone());
-    let p = expect_problem(
-        c.get(format!("{base}/v1/nothing-here"))
-            .send()
-            .await
-            .expect("get"),
-        StatusCode::NOT_FOUND,
-    )
-    .await;
-    assert_eq!(p["type"], "urn:sylva:problem:no-such-route");
-    let p = expect_problem(
-        c.get(format!("{base}/v1/jobs/0123456789abcdef0123456789abcdef"))
-            .send()
-            .await
-            .expect("get"),
-        StatusCode::NOT_FOUND,
-    )
-    .await;
-    assert_eq!(p["type"], "urn:sylva:problem:not-found");
-    let r = c
-        .patch(format!("{base}/v1/jobs"))
-        .send()
-        .await
-        .expect("patch");
+    let get = |path: &str| c.get(format!("{base}{path}"));
+    let post = |path: &str| c.post(format!("{base}{path}"));
+    let json_text = |path: &str, text: &'static str| {
+        post(path)
+            .header("content-type", "application/json")
+            .body(text)
+    };
+    for (path, kind) in [
+        ("/v1/nothing-here", "urn:sylva:problem:no-such-route"),
+        (
+            "/v1/jobs/0123456789abcdef0123456789abcdef",
+            "urn:sylva:problem:not-found",
+        ),
+    ] {
+        let p = send_problem(get(path), StatusCode::NOT_FOUND).await;
+        assert_eq!(p["type"], kind);
+    }
+    let r = send(c.patch(format!("{base}/v1/jobs"))).await;
     let allow = r.headers()["allow"].to_str().expect("allow").to_string();
     assert!(allow.contains("GET") && allow.contains("POST"), "{allow}");
     expect_problem(r, StatusCode::METHOD_NOT_ALLOWED).await;
     let big = json!({ "kind": "lidar", "filename": "x".repeat(5000), "size": 1 });
-    expect_problem(
-        c.post(format!("{base}/v1/uploads"))
-            .json(&big)
-            .send()
-            .await
-            .expect("post"),
-        StatusCode::PAYLOAD_TOO_LARGE,
-    )
-    .await;
     let big_job = json!({ "inputs": { "lidar": "a".repeat(3000), "colmap": "b" } });
-    expect_problem(
-        c.post(format!("{base}/v1/jobs"))
-            .json(&big_job)
-            .send()
-            .await
-            .expect("post"),
-        StatusCode::PAYLOAD_TOO_LARGE,
-    )
-    .await;
-    let r = c
-        .post(format!("{base}/v1/jobs"))
+    let plain = post("/v1/jobs")
         .header("content-type", "text/plain")
-        .body("hello")
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::UNSUPPORTED_MEDIA_TYPE).await;
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .header("content-type", "application/json")
-        .body("{not json")
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::BAD_REQUEST).await;
-    let r = c
-        .post(format!("{base}/v1/uploads"))
-        .header("content-type", "application/json")
-        .body("{\"kind\": \"lidar\"")
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::BAD_REQUEST).await;
-    let r = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "photo", "filename": "a", "size": 1 }))
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    let r = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "lidar", "filename": "a", "size": 0 }))
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    let r = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "lidar", "filename": "a", "size": 20_000_000_000_000u64 }))
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::PAYLOAD_TOO_LARGE).await;
+        .body("hello");
+    let upload = |kind: &str, size: u64| {
+        post("/v1/uploads").json(&json!({ "kind": kind, "filename": "a", "size": size }))
+    };
+    for (req, status) in [
+        (
+            post("/v1/uploads").json(&big),
+            StatusCode::PAYLOAD_TOO_LARGE,
+        ),
+        (
+            post("/v1/jobs").json(&big_job),
+            StatusCode::PAYLOAD_TOO_LARGE,
+        ),
+        (plain, StatusCode::UNSUPPORTED_MEDIA_TYPE),
+        (json_text("/v1/jobs", "{not json"), StatusCode::BAD_REQUEST),
+        (
+            json_text("/v1/uploads", "{\"kind\": \"lidar\""),
+            StatusCode::BAD_REQUEST,
+        ),
+        (upload("photo", 1), StatusCode::UNPROCESSABLE_ENTITY),
+        (upload("lidar", 0), StatusCode::UNPROCESSABLE_ENTITY),
+        (
+            upload("lidar", 20_000_000_000_000),
+            StatusCode::PAYLOAD_TOO_LARGE,
+        ),
+    ] {
+        send_problem(req, status).await;
+    }
     let inputs = upload_inputs(&c, &base, &fx).await;
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": inputs, "params": { "anchors": { "voxel": 1 } } }))
-        .send()
-        .await
-        .expect("post");
-    let p = expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    assert!(
-        p["detail"].as_str().expect("detail").contains("voxel"),
-        "{p}"
-    );
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": { "lidar": inputs["colmap"], "colmap": inputs["colmap"] } }))
-        .send()
-        .await
-        .expect("post");
-    let p = expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    assert!(
-        p["detail"]
-            .as_str()
-            .expect("detail")
-            .contains("inputs.lidar"),
-        "{p}"
-    );
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .json(&json!({ "inputs": inputs, "webhook": { "url": "http://10.0.0.1/hook" } }))
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    let r = c
-        .get(format!("{base}/v1/jobs?limit=0"))
-        .send()
-        .await
-        .expect("get");
-    expect_problem(r, StatusCode::BAD_REQUEST).await;
-    let r = c
-        .get(format!("{base}/v1/jobs?state=done"))
-        .send()
-        .await
-        .expect("get");
-    expect_problem(r, StatusCode::BAD_REQUEST).await;
-    let r = c
-        .get(format!("{base}/v1/jobs?cursor=xyz"))
-        .send()
-        .await
-        .expect("get");
-    expect_problem(r, StatusCode::BAD_REQUEST).await;
+    let job = |body: Value| post("/v1/jobs").json(&body);
+    let bad_params = json!({ "inputs": inputs, "params": { "anchors": { "voxel": 1 } } });
+    let p = send_problem(job(bad_params), StatusCode::UNPROCESSABLE_ENTITY).await;
+    assert!(detail(&p).contains("voxel"), "{p}");
+    let swapped = json!({ "inputs": { "lidar": inputs["colmap"], "colmap": inputs["colmap"] } });
+    let p = send_problem(job(swapped), StatusCode::UNPROCESSABLE_ENTITY).await;
+    assert!(detail(&p).contains("inputs.lidar"), "{p}");
+    let private = json!({ "inputs": inputs, "webhook": { "url": "http://10.0.0.1/hook" } });
+    send_problem(job(private), StatusCode::UNPROCESSABLE_ENTITY).await;
+    for query in ["limit=0", "state=done", "cursor=xyz"] {
+        send_problem(get(&format!("/v1/jobs?{query}")), StatusCode::BAD_REQUEST).await;
+    }
 }
 
 fn write_zip(path: &std::path::Path, f: impl FnOnce(&mut zip::ZipWriter<std::fs::File>)) {
@@ -220,8 +115,7 @@ fn write_zip(path: &std::path::Path, f: impl FnOnce(&mut zip::ZipWriter<std::fs:
 async fn hostile_archives_are_refused() {
     use std::io::Write;
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let srv = serve(&data, &["--workers", "0"]);
+    let srv = serve(&fx.data, &["--workers", "0"]);
     let (c, base) = (client(), srv.base.clone());
     let opts = zip::write::SimpleFileOptions::default()
         .compression_method(zip::CompressionMethod::Deflated);
@@ -254,28 +148,12 @@ async fn hostile_archives_are_refused() {
         (&empty, "no regular file"),
     ] {
         let bytes = std::fs::read(path).expect("read");
-        let created: Value = c
-            .post(format!("{base}/v1/uploads"))
-            .json(&json!({ "kind": "colmap", "filename": "project.zip", "size": bytes.len() }))
-            .send()
-            .await
-            .expect("create")
-            .json()
-            .await
-            .expect("json");
-        let id = created["id"].as_str().expect("id");
-        c.put(format!("{base}/v1/uploads/{id}/parts/0"))
-            .body(bytes)
-            .send()
-            .await
-            .expect("part");
-        let r = c
-            .post(format!("{base}/v1/uploads/{id}/complete"))
-            .send()
-            .await
-            .expect("complete");
+        let size = bytes.len() as u64;
+        let id = id_of(&open_upload(&c, &base, "colmap", "project.zip", size).await);
+        put_part(&c, &base, &id, 0, bytes).await;
+        let r = complete_upload(&c, &base, &id).await;
         let p = expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-        let detail = p["detail"].as_str().expect("detail").to_lowercase();
+        let detail = detail(&p).to_lowercase();
         assert!(detail.contains(words), "{} → {detail}", path.display());
         assert!(
             detail.starts_with("project.zip"),
@@ -284,8 +162,8 @@ async fn hostile_archives_are_refused() {
     }
     for escaped in [
         fx.dir.path().join("evil.txt"),
-        data.join("evil.txt"),
-        data.join("uploads").join("evil.txt"),
+        fx.data.join("evil.txt"),
+        fx.data.join("uploads").join("evil.txt"),
     ] {
         assert!(!escaped.exists(), "{} was written", escaped.display());
     }

@@ -10,19 +10,12 @@ use super::common::{self, *};
 on_both_databases!(job_lifecycle_through_ingest);
 async fn job_lifecycle_through_ingest(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let srv = db.serve(&data, &["--part-size", "4096"]);
-    let (c, base) = (client(), srv.base.clone());
-    let mut inputs = upload_inputs(&c, &base, &fx).await;
+    let srv = db.serve(&fx.data, &["--part-size", "4096"]);
+    let (c, base, mut inputs) = client_with_inputs(&srv, &fx).await;
     inputs["control_points"] = json!(upload(&c, &base, "control_points", &fx.control_points).await);
     inputs["field_dbh"] = json!(upload(&c, &base, "field_dbh", &fx.field_dbh).await);
-    let job = create_job(
-        &c,
-        &base,
-        &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
-    )
-    .await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let job = create_job(&c, &base, &job_until(&inputs, "ingest")).await;
+    let id = id_of(&job);
     // Queued, unless a polling worker claimed it before the answer was read.
     assert!(
         job["state"] == "queued" || job["state"] == "running",
@@ -55,14 +48,8 @@ async fn job_lifecycle_through_ingest(db: Db) {
     );
 
     // Results gather the finished stages' reports.
-    let results: Value = c
-        .get(format!("{base}/v1/jobs/{id}/results"))
-        .send()
-        .await
-        .expect("results")
-        .json()
-        .await
-        .expect("json");
+    let job_url = format!("{base}/v1/jobs/{id}");
+    let results = send_json(c.get(format!("{job_url}/results"))).await;
     assert_eq!(
         results["stages"]["ingest"]["lidar"]["points"],
         fx.lidar_points
@@ -83,7 +70,7 @@ async fn job_lifecycle_through_ingest(db: Db) {
         .find(|a| a["name"] == "ingest/cloud.ply")
         .expect("ply");
     let href = format!("{base}{}", ply["href"].as_str().expect("href"));
-    let full = c.get(&href).send().await.expect("get");
+    let full = send(c.get(&href)).await;
     assert_eq!(full.status(), StatusCode::OK);
     let etag = full.headers()["etag"].to_str().expect("etag").to_string();
     assert_eq!(
@@ -94,83 +81,39 @@ async fn job_lifecycle_through_ingest(db: Db) {
     assert_eq!(body.len() as u64, ply["size"].as_u64().expect("size"));
     assert_eq!(sha256_hex(&body), ply["sha256"].as_str().expect("sha"));
     assert!(body.starts_with(b"ply\n"));
-    let cached = c
-        .get(&href)
-        .header("if-none-match", &etag)
-        .send()
-        .await
-        .expect("get");
+    let cached = send(c.get(&href).header("if-none-match", &etag)).await;
     assert_eq!(cached.status(), StatusCode::NOT_MODIFIED);
-    let part = c
-        .get(&href)
-        .header("range", "bytes=0-9")
-        .send()
-        .await
-        .expect("range");
+    let range = |bytes: String| send(c.get(&href).header("range", format!("bytes={bytes}")));
+    let part = range("0-9".into()).await;
     assert_eq!(part.status(), StatusCode::PARTIAL_CONTENT);
     assert_eq!(
         part.headers()["content-range"],
         format!("bytes 0-9/{}", body.len()).as_str()
     );
     assert_eq!(part.bytes().await.expect("bytes").as_ref(), &body[..10]);
-    let tail = c
-        .get(&href)
-        .header("range", "bytes=-4")
-        .send()
-        .await
-        .expect("range");
+    let tail = range("-4".into()).await;
     assert_eq!(
         tail.bytes().await.expect("bytes").as_ref(),
         &body[body.len() - 4..]
     );
-    let bad = c
-        .get(&href)
-        .header("range", format!("bytes={}-", body.len() + 10))
-        .send()
-        .await
-        .expect("range");
+    let bad = range(format!("{}-", body.len() + 10)).await;
     assert_eq!(
         bad.headers()["content-range"],
         format!("bytes */{}", body.len()).as_str()
     );
     expect_problem(bad, StatusCode::RANGE_NOT_SATISFIABLE).await;
-    let encoded = c
-        .get(format!(
-            "{base}/v1/jobs/{id}/artifacts/ingest%2Freport.json"
-        ))
-        .send()
-        .await
-        .expect("get");
+    let encoded = send(c.get(format!("{job_url}/artifacts/ingest%2Freport.json"))).await;
     assert_eq!(encoded.status(), StatusCode::OK);
-    expect_problem(
-        c.get(format!(
-            "{base}/v1/jobs/{id}/artifacts/ingest/../../sylva.db"
-        ))
-        .send()
-        .await
-        .expect("get"),
-        StatusCode::NOT_FOUND,
-    )
-    .await;
-    object_store_holds_the_blobs(&db, &data, &id, ply).await;
+    let escape = c.get(format!("{job_url}/artifacts/ingest/../../sylva.db"));
+    send_problem(escape, StatusCode::NOT_FOUND).await;
+    object_store_holds_the_blobs(&db, &fx.data, &id, ply).await;
     // No inventory before stage dbh.
-    expect_problem(
-        c.get(format!("{base}/v1/jobs/{id}/trees.csv"))
-            .send()
-            .await
-            .expect("get"),
-        StatusCode::NOT_FOUND,
-    )
-    .await;
+    send_problem(c.get(format!("{job_url}/trees.csv")), StatusCode::NOT_FOUND).await;
 
     // Log and events.
     let log = log_text(&c, &base, &id).await;
     assert!(log.contains("stage ingest finished"), "{log}");
-    let events = c
-        .get(format!("{base}/v1/jobs/{id}/events"))
-        .send()
-        .await
-        .expect("events");
+    let events = send(c.get(format!("{job_url}/events"))).await;
     assert_eq!(events.headers()["content-type"], "text/event-stream");
     let text = tokio::time::timeout(Duration::from_secs(20), events.text())
         .await
@@ -182,54 +125,28 @@ async fn job_lifecycle_through_ingest(db: Db) {
     assert!(text.contains("\"state\":\"succeeded\""), "{text}");
 
     // Listing with a cursor.
-    let list: Value = c
-        .get(format!("{base}/v1/jobs?state=succeeded&limit=1"))
-        .send()
-        .await
-        .expect("list")
-        .json()
-        .await
-        .expect("json");
+    let list = send_json(c.get(format!("{base}/v1/jobs?state=succeeded&limit=1"))).await;
     assert_eq!(list["jobs"][0]["id"], id.as_str());
 
     // Metrics count it.
-    let metrics = c
-        .get(format!("{base}/metrics"))
-        .send()
-        .await
-        .expect("metrics")
-        .text()
-        .await
-        .expect("text");
-    assert!(
-        metrics.contains("sylva_jobs{state=\"succeeded\"} 1"),
-        "{metrics}"
-    );
-    assert!(
-        metrics.contains("sylva_stage_duration_seconds_count{stage=\"ingest\"} 1"),
-        "{metrics}"
-    );
+    let metrics = send(c.get(format!("{base}/metrics"))).await;
+    let metrics = metrics.text().await.expect("text");
+    for counted in [
+        "sylva_jobs{state=\"succeeded\"} 1",
+        "sylva_stage_duration_seconds_count{stage=\"ingest\"} 1",
+    ] {
+        assert!(metrics.contains(counted), "{metrics}");
+    }
     assert!(
         !metrics.contains("sylva_upload_bytes_total 0\n"),
         "{metrics}"
     );
 
     // Delete: gone from the API and from disk.
-    let del = c
-        .delete(format!("{base}/v1/jobs/{id}"))
-        .send()
-        .await
-        .expect("delete");
+    let del = send(c.delete(&job_url)).await;
     assert_eq!(del.status(), StatusCode::NO_CONTENT);
-    expect_problem(
-        c.get(format!("{base}/v1/jobs/{id}"))
-            .send()
-            .await
-            .expect("get"),
-        StatusCode::NOT_FOUND,
-    )
-    .await;
-    assert!(!data.join("jobs").join(&id).exists());
+    send_problem(c.get(&job_url), StatusCode::NOT_FOUND).await;
+    assert!(!fx.data.join("jobs").join(&id).exists());
     if let Some(bucket) = db.bucket() {
         let keys = bucket.keys();
         assert!(
@@ -269,87 +186,69 @@ async fn object_store_holds_the_blobs(db: &Db, data: &Path, id: &str, ply: &Valu
         .redirect(reqwest::redirect::Policy::none())
         .build()
         .expect("client");
-    let r = no_follow.get(&href).send().await.expect("get");
+    let r = send(no_follow.get(&href)).await;
     assert_eq!(r.status(), StatusCode::TEMPORARY_REDIRECT);
     let location = r.headers()["location"]
         .to_str()
         .expect("location")
         .to_string();
     assert!(location.contains("X-Amz-Signature="), "{location}");
-    let body = client()
-        .get(&href)
-        .send()
+    let body = send(client().get(&href))
         .await
-        .expect("get")
         .bytes()
         .await
         .expect("bytes");
     assert_eq!(sha256_hex(&body), ply["sha256"].as_str().expect("sha"));
     let replica = db.serve(data, &["--workers", "0"]);
     let href = format!("{}{}", replica.base, ply["href"].as_str().expect("href"));
-    let part = no_follow
-        .get(&href)
-        .header("range", "bytes=4-11")
-        .send()
-        .await
-        .expect("range");
+    let part = send(no_follow.get(&href).header("range", "bytes=4-11")).await;
     assert_eq!(part.status(), StatusCode::PARTIAL_CONTENT);
-    let full = client().get(&href).send().await.expect("get");
-    let full = full.bytes().await.expect("bytes");
+    let full = send(client().get(&href))
+        .await
+        .bytes()
+        .await
+        .expect("bytes");
     assert_eq!(part.bytes().await.expect("bytes").as_ref(), &full[4..12]);
 }
 
 on_both_databases!(a_failed_stage_fails_the_job_clearly_and_retry_resumes_there);
 async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
     let fx = fixture();
-    let srv = db.serve(&fx.dir.path().join("data"), &[]);
-    let (c, base) = (client(), srv.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let job = create_job(&c, &base, &json!({ "inputs": inputs })).await;
-    let id = job["id"].as_str().expect("id").to_string();
+    let srv = db.serve(&fx.data, &[]);
+    let (c, base, inputs) = client_with_inputs(&srv, &fx).await;
+    let id = submit(&c, &base, &json!({ "inputs": inputs })).await;
     let (job, _) = wait_job(&c, &base, &id, LONG, is_terminal).await;
     assert_eq!(job["state"], "failed");
     assert_eq!(job["stage"], "register");
     // The fixture's photos do not show its LiDAR scene: registration refuses clearly.
-    let detail = job["error"]["detail"].as_str().expect("detail");
-    assert!(detail.contains("control points are required"), "{detail}");
+    assert!(
+        detail(&job["error"]).contains("control points are required"),
+        "{job}"
+    );
     assert_eq!(job["error"]["status"], 422);
     assert_eq!(stage(&job, "ingest")["state"], "done");
     assert_eq!(stage(&job, "register")["state"], "failed");
     let ingest_done_at = stage(&job, "ingest")["finished_at"].clone();
 
     // A stage after the first unfinished one cannot be the restart point.
-    let r = c
-        .post(format!("{base}/v1/jobs/{id}/retry"))
-        .json(&json!({ "from_stage": "train" }))
-        .send()
-        .await
-        .expect("retry");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    let r = c
-        .post(format!("{base}/v1/jobs/{id}/retry"))
-        .json(&json!({ "from_stage": "nope" }))
-        .send()
-        .await
-        .expect("retry");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+    let retry = |base: &str, id: &str| c.post(format!("{base}/v1/jobs/{id}/retry"));
+    for from in ["train", "nope"] {
+        let from_stage = retry(&base, &id).json(&json!({ "from_stage": from }));
+        send_problem(from_stage, StatusCode::UNPROCESSABLE_ENTITY).await;
+    }
 
     // With an object store the retry runs on another machine (a fresh data directory), which
     // fetches ingest's outputs from the store instead of running it again.
     let srv = if db.bucket().is_some() {
         drop(srv);
-        db.serve(&fx.dir.path().join("data"), &[])
+        db.serve(&fx.data, &[])
     } else {
         srv
     };
     let base = srv.base.clone();
 
     // Retry without a stage resumes at register: ingest is not run again.
-    let r = c
-        .post(format!("{base}/v1/jobs/{id}/retry"))
-        .send()
-        .await
-        .expect("retry");
+    let r = send(retry(&base, &id)).await;
     assert_eq!(r.status(), StatusCode::ACCEPTED);
     let (job, _) = wait_job(&c, &base, &id, LONG, is_terminal).await;
     assert_eq!(job["state"], "failed");
@@ -358,20 +257,17 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
         ingest_done_at,
         "ingest was not redone"
     );
-    let detail = job["error"]["detail"].as_str().expect("detail");
-    assert!(detail.contains("control points are required"), "{detail}");
+    assert!(
+        detail(&job["error"]).contains("control points are required"),
+        "{job}"
+    );
     if db.bucket().is_some() {
         let log = log_text(&c, &base, &id).await;
         assert!(log.contains("from the object store"), "{log}");
     }
 
     // Retry from ingest runs it again.
-    let r = c
-        .post(format!("{base}/v1/jobs/{id}/retry"))
-        .json(&json!({ "from_stage": "ingest" }))
-        .send()
-        .await
-        .expect("retry");
+    let r = send(retry(&base, &id).json(&json!({ "from_stage": "ingest" }))).await;
     assert_eq!(r.status(), StatusCode::ACCEPTED);
     let (job, _) = wait_job(&c, &base, &id, LONG, |j| {
         is_terminal(j) && stage(j, "ingest")["state"] == "done"
@@ -387,90 +283,44 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
     assert!(log.contains("retry requested from stage ingest"), "{log}");
 
     // A running or queued job cannot be retried or deleted.
-    let queued = create_job(
-        &c,
-        &base,
-        &json!({ "inputs": inputs, "params": { "until": "ingest" } }),
-    )
-    .await;
-    let qid = queued["id"].as_str().expect("id");
-    let (done, _) = wait_job(&c, &base, qid, LONG, is_terminal).await;
+    let qid = submit(&c, &base, &job_until(&inputs, "ingest")).await;
+    let (done, _) = wait_job(&c, &base, &qid, LONG, is_terminal).await;
     assert_eq!(done["state"], "succeeded");
-    let r = c
-        .post(format!("{base}/v1/jobs/{qid}/retry"))
-        .send()
-        .await
-        .expect("retry");
-    expect_problem(r, StatusCode::CONFLICT).await;
+    send_problem(retry(&base, &qid), StatusCode::CONFLICT).await;
 }
 
 on_both_databases!(same_idempotency_key_gives_one_job);
 async fn same_idempotency_key_gives_one_job(db: Db) {
     let fx = fixture();
-    let srv = db.serve(&fx.dir.path().join("data"), &["--workers", "0"]);
-    let (c, base) = (client(), srv.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
+    let srv = db.serve(&fx.data, &["--workers", "0"]);
+    let (c, base, inputs) = client_with_inputs(&srv, &fx).await;
+    let keyed = |key: &str, body: &Value| {
+        c.post(format!("{base}/v1/jobs"))
+            .header("idempotency-key", key)
+            .json(body)
+    };
+    let body = job_until(&inputs, "ingest");
     let mut ids = Vec::new();
     for _ in 0..3 {
-        let r = c
-            .post(format!("{base}/v1/jobs"))
-            .header("idempotency-key", "plot-7-upload-1")
-            .json(&body)
-            .send()
-            .await
-            .expect("create");
+        let r = send(keyed("plot-7-upload-1", &body)).await;
         assert_eq!(r.status(), StatusCode::ACCEPTED);
         assert!(r.headers().contains_key("location"));
         let v: Value = r.json().await.expect("json");
-        ids.push(v["id"].as_str().expect("id").to_string());
+        ids.push(id_of(&v));
     }
     assert!(ids.iter().all(|i| *i == ids[0]), "{ids:?}");
-    let list: Value = c
-        .get(format!("{base}/v1/jobs"))
-        .send()
-        .await
-        .expect("list")
-        .json()
-        .await
-        .expect("json");
+    let list = send_json(c.get(format!("{base}/v1/jobs"))).await;
     assert_eq!(list["jobs"].as_array().map(Vec::len), Some(1));
     // The same key with another request is refused.
-    let other = json!({ "inputs": inputs, "params": { "until": "register" } });
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .header("idempotency-key", "plot-7-upload-1")
-        .json(&other)
-        .send()
-        .await
-        .expect("create");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+    let other = job_until(&inputs, "register");
+    let r = keyed("plot-7-upload-1", &other);
+    send_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
     // A different key makes a second job; list pages through both with the cursor.
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .header("idempotency-key", "plot-7-upload-2")
-        .json(&body)
-        .send()
-        .await
-        .expect("create");
+    let r = send(keyed("plot-7-upload-2", &body)).await;
     assert_eq!(r.status(), StatusCode::ACCEPTED);
-    let page1: Value = c
-        .get(format!("{base}/v1/jobs?limit=1"))
-        .send()
-        .await
-        .expect("list")
-        .json()
-        .await
-        .expect("json");
+    let page1 = send_json(c.get(format!("{base}/v1/jobs?limit=1"))).await;
     let cursor = page1["next_cursor"].as_str().expect("cursor");
-    let page2: Value = c
-        .get(format!("{base}/v1/jobs?limit=1&cursor={cursor}"))
-        .send()
-        .await
-        .expect("list")
-        .json()
-        .await
-        .expect("json");
+    let page2 = send_json(c.get(format!("{base}/v1/jobs?limit=1&cursor={cursor}"))).await;
     assert_eq!(page2["jobs"][0]["id"], ids[0].as_str());
     assert_ne!(page1["jobs"][0]["id"], ids[0].as_str());
 }
@@ -478,36 +328,25 @@ async fn same_idempotency_key_gives_one_job(db: Db) {
 on_both_databases!(cancel_stops_running_and_queued_jobs);
 async fn cancel_stops_running_and_queued_jobs(db: Db) {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let srv = db.serve(&data, &["--debug-stage-pause-ms", "60000"]);
-    let (c, base) = (client(), srv.base.clone());
-    let inputs = upload_inputs(&c, &base, &fx).await;
-    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
-    let running = create_job(&c, &base, &body).await;
-    let rid = running["id"].as_str().expect("id").to_string();
-    let queued = create_job(&c, &base, &body).await;
-    let qid = queued["id"].as_str().expect("id").to_string();
+    let srv = db.serve(&fx.data, &["--debug-stage-pause-ms", "60000"]);
+    let (c, base, inputs) = client_with_inputs(&srv, &fx).await;
+    let body = job_until(&inputs, "ingest");
+    let rid = submit(&c, &base, &body).await;
+    let qid = submit(&c, &base, &body).await;
     wait_job(&c, &base, &rid, LONG, |j| {
         j["state"] == "running" && j["stage"] == "ingest"
     })
     .await;
+    let cancel = |id: &str| c.post(format!("{base}/v1/jobs/{id}/cancel"));
 
     // The queued one is canceled at once.
-    let r = c
-        .post(format!("{base}/v1/jobs/{qid}/cancel"))
-        .send()
-        .await
-        .expect("cancel");
+    let r = send(cancel(&qid)).await;
     assert_eq!(r.status(), StatusCode::ACCEPTED);
     let v: Value = r.json().await.expect("json");
     assert_eq!(v["state"], "canceled");
 
     // The running one is asked to stop and stops promptly.
-    let r = c
-        .post(format!("{base}/v1/jobs/{rid}/cancel"))
-        .send()
-        .await
-        .expect("cancel");
+    let r = send(cancel(&rid)).await;
     assert_eq!(r.status(), StatusCode::ACCEPTED);
     let v: Value = r.json().await.expect("json");
     assert!(
@@ -519,51 +358,29 @@ async fn cancel_stops_running_and_queued_jobs(db: Db) {
     assert_eq!(stage(&job, "ingest")["state"], "canceled");
 
     // A finished job cannot be canceled again.
-    let r = c
-        .post(format!("{base}/v1/jobs/{rid}/cancel"))
-        .send()
-        .await
-        .expect("cancel");
-    expect_problem(r, StatusCode::CONFLICT).await;
+    send_problem(cancel(&rid), StatusCode::CONFLICT).await;
 }
 
 on_both_databases!(one_request_multipart_submission_runs);
 async fn one_request_multipart_submission_runs(db: Db) {
     let fx = fixture();
-    let srv = db.serve(&fx.dir.path().join("data"), &[]);
+    let srv = db.serve(&fx.data, &[]);
     let (c, base) = (client(), srv.base.clone());
-    let part = |path: &std::path::Path| {
-        reqwest::multipart::Part::bytes(std::fs::read(path).expect("read")).file_name(
-            path.file_name()
-                .and_then(|n| n.to_str())
-                .unwrap_or("f")
-                .to_string(),
-        )
-    };
-    let form = reqwest::multipart::Form::new()
-        .part("lidar", part(&fx.lidar))
-        .part("colmap", part(&fx.colmap_zip))
-        .part("field_dbh", part(&fx.field_dbh))
-        .text("params", r#"{"until": "ingest"}"#);
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .multipart(form)
-        .send()
-        .await
-        .expect("post");
+    let files = [
+        ("lidar", &fx.lidar),
+        ("colmap", &fx.colmap_zip),
+        ("field_dbh", &fx.field_dbh),
+    ];
+    let form = multipart(&files).text("params", r#"{"until": "ingest"}"#);
+    let r = send(c.post(format!("{base}/v1/jobs")).multipart(form)).await;
     assert_eq!(r.status(), StatusCode::ACCEPTED, "{:?}", r.text().await);
     let v: Value = r.json().await.expect("json");
-    let id = v["id"].as_str().expect("id");
-    let (job, _) = wait_job(&c, &base, id, LONG, is_terminal).await;
+    let id = id_of(&v);
+    let (job, _) = wait_job(&c, &base, &id, LONG, is_terminal).await;
     assert_eq!(job["state"], "succeeded", "{job}");
     assert_eq!(stage(&job, "ingest")["metrics"]["field_trees"], 1);
     // Missing colmap part.
-    let form = reqwest::multipart::Form::new().part("lidar", part(&fx.lidar));
-    let r = c
-        .post(format!("{base}/v1/jobs"))
-        .multipart(form)
-        .send()
-        .await
-        .expect("post");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+    let form = multipart(&[("lidar", &fx.lidar)]);
+    let r = c.post(format!("{base}/v1/jobs")).multipart(form);
+    send_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
 }

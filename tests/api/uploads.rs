@@ -8,48 +8,32 @@ use super::common::{self, *};
 on_both_databases!(upload_interrupted_and_resumed_with_repeated_part);
 async fn upload_interrupted_and_resumed_with_repeated_part(db: Db) {
     let fx = fixture();
-    let srv = db.serve(&fx.dir.path().join("data"), &["--part-size", "1024"]);
+    let srv = db.serve(&fx.data, &["--part-size", "1024"]);
     let (c, base) = (client(), srv.base.clone());
     let bytes = std::fs::read(&fx.lidar).expect("read");
     assert!(bytes.len() > 5 * 1024);
-    let created = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "lidar", "filename": "plot.las", "size": bytes.len(), "sha256": sha256_hex(&bytes) }))
-        .send()
-        .await
-        .expect("create");
+    let body = json!({ "kind": "lidar", "filename": "plot.las", "size": bytes.len(), "sha256": sha256_hex(&bytes) });
+    let created = send(c.post(format!("{base}/v1/uploads")).json(&body)).await;
     assert_eq!(created.status(), StatusCode::CREATED);
     assert!(created.headers().contains_key("location"));
     let created: Value = created.json().await.expect("json");
-    let id = created["id"].as_str().expect("id").to_string();
+    let id = id_of(&created);
     let parts: Vec<&[u8]> = bytes.chunks(1024).collect();
     assert_eq!(created["parts_total"], parts.len());
+    let put = |n: usize, body: Vec<u8>| put_part(&c, &base, &id, n, body);
+    let complete = || complete_upload(&c, &base, &id);
 
     // The connection "dies" after two parts.
     for (n, p) in parts.iter().enumerate().take(2) {
-        let r = c
-            .put(format!("{base}/v1/uploads/{id}/parts/{n}"))
-            .body(p.to_vec())
-            .send()
-            .await
-            .expect("part");
-        assert_eq!(r.status(), StatusCode::OK);
+        assert_eq!(put(n, p.to_vec()).await.status(), StatusCode::OK);
     }
     // The client asks what arrived, by GET and by HEAD.
-    let st = c
-        .get(format!("{base}/v1/uploads/{id}"))
-        .send()
-        .await
-        .expect("status");
+    let st = send(c.get(format!("{base}/v1/uploads/{id}"))).await;
     assert_eq!(st.headers()["upload-state"], "open");
     let st: Value = st.json().await.expect("json");
     assert_eq!(st["parts_received"], json!([0, 1]));
     assert_eq!(st["bytes_received"], 2048);
-    let head = c
-        .head(format!("{base}/v1/uploads/{id}"))
-        .send()
-        .await
-        .expect("head");
+    let head = send(c.head(format!("{base}/v1/uploads/{id}"))).await;
     assert_eq!(head.status(), StatusCode::OK);
     assert_eq!(head.headers()["upload-bytes-received"], "2048");
     assert_eq!(
@@ -58,68 +42,28 @@ async fn upload_interrupted_and_resumed_with_repeated_part(db: Db) {
     );
 
     // Completing too early names the missing parts.
-    let early = c
-        .post(format!("{base}/v1/uploads/{id}/complete"))
-        .send()
-        .await
-        .expect("complete");
-    let p = expect_problem(early, StatusCode::CONFLICT).await;
-    assert!(
-        p["detail"].as_str().expect("detail").contains("missing"),
-        "{p}"
-    );
+    let p = expect_problem(complete().await, StatusCode::CONFLICT).await;
+    assert!(detail(&p).contains("missing"), "{p}");
 
     // A repeated part gives the same result.
-    let again: Value = c
-        .put(format!("{base}/v1/uploads/{id}/parts/1"))
-        .body(parts[1].to_vec())
-        .send()
-        .await
-        .expect("part")
-        .json()
-        .await
-        .expect("json");
+    let again: Value = put(1, parts[1].to_vec()).await.json().await.expect("json");
     assert_eq!(again["sha256"], sha256_hex(parts[1]));
     assert_eq!(again["size"], 1024);
 
     // Wrong part length, a part out of range, a part over the part size.
-    let r = c
-        .put(format!("{base}/v1/uploads/{id}/parts/2"))
-        .body(vec![0u8; 10])
-        .send()
-        .await
-        .expect("part");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    let r = c
-        .put(format!("{base}/v1/uploads/{id}/parts/999"))
-        .body(vec![0u8; 10])
-        .send()
-        .await
-        .expect("part");
-    expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
-    let r = c
-        .put(format!("{base}/v1/uploads/{id}/parts/2"))
-        .body(vec![0u8; 4096])
-        .send()
-        .await
-        .expect("part");
-    expect_problem(r, StatusCode::PAYLOAD_TOO_LARGE).await;
+    for (n, len, status) in [
+        (2, 10, StatusCode::UNPROCESSABLE_ENTITY),
+        (999, 10, StatusCode::UNPROCESSABLE_ENTITY),
+        (2, 4096, StatusCode::PAYLOAD_TOO_LARGE),
+    ] {
+        expect_problem(put(n, vec![0u8; len]).await, status).await;
+    }
 
     // Resume: the rest, then complete.
     for (n, p) in parts.iter().enumerate().skip(2) {
-        let r = c
-            .put(format!("{base}/v1/uploads/{id}/parts/{n}"))
-            .body(p.to_vec())
-            .send()
-            .await
-            .expect("part");
-        assert_eq!(r.status(), StatusCode::OK);
+        assert_eq!(put(n, p.to_vec()).await.status(), StatusCode::OK);
     }
-    let done = c
-        .post(format!("{base}/v1/uploads/{id}/complete"))
-        .send()
-        .await
-        .expect("complete");
+    let done = complete().await;
     assert_eq!(done.status(), StatusCode::OK);
     let done: Value = done.json().await.expect("json");
     assert_eq!(done["state"], "complete");
@@ -129,87 +73,40 @@ async fn upload_interrupted_and_resumed_with_repeated_part(db: Db) {
         fx.lidar_points
     );
     // Completing twice is harmless; parts can no longer change.
-    let twice = c
-        .post(format!("{base}/v1/uploads/{id}/complete"))
-        .send()
-        .await
-        .expect("complete");
-    assert_eq!(twice.status(), StatusCode::OK);
-    let r = c
-        .put(format!("{base}/v1/uploads/{id}/parts/0"))
-        .body(parts[0].to_vec())
-        .send()
-        .await
-        .expect("part");
-    expect_problem(r, StatusCode::CONFLICT).await;
+    assert_eq!(complete().await.status(), StatusCode::OK);
+    expect_problem(put(0, parts[0].to_vec()).await, StatusCode::CONFLICT).await;
 }
 
 on_both_databases!(wrong_checksum_and_unusable_content_are_422);
 async fn wrong_checksum_and_unusable_content_are_422(db: Db) {
     let fx = fixture();
-    let srv = db.serve(&fx.dir.path().join("data"), &[]);
+    let srv = db.serve(&fx.data, &[]);
     let (c, base) = (client(), srv.base.clone());
     let bytes = std::fs::read(&fx.lidar).expect("read");
-    let put_all = |id: String, body: Vec<u8>| {
-        let c = c.clone();
-        let base = base.clone();
-        async move {
-            c.put(format!("{base}/v1/uploads/{id}/parts/0"))
-                .body(body)
-                .send()
-                .await
-                .expect("part");
-            c.post(format!("{base}/v1/uploads/{id}/complete"))
-                .send()
-                .await
-                .expect("complete")
-        }
-    };
-    let create = |kind: &str, name: &str, size: usize, sha: Option<String>| {
-        let c = c.clone();
-        let base = base.clone();
-        // `sha256` is left out when there is none (null is refused as not a hex digest).
-        let mut body = json!({ "kind": kind, "filename": name, "size": size });
+    // Opens an upload of `body` (with `sha`, when there is one: null is refused as not a hex
+    // digest), sends it as part 0 and completes it: the problem of that answer.
+    let refused = async |kind: &str, name: &str, body: Vec<u8>, sha: Option<String>| {
+        let mut open = json!({ "kind": kind, "filename": name, "size": body.len() });
         if let Some(sha) = sha {
-            body["sha256"] = json!(sha);
+            open["sha256"] = json!(sha);
         }
-        async move {
-            let v: Value = c
-                .post(format!("{base}/v1/uploads"))
-                .json(&body)
-                .send()
-                .await
-                .expect("create")
-                .json()
-                .await
-                .expect("json");
-            v["id"].as_str().expect("id").to_string()
-        }
+        let v = send_json(c.post(format!("{base}/v1/uploads")).json(&open)).await;
+        let id = id_of(&v);
+        put_part(&c, &base, &id, 0, body).await;
+        let r = complete_upload(&c, &base, &id).await;
+        expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await
     };
-    let id = create("lidar", "plot.las", bytes.len(), Some("0".repeat(64))).await;
-    let p = expect_problem(
-        put_all(id, bytes.clone()).await,
-        StatusCode::UNPROCESSABLE_ENTITY,
-    )
-    .await;
-    assert!(
-        p["detail"].as_str().expect("detail").contains("SHA-256"),
-        "{p}"
-    );
+    let p = refused("lidar", "plot.las", bytes.clone(), Some("0".repeat(64))).await;
+    assert!(detail(&p).contains("SHA-256"), "{p}");
 
     // A truncated LAS: size and checksum match what was sent, the content does not.
     let cut = bytes[..bytes.len() / 2].to_vec();
-    let id = create("lidar", "cut.las", cut.len(), None).await;
-    let p = expect_problem(put_all(id, cut).await, StatusCode::UNPROCESSABLE_ENTITY).await;
-    assert!(
-        p["detail"].as_str().expect("detail").starts_with("cut.las"),
-        "names the file: {p}"
-    );
+    let p = refused("lidar", "cut.las", cut, None).await;
+    assert!(detail(&p).starts_with("cut.las"), "names the file: {p}");
 
     // A control point table with too few pairs.
     let csv = b"sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z\n1,2,3,4,5,6\n".to_vec();
-    let id = create("control_points", "cp.csv", csv.len(), None).await;
-    expect_problem(put_all(id, csv).await, StatusCode::UNPROCESSABLE_ENTITY).await;
+    refused("control_points", "cp.csv", csv, None).await;
 
     // A COLMAP archive whose model names a photo that is not there.
     let broken = fx.dir.path().join("broken");
@@ -230,12 +127,8 @@ async fn wrong_checksum_and_unusable_content_are_422(db: Db) {
     let zip = fx.dir.path().join("broken.zip");
     zip_dir(&broken, &zip);
     let z = std::fs::read(&zip).expect("read");
-    let id = create("colmap", "broken.zip", z.len(), None).await;
-    let p = expect_problem(put_all(id, z).await, StatusCode::UNPROCESSABLE_ENTITY).await;
-    assert!(
-        p["detail"].as_str().expect("detail").contains("missing"),
-        "{p}"
-    );
+    let p = refused("colmap", "broken.zip", z, None).await;
+    assert!(detail(&p).contains("missing"), "{p}");
 }
 
 on_both_databases!(an_expired_upload_is_gone);
@@ -246,30 +139,11 @@ async fn an_expired_upload_is_gone(db: Db) {
         &["--upload-ttl-secs", "1", "--workers", "0"],
     );
     let (c, base) = (client(), srv.base.clone());
-    let v: Value = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "lidar", "filename": "a.xyz", "size": 6 }))
-        .send()
-        .await
-        .expect("create")
-        .json()
-        .await
-        .expect("json");
-    let id = v["id"].as_str().expect("id");
+    let id = id_of(&open_upload(&c, &base, "lidar", "a.xyz", 6).await);
     tokio::time::sleep(Duration::from_millis(1100)).await;
-    let r = c
-        .put(format!("{base}/v1/uploads/{id}/parts/0"))
-        .body("1 2 3\n")
-        .send()
-        .await
-        .expect("part");
+    let r = put_part(&c, &base, &id, 0, "1 2 3\n").await;
     expect_problem(r, StatusCode::GONE).await;
-    let r = c
-        .post(format!("{base}/v1/uploads/{id}/complete"))
-        .send()
-        .await
-        .expect("complete");
-    expect_problem(r, StatusCode::GONE).await;
+    expect_problem(complete_upload(&c, &base, &id).await, StatusCode::GONE).await;
 }
 
 /// Uploads `bytes` as one upload of `kind` named `name`; the answer to `complete`.
@@ -280,30 +154,7 @@ async fn upload_whole(
     name: &str,
     bytes: Vec<u8>,
 ) -> reqwest::Response {
-    let created: Value = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": kind, "filename": name, "size": bytes.len() }))
-        .send()
-        .await
-        .expect("create")
-        .json()
-        .await
-        .expect("json");
-    let id = created["id"].as_str().expect("id").to_string();
-    let part = created["part_size"].as_u64().expect("part_size") as usize;
-    for (n, chunk) in bytes.chunks(part).enumerate() {
-        let r = c
-            .put(format!("{base}/v1/uploads/{id}/parts/{n}"))
-            .body(chunk.to_vec())
-            .send()
-            .await
-            .expect("part");
-        assert_eq!(r.status(), StatusCode::OK, "part {n} of {name}");
-    }
-    c.post(format!("{base}/v1/uploads/{id}/complete"))
-        .send()
-        .await
-        .expect("complete")
+    upload_bytes(c, base, (kind, name), &bytes, false).await.1
 }
 
 /// Each bad input of issue 10 is a clear problem that names the file and the fault, and the
@@ -311,10 +162,9 @@ async fn upload_whole(
 #[tokio::test(flavor = "multi_thread")]
 async fn bad_inputs_are_clear_problems_naming_the_file_and_the_fault() {
     let fx = fixture();
-    let data = fx.dir.path().join("data");
-    let srv = serve(&data, &["--max-upload-bytes", "1073741824"]);
+    let srv = serve(&fx.data, &["--max-upload-bytes", "1073741824"]);
     let (c, base) = (client(), srv.base.clone());
-    let detail_of = |p: &Value| p["detail"].as_str().expect("detail").to_string();
+    let detail_of = |p: &Value| detail(p).to_string();
     let refused = |r: reqwest::Response| expect_problem(r, StatusCode::UNPROCESSABLE_ENTITY);
 
     // A LAS whose header declares more points than the file holds.
@@ -382,7 +232,7 @@ async fn bad_inputs_are_clear_problems_naming_the_file_and_the_fault() {
         "names the file inside: {d}"
     );
     assert!(
-        !d.contains(&data.display().to_string()),
+        !d.contains(&fx.data.display().to_string()),
         "leaks a server path: {d}"
     );
 
@@ -399,13 +249,9 @@ async fn bad_inputs_are_clear_problems_naming_the_file_and_the_fault() {
     );
 
     // 10 GB declared against a 1 GiB limit: 413 before a byte is sent.
-    let r = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({ "kind": "lidar", "filename": "big.laz", "size": 10_000_000_000u64 }))
-        .send()
-        .await
-        .expect("create");
-    let p = expect_problem(r, StatusCode::PAYLOAD_TOO_LARGE).await;
+    let big = json!({ "kind": "lidar", "filename": "big.laz", "size": 10_000_000_000u64 });
+    let r = c.post(format!("{base}/v1/uploads")).json(&big);
+    let p = send_problem(r, StatusCode::PAYLOAD_TOO_LARGE).await;
     assert!(detail_of(&p).contains("1073741824"), "{p}");
 
     // A cloud in millimetres is accepted with a warning (it may be a huge plot after all).
@@ -434,11 +280,7 @@ async fn bad_inputs_are_clear_problems_naming_the_file_and_the_fault() {
     );
 
     // Nothing else was harmed: the service is ready and a good upload still goes through.
-    let ready = c
-        .get(format!("{base}/readyz"))
-        .send()
-        .await
-        .expect("readyz");
+    let ready = send(c.get(format!("{base}/readyz"))).await;
     assert_eq!(ready.status(), StatusCode::OK);
     let good = std::fs::read(&fx.lidar).expect("las");
     let r = upload_whole(&c, &base, "lidar", "good.las", good).await;

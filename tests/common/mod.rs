@@ -8,11 +8,11 @@ pub mod s3;
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use glam::{DVec3, Vec3};
-use reqwest::{Client, StatusCode};
+use reqwest::{Client, RequestBuilder, Response, StatusCode};
 use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 use sylva::io::colmap::{self, Camera, CameraModel, ColmapModel, Image, Point3D};
@@ -23,6 +23,8 @@ pub const BIN: &str = env!("CARGO_BIN_EXE_sylva");
 /// Input files for one small plot.
 pub struct Fixture {
     pub dir: tempfile::TempDir,
+    /// `dir/data`, the data folder for the test's `sylva` processes (not created).
+    pub data: PathBuf,
     pub lidar: PathBuf,
     pub lidar_points: usize,
     pub colmap_dir: PathBuf,
@@ -119,6 +121,7 @@ pub fn fixture() -> Fixture {
     let field_dbh = dir.path().join("field.csv");
     std::fs::write(&field_dbh, "tree_id,x,y,dbh_cm\n1,500002,4000002,30\n").expect("write");
     Fixture {
+        data: dir.path().join("data"),
         dir,
         lidar,
         lidar_points: n,
@@ -164,26 +167,88 @@ pub fn zip_dir(dir: &Path, out: &Path) {
 /// (`colmap.zip`) for upload; returns the plot folder.
 #[allow(dead_code)]
 pub fn synthetic_plot(dir: &Path, seed: u64) -> PathBuf {
-    let plot = dir.join("plot");
-    let out = Command::new(BIN)
-        .args([
-            "synth",
-            "--preset",
-            "tiny",
-            "--seed",
-            &seed.to_string(),
-            "--out",
-        ])
-        .arg(&plot)
-        .output()
-        .expect("synth");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let plot = synth_plot(dir, seed);
     zip_dir(&plot.join("colmap"), &plot.join("colmap.zip"));
     plot
+}
+
+/// `sylva synth --preset tiny --seed SEED` into `dir/plot`; returns the plot folder.
+pub fn synth_plot(dir: &Path, seed: u64) -> PathBuf {
+    let plot = dir.join("plot");
+    let seed = seed.to_string();
+    let synth = ["synth", "--preset", "tiny", "--seed", &seed, "--out"];
+    succeeds(Command::new(BIN).args(synth).arg(&plot));
+    plot
+}
+
+/// Runs `cmd` to its end and returns its output, failing the test (with its stderr) unless it
+/// succeeded.
+pub fn succeeds(cmd: &mut Command) -> Output {
+    let out = cmd.output().expect("run the command");
+    assert!(
+        out.status.success(),
+        "{:?} failed ({}): {}",
+        cmd.get_args().collect::<Vec<_>>(),
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// A tool the tests run: `$VAR` (its path, or `none` to go without), else
+/// `target/test-venv/bin/NAME` (where scripts/test installs it), else NAME on the PATH; `Err`
+/// says why there is none.
+pub fn test_tool(var: &str, name: &str) -> Result<PathBuf, String> {
+    if let Ok(v) = std::env::var(var) {
+        if v == "none" {
+            return Err(format!("{var}=none"));
+        }
+        return Ok(PathBuf::from(v));
+    }
+    let mut dirs = vec![Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-venv/bin")];
+    if let Some(path) = std::env::var_os("PATH") {
+        dirs.extend(std::env::split_paths(&path));
+    }
+    dirs.into_iter().map(|d| d.join(name)).find(|p| p.is_file()).ok_or_else(|| {
+        format!(
+            "{name} is not installed (scripts/test installs it into target/test-venv; or set {var})"
+        )
+    })
+}
+
+/// `sylva bench ARGS…` with authentication off, whatever the environment says: its stdout
+/// and stderr, failing the test (with both) unless it succeeded.
+pub fn bench(args: &[&str]) -> (String, String) {
+    let out = Command::new(BIN)
+        .arg("bench")
+        .args(args)
+        .env_remove("SYLVA_TOKEN")
+        .output()
+        .expect("run sylva bench");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(
+        out.status.success(),
+        "exit {}:\n{stdout}\n{stderr}",
+        out.status
+    );
+    (stdout, stderr)
+}
+
+/// The cells of the first row of the Markdown table that `text` starts with, once its header
+/// and rule lines are asserted to be `header` and `rule`.
+pub fn table_row<'a>(text: &'a str, header: &str, rule: &str) -> Vec<&'a str> {
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some(header), "{text}");
+    assert_eq!(lines.next(), Some(rule));
+    let row = lines.next().expect("one row").split('|').map(str::trim);
+    row.filter(|c| !c.is_empty()).collect()
+}
+
+/// The JSON document in the file at `path`.
+pub fn read_json(path: &Path) -> Value {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("read {}: {e}", path.display()));
+    serde_json::from_slice(&bytes).expect("json")
 }
 
 /// A running `sylva` process, killed when dropped.
@@ -236,8 +301,14 @@ pub fn keyed_client(key: &str) -> Client {
         .expect("client")
 }
 
-fn spawn(args: &[&str], data: &Path, ready_prefix: &str) -> Proc {
-    spawn_with_env(args, data, ready_prefix, &[])
+/// `sylva serve` on an ephemeral port: the command, and the line it prints once it listens.
+const SERVE: (&[&str], &str) = (&["serve", "--listen", "127.0.0.1:0"], "sylva listening on");
+/// `sylva worker`: the command, and the line it prints once it polls.
+const WORKER: (&[&str], &str) = (&["worker"], "sylva worker started");
+
+/// Starts `sylva COMMAND… EXTRA…` and waits for its ready line.
+fn spawn((command, ready): (&[&str], &str), extra: &[&str], data: &Path) -> Proc {
+    spawn_with_env(&[command, extra].concat(), data, ready, &[])
 }
 
 fn spawn_with_env(
@@ -292,16 +363,12 @@ fn spawn_with_env(
 
 /// `sylva serve` on an ephemeral port with `extra` flags.
 pub fn serve(data: &Path, extra: &[&str]) -> Proc {
-    let mut args = vec!["serve", "--listen", "127.0.0.1:0"];
-    args.extend_from_slice(extra);
-    spawn(&args, data, "sylva listening on")
+    spawn(SERVE, extra, data)
 }
 
 /// `sylva worker` with `extra` flags.
 pub fn worker(data: &Path, extra: &[&str]) -> Proc {
-    let mut args = vec!["worker"];
-    args.extend_from_slice(extra);
-    spawn(&args, data, "sylva worker started")
+    spawn(WORKER, extra, data)
 }
 
 /// The job database (and blob store) a test's `sylva` processes share.
@@ -382,35 +449,23 @@ impl Db {
         p
     }
 
+    /// Starts `sylva COMMAND… EXTRA…` on this database and checks that it opened it.
+    fn spawn(&self, (command, ready): (&[&str], &str), extra: &[&str], data: &Path) -> Proc {
+        let args = [command, &self.with_flags(extra)].concat();
+        let p = spawn_with_env(&args, &self.machine_dir(data), ready, &self.env());
+        self.check_backend(p)
+    }
+
     /// `sylva serve` on this database.
     pub fn serve(&self, data: &Path, extra: &[&str]) -> Proc {
-        let mut args = vec!["serve", "--listen", "127.0.0.1:0"];
-        args.extend(self.with_flags(extra));
-        let p = spawn_with_env(
-            &args,
-            &self.machine_dir(data),
-            "sylva listening on",
-            &self.env(),
-        );
-        self.check_backend(p)
+        self.spawn(SERVE, extra, data)
     }
 
     /// `sylva keys create --name NAME EXTRA…` on this database: the new key.
     pub fn create_key(&self, data: &Path, name: &str, extra: &[&str]) -> String {
-        let mut args = vec!["keys", "create", "--name", name];
+        let mut args = vec!["--name", name];
         args.extend_from_slice(extra);
-        if let Db::Postgres(pg, _) = self {
-            args.extend(["--database", pg.url.as_str()]);
-        }
-        let out = sylva_command(&args, data)
-            .output()
-            .expect("run sylva keys create");
-        assert!(
-            out.status.success(),
-            "sylva keys create failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let key = String::from_utf8_lossy(&out.stdout).trim().to_string();
+        let key = self.keys(data, "create", &args).trim().to_string();
         assert!(key.starts_with("sylva_") && key.len() == 70, "{key:?}");
         key
     }
@@ -422,26 +477,13 @@ impl Db {
         if let Db::Postgres(pg, _) = self {
             all.extend(["--database", pg.url.as_str()]);
         }
-        let out = sylva_command(&all, data).output().expect("run sylva keys");
-        assert!(
-            out.status.success(),
-            "sylva keys {action} failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let out = succeeds(&mut sylva_command(&all, data));
         String::from_utf8_lossy(&out.stdout).into_owned()
     }
 
     /// `sylva worker` on this database.
     pub fn worker(&self, data: &Path, extra: &[&str]) -> Proc {
-        let mut args = vec!["worker"];
-        args.extend(self.with_flags(extra));
-        let p = spawn_with_env(
-            &args,
-            &self.machine_dir(data),
-            "sylva worker started",
-            &self.env(),
-        );
-        self.check_backend(p)
+        self.spawn(WORKER, extra, data)
     }
 }
 
@@ -468,6 +510,7 @@ macro_rules! on_both_databases {
 #[allow(unused_imports)]
 pub(crate) use on_both_databases;
 
+/// An HTTP client with a 60 s timeout.
 pub fn client() -> Client {
     Client::builder()
         .timeout(Duration::from_secs(60))
@@ -475,12 +518,33 @@ pub fn client() -> Client {
         .expect("client")
 }
 
+/// Hex SHA-256 of `bytes`.
 pub fn sha256_hex(bytes: &[u8]) -> String {
     hex::encode(Sha256::digest(bytes))
 }
 
+/// Sends a request; its answer (the test fails when none comes).
+pub async fn send(req: RequestBuilder) -> Response {
+    req.send().await.expect("send the request")
+}
+
+/// Sends a request; the JSON body of its answer, whatever its status.
+pub async fn send_json(req: RequestBuilder) -> Value {
+    send(req).await.json().await.expect("a JSON answer")
+}
+
+/// `v["id"]`: the id of a created upload, job or key.
+pub fn id_of(v: &Value) -> String {
+    v["id"].as_str().expect("id").to_string()
+}
+
+/// The `detail` of a problem document.
+pub fn detail(p: &Value) -> &str {
+    p["detail"].as_str().expect("detail")
+}
+
 /// Asserts a problem+json answer with `status`; returns the problem.
-pub async fn expect_problem(resp: reqwest::Response, status: StatusCode) -> Value {
+pub async fn expect_problem(resp: Response, status: StatusCode) -> Value {
     assert_eq!(resp.status(), status, "unexpected status");
     let ct = resp
         .headers()
@@ -498,41 +562,73 @@ pub async fn expect_problem(resp: reqwest::Response, status: StatusCode) -> Valu
     v
 }
 
-/// Uploads a file in parts through the resumable API; returns the upload id.
-pub async fn upload(c: &Client, base: &str, kind: &str, path: &Path) -> String {
-    let bytes = std::fs::read(path).expect("read input");
-    let created: Value = c
-        .post(format!("{base}/v1/uploads"))
-        .json(&json!({
-            "kind": kind,
-            "filename": path.file_name().and_then(|n| n.to_str()).unwrap_or("file"),
-            "size": bytes.len(),
-            "sha256": sha256_hex(&bytes),
-        }))
-        .send()
+/// Sends a request and asserts a problem+json answer with `status`; returns the problem.
+pub async fn send_problem(req: RequestBuilder, status: StatusCode) -> Value {
+    expect_problem(send(req).await, status).await
+}
+
+/// Opens an upload of `size` bytes of `kind` named `name`, without a checksum; the JSON
+/// answer, whatever its status.
+pub async fn open_upload(c: &Client, base: &str, kind: &str, name: &str, size: u64) -> Value {
+    let body = json!({ "kind": kind, "filename": name, "size": size });
+    send_json(c.post(format!("{base}/v1/uploads")).json(&body)).await
+}
+
+/// PUTs part `n` of upload `id`; the answer.
+pub async fn put_part(
+    c: &Client,
+    base: &str,
+    id: &str,
+    n: usize,
+    body: impl Into<reqwest::Body>,
+) -> Response {
+    send(
+        c.put(format!("{base}/v1/uploads/{id}/parts/{n}"))
+            .body(body),
+    )
+    .await
+}
+
+/// Asks to complete upload `id`; the answer.
+pub async fn complete_upload(c: &Client, base: &str, id: &str) -> Response {
+    send(c.post(format!("{base}/v1/uploads/{id}/complete"))).await
+}
+
+/// Uploads `bytes` as `kind` named `name` through the resumable API, in the parts the server
+/// asks for (with their SHA-256 when `checksum`); the upload's id and the answer to `complete`.
+pub async fn upload_bytes(
+    c: &Client,
+    base: &str,
+    (kind, name): (&str, &str),
+    bytes: &[u8],
+    checksum: bool,
+) -> (String, Response) {
+    let mut body = json!({ "kind": kind, "filename": name, "size": bytes.len() });
+    if checksum {
+        body["sha256"] = json!(sha256_hex(bytes));
+    }
+    let created: Value = send(c.post(format!("{base}/v1/uploads")).json(&body))
         .await
-        .expect("create upload")
         .error_for_status()
         .expect("201")
         .json()
         .await
         .expect("json");
-    let id = created["id"].as_str().expect("id").to_string();
+    let id = id_of(&created);
     let part = created["part_size"].as_u64().expect("part_size") as usize;
     for (n, chunk) in bytes.chunks(part).enumerate() {
-        c.put(format!("{base}/v1/uploads/{id}/parts/{n}"))
-            .body(chunk.to_vec())
-            .send()
-            .await
-            .expect("put part")
-            .error_for_status()
-            .expect("part accepted");
+        let r = put_part(c, base, &id, n, chunk.to_vec()).await;
+        assert_eq!(r.status(), StatusCode::OK, "part {n} of {name}");
     }
-    let done = c
-        .post(format!("{base}/v1/uploads/{id}/complete"))
-        .send()
-        .await
-        .expect("complete");
+    let done = complete_upload(c, base, &id).await;
+    (id, done)
+}
+
+/// Uploads a file in parts through the resumable API; returns the upload id.
+pub async fn upload(c: &Client, base: &str, kind: &str, path: &Path) -> String {
+    let bytes = std::fs::read(path).expect("read input");
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+    let (id, done) = upload_bytes(c, base, (kind, name), &bytes, true).await;
     assert_eq!(done.status(), StatusCode::OK, "{:?}", done.text().await);
     id
 }
@@ -544,13 +640,35 @@ pub async fn upload_inputs(c: &Client, base: &str, fx: &Fixture) -> Value {
     json!({ "lidar": lidar, "colmap": colmap })
 }
 
+/// A multipart form with a part for each `(name, path)`: the file's bytes under its own name.
+pub fn multipart<P: AsRef<Path>>(files: &[(&str, P)]) -> reqwest::multipart::Form {
+    files
+        .iter()
+        .fold(reqwest::multipart::Form::new(), |form, (name, path)| {
+            let path = path.as_ref();
+            let bytes = std::fs::read(path).expect("read input");
+            let file = path.file_name().and_then(|n| n.to_str()).unwrap_or("f");
+            let part = reqwest::multipart::Part::bytes(bytes).file_name(file.to_string());
+            form.part(name.to_string(), part)
+        })
+}
+
+/// A client of the server `srv`, its base URL, and the fixture's lidar and colmap uploaded
+/// through it (a job's `inputs`).
+pub async fn client_with_inputs(srv: &Proc, fx: &Fixture) -> (Client, String, Value) {
+    let (c, base) = (client(), srv.base.clone());
+    let inputs = upload_inputs(&c, &base, fx).await;
+    (c, base, inputs)
+}
+
+/// The body of a job over `inputs` that runs the stages up to `until`.
+pub fn job_until(inputs: &Value, until: &str) -> Value {
+    json!({ "inputs": inputs, "params": { "until": until } })
+}
+
+/// Creates a job, asserting 202; the job.
 pub async fn create_job(c: &Client, base: &str, body: &Value) -> Value {
-    let resp = c
-        .post(format!("{base}/v1/jobs"))
-        .json(body)
-        .send()
-        .await
-        .expect("create job");
+    let resp = send(c.post(format!("{base}/v1/jobs")).json(body)).await;
     assert_eq!(
         resp.status(),
         StatusCode::ACCEPTED,
@@ -560,28 +678,43 @@ pub async fn create_job(c: &Client, base: &str, body: &Value) -> Value {
     resp.json().await.expect("job json")
 }
 
+/// Creates a job, asserting 202; its id.
+pub async fn submit(c: &Client, base: &str, body: &Value) -> String {
+    id_of(&create_job(c, base, body).await)
+}
+
 /// GET `url` and its JSON body.
 #[allow(dead_code)]
 pub async fn get_json(c: &Client, url: &str) -> Value {
-    c.get(url)
-        .send()
-        .await
-        .expect("get")
-        .json()
-        .await
-        .expect("json")
+    send_json(c.get(url)).await
 }
 
+/// The job `id`, asserting a 2xx answer.
 pub async fn get_job(c: &Client, base: &str, id: &str) -> Value {
-    c.get(format!("{base}/v1/jobs/{id}"))
-        .send()
+    send(c.get(format!("{base}/v1/jobs/{id}")))
         .await
-        .expect("get job")
         .error_for_status()
         .expect("200")
         .json()
         .await
         .expect("json")
+}
+
+/// Calls `probe` every `every_ms` milliseconds until it gives `Ok`; fails the test with its
+/// last `Err` once `timeout` has passed.
+pub async fn poll_until<T>(
+    timeout: Duration,
+    every_ms: u64,
+    mut probe: impl AsyncFnMut() -> Result<T, String>,
+) -> T {
+    let deadline = Instant::now() + timeout;
+    loop {
+        match probe().await {
+            Ok(v) => return v,
+            Err(why) => assert!(Instant::now() < deadline, "timed out: {why}"),
+        }
+        tokio::time::sleep(Duration::from_millis(every_ms)).await;
+    }
 }
 
 /// Polls a job until `done(job)` holds; returns the job and every progress value seen.
@@ -592,22 +725,21 @@ pub async fn wait_job(
     timeout: Duration,
     done: impl Fn(&Value) -> bool,
 ) -> (Value, Vec<f64>) {
-    let deadline = Instant::now() + timeout;
     let mut seen = Vec::new();
-    loop {
+    let job = poll_until(timeout, 50, async || {
         let j = get_job(c, base, id).await;
         seen.push(j["progress"].as_f64().expect("progress"));
         if done(&j) {
-            return (j, seen);
+            Ok(j)
+        } else {
+            Err(format!("waiting for job {id}: {j}"))
         }
-        assert!(
-            Instant::now() < deadline,
-            "timed out waiting for job {id}: {j}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    })
+    .await;
+    (job, seen)
 }
 
+/// Whether a job has ended: succeeded, failed or canceled.
 pub fn is_terminal(j: &Value) -> bool {
     matches!(
         j["state"].as_str(),
@@ -615,6 +747,7 @@ pub fn is_terminal(j: &Value) -> bool {
     )
 }
 
+/// The stage `name` of a job (null when it has none).
 pub fn stage<'a>(j: &'a Value, name: &str) -> &'a Value {
     j["stages"]
         .as_array()
@@ -622,24 +755,17 @@ pub fn stage<'a>(j: &'a Value, name: &str) -> &'a Value {
         .unwrap_or(&Value::Null)
 }
 
+/// The lines of job `id`'s log.
+pub async fn log_lines(c: &Client, base: &str, id: &str) -> Vec<Value> {
+    let v = send_json(c.get(format!("{base}/v1/jobs/{id}/log"))).await;
+    v["lines"].as_array().cloned().unwrap_or_default()
+}
+
+/// The messages of job `id`'s log, one a line.
 pub async fn log_text(c: &Client, base: &str, id: &str) -> String {
-    let v: Value = c
-        .get(format!("{base}/v1/jobs/{id}/log"))
-        .send()
-        .await
-        .expect("log")
-        .json()
-        .await
-        .expect("json");
-    v["lines"]
-        .as_array()
-        .map(|l| {
-            l.iter()
-                .filter_map(|x| x["message"].as_str())
-                .collect::<Vec<_>>()
-                .join("\n")
-        })
-        .unwrap_or_default()
+    let lines = log_lines(c, base, id).await;
+    let messages: Vec<&str> = lines.iter().filter_map(|x| x["message"].as_str()).collect();
+    messages.join("\n")
 }
 
 /// (METHOD, path) pairs of openapi.yaml's `paths`.

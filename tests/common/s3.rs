@@ -85,29 +85,9 @@ pub fn bucket() -> Option<TestBucket> {
     })
 }
 
+/// `moto_server` (see [`super::test_tool`]); an `Err` starting "skip: " where there is none.
 fn find_moto() -> Result<PathBuf, String> {
-    if let Ok(v) = std::env::var("SYLVA_TEST_MOTO") {
-        if v == "none" {
-            return Err("skip: SYLVA_TEST_MOTO=none".into());
-        }
-        return Ok(PathBuf::from(v));
-    }
-    let venv = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("target/test-venv/bin/moto_server");
-    if venv.is_file() {
-        return Ok(venv);
-    }
-    if let Some(p) = std::env::var_os("PATH").and_then(|path| {
-        std::env::split_paths(&path)
-            .map(|d| d.join("moto_server"))
-            .find(|p| p.is_file())
-    }) {
-        return Ok(p);
-    }
-    Err(
-        "skip: moto_server is not installed (scripts/test installs it into target/test-venv; \
-         or set SYLVA_TEST_MOTO)"
-            .into(),
-    )
+    super::test_tool("SYLVA_TEST_MOTO", "moto_server").map_err(|why| format!("skip: {why}"))
 }
 
 fn free_port() -> Result<u16, String> {

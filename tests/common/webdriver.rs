@@ -161,11 +161,17 @@ impl Browser {
         .await
     }
 
-    /// Polls `script` until it returns something truthy; panics with `what` after `timeout`.
-    pub async fn wait_for(&self, what: &str, script: &str, timeout: Duration) -> Value {
-        let deadline = Instant::now() + timeout;
+    /// Runs `script` (a function body) without arguments; its value, as [`Browser::exec`].
+    pub async fn eval(&self, script: &str) -> Value {
+        self.exec(script, json!([])).await
+    }
+
+    /// Polls `script` until it returns something truthy; panics with `what` after
+    /// `timeout_secs` seconds.
+    pub async fn wait_for(&self, what: &str, script: &str, timeout_secs: u64) -> Value {
+        let deadline = Instant::now() + Duration::from_secs(timeout_secs);
         loop {
-            let v = self.exec(script, json!([])).await;
+            let v = self.eval(script).await;
             let truthy = match &v {
                 Value::Null => false,
                 Value::Bool(b) => *b,

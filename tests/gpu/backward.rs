@@ -3,8 +3,8 @@
 use crate::common;
 
 use sylva::splat::camera::RenderOptions;
-use sylva::splat::gpu::buffers::storage_from;
-use sylva::splat::gpu::{AtomicMode, GpuContext, GpuGrads, GpuSplats, Renderer};
+use sylva::splat::cpu::Render;
+use sylva::splat::gpu::{AtomicMode, GpuContext, GpuSplats, Renderer};
 use sylva::splat::model::GaussianGrads;
 
 /// Scene extent per seed: seed 9 spreads Gaussians past the image edges (Jacobian clamp, culling).
@@ -41,11 +41,7 @@ fn gpu_backward_with(
         .render_with(ctx, &splats, &cam, bg, opts)
         .expect("render");
     let dl = common::random_dl((w * h) as usize, seed + 100);
-    let dl_buf = storage_from(ctx, "dl", &dl).expect("buffer");
-    let grads = GpuGrads::new(ctx, splats.count).expect("grads");
-    renderer
-        .backward(ctx, &splats, &frame, &dl_buf, &grads)
-        .expect("backward");
+    let grads = common::gpu_grads(ctx, &renderer, (&splats, &frame), &dl);
     let s = grads.download_stats(ctx).expect("stats");
     Outcome {
         grads: grads.download(ctx).expect("download"),
@@ -65,6 +61,23 @@ fn scene(seed: u64, n: usize, deg: u32, opts: RenderOptions) -> sylva::splat::mo
         }
     }
     model
+}
+
+/// The CPU reference of [`gpu_backward_with`]'s case: its forward pass, and the gradients and
+/// densification statistic of the same dL/dimage.
+fn cpu_backward(
+    (seed, n, deg): (u64, usize, u32),
+    (w, h): (u32, u32),
+    opts: RenderOptions,
+) -> (Render, GaussianGrads, Vec<f32>) {
+    let model = scene(seed, n, deg, opts);
+    let cam = common::camera(w, h, 0.8 * w as f32);
+    let bg = [0.2, 0.1, 0.4];
+    let cpu = sylva::splat::cpu::render_with(&model, &cam, bg, opts).expect("cpu render");
+    let dl = common::random_dl((w * h) as usize, seed + 100);
+    let (want, want_stat) =
+        sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+    (cpu, want, want_stat)
 }
 
 fn flat<const K: usize>(v: &[[f32; K]]) -> Vec<f32> {
@@ -101,13 +114,7 @@ fn backward_matches_cpu_reference() {
         (7, 400, 3, 64, 64),
         (9, 500, 3, 64, 48),
     ] {
-        let model = common::scene(seed, n, deg, spread(seed));
-        let cam = common::camera(w, h, 0.8 * w as f32);
-        let bg = [0.2, 0.1, 0.4];
-        let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
-        let dl = common::random_dl((w * h) as usize, seed + 100);
-        let (want, want_stat) =
-            sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+        let (cpu, want, want_stat) = cpu_backward((seed, n, deg), (w, h), Default::default());
         eprintln!(
             "seed {seed}, n {n}, degree {deg}, {w}x{h} ({})",
             ctx.description
@@ -133,14 +140,10 @@ fn backward_with_antialias_matches_cpu_reference() {
         (7, 400, 3, 64, 64),
         (9, 500, 3, 64, 48),
     ] {
+        let (cpu, want, want_stat) = cpu_backward((seed, n, deg), (w, h), opts);
         let model = scene(seed, n, deg, opts);
         let cam = common::camera(w, h, 0.8 * w as f32);
-        let bg = [0.2, 0.1, 0.4];
-        let cpu = sylva::splat::cpu::render_with(&model, &cam, bg, opts).expect("cpu render");
-        let dl = common::random_dl((w * h) as usize, seed + 100);
-        let (want, want_stat) =
-            sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
-        let plain = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
+        let plain = sylva::splat::cpu::render(&model, &cam, [0.2, 0.1, 0.4]).expect("cpu render");
         let dimmed = cpu
             .projected
             .iter()
@@ -181,13 +184,7 @@ fn float_atomics_and_cas_fallback_agree() {
 fn every_pixels_per_thread_variant_matches_cpu_reference() {
     let Some(ctx) = common::context() else { return };
     for (seed, n, deg, w, h) in [(7u64, 400usize, 3u32, 64u32, 64u32), (9, 500, 3, 40, 56)] {
-        let model = common::scene(seed, n, deg, spread(seed));
-        let cam = common::camera(w, h, 0.8 * w as f32);
-        let bg = [0.2, 0.1, 0.4];
-        let cpu = sylva::splat::cpu::render(&model, &cam, bg).expect("cpu render");
-        let dl = common::random_dl((w * h) as usize, seed + 100);
-        let (want, want_stat) =
-            sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+        let (_, want, want_stat) = cpu_backward((seed, n, deg), (w, h), Default::default());
         for pix in [1u32, 2, 4, 8, 16] {
             let mut c = ctx.clone();
             c.raster_pixels = pix;
@@ -233,11 +230,7 @@ fn depth_backward_matches_cpu_reference() {
         let frame = renderer.render(&ctx, &splats, &cam, bg).expect("render");
         ctx.queue
             .write_buffer(&frame.depth_grad, 0, bytemuck::cast_slice(&dd));
-        let dl_buf = storage_from(&ctx, "dl", &dl).expect("buffer");
-        let grads = GpuGrads::new(&ctx, splats.count).expect("grads");
-        renderer
-            .backward(&ctx, &splats, &frame, &dl_buf, &grads)
-            .expect("backward");
+        let grads = common::gpu_grads(&ctx, &renderer, (&splats, &frame), &dl);
         eprintln!("seed {seed}, n {n}, {w}x{h}, with a depth loss");
         check_all(&grads.download(&ctx).expect("download"), &want);
     }

@@ -8,10 +8,9 @@ use crate::common;
 use sylva::splat::adam::{AdamState, LearningRates};
 use sylva::splat::backend::Backend;
 use sylva::splat::cameras::View;
-use sylva::splat::gpu::buffers::storage_from;
 use sylva::splat::gpu::chunks::{ChunkPlan, SlotPlan};
 use sylva::splat::gpu::renderer::{BandSpan, plan_bands};
-use sylva::splat::gpu::{AtomicMode, GpuBackend, GpuContext, GpuGrads, GpuSplats, Renderer};
+use sylva::splat::gpu::{AtomicMode, GpuBackend, GpuContext, GpuSplats, Renderer};
 use sylva::splat::model::Gaussians;
 use sylva::splat::packed_image::PackedImage;
 
@@ -99,11 +98,7 @@ fn render_and_backward(ctx: &GpuContext, model: &Gaussians, w: u32, h: u32) -> P
         .render(ctx, &splats, &cam, [0.1, 0.2, 0.3])
         .expect("render");
     let dl = common::random_dl((w * h) as usize, 77);
-    let dl_buf = storage_from(ctx, "dl", &dl).expect("buffer");
-    let grads = GpuGrads::new(ctx, splats.count).expect("grads");
-    renderer
-        .backward(ctx, &splats, &frame, &dl_buf, &grads)
-        .expect("backward");
+    let grads = common::gpu_grads(ctx, &renderer, (&splats, &frame), &dl);
     let g = grads.download(ctx).expect("download");
     let s = grads.download_stats(ctx).expect("stats");
     Pass {

@@ -5,7 +5,8 @@
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
 use sylva::splat::camera::Camera;
-use sylva::splat::gpu::{AtomicMode, GpuContext};
+use sylva::splat::gpu::buffers::storage_from;
+use sylva::splat::gpu::{AtomicMode, Frame, GpuContext, GpuGrads, GpuSplats, Renderer};
 use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
 
 /// A GPU context, or `None` (with the reason printed) when this machine has no adapter.
@@ -39,6 +40,30 @@ pub fn camera(width: u32, height: u32, fx: f32) -> Camera {
 /// `n` random anisotropic, rotated Gaussians within ±`spread` m of the origin (all in front of
 /// the camera; a large spread puts some off-screen), SH of `degree` with view-dependent bands.
 pub fn scene(seed: u64, n: usize, degree: u32, spread: f32) -> Gaussians {
+    let draw = Draw {
+        dc: 1.0,
+        rest: 0.3,
+        mean: [spread; 3],
+        log_scale: (-3.0, -1.0),
+        opacity: (-1.5, 3.0),
+    };
+    random_gaussians(seed, n, degree, &draw)
+}
+
+/// How [`random_gaussians`] draws each Gaussian: its SH DC terms within ±`dc` and higher bands
+/// within ±`rest`, its centre within ±`mean` per axis, its log-scales and opacity logit in the
+/// given ranges (and its rotation's components in ±1).
+pub struct Draw {
+    pub dc: f32,
+    pub rest: f32,
+    pub mean: [f32; 3],
+    pub log_scale: (f32, f32),
+    pub opacity: (f32, f32),
+}
+
+/// `n` random Gaussians drawn as `draw` says, one after the other from ChaCha8 seeded with
+/// `seed`, with SH of `degree`.
+pub fn random_gaussians(seed: u64, n: usize, degree: u32, draw: &Draw) -> Gaussians {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut g = Gaussians {
         sh_degree: degree,
@@ -47,17 +72,15 @@ pub fn scene(seed: u64, n: usize, degree: u32, spread: f32) -> Gaussians {
     for _ in 0..n {
         let mut sh = [0.0f32; SH_FLOATS];
         for (k, v) in sh.iter_mut().enumerate() {
-            *v = if k < 3 {
-                rng.random_range(-1.0..1.0)
-            } else {
-                rng.random_range(-0.3..0.3)
-            };
+            let r = if k < 3 { draw.dc } else { draw.rest };
+            *v = rng.random_range(-r..r);
         }
+        let (scale, opacity) = (draw.log_scale, draw.opacity);
         g.push(Gaussian {
-            mean: [0, 1, 2].map(|_| rng.random_range(-spread..spread)),
-            log_scale: [0, 1, 2].map(|_| rng.random_range(-3.0f32..-1.0)),
+            mean: draw.mean.map(|m| rng.random_range(-m..m)),
+            log_scale: [0, 1, 2].map(|_| rng.random_range(scale.0..scale.1)),
             rotation: [0, 1, 2, 3].map(|_| rng.random_range(-1.0f32..1.0)),
-            opacity_logit: rng.random_range(-1.5..3.0),
+            opacity_logit: rng.random_range(opacity.0..opacity.1),
             sh,
             trunk_prob: 0.0,
         });
@@ -143,4 +166,20 @@ pub fn sub_pixel_grid(seed: u64) -> Gaussians {
 pub fn mean_intensity(image: &[[f32; 3]]) -> f64 {
     let sum: f64 = image.iter().flatten().map(|&v| f64::from(v)).sum();
     sum / (3 * image.len().max(1)) as f64
+}
+
+/// The backward pass of `frame` (rendered from `splats`) for the dL/dimage `dl`: the gradients,
+/// on the GPU.
+pub fn gpu_grads(
+    ctx: &GpuContext,
+    renderer: &Renderer,
+    (splats, frame): (&GpuSplats, &Frame),
+    dl: &[[f32; 3]],
+) -> GpuGrads {
+    let dl_buf = storage_from(ctx, "dl", dl).expect("buffer");
+    let grads = GpuGrads::new(ctx, splats.count).expect("grads");
+    renderer
+        .backward(ctx, splats, frame, &dl_buf, &grads)
+        .expect("backward");
+    grads
 }

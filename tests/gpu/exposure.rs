@@ -17,7 +17,7 @@ use sylva::splat::exposure::{EXPOSURE_FLOATS, ExposureSlot, ExposureState};
 use sylva::splat::gpu::buffers::{read_buffer, storage_from, storage_zeroed};
 use sylva::splat::gpu::exposure::{ExposureScratch, GpuExposure};
 use sylva::splat::gpu::{GpuBackend, GpuContext};
-use sylva::splat::model::{Gaussian, Gaussians, SH_FLOATS};
+use sylva::splat::model::{Gaussian, Gaussians};
 use sylva::splat::packed_image::{PackedImage, pack};
 
 /// `n` transforms away from the identity: gains 0.7–1.3, cross terms and offsets ±0.05.
@@ -188,31 +188,14 @@ fn exposure_adam_matches_the_cpu_twin() {
 /// The scene of the CPU trainer's tests (`random_scene(7, 30, 0)` of
 /// `src/splat/cpu/test_scenes.rs`, drawn the same way): 30 anisotropic, rotated Gaussians.
 fn ring_scene() -> Gaussians {
-    let mut rng = ChaCha8Rng::seed_from_u64(7);
-    let mut g = Gaussians::default();
-    for _ in 0..30 {
-        let mut sh = [0.0f32; SH_FLOATS];
-        for (k, v) in sh.iter_mut().enumerate() {
-            *v = if k < 3 {
-                rng.random_range(-0.9..0.9)
-            } else {
-                rng.random_range(-0.25..0.25)
-            };
-        }
-        g.push(Gaussian {
-            mean: [
-                rng.random_range(-1.2..1.2),
-                rng.random_range(-0.8..0.8),
-                rng.random_range(-0.8..0.8),
-            ],
-            log_scale: [0, 1, 2].map(|_| rng.random_range(-2.3f32..-0.9)),
-            rotation: [0, 1, 2, 3].map(|_| rng.random_range(-1.0f32..1.0)),
-            opacity_logit: rng.random_range(-1.0..2.0),
-            sh,
-            trunk_prob: 0.0,
-        });
-    }
-    g
+    let draw = common::Draw {
+        dc: 0.9,
+        rest: 0.25,
+        mean: [1.2, 0.8, 0.8],
+        log_scale: (-2.3, -0.9),
+        opacity: (-1.0, 2.0),
+    };
+    common::random_gaussians(7, 30, 0, &draw)
 }
 
 /// The CPU trainer test's photos (`exposure_compensation_learns_the_photos_exposures` in
