@@ -128,10 +128,8 @@ impl Crs {
     /// A CRS from a GeoTIFF GeoKeyDirectory (the u16 words of LAS record 34735); `None` when
     /// the keys name no CRS.
     pub fn from_geokeys(words: &[u16]) -> Result<Option<Self>, CrsError> {
-        let Some(&[_version, _revision, _minor, count]) = words
-            .get(..4)
-            .map(|h| <&[u16; 4]>::try_from(h).expect("a slice of 4"))
-        else {
+        // Header: key directory version, revision, minor revision, number of keys.
+        let Some(&[_, _, _, count]) = words.get(..4) else {
             return Err(CrsError::Unreadable(
                 "the GeoKeyDirectory is shorter than its header".into(),
             ));
