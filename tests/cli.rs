@@ -118,9 +118,17 @@ fn run_on_plot(plot: &Path, flags: &[&str], out: &Path) -> Command {
 fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
     let dir = tempfile::tempdir().expect("tempdir");
     let plot = synth_plot(dir.path(), 2);
+    // The plot's LAZ declares UTM zone 49N, as a scanner's georeferenced export would.
+    let laz = plot.join("lidar.laz");
+    let cloud = sylva::io::pointcloud::read_point_cloud(&laz, &sylva::progress::NoProgress)
+        .expect("read lidar");
+    let utm = sylva::io::crs::Crs::from_epsg(32649).expect("utm");
+    sylva::io::las::write_las_with_crs(&laz, &cloud, true, Some(&utm)).expect("write lidar");
     let out = dir.path().join("out");
     succeeds(&mut run_on_plot(&plot, &["--until", "segment"], &out));
     let results = read_json(&out.join("results.json"));
+    assert_eq!(results["ingest"]["lidar"]["crs"], "EPSG:32649");
+    assert_eq!(results["ingest"]["lidar"]["crs_source"], "file");
     let seg = &results["segment"];
     let truth = read_json(&plot.join("truth.json"));
     let n_true = truth["trees"].as_array().map_or(0, Vec::len);
@@ -147,9 +155,77 @@ fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
     let head = String::from_utf8_lossy(&header[..header.len().min(1024)]).to_string();
     assert!(head.contains("property float trunk_prob"), "{head}");
     assert!(seg["anchors"]["trunk"].as_u64().unwrap_or(0) > 100, "{seg}");
-    for f in ["labelled.ply", "dtm.json", "stems.json", "trees.geojson"] {
+    for f in [
+        "labelled.ply",
+        "dtm.json",
+        "stems.json",
+        "trees.geojson",
+        "crs.json",
+    ] {
         assert!(out.join("segment").join(f).is_file(), "{f}");
     }
+    // RFC 7946: the stems at their WGS84 longitude and latitude (the plot's 500 km easting is
+    // zone 49's central meridian, 111° E; 4000 km north is about 36.1° N), native x, y kept.
+    let gj = read_json(&out.join("segment/trees.geojson"));
+    assert_eq!(gj["sylva_crs"]["label"], "EPSG:32649");
+    let features = gj["features"].as_array().expect("features");
+    assert_eq!(features.len(), n_true);
+    for f in features {
+        let c = &f["geometry"]["coordinates"];
+        let (lon, lat) = (c[0].as_f64().expect("lon"), c[1].as_f64().expect("lat"));
+        assert!(
+            (lon - 111.0).abs() < 0.01 && (lat - 36.1).abs() < 0.1,
+            "{f}"
+        );
+        let mut native = [(
+            f["properties"]["x"].as_f64().expect("x"),
+            f["properties"]["y"].as_f64().expect("y"),
+        )];
+        utm.to_wgs84(&mut native).expect("transform");
+        assert!(
+            (native[0].0 - lon).abs() < 1e-7 && (native[0].1 - lat).abs() < 1e-7,
+            "{f}"
+        );
+    }
+    assert_eq!(
+        read_json(&out.join("segment/crs.json"))["label"],
+        "EPSG:32649"
+    );
+}
+
+/// `--crs` overrides what the file declares (and the outputs say so); a CRS in degrees is
+/// refused before any work, naming what to do.
+#[test]
+fn run_takes_the_crs_from_the_flag_and_refuses_degrees() {
+    let fx = fixture();
+    let out = fx.dir.path().join("out");
+    let run = |crs: &str, out: &Path| {
+        let mut cmd = Command::new(BIN);
+        cmd.args(["run", "--until", "ingest", "--crs", crs, "--lidar"])
+            .arg(&fx.lidar)
+            .arg("--colmap")
+            .arg(&fx.colmap_dir)
+            .arg("--out")
+            .arg(out);
+        cmd
+    };
+    succeeds(&mut run("EPSG:25832", &out));
+    let results = read_json(&out.join("results.json"));
+    assert_eq!(results["ingest"]["lidar"]["crs"], "EPSG:25832");
+    assert_eq!(results["ingest"]["lidar"]["crs_source"], "given");
+    assert_eq!(
+        read_json(&out.join("ingest/crs.json"))["label"],
+        "EPSG:25832"
+    );
+    let refused = run("EPSG:4326", &fx.dir.path().join("out2"))
+        .output()
+        .expect("run");
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("--crs") && stderr.contains("degrees"),
+        "{stderr}"
+    );
 }
 
 #[test]

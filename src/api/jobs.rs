@@ -64,6 +64,12 @@ fn effective_params(params: Option<Value>) -> Result<Value, ApiError> {
                 .with_error("params", "not an object"));
         }
     };
+    if let Some(text) = &parsed.crs {
+        if let Err(e) = crate::io::crs::Crs::parse_projected(text) {
+            return Err(ApiError::unprocessable(format!("params.crs: {e}"))
+                .with_error("params.crs", e.to_string()));
+        }
+    }
     serde_json::to_value(parsed).map_err(ApiError::internal)
 }
 

@@ -35,6 +35,10 @@ pub struct RunArgs {
     /// Job parameters as a JSON file (the `params` object of the API; see `GET /v1/options`).
     #[arg(long, env = "SYLVA_PARAMS")]
     pub params: Option<PathBuf>,
+    /// The CRS of the LiDAR file's coordinates (EPSG:<code>, WKT or a PROJ string), over what
+    /// the file declares; overrides the params file's `crs`.
+    #[arg(long, env = "SYLVA_CRS")]
+    pub crs: Option<String>,
     /// Gaussians initialised from the LiDAR anchors (lidar, the paper's method) or the SfM
     /// points (sfm, vanilla 3DGS); overrides the params file.
     #[arg(long, env = "SYLVA_INIT")]
@@ -195,6 +199,10 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     };
     if a.until.is_some() {
         params.until = a.until;
+    }
+    if let Some(crs) = &a.crs {
+        sylva::io::crs::Crs::parse_projected(crs).context("--crs")?;
+        params.crs = Some(crs.clone());
     }
     apply_train_flags(&a, &mut params)?;
     std::fs::create_dir_all(&a.out)

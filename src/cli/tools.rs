@@ -97,6 +97,11 @@ pub struct InventoryArgs {
     /// Field-measured DBH (CSV x,y,dbh_cm): match trees within 1 m and print the accuracy.
     #[arg(long, env = "SYLVA_INVENTORY_FIELD")]
     pub field: Option<PathBuf>,
+    /// The CRS of the cloud's coordinates (EPSG:<code>, WKT or a PROJ string), over what a
+    /// LAS/LAZ file declares. Written beside the CSV as `<out>.crs.json` and used to place
+    /// the GeoJSON's points in WGS84.
+    #[arg(long, env = "SYLVA_INVENTORY_CRS")]
+    pub crs: Option<String>,
 }
 
 pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
@@ -126,6 +131,16 @@ pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
 }
 
 pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
+    let declared = sylva::io::pointcloud::declared_crs(&a.cloud)?;
+    let crs = sylva::io::crs::resolve(a.crs.as_deref(), declared)
+        .with_context(|| format!("{}: the CRS", a.cloud.display()))?;
+    match &crs.label {
+        Some(label) => eprintln!("CRS {label}"),
+        None => eprintln!("CRS unknown"),
+    }
+    for note in &crs.notes {
+        eprintln!("note: {note}");
+    }
     let path = a.cloud.clone();
     let (rows, cloud_points) = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
         let progress = ConsoleProgress::new("inventory", None);
@@ -140,8 +155,12 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
     .await??;
     eprintln!();
     sylva::forest::write_trees_csv(&a.out, &rows)?;
+    let sidecar = a.out.with_extension(sylva::io::crs::CRS_FILE);
+    let text = serde_json::to_string_pretty(&crs)?;
+    std::fs::write(&sidecar, text)
+        .with_context(|| format!("cannot write {}", sidecar.display()))?;
     if let Some(g) = &a.geojson {
-        sylva::forest::write_trees_geojson(g, &rows)?;
+        sylva::forest::write_trees_geojson(g, &rows, &crs)?;
     }
     println!(
         "{} stems from {} points; inventory in {}",

@@ -38,7 +38,9 @@ pub use dbh::{
     slice_offsets,
 };
 pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
-pub use output::{trees_csv, trees_geojson, write_trees_csv, write_trees_geojson};
+pub use output::{
+    read_crs, trees_csv, trees_geojson, write_crs, write_trees_csv, write_trees_geojson,
+};
 pub use ransac::{
     CenterPrior, CircleParams, RobustCircle, fit_circle_robust, fit_circle_robust_weighted,
 };

@@ -3,6 +3,7 @@
 use super::circle::{arc_coverage, refine_circle_geometric};
 use super::kmeans::{kmeans, standardise};
 use super::*;
+use crate::io::crs::CrsRecord;
 use crate::io::tables::FieldTree;
 use crate::progress::NoProgress;
 use crate::rng::SplitMix64;
@@ -123,9 +124,19 @@ fn trees_csv_has_the_fixed_header_and_an_empty_gaussian_dbh() {
         lines.next(),
         Some("1,500000.123,4000000.500,100.000,23.46,,42,3.50,0.750,good,")
     );
-    let gj = trees_geojson(&[row(1, 5.0, 6.0, 20.0)]);
+    let unknown = CrsRecord::unknown("no CRS in this test");
+    let gj = trees_geojson(&[row(1, 5.0, 6.0, 20.0)], &unknown).expect("geojson");
     assert_eq!(gj["type"], "FeatureCollection");
-    assert_eq!(gj["features"][0]["geometry"]["coordinates"][0], 5.0);
+    // No CRS: no geometry, rather than metres posing as degrees; x, y stay as properties
+    // and the record says why.
+    assert!(gj["features"][0]["geometry"].is_null());
+    assert_eq!(gj["features"][0]["properties"]["x"], 5.0);
+    assert!(gj["sylva_crs"]["label"].is_null());
+    let note = gj["sylva_crs"]["notes"][0].as_str().unwrap_or_default();
+    assert!(
+        note.contains("params.crs") && note.contains("--crs"),
+        "{note}"
+    );
     assert_eq!(gj["features"][0]["properties"]["quality"], "good");
     assert!(gj["features"][0]["properties"]["dbh_gs_cm"].is_null());
     assert!(gj["features"][0]["properties"]["gs_quality"].is_null());
@@ -140,7 +151,7 @@ fn trees_csv_has_the_fixed_header_and_an_empty_gaussian_dbh() {
         csv.lines().nth(1),
         Some("2,1.000,2.000,100.000,24.00,24.13,42,3.50,0.750,good,partial_arc")
     );
-    let gj = trees_geojson(std::slice::from_ref(&measured));
+    let gj = trees_geojson(std::slice::from_ref(&measured), &unknown).expect("geojson");
     assert_eq!(gj["features"][0]["properties"]["gs_quality"], "partial_arc");
     // A row written before `gs_quality` existed still reads.
     let mut old = serde_json::to_value(row(3, 1.0, 2.0, 20.0)).expect("json");
@@ -149,7 +160,38 @@ fn trees_csv_has_the_fixed_header_and_an_empty_gaussian_dbh() {
     assert_eq!(back, row(3, 1.0, 2.0, 20.0));
     let dir = tempfile::tempdir().expect("tempdir");
     write_trees_csv(&dir.path().join("t.csv"), &[]).expect("write csv");
-    write_trees_geojson(&dir.path().join("t.geojson"), &[]).expect("write geojson");
+    write_trees_geojson(&dir.path().join("t.geojson"), &[], &unknown).expect("write geojson");
+}
+
+/// RFC 7946 with a known CRS: WGS84 longitude, latitude (no altitude) in the geometry, the
+/// native x, y, ground_z as properties, and the CRS record as a foreign member; the sidecar
+/// reads back as written.
+#[test]
+fn trees_geojson_places_the_stems_in_wgs84_when_the_crs_is_known() {
+    let utm = crate::io::crs::Crs::parse("EPSG:32649").expect("utm");
+    let record = CrsRecord::new(Some(utm), crate::io::crs::CrsSource::File);
+    let gj = trees_geojson(&[row(7, 500_000.0, 3_000_000.0, 30.0)], &record).expect("geojson");
+    let f = &gj["features"][0];
+    assert_eq!(f["geometry"]["type"], "Point");
+    let c = f["geometry"]["coordinates"]
+        .as_array()
+        .expect("coordinates");
+    assert_eq!(c.len(), 2, "{c:?}");
+    assert!((c[0].as_f64().unwrap_or(0.0) - 111.0).abs() < 1e-8, "{c:?}");
+    assert!(
+        (c[1].as_f64().unwrap_or(0.0) - 27.122_469_6).abs() < 1e-6,
+        "{c:?}"
+    );
+    assert_eq!(f["properties"]["x"], 500_000.0);
+    assert_eq!(f["properties"]["ground_z"], 100.0);
+    assert_eq!(gj["sylva_crs"]["label"], "EPSG:32649");
+    assert_eq!(gj["sylva_crs"]["source"], "file");
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_crs(dir.path(), &record).expect("write");
+    assert_eq!(read_crs(dir.path()).expect("read"), record);
+    // A folder without one (written before CRS records) reads as unknown.
+    let empty = tempfile::tempdir().expect("tempdir");
+    assert_eq!(read_crs(empty.path()).expect("read").crs, None);
 }
 
 #[test]

@@ -41,21 +41,151 @@ pub enum CrsError {
         "EPSG:{0} is not in the EPSG registry Sylva carries; give the CRS as WKT or a PROJ string"
     )]
     UnknownEpsg(u32),
+    /// The CRS is in degrees; Sylva measures stems and heights in metres.
+    #[error(
+        "{0} is a geographic CRS (longitude and latitude in degrees), but Sylva measures in \
+         metres: reproject the cloud to a projected CRS such as its UTM zone, or, if its \
+         coordinates are in fact metres, give their CRS with params.crs / --crs"
+    )]
+    Geographic(String),
     /// The transform failed (a point outside the projection's domain, for instance).
     #[error("cannot transform coordinates from {from} to WGS84: {why}")]
     Transform { from: String, why: String },
 }
 
 /// A coordinate reference system: what a cloud's x, y (and z) mean on the Earth.
-#[derive(Debug, Clone, PartialEq, Eq)]
+///
+/// Serialised (the `crs.json` sidecars of the stages) as `{epsg, definition, proj4}`; a
+/// deserialised value is checked again as [`Crs::parse`] would check it.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "CrsFields")]
 pub struct Crs {
     /// Its EPSG code, when it has one.
     pub epsg: Option<u32>,
     /// The definition as given or read (WKT, a PROJ string, or the EPSG registry's WKT).
     pub definition: String,
     /// The PROJ string `proj4rs` transforms with.
+    #[serde(rename = "proj4")]
     proj: String,
 }
+
+/// [`Crs`] as read from JSON, before its PROJ string is checked.
+#[derive(serde::Deserialize)]
+struct CrsFields {
+    epsg: Option<u32>,
+    definition: String,
+    proj4: String,
+}
+
+impl TryFrom<CrsFields> for Crs {
+    type Error = CrsError;
+
+    fn try_from(f: CrsFields) -> Result<Self, CrsError> {
+        Proj::from_proj_string(&f.proj4).map_err(|e| {
+            CrsError::Unreadable(format!("the PROJ string {:?} is not usable: {e}", f.proj4))
+        })?;
+        Ok(Self {
+            epsg: f.epsg,
+            definition: f.definition,
+            proj: f.proj4,
+        })
+    }
+}
+
+/// Where a job's CRS came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CrsSource {
+    /// The user named it (`params.crs`, `--crs`); it overrides what the file declares.
+    Given,
+    /// The LiDAR file declares it (LAS/LAZ projection records).
+    File,
+}
+
+/// What every output says about its coordinates: the `crs.json` sidecar written beside
+/// trees.csv, in the stages' folders and in results. `crs` is `None` when neither the file nor
+/// the user named one; `note` then says what that means and how to give one.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CrsRecord {
+    /// `EPSG:32649`, `custom (…)`, or null when unknown.
+    pub label: Option<String>,
+    /// Where it came from; null when unknown.
+    pub source: Option<CrsSource>,
+    /// The CRS itself; null when unknown.
+    pub crs: Option<Crs>,
+    /// What a reader should know (an unknown CRS, a declaration the user overrode, a
+    /// declaration that could not be read).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
+}
+
+impl CrsRecord {
+    /// The record of a known (or unknown) CRS from `source`, with no notes.
+    pub fn new(crs: Option<Crs>, source: CrsSource) -> Self {
+        Self {
+            label: crs.as_ref().map(Crs::label),
+            source: crs.as_ref().map(|_| source),
+            crs,
+            notes: Vec::new(),
+        }
+    }
+
+    /// The record of a cloud with no known CRS, its note saying so.
+    pub fn unknown(why: &str) -> Self {
+        Self {
+            label: None,
+            source: None,
+            crs: None,
+            notes: vec![format!(
+                "{why}; coordinates are the file's own and cannot be placed on the Earth. \
+                 Give the CRS with the job's params.crs or --crs (EPSG:<code>, WKT or a PROJ \
+                 string)"
+            )],
+        }
+    }
+}
+
+/// The CRS of a job's or command's cloud: `given` (the user's `params.crs` / `--crs`)
+/// overrides what the file declares (`declared`, from [`crate::io::pointcloud::declared_crs`]).
+/// An unreadable declaration is a note, not an error, when nothing overrides it: the inventory
+/// is still measured, only not placed on the Earth. A CRS in degrees is refused, as is a given
+/// CRS that does not parse.
+pub fn resolve(
+    given: Option<&str>,
+    declared: Result<Option<Crs>, CrsError>,
+) -> Result<CrsRecord, CrsError> {
+    let mut record = match (given, declared) {
+        (Some(text), declared) => {
+            let crs = Crs::parse_projected(text)?;
+            let mut r = CrsRecord::new(Some(crs.clone()), CrsSource::Given);
+            match declared {
+                Ok(Some(d)) if d.epsg.is_some() && d.epsg == crs.epsg => {}
+                Ok(Some(d)) if d.definition == crs.definition => {}
+                Ok(Some(d)) => r.notes.push(format!(
+                    "the file declares {}; the given {} overrides it",
+                    d.label(),
+                    crs.label()
+                )),
+                Ok(None) => {}
+                Err(e) => r.notes.push(format!(
+                    "the file's own CRS could not be read ({e}); the given one is used"
+                )),
+            }
+            r
+        }
+        (None, Ok(Some(crs))) => CrsRecord::new(Some(crs), CrsSource::File),
+        (None, Ok(None)) => CrsRecord::unknown("the LiDAR file declares no CRS"),
+        (None, Err(e)) => CrsRecord::unknown(&format!("the LiDAR file's CRS is unreadable ({e})")),
+    };
+    if let Some(crs) = record.crs.as_ref().filter(|c| c.is_geographic()) {
+        return Err(CrsError::Geographic(crs.label()));
+    }
+    record.notes.shrink_to_fit();
+    Ok(record)
+}
+
+/// The file name of the CRS sidecar every folder of georeferenced outputs holds.
+pub const CRS_FILE: &str = "crs.json";
 
 impl Crs {
     /// The CRS with EPSG code `code`.
@@ -100,6 +230,16 @@ impl Crs {
         Err(CrsError::Unreadable(format!(
             "{text:?} is not a CRS: give EPSG:<code>, WKT or a PROJ string (+proj=…)"
         )))
+    }
+
+    /// [`Crs::parse`], refusing a CRS in degrees ([`CrsError::Geographic`]): what a cloud Sylva
+    /// measures in metres can be in.
+    pub fn parse_projected(text: &str) -> Result<Self, CrsError> {
+        let crs = Self::parse(text)?;
+        if crs.is_geographic() {
+            return Err(CrsError::Geographic(crs.label()));
+        }
+        Ok(crs)
     }
 
     /// A CRS from OGC WKT: by its EPSG code when the outermost object carries one
@@ -394,5 +534,47 @@ mod tests {
             (p[0].0 - 13.4).abs() < 1e-9 && (p[0].1 - 52.5).abs() < 1e-9,
             "{p:?}"
         );
+    }
+
+    #[test]
+    fn a_given_crs_overrides_the_file_and_an_unknown_one_says_what_to_do() {
+        let file = Crs::from_epsg(32649).expect("utm");
+        let r = resolve(None, Ok(Some(file.clone()))).expect("file");
+        assert_eq!(
+            (r.label.as_deref(), r.source),
+            (Some("EPSG:32649"), Some(CrsSource::File))
+        );
+        assert!(r.notes.is_empty());
+        let r = resolve(Some("EPSG:32649"), Ok(Some(file.clone()))).expect("same");
+        assert_eq!(r.source, Some(CrsSource::Given));
+        assert!(r.notes.is_empty(), "{:?}", r.notes);
+        let r = resolve(Some("epsg:32650"), Ok(Some(file))).expect("override");
+        assert_eq!(r.label.as_deref(), Some("EPSG:32650"));
+        assert!(r.notes[0].contains("declares EPSG:32649"), "{:?}", r.notes);
+        let r = resolve(None, Ok(None)).expect("none");
+        assert_eq!((r.crs.as_ref(), r.source), (None, None));
+        assert!(r.notes[0].contains("declares no CRS") && r.notes[0].contains("--crs"));
+        let bad = Err(CrsError::Unreadable("garbled".into()));
+        let r = resolve(None, bad.clone()).expect("unreadable is a note");
+        assert!(
+            r.crs.is_none() && r.notes[0].contains("garbled"),
+            "{:?}",
+            r.notes
+        );
+        let r = resolve(Some("EPSG:25832"), bad).expect("given over garbled");
+        assert_eq!(r.label.as_deref(), Some("EPSG:25832"));
+        // Degrees are refused whoever names them; so is a given CRS that does not parse.
+        let geo = resolve(None, Ok(Some(Crs::from_epsg(4326).expect("4326"))));
+        assert!(matches!(geo, Err(CrsError::Geographic(_))), "{geo:?}");
+        assert!(resolve(Some("EPSG:4326"), Ok(None)).is_err());
+        assert!(resolve(Some("somewhere"), Ok(None)).is_err());
+        // The record survives JSON, and a tampered PROJ string does not.
+        let r = resolve(Some("EPSG:32633"), Ok(None)).expect("utm 33");
+        let json = serde_json::to_value(&r).expect("json");
+        let back: CrsRecord = serde_json::from_value(json.clone()).expect("back");
+        assert_eq!(back, r);
+        let mut bad = json;
+        bad["crs"]["proj4"] = "+proj=nowhere".into();
+        assert!(serde_json::from_value::<CrsRecord>(bad).is_err());
     }
 }

@@ -62,6 +62,15 @@ pub fn las_crs(header: &::las::Header) -> Result<Option<super::crs::Crs>, super:
     )
 }
 
+/// The CRS a LAS/LAZ file's header records declare (see [`las_crs`]).
+pub fn read_crs(
+    path: &Path,
+) -> Result<Result<Option<super::crs::Crs>, super::crs::CrsError>, IoError> {
+    let mut read = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let header = ::las::Header::new(&mut read).map_err(|e| las_err(path, e))?;
+    Ok(las_crs(&header))
+}
+
 /// Maps a `las` crate error: I/O errors on content (end of file, invalid data, decoder
 /// faults) become `Format`, genuine I/O errors stay `Io`; everything else is `Format`.
 fn las_err(path: &Path, e: ::las::Error) -> IoError {
@@ -320,7 +329,55 @@ fn read_las_crate(
 /// Writes a LAS 1.2 file (LAZ when `compress`): point format 2 with colour, else 0; scale
 /// 0.001 m, offset = `cloud.offset`. 8-bit colour is stored as 16-bit (× 257).
 pub fn write_las(path: &Path, cloud: &PointCloud, compress: bool) -> Result<(), IoError> {
+    write_las_with_crs(path, cloud, compress, None)
+}
+
+/// [`write_las`], declaring `crs` in a `LASF_Projection` record: GeoTIFF keys (record 34735,
+/// what LAS 1.2 readers expect) when it has an EPSG code that fits them, else its definition
+/// as OGC WKT (record 2112, LAS 1.4's form). A CRS given only as a PROJ string has no LAS
+/// form and is refused.
+pub fn write_las_with_crs(
+    path: &Path,
+    cloud: &PointCloud,
+    compress: bool,
+    crs: Option<&super::crs::Crs>,
+) -> Result<(), IoError> {
     let mut builder = Builder::from((1, 2));
+    if let Some(crs) = crs {
+        let (record_id, data) = match crs.epsg.and_then(|c| u16::try_from(c).ok()) {
+            Some(code) => {
+                // Version 1.1.0, 2 keys: GTModelTypeGeoKey (1024) = 1 projected / 2
+                // geographic, then ProjectedCSTypeGeoKey (3072) or GeographicTypeGeoKey (2048).
+                let (model, key) = if crs.is_geographic() {
+                    (2, 2048)
+                } else {
+                    (1, 3072)
+                };
+                let words = [1u16, 1, 0, 2, 1024, 0, 1, model, key, 0, 1, code];
+                let bytes = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+                (super::crs::LAS_GEOKEY_RECORD, bytes)
+            }
+            None if crs.definition.contains('[') => (
+                super::crs::LAS_WKT_RECORD,
+                crs.definition.clone().into_bytes(),
+            ),
+            None => {
+                return Err(IoError::format(
+                    path,
+                    format!(
+                        "cannot declare {} in a LAS file: give the CRS as EPSG:<code> or WKT",
+                        crs.label()
+                    ),
+                ));
+            }
+        };
+        builder.vlrs.push(::las::Vlr {
+            user_id: super::crs::LAS_PROJECTION_USER_ID.into(),
+            record_id,
+            description: "CRS".into(),
+            data,
+        });
+    }
     let mut fmt =
         Format::new(if cloud.colors.is_some() { 2 } else { 0 }).map_err(|e| las_err(path, e))?;
     fmt.is_compressed = compress;

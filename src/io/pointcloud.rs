@@ -263,6 +263,19 @@ pub fn read_point_cloud(path: &Path, progress: &dyn Progress) -> Result<PointClo
     }
 }
 
+/// The CRS a point-cloud file declares, read from its header only: LAS/LAZ projection
+/// records (OGC WKT or GeoTIFF keys, [`super::crs`]); PLY, XYZ text and E57 files carry none
+/// that Sylva reads, so they give `Ok(None)`. The outer error is the file's (unreadable,
+/// not a cloud); the inner one a declaration that is there but cannot be used.
+pub fn declared_crs(
+    path: &Path,
+) -> Result<Result<Option<super::crs::Crs>, super::crs::CrsError>, IoError> {
+    match detect_format(path)? {
+        CloudFormat::Las | CloudFormat::Laz => super::las::read_crs(path),
+        CloudFormat::Ply | CloudFormat::Xyz | CloudFormat::E57 => Ok(Ok(None)),
+    }
+}
+
 /// What a header says about a point cloud, read without decoding the points.
 #[derive(Debug, Clone, Serialize)]
 pub struct CloudSummary {

@@ -380,7 +380,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             .set(0.9 * (k + 1) as f64 / stems.stems.len().max(1) as f64);
     }
     forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), &rows)?;
-    forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &rows)?;
+    let crs = ctx.crs(Stage::Dbh)?;
+    forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &rows, &crs)?;
+    forest::write_crs(ctx.out_dir, &crs)?;
     ctx.progress.set(1.0);
     let field = match &ctx.inputs.field_dbh {
         Some(path) => Some(field_accuracy(&rows, path)?),
@@ -429,6 +431,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "mean_abs_surface_offset_mm": mean_abs_mm,
         // The name earlier readers (the demo, the web page) know: the absolute offset.
         "mean_radial_dev_mm": mean_abs_mm,
+        "crs": crs.label,
     }))
 }
 

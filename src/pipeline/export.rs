@@ -1,8 +1,8 @@
 //! Stage `export`: the deliverables in one folder — the splats as an INRIA-layout PLY that
 //! common splat viewers open and, with `params.export.compact`, the compact web formats
 //! (antimatter15 `splats.splat`, and Niantic's `splats.spz` version 2, which keeps the SH
-//! bands); the final inventory; and `frame.json`, which says how the splats'
-//! local metric frame maps to the LiDAR file's own coordinates.
+//! bands); the final inventory with its `crs.json`; and `frame.json`, which says how the
+//! splats' local metric frame maps to the LiDAR file's own coordinates and which CRS those are.
 //!
 //! The splats stay in the local frame (file coordinates minus `offset`): projected coordinates
 //! such as UTM eastings need more digits than the f32 of splat files can hold (about 3 cm at
@@ -48,10 +48,13 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }
     let train_report: serde_json::Value = read_json(&train.join(super::REPORT_FILE))?;
     let register_report: serde_json::Value = read_json(&register.join(super::REPORT_FILE))?;
+    let crs = ctx.crs(Stage::Export)?;
+    crate::forest::write_crs(ctx.out_dir, &crs)?;
     let frame = json!({
         "splats_frame": "local",
         "offset": train_report["offset"],
-        "note": "file coordinates = splat position + offset (metres)",
+        "note": "file coordinates = splat position + offset (metres), in `crs`",
+        "crs": crs,
         "sfm_to_lidar": register_report["sfm_to_lidar"],
     });
     write("frame.json", &|w| {
@@ -62,6 +65,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "gaussians": model.len(),
         "compact": ctx.params.export.compact,
         "offset": train_report["offset"],
+        "crs": crs.label,
     }))
 }
 

@@ -3,7 +3,9 @@
 //! The LiDAR file (LAS/LAZ/PLY/XYZ) becomes `ingest/cloud.ply` in local coordinates with its
 //! offset in the header, the COLMAP model is checked (supported camera models, every
 //! registered image present and decodable at its camera's size) and copied as text to
-//! `ingest/sparse/`, and optional control points and field DBH tables are parsed. Anything
+//! `ingest/sparse/`, and optional control points and field DBH tables are parsed. The cloud's
+//! CRS (the job's `crs`, else the file's declaration) is settled here once and written as
+//! `ingest/crs.json`, which every later stage that writes coordinates copies beside them. Anything
 //! unusable fails the stage with a message naming the file and the fault.
 
 use serde_json::json;
@@ -72,6 +74,18 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         extent.y,
         extent.z
     ));
+    // Its CRS: the job's `crs` over the file's declaration (io::crs::resolve).
+    let declared = pointcloud::declared_crs(&ctx.inputs.lidar)?;
+    let crs = crate::io::crs::resolve(ctx.params.crs.as_deref(), declared)
+        .map_err(|e| StageError::Input(format!("{lidar_name}: {e}")))?;
+    match &crs.label {
+        Some(label) => ctx.progress.log(&format!("CRS {label}")),
+        None => ctx.progress.log("CRS unknown"),
+    }
+    for note in &crs.notes {
+        warnings.push(format!("{lidar_name}: {note}"));
+    }
+    crate::forest::write_crs(ctx.out_dir, &crs)?;
     let cloud_path = ctx.out_dir.join("cloud.ply");
     ply::write_ply(&cloud_path, &cloud, &[])?;
     if ctx.progress.is_cancelled() {
@@ -187,6 +201,8 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "extent_m": [extent.x, extent.y, extent.z],
             "has_color": cloud.colors.is_some(),
             "has_intensity": cloud.intensity.is_some(),
+            "crs": crs.label,
+            "crs_source": crs.source,
         },
         "colmap": {
             "format": if project.binary { "binary" } else { "text" },

@@ -96,6 +96,13 @@ pub struct StageContext<'a> {
 }
 
 impl StageContext<'_> {
+    /// The job's CRS as stage `ingest` settled it (its `crs.json`), for a stage that writes
+    /// georeferenced outputs; the caller writes it again beside them.
+    pub fn crs(&self, me: Stage) -> Result<crate::io::crs::CrsRecord, StageError> {
+        let ingest = self.output_of(Stage::Ingest, me)?;
+        Ok(crate::forest::read_crs(&ingest)?)
+    }
+
     /// The finished output folder of an earlier stage, or a clear error if it is missing.
     pub fn output_of(&self, stage: Stage, me: Stage) -> Result<PathBuf, StageError> {
         let dir = self.work_dir.join(stage.name());

@@ -16,6 +16,12 @@ use crate::splat::{bind, config, semantic};
 pub struct PipelineParams {
     /// Stop after this stage and call the job succeeded (default: run every stage).
     pub until: Option<Stage>,
+    /// The coordinate reference system of the LiDAR file's x, y, z: `EPSG:<code>`, OGC WKT
+    /// or a PROJ string. Overrides what a LAS/LAZ file declares (default: the file's own;
+    /// PLY, XYZ and E57 files declare none). A CRS in degrees is refused: Sylva measures in
+    /// metres. With none, the inventory is measured as usual but trees.geojson cannot place
+    /// the trees on the Earth (its geometries are null) and every output says so.
+    pub crs: Option<String>,
     pub ingest: IngestParams,
     pub register: RegisterParams,
     pub anchors: AnchorParams,

@@ -11,7 +11,7 @@
 //! Outputs (LiDAR local frame, offset in the PLY headers): `labelled.ply` (fields `label`
 //! 0 leaf / 1 trunk, `ground` 0/1, `trunk_prob`, `height_m` above the DTM), `anchors.ply`
 //! (anchor colour, normals, `label`, `trunk_prob`), `dtm.json`, `stems.json`, and the
-//! LiDAR-only inventory `trees.csv` / `trees.geojson` (original coordinates; stage `dbh`
+//! LiDAR-only inventory `trees.csv` / `trees.geojson` / `crs.json` (original coordinates; stage `dbh`
 //! writes the final one with the Gaussian diameters beside these).
 
 use serde_json::json;
@@ -136,7 +136,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         }),
     )?;
     forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), &inv.trees)?;
-    forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &inv.trees)?;
+    let crs = ctx.crs(Stage::Segment)?;
+    forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &inv.trees, &crs)?;
+    forest::write_crs(ctx.out_dir, &crs)?;
     let comparison = match &ctx.inputs.field_dbh {
         Some(path) => {
             let cmp = forest::compare_with_field_file(&inv.trees, path)?;

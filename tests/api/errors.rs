@@ -95,6 +95,12 @@ async fn errors_are_problem_json_with_real_status_codes() {
     let bad_params = json!({ "inputs": inputs, "params": { "anchors": { "voxel": 1 } } });
     let p = send_problem(job(bad_params), StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(detail(&p).contains("voxel"), "{p}");
+    // A CRS that does not parse, or one in degrees, is refused at submission, named.
+    for crs in ["the plot grid", "EPSG:4326"] {
+        let bad_crs = json!({ "inputs": inputs, "params": { "crs": crs } });
+        let p = send_problem(job(bad_crs), StatusCode::UNPROCESSABLE_ENTITY).await;
+        assert!(detail(&p).contains("params.crs"), "{p}");
+    }
     let swapped = json!({ "inputs": { "lidar": inputs["colmap"], "colmap": inputs["colmap"] } });
     let p = send_problem(job(swapped), StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(detail(&p).contains("inputs.lidar"), "{p}");

@@ -520,3 +520,25 @@ fn inspection_names_the_crs_the_projection_records_declare() {
         "{info:?}"
     );
 }
+
+/// What Sylva writes, it reads back: a CRS with an EPSG code as GeoTIFF keys, and none as
+/// none; a PROJ string, which LAS cannot hold, is refused.
+#[test]
+fn a_written_crs_is_declared_and_read_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let utm = crate::io::crs::Crs::from_epsg(32649).unwrap();
+    let path = dir.path().join("utm.laz");
+    write_las_with_crs(&path, &sample(false), true, Some(&utm)).unwrap();
+    assert_eq!(read_crs(&path).unwrap().unwrap(), Some(utm));
+    assert_eq!(
+        inspect_las(&path).unwrap().crs.as_deref(),
+        Some("EPSG:32649")
+    );
+    let custom = crate::io::crs::Crs::parse("+proj=utm +zone=33 +datum=WGS84 +units=m").unwrap();
+    let path = dir.path().join("custom.las");
+    let err = write_las_with_crs(&path, &sample(false), false, Some(&custom)).unwrap_err();
+    assert!(err.to_string().contains("EPSG:<code> or WKT"), "{err}");
+    let path = dir.path().join("none.las");
+    write_las(&path, &sample(false), false).unwrap();
+    assert_eq!(read_crs(&path).unwrap().unwrap(), None);
+}
