@@ -139,8 +139,8 @@ pub(super) fn on_off(flag: &str, value: &str) -> anyhow::Result<bool> {
     }
 }
 
-/// Adds the summary keys of results.json: `registration`, `render` = {psnr, ssim, views} and,
-/// with field data, `dbh` = {rmse_gs_cm, rmse_lidar_cm, bias_gs_cm, r2_gs, recall, matched,
+/// Adds the summary keys of results.json: `registration`, `render` = {psnr, ssim, views},
+/// `plot` (the stand figures of stage `dbh`, else `segment`) and, with field data, `dbh` = {rmse_gs_cm, rmse_lidar_cm, bias_gs_cm, r2_gs, recall, matched,
 /// trunk_radial_dev_mm} (the last: how far the trunk Gaussians sit from the LiDAR stems).
 fn summarise(results: &mut serde_json::Map<String, serde_json::Value>) {
     let pick = |stage: &str, key: &str| {
@@ -151,6 +151,7 @@ fn summarise(results: &mut serde_json::Map<String, serde_json::Value>) {
             .cloned()
     };
     let registration = results.get("register").cloned();
+    let plot = pick("dbh", "plot").or_else(|| pick("segment", "plot"));
     let render = pick("train", "render");
     let dev = pick("dbh", "mean_radial_dev_mm");
     let dbh = pick("dbh", "dbh").map(|mut d| {
@@ -163,6 +164,7 @@ fn summarise(results: &mut serde_json::Map<String, serde_json::Value>) {
         ("registration", registration),
         ("render", render),
         ("dbh", dbh),
+        ("plot", plot),
     ] {
         if let Some(v) = v {
             results.insert(k.to_string(), v);

@@ -102,6 +102,16 @@ pub struct InventoryArgs {
     /// the GeoJSON's points in WGS84.
     #[arg(long, env = "SYLVA_INVENTORY_CRS")]
     pub crs: Option<String>,
+    /// Print the plot's stand figures (stems and basal area per hectare, QMD, mean and
+    /// dominant height, volume, biomass and carbon per hectare, DBH classes) and write them
+    /// beside the CSV as `<out>.plot.json`.
+    #[arg(long, env = "SYLVA_INVENTORY_SUMMARY", default_value_t = false)]
+    pub summary: bool,
+    /// Inventory parameters as a JSON file: the `segment` object of a job's params (ground,
+    /// segmentation, stems, crowns, allometry such as `{"allometry": {"wood_density_g_cm3":
+    /// 0.42}}`, and `summary.boundary`); see `GET /v1/options`.
+    #[arg(long, env = "SYLVA_INVENTORY_PARAMS")]
+    pub params: Option<PathBuf>,
 }
 
 pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
@@ -141,18 +151,26 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
     for note in &crs.notes {
         eprintln!("note: {note}");
     }
+    let params: sylva::forest::InventoryParams = match &a.params {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read {}", p.display()))?;
+            serde_json::from_str(&text)
+                .with_context(|| format!("{}: invalid inventory parameters", p.display()))?
+        }
+        None => sylva::forest::InventoryParams::default(),
+    };
     let path = a.cloud.clone();
-    let (rows, cloud_points) = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
-        let progress = ConsoleProgress::new("inventory", None);
-        let cloud = sylva::io::pointcloud::read_point_cloud(&path, &progress)?;
-        let inv = sylva::forest::inventory(
-            &cloud,
-            &sylva::forest::InventoryParams::default(),
-            &progress,
-        )?;
-        Ok((inv.trees, cloud.len()))
-    })
-    .await??;
+    let (rows, cloud_points, summary) =
+        tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+            let progress = ConsoleProgress::new("inventory", None);
+            let cloud = sylva::io::pointcloud::read_point_cloud(&path, &progress)?;
+            let inv = sylva::forest::inventory(&cloud, &params, &progress)?;
+            let summary =
+                sylva::forest::PlotFile::new(inv.summary(&inv.trees, &params)?, &inv.footprint);
+            Ok((inv.trees, cloud.len(), summary))
+        })
+        .await??;
     eprintln!();
     sylva::forest::write_trees_csv(&a.out, &rows)?;
     let sidecar = a.out.with_extension(sylva::io::crs::CRS_FILE);
@@ -168,6 +186,15 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
         cloud_points,
         a.out.display()
     );
+    if a.summary {
+        let path = a.out.with_extension("plot.json");
+        let text = serde_json::to_string_pretty(&summary)?;
+        std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))?;
+        for line in sylva::forest::summary_lines(&summary.summary) {
+            println!("{line}");
+        }
+        println!("plot summary in {}", path.display());
+    }
     if let Some(field) = &a.field {
         let cmp = sylva::forest::compare_with_field_file(&rows, field)?;
         for line in sylva::forest::accuracy_lines(&cmp) {

@@ -7,11 +7,14 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::allometry::{AllometryParams, tree_allometry};
+use super::crowns::{CrownParams, NO_TREE, TreeCrown, segment_trees};
 use super::dbh::{DbhParams, measure_dbh};
 use super::ground::{CsfParams, Dtm, classify_ground};
 use super::segment::{SegmentParams, SegmentSeconds, segment_wood_leaf};
 use super::stem_labels::{StemLabelParams, label_stem_points};
 use super::stems::{Stem, StemParams, detect_stems};
+use super::summary::{PlotSummary, SummaryParams, footprint, summarise};
 use super::{FitQuality, ForestError, StemDbh};
 use crate::io::pointcloud::PointCloud;
 use crate::progress::{Progress, SubProgress};
@@ -30,6 +33,12 @@ pub struct InventoryParams {
     pub stem_labels: StemLabelParams,
     /// Breast-height slice and circle fitting (docs/method.md Stage 5).
     pub dbh: DbhParams,
+    /// Individual trees from the stems: height, crown base and crown projection.
+    pub crowns: CrownParams,
+    /// Basal area, stem volume, biomass and carbon per tree.
+    pub allometry: AllometryParams,
+    /// The plot's stand figures: which DBH, and the plot boundary.
+    pub summary: SummaryParams,
 }
 
 /// One tree of the inventory: one row of trees.csv.
@@ -58,6 +67,32 @@ pub struct TreeRow {
     /// here, and in rows written before it existed).
     #[serde(default)]
     pub gs_quality: Option<FitQuality>,
+    /// Total height, the tree's highest point above its stem base, metres (`forest::crowns`;
+    /// `None` in rows written before it existed). This and the fields below are `None` in
+    /// rows written before they existed.
+    #[serde(default)]
+    pub height_m: Option<f64>,
+    /// Crown base height above the stem base, metres.
+    #[serde(default)]
+    pub crown_base_m: Option<f64>,
+    /// Crown projection area (convex hull), m².
+    #[serde(default)]
+    pub crown_area_m2: Option<f64>,
+    /// Diameter of the circle of the crown projection area, metres.
+    #[serde(default)]
+    pub crown_diameter_m: Option<f64>,
+    /// Basal area from the LiDAR DBH, m².
+    #[serde(default)]
+    pub basal_area_m2: Option<f64>,
+    /// Stem volume, m³ (`forest::allometry`, from the LiDAR DBH and the height).
+    #[serde(default)]
+    pub volume_m3: Option<f64>,
+    /// Above-ground biomass, kg (Chave et al. 2014 eq. 4 by default).
+    #[serde(default)]
+    pub agb_kg: Option<f64>,
+    /// Carbon, kg.
+    #[serde(default)]
+    pub carbon_kg: Option<f64>,
 }
 
 /// Wall-clock seconds of each inventory phase.
@@ -67,6 +102,9 @@ pub struct PhaseSeconds {
     pub segment: f64,
     pub stems: f64,
     pub dbh: f64,
+    /// The tree segmentation and crown measures.
+    #[serde(default)]
+    pub crowns: f64,
 }
 
 /// The inventory of one cloud with its intermediate products.
@@ -88,6 +126,24 @@ pub struct Inventory {
     pub seconds: PhaseSeconds,
     /// The wood/leaf segmentation's own steps (within `seconds.segment`).
     pub segment_seconds: SegmentSeconds,
+    /// Per point: the `tree_id` of its tree, 0 for none.
+    pub tree_of_point: Vec<u32>,
+    /// Each tree's crown, same order as `trees`.
+    pub crowns: Vec<TreeCrown>,
+    /// The cloud's footprint in its file coordinates (`forest::summary::footprint`).
+    pub footprint: geo::Polygon<f64>,
+}
+
+impl Inventory {
+    /// The stand figures of `rows` (these trees, or the same trees with their Gaussian DBH
+    /// beside) on this cloud's plot.
+    pub fn summary(
+        &self,
+        rows: &[TreeRow],
+        params: &InventoryParams,
+    ) -> Result<PlotSummary, ForestError> {
+        summarise(rows, &self.footprint, &params.summary, &params.allometry)
+    }
 }
 
 /// Runs ground → segmentation (non-ground points only) → stems → DBH on `cloud`.
@@ -96,6 +152,7 @@ pub fn inventory(
     params: &InventoryParams,
     progress: &dyn Progress,
 ) -> Result<Inventory, ForestError> {
+    params.allometry.validate()?;
     let pts = &cloud.positions;
     if pts.len() < params.segment.k.max(3) {
         return Err(ForestError::NotEnoughPoints(format!(
@@ -157,38 +214,80 @@ pub fn inventory(
             }
             let d = measure_dbh(pts, stem, &params.dbh);
             let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-            progress.set(0.9 + 0.1 * k as f64 / total as f64);
+            progress.set(0.9 + 0.05 * k as f64 / total as f64);
             d
         })
         .collect();
     if progress.is_cancelled() {
         return Err(ForestError::Cancelled);
     }
+    seconds.dbh = t.elapsed().as_secs_f64();
+
+    // Every stem seeds its tree, also one without a diameter, so that its crown is not
+    // handed to a neighbour; rows are written for the stems with a diameter.
+    let t = Instant::now();
+    progress.log("trees: crowns and heights");
+    let seg = segment_trees(
+        pts,
+        &heights,
+        &ground.is_ground,
+        &stems,
+        &params.crowns,
+        &SubProgress::new(progress, 0.95, 0.05),
+    )?;
     let mut kept = Vec::new();
     let mut dbh = Vec::new();
     let mut trees = Vec::new();
-    for (stem, d) in stems.into_iter().zip(fits) {
+    let mut crowns = Vec::new();
+    // Row id of each stem index (0: no row).
+    let mut row_of_stem = vec![0u32; stems.len()];
+    for (k, ((stem, d), crown)) in stems.into_iter().zip(fits).zip(seg.trees).enumerate() {
         let Some(d) = d else {
             continue;
         };
         let id = trees.len() as u32 + 1;
+        row_of_stem[k] = id;
+        let dbh_cm = d.diameter_m * 100.0;
+        let height = (crown.points > 0).then_some(crown.height_m);
+        let allometry = tree_allometry(dbh_cm, height, &params.allometry);
+        let with_area = crown.hull.len() >= 3;
         trees.push(TreeRow {
             tree_id: id,
             x: cloud.offset.x + stem.base.x as f64,
             y: cloud.offset.y + stem.base.y as f64,
             ground_z: cloud.offset.z + stem.base.z as f64,
-            dbh_lidar_cm: d.diameter_m * 100.0,
+            dbh_lidar_cm: dbh_cm,
             dbh_gs_cm: None,
             n_points: d.circle.fit.n,
             rms_mm: d.circle.fit.rms * 1000.0,
             arc_coverage: d.circle.arc_coverage,
             quality: d.quality.as_str().to_string(),
             gs_quality: None,
+            height_m: height,
+            crown_base_m: crown.crown_base_m,
+            crown_area_m2: with_area.then_some(crown.crown_area_m2),
+            crown_diameter_m: with_area.then_some(crown.crown_diameter_m),
+            basal_area_m2: Some(allometry.basal_area_m2),
+            volume_m3: allometry.volume_m3,
+            agb_kg: allometry.agb_kg,
+            carbon_kg: allometry.carbon_kg,
         });
         kept.push(Stem { id, ..stem });
         dbh.push(d);
+        crowns.push(crown);
     }
-    seconds.dbh = t.elapsed().as_secs_f64();
+    let tree_of_point = seg
+        .tree_of_point
+        .iter()
+        .map(|&t| {
+            if t == NO_TREE {
+                0
+            } else {
+                row_of_stem.get(t as usize).copied().unwrap_or(0)
+            }
+        })
+        .collect();
+    seconds.crowns = t.elapsed().as_secs_f64();
     progress.set(1.0);
     Ok(Inventory {
         trees,
@@ -200,5 +299,8 @@ pub fn inventory(
         dtm: ground.dtm,
         seconds,
         segment_seconds: wood.seconds,
+        tree_of_point,
+        crowns,
+        footprint: footprint(pts, cloud.offset),
     })
 }

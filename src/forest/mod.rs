@@ -9,8 +9,10 @@
 //! about jobs or HTTP.
 
 pub mod accuracy;
+pub mod allometry;
 pub mod circle;
 pub mod components;
+pub mod crowns;
 pub mod dbh;
 pub mod grid;
 pub mod ground;
@@ -23,6 +25,7 @@ mod stem_axis;
 mod stem_base;
 pub mod stem_labels;
 pub mod stems;
+pub mod summary;
 
 #[cfg(test)]
 mod tests;
@@ -32,14 +35,17 @@ mod unit_tests;
 pub use accuracy::{
     FieldComparison, MatchedTree, accuracy_lines, compare_with_field, compare_with_field_file,
 };
+pub use allometry::{AllometryParams, Equations, TreeAllometry, tree_allometry};
 pub use circle::{CircleFit, fit_circle_weighted};
+pub use crowns::{CrownParams, TreeCrown, TreeSegmentation, segment_trees};
 pub use dbh::{
     DbhParams, FitQuality, SliceCenterPrior, SliceSource, StemDbh, measure_dbh, measure_dbh_of,
     slice_offsets,
 };
 pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
 pub use output::{
-    read_crs, trees_csv, trees_geojson, write_crs, write_trees_csv, write_trees_geojson,
+    PLOT_FILE, PlotFile, read_crs, trees_csv, trees_geojson, write_crs, write_trees_csv,
+    write_trees_geojson,
 };
 pub use ransac::{
     CenterPrior, CircleParams, RobustCircle, fit_circle_robust, fit_circle_robust_weighted,
@@ -47,6 +53,7 @@ pub use ransac::{
 pub use segment::{LEAF, SegmentParams, SegmentSeconds, TRUNK, WoodLeaf, segment_wood_leaf};
 pub use stem_labels::{StemLabelParams, label_stem_points};
 pub use stems::{Stem, StemParams, detect_stems};
+pub use summary::{DbhSource, PlotSummary, SummaryParams, footprint, summarise, summary_lines};
 
 use crate::geom::GeomError;
 use crate::io::IoError;

@@ -9,13 +9,17 @@ use crate::io::IoError;
 use crate::io::crs::{CRS_FILE, CrsError, CrsRecord};
 
 /// The exact header of trees.csv. `n_points`, `rms_mm`, `arc_coverage` and `quality` are
-/// the LiDAR fit's; `gs_quality` (last, so readers of the older header keep their columns)
-/// is the Gaussian fit's quality flag.
-pub const TREES_CSV_HEADER: &str =
-    "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality,gs_quality";
+/// the LiDAR fit's; `gs_quality` is the Gaussian fit's quality flag; then the tree's size
+/// (`forest::crowns`) and its allometry (`forest::allometry`, from the LiDAR DBH). Columns
+/// are only ever added at the end, so readers of an older header keep theirs.
+pub const TREES_CSV_HEADER: &str = "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,\
+arc_coverage,quality,gs_quality,height_m,crown_base_m,crown_area_m2,crown_diameter_m,\
+basal_area_m2,volume_m3,agb_kg,carbon_kg";
 
-/// trees.csv as text: the header, then one line per tree; `dbh_gs_cm` and `gs_quality` are
-/// empty when absent. Coordinates with millimetre precision, DBH to 0.01 cm, RMS to 0.01 mm.
+/// trees.csv as text: the header, then one line per tree; a field without a value (no
+/// Gaussian DBH, no height) is empty. Coordinates and heights with millimetre precision, DBH
+/// to 0.01 cm, RMS to 0.01 mm, areas to 0.01 m² (basal area 1e-5 m²), volume to 1e-4 m³,
+/// biomass and carbon to 0.1 kg.
 /// Written with the `csv` crate, which quotes a field only where it must (a comma, quote or
 /// line break in it), so `io::tables` and any CSV reader read it back.
 pub fn trees_csv(rows: &[TreeRow]) -> String {
@@ -24,7 +28,8 @@ pub fn trees_csv(rows: &[TreeRow]) -> String {
     // header and the fixed fields below rule out.
     let _ = w.write_record(TREES_CSV_HEADER.split(','));
     for r in rows {
-        let gs = r.dbh_gs_cm.map(|v| format!("{v:.2}")).unwrap_or_default();
+        let opt =
+            |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_default();
         let gs_quality = r.gs_quality.map(|q| q.as_str()).unwrap_or_default();
         let _ = w.write_record([
             r.tree_id.to_string(),
@@ -32,12 +37,20 @@ pub fn trees_csv(rows: &[TreeRow]) -> String {
             format!("{:.3}", r.y),
             format!("{:.3}", r.ground_z),
             format!("{:.2}", r.dbh_lidar_cm),
-            gs,
+            opt(r.dbh_gs_cm, 2),
             r.n_points.to_string(),
             format!("{:.2}", r.rms_mm),
             format!("{:.3}", r.arc_coverage),
             r.quality.to_string(),
             gs_quality.to_string(),
+            opt(r.height_m, 3),
+            opt(r.crown_base_m, 3),
+            opt(r.crown_area_m2, 2),
+            opt(r.crown_diameter_m, 3),
+            opt(r.basal_area_m2, 5),
+            opt(r.volume_m3, 4),
+            opt(r.agb_kg, 1),
+            opt(r.carbon_kg, 1),
         ]);
     }
     let bytes = w.into_inner().unwrap_or_default();
@@ -114,4 +127,134 @@ pub fn read_crs(dir: &Path) -> Result<CrsRecord, IoError> {
         )),
         Err(e) => Err(IoError::io(&path, e)),
     }
+}
+
+/// The file name of the plot summary every inventory folder holds.
+pub const PLOT_FILE: &str = "plot.json";
+
+/// plot.json: the stand figures and the footprint they were measured on (file coordinates,
+/// the hull's vertices, closed), so that a later stage can sum the same plot again.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PlotFile {
+    #[serde(flatten)]
+    pub summary: super::summary::PlotSummary,
+    pub footprint: Vec<[f64; 2]>,
+}
+
+impl PlotFile {
+    /// The record of `summary` on `footprint`.
+    pub fn new(summary: super::summary::PlotSummary, footprint: &geo::Polygon<f64>) -> Self {
+        Self {
+            summary,
+            footprint: footprint
+                .exterior()
+                .points()
+                .map(|p| [p.x(), p.y()])
+                .collect(),
+        }
+    }
+
+    /// The footprint as a polygon.
+    pub fn footprint(&self) -> geo::Polygon<f64> {
+        let ring: geo::LineString<f64> = self.footprint.iter().map(|v| (v[0], v[1])).collect();
+        geo::Polygon::new(ring, Vec::new())
+    }
+
+    /// Writes plot.json into `dir`.
+    pub fn write(&self, dir: &Path) -> Result<(), IoError> {
+        let path = dir.join(PLOT_FILE);
+        let text = serde_json::to_string_pretty(self)
+            .map_err(|e| IoError::format(&path, format!("cannot encode the plot: {e}")))?;
+        std::fs::write(&path, text).map_err(|e| IoError::io(&path, e))
+    }
+
+    /// Reads plot.json from `dir`.
+    pub fn read(dir: &Path) -> Result<Self, IoError> {
+        let path = dir.join(PLOT_FILE);
+        let bytes = std::fs::read(&path).map_err(|e| IoError::io(&path, e))?;
+        serde_json::from_slice(&bytes)
+            .map_err(|e| IoError::format(&path, format!("not a plot summary: {e}")))
+    }
+}
+
+/// trees.gpkg: the stems as points (layer `trees`, every trees.csv column) and the crowns as
+/// polygons (layer `crowns`: the convex hull of each tree's points, with its tree id, area
+/// and diameter), in the cloud's own CRS. `crowns` are in the local frame of `offset` (file
+/// coordinates = local + offset), one per row; a tree whose hull has no area has no crown
+/// feature.
+pub fn write_trees_gpkg(
+    path: &Path,
+    rows: &[TreeRow],
+    crowns: &[super::crowns::TreeCrown],
+    offset: glam::DVec3,
+    crs: &CrsRecord,
+) -> Result<(), IoError> {
+    use crate::io::gpkg::{ColumnType, Layer, Value, write_gpkg};
+    let columns: Vec<(String, ColumnType)> = TREES_CSV_HEADER
+        .split(',')
+        .map(|name| {
+            let t = match name {
+                "tree_id" | "n_points" => ColumnType::Integer,
+                "quality" | "gs_quality" => ColumnType::Text,
+                _ => ColumnType::Real,
+            };
+            (name.to_string(), t)
+        })
+        .collect();
+    let features = rows
+        .iter()
+        .map(|r| {
+            let json = serde_json::to_value(r).unwrap_or_default();
+            let values = columns
+                .iter()
+                .map(|(name, t)| match (&json[name.as_str()], t) {
+                    (serde_json::Value::Null, _) => Value::Null,
+                    (v, ColumnType::Integer) => v.as_i64().map_or(Value::Null, Value::Integer),
+                    (v, ColumnType::Real) => v.as_f64().map_or(Value::Null, Value::Real),
+                    (v, ColumnType::Text) => {
+                        Value::Text(v.as_str().map_or_else(|| v.to_string(), str::to_string))
+                    }
+                })
+                .collect();
+            (geo::Geometry::Point(geo::Point::new(r.x, r.y)), values)
+        })
+        .collect();
+    let trees = Layer {
+        name: "trees".into(),
+        geometry_type: "POINT",
+        columns,
+        features,
+    };
+    let crown_features = rows
+        .iter()
+        .zip(crowns)
+        .filter(|(_, c)| c.hull.len() >= 3)
+        .map(|(r, c)| {
+            let ring: geo::LineString<f64> = c
+                .hull
+                .iter()
+                .map(|v| (f64::from(v[0]) + offset.x, f64::from(v[1]) + offset.y))
+                .collect();
+            let polygon = geo::Geometry::Polygon(geo::Polygon::new(ring, Vec::new()));
+            let values = vec![
+                Value::Integer(i64::from(r.tree_id)),
+                Value::Real(c.crown_area_m2),
+                Value::Real(c.crown_diameter_m),
+                r.height_m.map_or(Value::Null, Value::Real),
+            ];
+            (polygon, values)
+        })
+        .collect();
+    let crown_layer = Layer {
+        name: "crowns".into(),
+        geometry_type: "POLYGON",
+        columns: vec![
+            ("tree_id".into(), ColumnType::Integer),
+            ("crown_area_m2".into(), ColumnType::Real),
+            ("crown_diameter_m".into(), ColumnType::Real),
+            ("height_m".into(), ColumnType::Real),
+        ],
+        features: crown_features,
+    };
+    write_gpkg(path, crs, &[trees, crown_layer])
 }

@@ -51,6 +51,27 @@ pub fn voxel_downsample(
     params: &VoxelParams,
     progress: &dyn Progress,
 ) -> Result<VoxelDownsample, GeomError> {
+    voxelise(points, colours, params, false, progress).map(|(v, _)| v)
+}
+
+/// [`voxel_downsample`] that also says which voxel every input point fell in (an index into
+/// the result's `positions`), for passes that work on voxels and hand the result back to the
+/// points (the tree segmentation of `forest::crowns`).
+pub fn voxel_members(
+    points: &[Vec3],
+    params: &VoxelParams,
+    progress: &dyn Progress,
+) -> Result<(VoxelDownsample, Vec<u32>), GeomError> {
+    voxelise(points, None, params, true, progress)
+}
+
+fn voxelise(
+    points: &[Vec3],
+    colours: Option<&[[u8; 3]]>,
+    params: &VoxelParams,
+    members: bool,
+    progress: &dyn Progress,
+) -> Result<(VoxelDownsample, Vec<u32>), GeomError> {
     let v = params.voxel_size;
     if !(v.is_finite() && v > 0.0) {
         return Err(GeomError::InvalidParameter(format!(
@@ -67,10 +88,11 @@ pub fn voxel_downsample(
         });
     }
     if points.is_empty() {
-        return Ok(VoxelDownsample {
+        let empty = VoxelDownsample {
             colours: colours.map(|_| Vec::new()),
             ..Default::default()
-        });
+        };
+        return Ok((empty, Vec::new()));
     }
     let (lo, hi) = points
         .par_iter()
@@ -155,12 +177,22 @@ pub fn voxel_downsample(
             })
             .collect()
     });
+    let mut voxel_of = Vec::new();
+    if members {
+        voxel_of = vec![0u32; points.len()];
+        for (voxel, w) in starts.windows(2).enumerate() {
+            for &(_, i) in &keyed[w[0] as usize..w[1] as usize] {
+                voxel_of[i as usize] = voxel as u32;
+            }
+        }
+    }
     progress.set(1.0);
-    Ok(VoxelDownsample {
+    let voxels = VoxelDownsample {
         positions,
         colours,
         counts,
-    })
+    };
+    Ok((voxels, voxel_of))
 }
 
 /// Interleaves the low 21 bits of x, y, z into a 63-bit Morton (Z-order) key.

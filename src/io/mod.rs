@@ -10,6 +10,7 @@ pub mod archive;
 pub mod colmap;
 pub mod crs;
 pub mod e57;
+pub mod gpkg;
 pub mod las;
 pub mod ply;
 pub mod pointcloud;

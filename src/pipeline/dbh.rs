@@ -383,6 +383,24 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let crs = ctx.crs(Stage::Dbh)?;
     forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &rows, &crs)?;
     forest::write_crs(ctx.out_dir, &crs)?;
+    // The stand figures again, now that the rows carry both diameters (the LiDAR one unless
+    // the job asks for the Gaussians'), on the plot stage `segment` measured.
+    let plot = match forest::PlotFile::read(&segment) {
+        Ok(previous) => {
+            let footprint = previous.footprint();
+            let seg = &ctx.params.segment;
+            let summary = forest::summarise(&rows, &footprint, &seg.summary, &seg.allometry)?;
+            forest::PlotFile::new(summary.clone(), &footprint).write(ctx.out_dir)?;
+            Some(summary)
+        }
+        // A segment stage that predates plot summaries: the job still finishes.
+        Err(crate::io::IoError::Io { source, .. })
+            if source.kind() == std::io::ErrorKind::NotFound =>
+        {
+            None
+        }
+        Err(e) => return Err(e.into()),
+    };
     ctx.progress.set(1.0);
     let field = match &ctx.inputs.field_dbh {
         Some(path) => Some(field_accuracy(&rows, path)?),
@@ -432,6 +450,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         // The name earlier readers (the demo, the web page) know: the absolute offset.
         "mean_radial_dev_mm": mean_abs_mm,
         "crs": crs.label,
+        "plot": plot,
     }))
 }
 

@@ -9,10 +9,11 @@
 //! thinned one.
 //!
 //! Outputs (LiDAR local frame, offset in the PLY headers): `labelled.ply` (fields `label`
-//! 0 leaf / 1 trunk, `ground` 0/1, `trunk_prob`, `height_m` above the DTM), `anchors.ply`
-//! (anchor colour, normals, `label`, `trunk_prob`), `dtm.json`, `stems.json`, and the
-//! LiDAR-only inventory `trees.csv` / `trees.geojson` / `crs.json` (original coordinates; stage `dbh`
-//! writes the final one with the Gaussian diameters beside these).
+//! 0 leaf / 1 trunk, `ground` 0/1, `trunk_prob`, `height_m` above the DTM, `tree` the tree id
+//! or 0), `anchors.ply` (anchor colour, normals, `label`, `trunk_prob`), `dtm.json`,
+//! `stems.json` (stems, rows and crowns), and the LiDAR-only inventory `trees.csv` /
+//! `trees.geojson` / `crs.json` / `plot.json` (original coordinates; stage `dbh` writes the
+//! final one with the Gaussian diameters beside these).
 
 use serde_json::json;
 
@@ -69,6 +70,10 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             ),
             field("trunk_prob", inv.trunk_probability.clone()),
             field("height_m", heights),
+            field(
+                "tree",
+                inv.tree_of_point.iter().map(|&t| t as f32).collect(),
+            ),
         ],
     )?;
     ctx.progress.set(0.9);
@@ -133,8 +138,14 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "offset": [cloud.offset.x, cloud.offset.y, cloud.offset.z],
             "stems": stems,
             "trees": inv.trees,
+            "crowns": inv.crowns,
         }),
     )?;
+    let summary = inv.summary(&inv.trees, params)?;
+    for line in forest::summary_lines(&summary) {
+        ctx.progress.log(&line);
+    }
+    forest::PlotFile::new(summary.clone(), &inv.footprint).write(ctx.out_dir)?;
     forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), &inv.trees)?;
     let crs = ctx.crs(Stage::Segment)?;
     forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &inv.trees, &crs)?;
@@ -166,5 +177,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "trees": inv.trees.len(),
         "seconds": inv.seconds,
         "field": comparison,
+        "plot": summary,
+        "crs": crs.label,
     }))
 }

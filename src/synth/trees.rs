@@ -49,8 +49,12 @@ pub struct TreeTruth {
     pub semi_axes_m: [f64; 2],
     /// Top of the tree above the base, metres (from the primitives' bounds).
     pub height_m: f64,
+    /// The generator's nominal crown reach, metres (the lowest primary branches' reach).
     pub crown_radius_m: f64,
     pub crown_base_m: f64,
+    /// Crown projection area: the convex hull of the tree's primitives seen from above (their
+    /// bounds' corners), m².
+    pub crown_area_m2: f64,
     pub lean_deg: f64,
     pub leafless: bool,
     pub species: &'static str,
@@ -339,6 +343,16 @@ pub fn build_tree(spec: &TreeSpec, species: &Species, rng: &mut Stream) -> (Vec<
         .iter()
         .map(|p| p.shape.bounds().1.z)
         .fold(f32::NEG_INFINITY, f32::max) as f64;
+    let corners: geo::MultiPoint<f64> = b
+        .prims
+        .iter()
+        .flat_map(|p| {
+            let (lo, hi) = p.shape.bounds();
+            [(lo.x, lo.y), (lo.x, hi.y), (hi.x, lo.y), (hi.x, hi.y)]
+                .map(|(x, y)| geo::Point::new(f64::from(x), f64::from(y)))
+        })
+        .collect();
+    let crown_area_m2 = geo::Area::unsigned_area(&geo::ConvexHull::convex_hull(&corners));
     let truth = TreeTruth {
         id: spec.id,
         base: spec.base,
@@ -349,6 +363,7 @@ pub fn build_tree(spec: &TreeSpec, species: &Species, rng: &mut Stream) -> (Vec<
         height_m: top_z - spec.base.z,
         crown_radius_m: rc,
         crown_base_m: spec.crown_base_m,
+        crown_area_m2,
         lean_deg: spec.lean_deg,
         leafless: spec.leafless,
         species: species.name,

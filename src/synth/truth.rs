@@ -42,8 +42,13 @@ pub struct TreeRecord {
     pub section_semi_axes_m: [f64; 2],
     /// Unit direction of the major semi-axis.
     pub section_major_axis: [f64; 3],
+    /// The generator's nominal crown reach, metres.
     pub crown_radius_m: f64,
     pub crown_base_m: f64,
+    /// Crown projection: the convex hull of the tree's primitives seen from above, m², and the
+    /// diameter of the circle of that area, metres (what an inventory measures as crown).
+    pub crown_area_m2: f64,
+    pub crown_diameter_m: f64,
 }
 
 /// The `labels` entry of truth.json.
@@ -112,6 +117,8 @@ pub fn tree_records(plot: &Plot, offset: DVec3) -> Vec<TreeRecord> {
                 section_major_axis: t.major_axis.to_array(),
                 crown_radius_m: t.crown_radius_m,
                 crown_base_m: t.crown_base_m,
+                crown_area_m2: t.crown_area_m2,
+                crown_diameter_m: 2.0 * (t.crown_area_m2 / std::f64::consts::PI).sqrt(),
             }
         })
         .collect()

@@ -1,0 +1,79 @@
+//! Tree heights and crowns against the generator's truth on `stand` seeds, for the tree
+//! segmentation's parameters (`forest::crowns`): height RMSE, crown-diameter error (mean and
+//! worst) and the segmentation's seconds, one row per seed and setting.
+//!
+//! `cargo run --profile test --example crowns_bench -- [SEEDS] [voxel_m,k,max_edge_m,edge_power ...]`
+//! (SEEDS `5` for 1-5 or a range `6-10`; default 1-5 with the default parameters, then each
+//! setting given).
+
+use std::time::Instant;
+
+use sylva::forest::{CrownParams, InventoryParams, inventory, segment_trees};
+use sylva::progress::NoProgress;
+use sylva::synth::{Preset, SynthParams, lidar_plot};
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    // SEEDS: `5` (1 to 5) or `6-10`.
+    let range = args.first().map_or("5", String::as_str);
+    let (first, last) = match range.split_once('-') {
+        Some((a, b)) => (a.parse()?, b.parse()?),
+        None => (1u64, range.parse()?),
+    };
+    let mut settings = vec![CrownParams::default()];
+    for spec in args.iter().skip(1) {
+        let v: Vec<f64> = spec.split(',').filter_map(|x| x.parse().ok()).collect();
+        if let [voxel, k, edge, power] = v[..] {
+            settings.push(CrownParams {
+                voxel_m: voxel as f32,
+                k: k as usize,
+                max_edge_m: edge as f32,
+                edge_power: power as f32,
+                ..CrownParams::default()
+            });
+        }
+    }
+    println!(
+        "| seed | voxel m | k | max edge m | edge power | height RMSE m | \
+         crown error mean / worst % | trees | seconds |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for seed in first..=last {
+        let mut p = SynthParams::new(Preset::Stand);
+        p.seed = seed;
+        let plot = lidar_plot(&p, &NoProgress)?;
+        let inv = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress)?;
+        let pts = &plot.cloud.positions;
+        let heights = inv.dtm.heights_above(pts);
+        for s in &settings {
+            let t = Instant::now();
+            let seg = segment_trees(pts, &heights, &inv.is_ground, &inv.stems, s, &NoProgress)?;
+            let secs = t.elapsed().as_secs_f64();
+            let (mut sq, mut rel, mut worst, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+            for (stem, tree) in inv.stems.iter().zip(&seg.trees) {
+                let truth = plot.trees.iter().find(|t| {
+                    let b = stem.base.as_dvec3();
+                    (t.base.x - b.x).hypot(t.base.y - b.y) < 1.0
+                });
+                let Some(truth) = truth else { continue };
+                let crown_truth = 2.0 * (truth.crown_area_m2 / std::f64::consts::PI).sqrt();
+                sq += (tree.height_m - truth.height_m).powi(2);
+                let e = tree.crown_diameter_m / crown_truth - 1.0;
+                rel += e.abs();
+                worst = worst.max(e.abs());
+                n += 1;
+            }
+            println!(
+                "| {seed} | {} | {} | {} | {} | {:.2} | {:.1} / {:.1} | {n} | {secs:.2} |",
+                s.voxel_m,
+                s.k,
+                s.max_edge_m,
+                s.edge_power,
+                (sq / n.max(1) as f64).sqrt(),
+                100.0 * rel / n.max(1) as f64,
+                100.0 * worst
+            );
+        }
+    }
+    Ok(())
+}
