@@ -16,6 +16,7 @@ use sylva::splat::camera::Camera;
 use sylva::splat::gpu::buffers::{read_buffer, storage_from};
 use sylva::splat::gpu::{GpuContext, GpuGrads, GpuSplats, Renderer};
 use sylva::splat::model::{Gaussian, Gaussians};
+use sylva::testing::peak_rss_mib;
 
 fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> Result<T, String> {
     match args.iter().position(|a| a == name) {
@@ -25,19 +26,6 @@ fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> Result<
             .and_then(|v| v.parse().ok())
             .ok_or_else(|| format!("{name} needs a number")),
     }
-}
-
-/// Peak resident memory of this process in MiB, from /proc/self/status (Linux); 0 elsewhere.
-/// (The same reading as `sylva bench`'s tables.)
-fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-        })
-        .map_or(0.0, |kb| kb / 1024.0)
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

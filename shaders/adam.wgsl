@@ -1,22 +1,7 @@
 // Adam (torch form, as the reference 3DGS): one thread per float of one parameter buffer.
 // m = b1 m + (1 - b1) g; v = b2 v + (1 - b2) g^2; p -= lr * (m / bc1) / (sqrt(v / bc2) + eps),
 // bc = 1 - b^t. The first `n_first` floats of each stride use `lr_first`, the rest `lr_rest`
-// (SH: DC vs higher bands).
-
-struct AdamParams {
-    n_floats: u32,
-    stride: u32,
-    n_first: u32,
-    _pad: u32,
-    lr_first: f32,
-    lr_rest: f32,
-    bc1: f32,
-    bc2: f32,
-    beta1: f32,
-    beta2: f32,
-    eps: f32,
-    _pad2: f32,
-}
+// (SH: DC vs higher bands). `AdamParams` is prepended by `adam.rs` (its `wgsl_struct!`).
 
 @group(0) @binding(0) var<uniform> ap: AdamParams;
 @group(0) @binding(1) var<storage, read_write> param: array<f32>;

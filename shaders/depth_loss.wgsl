@@ -1,17 +1,7 @@
 // The LiDAR depth loss's gradient (src/splat/depth.rs, CPU twin depth::grad_at), one thread per
 // pixel: dL/dD = coef * sign(D - L) / L where the LiDAR map has a depth L > 0, else 0, with
-// coef = lambda / |V|. Writes the frame's depth gradient, which the raster backward reads.
-
-struct DepthParams {
-    pixels: u32,
-    _p0: u32,
-    _p1: u32,
-    _p2: u32,
-    coef: f32,
-    _f0: f32,
-    _f1: f32,
-    _f2: f32,
-}
+// coef = lambda / |V|. Writes the frame's depth gradient, which the raster backward reads. The
+// uniform `DepthParams` is prepended by `depth.rs` (its `wgsl_struct!`).
 
 @group(0) @binding(0) var<uniform> dp: DepthParams;
 @group(0) @binding(1) var<storage, read> depth: array<f32>;

@@ -5,22 +5,8 @@
 // No atomics and no subgroup operations: each workgroup of 256 threads sums its pixels' terms
 // in workgroup memory in a fixed tree order, then one workgroup sums those partials, so the
 // result is the same on every adapter and every run.
-
-struct Params {
-    width: u32,
-    height: u32,
-    // The image whose transform applies.
-    index: u32,
-    // 1 on a held-out view's training step: pixels with x >= width / 2 take the photo and give
-    // no gradient.
-    left_half: u32,
-    // Workgroups of `backward` (12-float partial sums).
-    n_partials: u32,
-    // Images (the gradient buffer holds 12 floats per image).
-    n_images: u32,
-    _pad0: u32,
-    _pad1: u32,
-}
+//
+// The uniform `Params` is prepended by `exposure.rs` (its `wgsl_struct!`).
 
 @group(0) @binding(0) var<uniform> params: Params;
 // The render, RGB f32 interleaved, row-major.

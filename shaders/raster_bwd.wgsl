@@ -10,12 +10,9 @@
 // kernel; a larger PIX divides the global atomics by up to PIX, which pays on CPU adapters
 // (lavapipe) where an atomic float add is a locked compare-and-swap loop. No subgroup operations.
 
-// Bindings 1-5 (projected record slots, band): `slots.wgsl`; 11-14: the screen-space gradient
-// slots, same split as the records (`atomic_*.wgsl`, one copy per slot). One dispatch per band of
-// tile rows; `values` and `ranges` index the band's sorted intersections.
-@group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(6) var<storage, read> values: array<u32>;
-@group(0) @binding(7) var<storage, read> ranges: array<u32>;
+// Bindings 0-7 (parameters, projected record slots, band, the band's sorted intersections):
+// `slots.wgsl`; 11-14: the screen-space gradient slots, same split as the records
+// (`atomic_*.wgsl`, one copy per slot). One dispatch per band of tile rows.
 @group(0) @binding(8) var<storage, read> final_t: array<f32>;
 @group(0) @binding(9) var<storage, read> n_contrib: array<u32>;
 @group(0) @binding(10) var<storage, read> dl_dimage: array<f32>;
@@ -34,25 +31,18 @@ fn add_grad(g: u32, k: u32, v: f32) {
     }
 }
 
-const BATCH: u32 = 256u;
-
-var<workgroup> b_xy_op: array<vec4<f32>, BATCH>;   // mean x, mean y, opacity, Gaussian id bits
-var<workgroup> b_conic: array<vec4<f32>, BATCH>;
-var<workgroup> b_rgb: array<vec4<f32>, BATCH>;
+// The staged batch (`slots.wgsl`) holds each Gaussian's id bits in its fourth position lane.
 var<workgroup> max_last: atomic<u32>;
-var<workgroup> shared_u: vec2<u32>;
 var<workgroup> last_snap: u32;
 
 @compute @workgroup_size(THREADS)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let p = params;
     let tile_y = wg.y + band.x;
-    let tile = tile_y * p.dims.z + wg.x;
     if lid == 0u {
-        shared_u = vec2<u32>(ranges[2u * tile], ranges[2u * tile + 1u]);
         atomicStore(&max_last, 0u);
     }
-    let range = workgroupUniformLoad(&shared_u);
+    let range = tile_run(wg, tile_y, lid);
     var pix: array<vec2<f32>, PIX>;
     var t_final: array<f32, PIX>;
     var last: array<u32, PIX>;
@@ -62,9 +52,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     var acc: array<vec4<f32>, PIX>;
     var my_last = 0u;
     for (var k = 0u; k < PIX; k++) {
-        let lp = lid * PIX + k;
-        let px = wg.x * TILE + lp % TILE;
-        let py = tile_y * TILE + lp / TILE;
+        let q = pixel_of(wg, tile_y, lid, k);
+        let px = q.x;
+        let py = q.y;
         pix[k] = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
         t_final[k] = 1.0;
         last[k] = 0u;
@@ -96,11 +86,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             let k = b * BATCH + s;
             if k < total {
                 let g = values[range.x + k];
-                let p0 = load_proj(g, 0u);
-                let p1 = load_proj(g, 1u);
-                b_xy_op[s] = vec4<f32>(p0.xy, p1.w, bitcast<f32>(g));
-                b_conic[s] = vec4<f32>(p1.xyz, 0.0);
-                b_rgb[s] = load_proj(g, 2u);
+                stage(s, g, bitcast<f32>(g));
             }
         }
         workgroupBarrier();

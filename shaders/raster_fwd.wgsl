@@ -4,11 +4,8 @@
 // workgroup memory and blended front to back (docs/splatting.md "Per pixel"); a thread reads each
 // staged Gaussian once for all its pixels, and the workgroup stops once every pixel is saturated.
 
-// Bindings 1-5 (projected record slots, band): `slots.wgsl`. One dispatch per band of tile rows;
-// `values` and `ranges` index the band's sorted intersections.
-@group(0) @binding(0) var<uniform> params: Params;
-@group(0) @binding(6) var<storage, read> values: array<u32>;
-@group(0) @binding(7) var<storage, read> ranges: array<u32>;
+// Bindings 0-7 (parameters, projected record slots, band, the band's sorted intersections):
+// `slots.wgsl`. One dispatch per band of tile rows.
 @group(0) @binding(8) var<storage, read_write> image: array<f32>;
 @group(0) @binding(9) var<storage, read_write> final_t: array<f32>;
 // Per pixel: 1 + position (within the tile's run) of the last Gaussian blended, 0 if none.
@@ -16,25 +13,17 @@
 // Per pixel: expected depth sum T alpha z (the fourth channel, background 0), metres.
 @group(0) @binding(11) var<storage, read_write> depth: array<f32>;
 
-const BATCH: u32 = 256u;
-
-var<workgroup> b_xy_op: array<vec4<f32>, BATCH>;   // mean x, mean y, opacity, unused
-var<workgroup> b_conic: array<vec4<f32>, BATCH>;
-var<workgroup> b_rgb: array<vec4<f32>, BATCH>;
 var<workgroup> done_count: atomic<u32>;
-var<workgroup> shared_u: vec2<u32>;
 var<workgroup> done_snap: u32;
 
 @compute @workgroup_size(THREADS)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let p = params;
     let tile_y = wg.y + band.x;
-    let tile = tile_y * p.dims.z + wg.x;
     if lid == 0u {
-        shared_u = vec2<u32>(ranges[2u * tile], ranges[2u * tile + 1u]);
         atomicStore(&done_count, 0u);
     }
-    let range = workgroupUniformLoad(&shared_u);
+    let range = tile_run(wg, tile_y, lid);
     var pix: array<vec2<f32>, PIX>;
     var done: array<bool, PIX>;
     var t: array<f32, PIX>;
@@ -42,9 +31,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
     var last: array<u32, PIX>;
     var live = 0u;
     for (var k = 0u; k < PIX; k++) {
-        let lp = lid * PIX + k;
-        let px = wg.x * TILE + lp % TILE;
-        let py = tile_y * TILE + lp / TILE;
+        let q = pixel_of(wg, tile_y, lid, k);
+        let px = q.x;
+        let py = q.y;
         pix[k] = vec2<f32>(f32(px) + 0.5, f32(py) + 0.5);
         done[k] = !(px < p.dims.x && py < p.dims.y);
         t[k] = 1.0;
@@ -70,12 +59,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         for (var s = lid; s < BATCH; s += THREADS) {
             let k = range.x + b * BATCH + s;
             if k < range.y {
-                let g = values[k];
-                let p0 = load_proj(g, 0u);
-                let p1 = load_proj(g, 1u);
-                b_xy_op[s] = vec4<f32>(p0.xy, p1.w, 0.0);
-                b_conic[s] = vec4<f32>(p1.xyz, 0.0);
-                b_rgb[s] = load_proj(g, 2u);
+                stage(s, values[k], 0.0);
             }
         }
         workgroupBarrier();
@@ -110,9 +94,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         }
     }
     for (var k = 0u; k < PIX; k++) {
-        let lp = lid * PIX + k;
-        let px = wg.x * TILE + lp % TILE;
-        let py = tile_y * TILE + lp / TILE;
+        let q = pixel_of(wg, tile_y, lid, k);
+        let px = q.x;
+        let py = q.y;
         if px < p.dims.x && py < p.dims.y {
             let o = py * p.dims.x + px;
             let col = c[k].xyz + t[k] * p.bg.xyz;

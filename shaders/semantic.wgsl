@@ -14,34 +14,8 @@
 //            log-scale capped.
 // GRID holds the anchors and their ring search, shared by QUERY and BIND.
 // The CPU twins are src/splat/semantic.rs (geo_targets, geo_loss_and_grad) and
-// src/splat/bind.rs (project).
-
-struct GeoParams {
-    n: u32,
-    k: u32,
-    leaf_cell_base: u32,   // index of the leaf grid's first cell in `starts`
-    n_leaf: u32,
-    t_origin: vec3<f32>,
-    t_cell: f32,
-    t_dims: vec3<u32>,
-    _p0: u32,
-    l_origin: vec3<f32>,
-    l_cell: f32,
-    l_dims: vec3<u32>,
-    _p1: u32,
-    temperature: f32,
-    beta: f32,
-    eps: f32,
-    threshold: f32,
-    inv_npos2: f32,
-    gamma: f32,
-    leaf_cutoff: f32,      // leaf search stops once rings reach d_t + this (q saturates)
-    _p2: f32,
-    bind_band: f32,        // largest |offset| along the normal, metres
-    bind_log_scale: f32,   // cap of the z log-scale
-    bind_min_prob: f32,    // Gaussians with P at or above this are bound
-    _p3: f32,
-}
+// src/splat/bind.rs (project). The uniform `GeoParams` is prepended by semantic.rs (its
+// `wgsl_struct!`).
 
 const MAX_K: u32 = 16u;
 

@@ -1,5 +1,6 @@
 //! Test support shared by the unit and integration tests: how a test that needs something the
-//! machine lacks (a GPU adapter, Chromium, PostgreSQL, the real clouds, …) stops.
+//! machine lacks (a GPU adapter, Chromium, PostgreSQL, the real clouds, …) stops; and the
+//! process's peak memory that the benchmarks (`sylva bench`, `examples/`) report.
 //!
 //! By default it prints why and passes, so `scripts/test` works on any machine. Where the
 //! environment variable `SYLVA_TEST_REQUIRE` names the capability (a comma-separated list, or
@@ -43,6 +44,19 @@ pub fn skip_with(required: &str, capability: &str, why: &str) {
         panic!("{capability} is required (SYLVA_TEST_REQUIRE={required}) but missing: {why}");
     }
     eprintln!("skipping ({capability} missing): {why}");
+}
+
+/// Peak resident memory of this process so far, MiB (Linux `VmHWM` from /proc/self/status; 0
+/// where unknown).
+pub fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1024.0)
 }
 
 #[cfg(test)]

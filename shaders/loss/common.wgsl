@@ -1,14 +1,7 @@
 // Shared declarations of the fused loss kernels (Sylva gpuloss). The host prepends the
-// constants WIN (11-tap Gaussian window, sigma 1.5, sum 1), HALF = 5, LAMBDA, C1, C2.
+// constants WIN (11-tap Gaussian window, sigma 1.5, sum 1), HALF = 5, LAMBDA, C1, C2, and the
+// uniform `Params` (its `wgsl_struct!` in kernel.rs).
 // Each pass uses a subset of these bindings; unused ones are left out of its layout.
-
-struct Params {
-    width: u32,
-    height: u32,
-    // Number of (l1, ssim) partial-sum pairs written by the SSIM pass.
-    n_partials: u32,
-    _pad: u32,
-}
 
 @group(0) @binding(0) var<uniform> params: Params;
 // Rendered image, RGB f32 interleaved, row-major.

@@ -150,12 +150,9 @@ fn rasterise(
     let mut hi = vec![f64::NAN; nx * ny];
     let mut lo = vec![f64::NAN; nx * ny];
     for p in points {
-        let i = ((p.x - x0) / cell).floor();
-        let j = ((p.y - y0) / cell).floor();
-        if i < 0.0 || j < 0.0 || i >= nx as f64 || j >= ny as f64 {
+        let Some(k) = cell_index(p, x0, y0, cell, nx, ny) else {
             continue;
-        }
-        let k = j as usize * nx + i as usize;
+        };
         hi[k] = if hi[k].is_nan() { p.z } else { hi[k].max(p.z) };
         lo[k] = if lo[k].is_nan() { p.z } else { lo[k].min(p.z) };
     }
@@ -171,6 +168,13 @@ fn rasterise(
 
 /// Lowest non-NaN value within `half` cells in x and y of each cell (NaN where none).
 fn min_filter(v: &[f64], nx: usize, ny: usize, half: usize) -> Vec<f64> {
+    let rows = min_pass(v, nx, ny, half, true);
+    min_pass(&rows, nx, ny, half, false)
+}
+
+/// One pass of [`min_filter`]: the lowest non-NaN value within `half` cells of each cell along x
+/// (`along_x`) or along y (NaN where none).
+fn min_pass(v: &[f64], nx: usize, ny: usize, half: usize, along_x: bool) -> Vec<f64> {
     let nanmin = |a: f64, b: f64| {
         if a.is_nan() || (!b.is_nan() && b < a) {
             b
@@ -178,22 +182,20 @@ fn min_filter(v: &[f64], nx: usize, ny: usize, half: usize) -> Vec<f64> {
             a
         }
     };
-    let mut rows = vec![f64::NAN; nx * ny];
-    for j in 0..ny {
-        for i in 0..nx {
-            let mut m = f64::NAN;
-            for a in i.saturating_sub(half)..(i + half + 1).min(nx) {
-                m = nanmin(m, v[j * nx + a]);
-            }
-            rows[j * nx + i] = m;
-        }
-    }
     let mut out = vec![f64::NAN; nx * ny];
     for j in 0..ny {
         for i in 0..nx {
+            let (c, n) = if along_x { (i, nx) } else { (j, ny) };
             let mut m = f64::NAN;
-            for b in j.saturating_sub(half)..(j + half + 1).min(ny) {
-                m = nanmin(m, rows[b * nx + i]);
+            for a in c.saturating_sub(half)..(c + half + 1).min(n) {
+                m = nanmin(
+                    m,
+                    if along_x {
+                        v[j * nx + a]
+                    } else {
+                        v[a * nx + i]
+                    },
+                );
             }
             out[j * nx + i] = m;
         }
@@ -623,6 +625,17 @@ pub fn align_candidates(
     Ok(out)
 }
 
+/// Row-major index of the cell holding `p` in the `nx` × `ny` grid of `cell`-metre cells whose
+/// corner is (`x0`, `y0`); `None` outside the grid.
+fn cell_index(p: DVec3, x0: f64, y0: f64, cell: f64, nx: usize, ny: usize) -> Option<usize> {
+    let i = ((p.x - x0) / cell).floor();
+    let j = ((p.y - y0) / cell).floor();
+    if i < 0.0 || j < 0.0 || i >= nx as f64 || j >= ny as f64 {
+        return None;
+    }
+    Some(j as usize * nx + i as usize)
+}
+
 /// The lowest point of each cell (NaN when empty), metres.
 fn rasterise_ground(
     points: &[DVec3],
@@ -633,13 +646,10 @@ fn rasterise_ground(
     ny: usize,
 ) -> Vec<f64> {
     let mut lo = vec![f64::NAN; nx * ny];
-    for p in points {
-        let i = ((p.x - x0) / cell).floor();
-        let j = ((p.y - y0) / cell).floor();
-        if i < 0.0 || j < 0.0 || i >= nx as f64 || j >= ny as f64 {
+    for &p in points {
+        let Some(k) = cell_index(p, x0, y0, cell, nx, ny) else {
             continue;
-        }
-        let k = j as usize * nx + i as usize;
+        };
         lo[k] = if lo[k].is_nan() { p.z } else { lo[k].min(p.z) };
     }
     lo

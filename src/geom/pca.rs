@@ -149,19 +149,8 @@ fn orth_null_vector(m: DMat3, lambda: f64, u: DVec3) -> DVec3 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::DQuat;
+    use crate::geom::similarity::tests::random_rotation;
     use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
-
-    fn random_rotation(rng: &mut ChaCha8Rng) -> DMat3 {
-        let q = DQuat::from_xyzw(
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-        )
-        .normalize();
-        DMat3::from_quat(q)
-    }
 
     #[test]
     fn closed_form_eigen_recovers_known_spectrum() {

@@ -238,11 +238,12 @@ fn outer(a: DVec3, b: DVec3) -> DMat3 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
 
-    fn random_similarity(rng: &mut ChaCha8Rng) -> Similarity {
+    /// A rotation from a normalised quaternion of four uniform draws in [-1, 1) (x, y, z, w).
+    pub(in crate::geom) fn random_rotation(rng: &mut ChaCha8Rng) -> DMat3 {
         let q = DQuat::from_xyzw(
             rng.random_range(-1.0..1.0),
             rng.random_range(-1.0..1.0),
@@ -250,9 +251,14 @@ mod tests {
             rng.random_range(-1.0..1.0),
         )
         .normalize();
+        DMat3::from_quat(q)
+    }
+
+    fn random_similarity(rng: &mut ChaCha8Rng) -> Similarity {
+        let rotation = random_rotation(rng);
         Similarity {
             scale: rng.random_range(0.2..5.0),
-            rotation: DMat3::from_quat(q),
+            rotation,
             translation: DVec3::new(
                 rng.random_range(-100.0..100.0),
                 rng.random_range(-100.0..100.0),

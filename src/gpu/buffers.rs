@@ -1,4 +1,5 @@
-//! Small helpers for storage buffers: creation, upload, zeroing and blocking read-back.
+//! Small helpers for storage buffers: creation, upload, zeroing and blocking read-back; and
+//! [`wgsl_struct!`], one field list for a uniform struct in Rust and in WGSL.
 
 use wgpu::util::DeviceExt;
 
@@ -198,3 +199,62 @@ pub fn pipeline(ctx: &GpuContext, label: &str, source: &str, entry: &str) -> wgp
             cache: None,
         })
 }
+
+/// The WGSL spelling of a uniform field's Rust type ([`wgsl_struct!`]).
+pub trait WgslType {
+    const WGSL: &'static str;
+}
+
+impl WgslType for u32 {
+    const WGSL: &'static str = "u32";
+}
+impl WgslType for f32 {
+    const WGSL: &'static str = "f32";
+}
+impl WgslType for [u32; 3] {
+    const WGSL: &'static str = "vec3<u32>";
+}
+impl WgslType for [f32; 3] {
+    const WGSL: &'static str = "vec3<f32>";
+}
+
+/// `struct name { field: type, ... }` in WGSL, fields `(name, WGSL type)` in order.
+pub fn wgsl_struct_decl(name: &str, fields: &[(&str, &str)]) -> String {
+    let mut s = format!("struct {name} {{\n");
+    for (field, ty) in fields {
+        s.push_str(&format!("    {field}: {ty},\n"));
+    }
+    s.push_str("}\n");
+    s
+}
+
+/// Declares a `#[repr(C)]`, `Pod` uniform struct and, from the same field list, its WGSL
+/// declaration `Name::wgsl()`, which the kernel's source is prefixed with: the shader's struct
+/// cannot drift from the Rust one. Every field's type must be a [`WgslType`]; the layout must
+/// follow WGSL's uniform rules by itself (a `[f32; 3]` is a `vec3`, 16-byte aligned: pad by hand).
+macro_rules! wgsl_struct {
+    (
+        $(#[$m:meta])*
+        struct $name:ident {
+            $($(#[$fm:meta])* $f:ident: $t:ty,)*
+        }
+    ) => {
+        $(#[$m])*
+        #[repr(C)]
+        #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+        struct $name {
+            $($(#[$fm])* $f: $t,)*
+        }
+
+        impl $name {
+            /// This struct's WGSL declaration: the same fields, in order.
+            fn wgsl() -> String {
+                $crate::gpu::buffers::wgsl_struct_decl(
+                    stringify!($name),
+                    &[$((stringify!($f), <$t as $crate::gpu::buffers::WgslType>::WGSL)),*],
+                )
+            }
+        }
+    };
+}
+pub(crate) use wgsl_struct;

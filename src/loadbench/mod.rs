@@ -30,6 +30,7 @@ use anyhow::Context;
 use clap::{Args, Parser};
 use rand_chacha::ChaCha8Rng;
 use rand_core::{RngCore, SeedableRng};
+pub use sylva::testing::peak_rss_mib;
 use tokio::sync::{Notify, oneshot};
 
 use sylva::api::{self, AppState, Counters};
@@ -440,18 +441,6 @@ pub async fn run(a: &LoadArgs) -> anyhow::Result<()> {
         anyhow::bail!("no database could be measured");
     }
     Ok(())
-}
-
-/// Peak resident memory of this process so far, MiB (Linux `VmHWM`; 0 where unknown).
-pub fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-        })
-        .map_or(0.0, |kb| kb / 1024.0)
 }
 
 #[cfg(test)]

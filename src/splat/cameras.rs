@@ -8,6 +8,7 @@
 //! i + 0.5.
 
 use crate::splat::camera::Camera;
+use crate::splat::cpu::linalg::quat_to_mat;
 
 pub use crate::splat::camera_models::{CameraError, CameraModel};
 use crate::splat::packed_image::{PackedImage, pack};
@@ -15,24 +16,7 @@ use crate::splat::packed_image::{PackedImage, pack};
 /// World→camera rotation (row-major) of a COLMAP `qvec` (w, x, y, z), normalised first.
 pub fn rotation_from_qvec(q: [f64; 4]) -> [[f64; 3]; 3] {
     let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-    let [w, x, y, z] = q.map(|v| v / n);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    quat_to_mat(q.map(|v| v / n))
 }
 
 /// The pinhole camera of a COLMAP camera and image pose (`qvec` w, x, y, z and `tvec` in

@@ -14,6 +14,7 @@ use crate::splat::model::{Gaussian, Gaussians, sigmoid};
 use crate::rng::SplitMix64;
 use crate::splat::adam::{AdamState, LearningRates};
 use crate::splat::config::TrainConfig;
+use crate::splat::cpu::linalg::quat_rows;
 
 /// Per-view screen-space statistics from one backward pass.
 #[derive(Debug, Clone, Copy)]
@@ -347,24 +348,7 @@ pub fn quat_to_matrix(q: [f32; 4]) -> [[f32; 3]; 3] {
     let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         .sqrt()
         .max(1e-12);
-    let [w, x, y, z] = q.map(|v| v / n);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    quat_rows(q.map(|v| v / n))
 }
 
 #[cfg(test)]

@@ -334,71 +334,21 @@ mod tests {
     use crate::progress::NoProgress;
     use crate::splat::backend::CpuBackend;
     use crate::splat::camera::Camera;
-    use crate::splat::cameras::View;
     use crate::splat::cpu;
-    use crate::splat::cpu::test_scenes::random_scene;
+    use crate::splat::cpu::test_scenes::{
+        check_learned_exposures, grey_blobs, jitter_exposures, random_scene, ring_dataset,
+    };
     use crate::splat::model::Gaussian;
-    use crate::splat::packed_image::{PackedImage, pack};
 
-    /// Grey blobs at jittered positions of the true Gaussians: the start of the training tests.
-    fn grey_blobs(truth: &Gaussians) -> Gaussians {
-        let mut init = Gaussians::default();
-        for m in &truth.means {
-            init.push(Gaussian::isotropic(
-                [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
-                0.15,
-                [0.5, 0.5, 0.5],
-                0.3,
-            ));
-        }
-        init
-    }
-
-    /// Views of a random scene from a ring of cameras, rendered by the reference.
-    fn ring_dataset(truth: &Gaussians, n_views: usize) -> Dataset {
-        let mut views = Vec::new();
-        for k in 0..n_views {
-            let a = k as f32 / n_views as f32 * std::f32::consts::TAU;
-            let cam = Camera::look_at(
-                [4.0 * a.sin(), -4.0 * a.cos(), 0.6],
-                [0.0, 0.0, 0.0],
-                [0.0, 0.0, 1.0],
-                40,
-                32,
-                36.0,
-            );
-            let img = cpu::render(truth, &cam, [0.0; 3]).expect("render").image;
-            let pixels = img
-                .iter()
-                .map(|p| {
-                    let c = p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
-                    pack([c[0], c[1], c[2], 255])
-                })
-                .collect();
-            views.push(View {
-                name: format!("view_{k:02}.png"),
-                camera: cam,
-                image: PackedImage {
-                    width: 40,
-                    height: 32,
-                    pixels,
-                },
-            });
-        }
-        let test = views.iter().step_by(8).cloned().collect();
-        let train = views
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| i % 8 != 0)
-            .map(|(_, v)| v.clone())
-            .collect();
-        Dataset {
-            train,
-            test,
-            points: Vec::new(),
-            colours: Vec::new(),
-            extent: 4.4,
-        }
+    /// Trains `init` on `data` with `backend` and `cfg`'s default strategy.
+    fn train_cpu(
+        backend: &mut CpuBackend,
+        data: &Dataset,
+        init: Gaussians,
+        cfg: &TrainConfig,
+    ) -> TrainOutcome {
+        let mut strategy = default_strategy(cfg);
+        train(backend, data, init, cfg, &mut strategy, &NoProgress).expect("train")
     }
 
     #[test]
@@ -412,9 +362,7 @@ mod tests {
         }
         .scaled_to(300);
         let mut backend = CpuBackend::new([0.0; 3]);
-        let mut strategy = default_strategy(&cfg);
-        let out =
-            train(&mut backend, &data, init, &cfg, &mut strategy, &NoProgress).expect("train");
+        let out = train_cpu(&mut backend, &data, init, &cfg);
         let first = out.losses.first().expect("loss").loss;
         let last = out.losses.last().expect("loss").loss;
         assert!(last < 0.5 * first, "loss {first} -> {last}");
@@ -425,41 +373,6 @@ mod tests {
             out.baseline_psnr
         );
         assert_eq!(out.eval.views.len(), 2);
-    }
-
-    /// Gives every photo of `data` its own exposure: per channel a gain in [0.7, 1.3] and an
-    /// offset in [−0.05, 0.05], rounded back to 8 bits. Returns the (gain, offset) per view,
-    /// in [`Dataset::all_views`] order.
-    fn jitter_exposures(data: &mut Dataset, seed: u64) -> Vec<([f64; 3], [f64; 3])> {
-        let mut rng = SplitMix64::new(seed);
-        let mut truth = Vec::new();
-        for v in data.train.iter_mut().chain(data.test.iter_mut()) {
-            let gain = [0, 1, 2].map(|_| 0.7 + 0.6 * rng.uniform());
-            let offset = [0, 1, 2].map(|_| 0.1 * (rng.uniform() - 0.5));
-            let rgb = v.image.to_rgb_f32();
-            v.image.pixels = rgb
-                .iter()
-                .map(|p| {
-                    let c: [u8; 3] = std::array::from_fn(|k| {
-                        let x = gain[k] * f64::from(p[k]) + offset[k];
-                        (x.clamp(0.0, 1.0) * 255.0).round() as u8
-                    });
-                    pack([c[0], c[1], c[2], 255])
-                })
-                .collect();
-            truth.push((gain, offset));
-        }
-        truth
-    }
-
-    /// Pearson correlation of two equally long series.
-    fn correlation(a: &[f64], b: &[f64]) -> f64 {
-        let n = a.len() as f64;
-        let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
-        let cov: f64 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
-        let va: f64 = a.iter().map(|x| (x - ma).powi(2)).sum();
-        let vb: f64 = b.iter().map(|y| (y - mb).powi(2)).sum();
-        cov / (va * vb).sqrt().max(1e-300)
     }
 
     /// Photos with known per-image exposures: with compensation on, the learned gains follow
@@ -478,57 +391,14 @@ mod tests {
             }
             .scaled_to(300);
             let mut backend = CpuBackend::new([0.0; 3]);
-            let mut strategy = default_strategy(&cfg);
-            train(
-                &mut backend,
-                &data,
-                init.clone(),
-                &cfg,
-                &mut strategy,
-                &NoProgress,
-            )
-            .expect("train")
+            train_cpu(&mut backend, &data, init.clone(), &cfg)
         };
         let off = run(false);
         let on = run(true);
         assert_eq!(off.eval.region, EvalRegion::Full);
         assert!(off.exposures.is_empty());
-        assert_eq!(on.eval.region, EvalRegion::RightHalf);
         assert_eq!(on.exposures.len(), 16);
-        // The uncompensated model on the same right halves.
-        let off_right: Vec<f32> = off
-            .renders
-            .iter()
-            .zip(&data.test)
-            .map(|((name, img, _, _), v)| {
-                ViewMetrics::measure_region(name, img, &v.image, EvalRegion::RightHalf)
-                    .expect("sizes")
-                    .psnr
-            })
-            .collect();
-        let off_right = off_right.iter().sum::<f32>() / off_right.len() as f32;
-        eprintln!(
-            "held-out right halves: {:.2} dB with exposure compensation, {off_right:.2} dB without (baseline {:.2} dB)",
-            on.eval.psnr, on.baseline_psnr
-        );
-        assert!(
-            on.eval.psnr > off_right + 3.0,
-            "right halves: {} dB compensated vs {off_right} dB",
-            on.eval.psnr
-        );
-        // The learned gains follow the true ones (up to the colour scale the model itself
-        // absorbs): per channel, across all 16 photos.
-        for c in 0..3 {
-            let learned: Vec<f64> = on
-                .exposures
-                .iter()
-                .map(|(_, e)| f64::from(e[4 * c + c]))
-                .collect();
-            let true_gain: Vec<f64> = exposures.iter().map(|(g, _)| g[c]).collect();
-            let r = correlation(&learned, &true_gain);
-            eprintln!("channel {c}: learned vs true gain correlation {r:.3}");
-            assert!(r > 0.8, "channel {c}: correlation {r}");
-        }
+        check_learned_exposures(&off, &on, &data, &exposures);
     }
 
     /// A configuration with the 2-D Mip filter reaches the backend: the held-out renders of the
@@ -545,16 +415,7 @@ mod tests {
         }
         .scaled_to(20);
         let mut backend = CpuBackend::new([0.0; 3]);
-        let mut strategy = default_strategy(&cfg);
-        let out = train(
-            &mut backend,
-            &data,
-            truth.clone(),
-            &cfg,
-            &mut strategy,
-            &NoProgress,
-        )
-        .expect("train");
+        let out = train_cpu(&mut backend, &data, truth.clone(), &cfg);
         assert_eq!(out.renders.len(), data.test.len());
         for ((_, img, _, _), view) in out.renders.iter().zip(&data.test) {
             let on = RenderOptions { antialias: true };
@@ -638,16 +499,7 @@ mod tests {
                         .collect(),
                 })
                 .expect("targets");
-            let mut strategy = default_strategy(&cfg);
-            let out = train(
-                &mut backend,
-                &data,
-                init.clone(),
-                &cfg,
-                &mut strategy,
-                &NoProgress,
-            )
-            .expect("train");
+            let out = train_cpu(&mut backend, &data, init.clone(), &cfg);
             let mut err = 0.0;
             for v in &data.test {
                 let d = backend.render_depth(&v.camera).expect("depth");
@@ -697,16 +549,7 @@ mod tests {
             backend
                 .set_semantic(&anchors, &cfg.semantic)
                 .expect("semantic");
-            let mut strategy = default_strategy(&cfg);
-            train(
-                &mut backend,
-                &data,
-                init.clone(),
-                &cfg,
-                &mut strategy,
-                &NoProgress,
-            )
-            .expect("train")
+            train_cpu(&mut backend, &data, init.clone(), &cfg)
         };
         let vanilla = run(SemanticConfig::default());
         // A strong weight (far above the paper's 0.02) so the pull is plain to see in 300 steps;

@@ -2,22 +2,19 @@
 //! known per-photo exposures (docs/splatting.md "Exposure").
 
 use crate::common;
+use crate::test_scenes::{
+    check_learned_exposures, grey_blobs, jitter_exposures, random_scene, ring_dataset,
+};
 
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
-use sylva::rng::SplitMix64;
 use sylva::splat::backend::Backend;
-use sylva::splat::camera::Camera;
-use sylva::splat::cameras::View;
 use sylva::splat::config::TrainConfig;
 use sylva::splat::cpu::exposure as cpu_exposure;
-use sylva::splat::dataset::Dataset;
-use sylva::splat::eval::{EvalRegion, ViewMetrics};
 use sylva::splat::exposure::{EXPOSURE_FLOATS, ExposureSlot, ExposureState};
 use sylva::splat::gpu::buffers::{read_buffer, storage_from, storage_zeroed};
 use sylva::splat::gpu::exposure::{ExposureScratch, GpuExposure};
 use sylva::splat::gpu::{GpuBackend, GpuContext};
-use sylva::splat::model::{Gaussian, Gaussians};
 use sylva::splat::packed_image::{PackedImage, pack};
 
 /// `n` transforms away from the identity: gains 0.7–1.3, cross terms and offsets ±0.05.
@@ -185,105 +182,16 @@ fn exposure_adam_matches_the_cpu_twin() {
     assert!(rel < 1e-5, "second moments: rel {rel}");
 }
 
-/// The scene of the CPU trainer's tests (`random_scene(7, 30, 0)` of
-/// `src/splat/cpu/test_scenes.rs`, drawn the same way): 30 anisotropic, rotated Gaussians.
-fn ring_scene() -> Gaussians {
-    let draw = common::Draw {
-        dc: 0.9,
-        rest: 0.25,
-        mean: [1.2, 0.8, 0.8],
-        log_scale: (-2.3, -0.9),
-        opacity: (-1.0, 2.0),
-    };
-    common::random_gaussians(7, 30, 0, &draw)
-}
-
-/// The CPU trainer test's photos (`exposure_compensation_learns_the_photos_exposures` in
-/// `src/splat/trainer.rs`): 16 views on a ring around `truth` (rendered by the CPU reference,
-/// 40×32), every 8th held out, and every photo with its own gain in [0.7, 1.3] and offset in
-/// [−0.05, 0.05] per channel. Returns the true gains in [`Dataset::all_views`] order.
-fn jittered_ring(truth: &Gaussians) -> (Dataset, Vec<[f64; 3]>) {
-    let mut views = Vec::new();
-    for k in 0..16 {
-        let a = k as f32 / 16.0 * std::f32::consts::TAU;
-        let cam = Camera::look_at(
-            [4.0 * a.sin(), -4.0 * a.cos(), 0.6],
-            [0.0, 0.0, 0.0],
-            [0.0, 0.0, 1.0],
-            40,
-            32,
-            36.0,
-        );
-        let img = sylva::splat::cpu::render(truth, &cam, [0.0; 3])
-            .expect("render")
-            .image;
-        let pixels = img
-            .iter()
-            .map(|p| {
-                let c = p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
-                pack([c[0], c[1], c[2], 255])
-            })
-            .collect();
-        views.push(View {
-            name: format!("view_{k:02}.png"),
-            camera: cam,
-            image: PackedImage {
-                width: 40,
-                height: 32,
-                pixels,
-            },
-        });
-    }
-    let test: Vec<View> = views.iter().step_by(8).cloned().collect();
-    let train: Vec<View> = (0..16)
-        .filter(|k| k % 8 != 0)
-        .map(|k| views[k].clone())
-        .collect();
-    let mut data = Dataset {
-        train,
-        test,
-        points: Vec::new(),
-        colours: Vec::new(),
-        extent: 4.4,
-    };
-    let mut rng = SplitMix64::new(5);
-    let mut gains = Vec::new();
-    for v in data.train.iter_mut().chain(data.test.iter_mut()) {
-        let gain = [0, 1, 2].map(|_| 0.7 + 0.6 * rng.uniform());
-        let offset = [0, 1, 2].map(|_| 0.1 * (rng.uniform() - 0.5));
-        let rgb = v.image.to_rgb_f32();
-        v.image.pixels = rgb
-            .iter()
-            .map(|p| {
-                let c: [u8; 3] = std::array::from_fn(|k| {
-                    let x = gain[k] * f64::from(p[k]) + offset[k];
-                    (x.clamp(0.0, 1.0) * 255.0).round() as u8
-                });
-                pack([c[0], c[1], c[2], 255])
-            })
-            .collect();
-        gains.push(gain);
-    }
-    (data, gains)
-}
-
 /// The GPU trainer on the CPU trainer test's photos with known exposures, held to the same
 /// bounds: compensated, the held-out right halves are far better rendered than without, and
 /// the learned gains follow the true ones.
 #[test]
 fn gpu_training_learns_the_photos_exposures() {
     let Some(ctx) = common::context() else { return };
-    let truth = ring_scene();
-    let (data, gains) = jittered_ring(&truth);
-    let mut init = Gaussians::default();
-    for m in &truth.means {
-        init.push(Gaussian::isotropic(
-            [m[0] + 0.1, m[1] - 0.1, m[2] + 0.05],
-            0.15,
-            [0.5; 3],
-            0.3,
-        ));
-    }
+    let truth = random_scene(7, 30, 0);
+    let mut data = ring_dataset(&truth, 16);
+    let exposures = jitter_exposures(&mut data, 5);
+    let init = grey_blobs(&truth);
     let run = |ctx: &GpuContext, exposure: bool| {
         let cfg = TrainConfig {
             steps: 300,
@@ -310,50 +218,5 @@ fn gpu_training_learns_the_photos_exposures() {
     };
     let off = run(&ctx, false);
     let on = run(&ctx, true);
-    assert_eq!(on.eval.region, EvalRegion::RightHalf);
-    let off_right = off
-        .renders
-        .iter()
-        .zip(&data.test)
-        .map(|((name, img, _, _), v)| {
-            ViewMetrics::measure_region(name, img, &v.image, EvalRegion::RightHalf)
-                .expect("sizes")
-                .psnr
-        })
-        .sum::<f32>()
-        / data.test.len() as f32;
-    eprintln!(
-        "held-out right halves: {:.2} dB with exposure compensation, {off_right:.2} dB without",
-        on.eval.psnr
-    );
-    let r: Vec<f64> = (0..3)
-        .map(|c| {
-            let learned: Vec<f64> = on
-                .exposures
-                .iter()
-                .map(|(_, e)| f64::from(e[4 * c + c]))
-                .collect();
-            let want: Vec<f64> = gains.iter().map(|g| g[c]).collect();
-            correlation(&learned, &want)
-        })
-        .collect();
-    eprintln!("learned vs true gain correlation per channel: {r:.3?}");
-    assert!(
-        on.eval.psnr > off_right + 3.0,
-        "right halves: {} dB compensated vs {off_right} dB",
-        on.eval.psnr
-    );
-    for (c, r) in r.iter().enumerate() {
-        assert!(*r > 0.8, "channel {c}: correlation {r}");
-    }
-}
-
-/// Pearson correlation of two equally long series.
-fn correlation(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len() as f64;
-    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
-    let cov: f64 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
-    let va: f64 = a.iter().map(|x| (x - ma).powi(2)).sum();
-    let vb: f64 = b.iter().map(|y| (y - mb).powi(2)).sum();
-    cov / (va * vb).sqrt().max(1e-300)
+    check_learned_exposures(&off, &on, &data, &exposures);
 }

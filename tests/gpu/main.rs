@@ -13,4 +13,11 @@ mod forward;
 mod mcmc;
 mod semantic;
 mod sort_scan;
+// The scenes and photo sets of the library's CPU tests, the same file (it names the library
+// `crate::splat` and `crate::rng`, hence the imports below).
+#[allow(dead_code)]
+#[path = "../../src/splat/cpu/test_scenes.rs"]
+mod test_scenes;
 mod timing;
+
+use sylva::{rng, splat};

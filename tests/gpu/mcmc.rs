@@ -1,4 +1,4 @@
-//! The MCMC strategy's per-step kernels (`mcmc_regularise.wgsl`, `mcmc_noise.wgsl`) against
+//! The MCMC strategy's per-step kernels (`mcmc.wgsl`: `regularise`, `noise`) against
 //! their CPU twins (`mcmc::regularise_grads`, `mcmc::add_noise`), in one binding and in many
 //! chunks (the noise hashes the model-wide index, so chunking must not change it).
 

@@ -216,20 +216,23 @@ fn target_weights_keep_a_surface_seen_differently_from_biasing_the_fit() {
         min_distance: 0.1,
         ..IcpParams::default()
     };
-    let run = |target_w: Option<&[f32]>| {
+    let fit = |w: IcpWeights<'_>| {
         icp_weighted(
             &source,
             &target,
             &index,
             Some(&normals.normals),
-            IcpWeights {
-                source: None,
-                target: target_w,
-            },
+            w,
             &Similarity::IDENTITY,
             &params,
             &NoProgress,
         )
+    };
+    let run = |target_w: Option<&[f32]>| {
+        fit(IcpWeights {
+            source: None,
+            target: target_w,
+        })
         .unwrap()
     };
     let plain = run(None);
@@ -241,37 +244,16 @@ fn target_weights_keep_a_surface_seen_differently_from_biasing_the_fit() {
     assert_close(&run(Some(&prior)), &t, "weighted point-to-plane");
     // Weights outside [0, 1] or of the wrong length are refused.
     let bad = vec![2.0f32; target.len()];
-    let w = IcpWeights {
+    let r = fit(IcpWeights {
         source: None,
         target: Some(&bad),
-    };
-    let id = Similarity::IDENTITY;
-    let r = icp_weighted(
-        &source,
-        &target,
-        &index,
-        Some(&normals.normals),
-        w,
-        &id,
-        &params,
-        &NoProgress,
-    );
+    });
     assert!(matches!(r, Err(GeomError::InvalidParameter(_))));
     let short = [1.0f32; 3];
-    let w = IcpWeights {
+    let r = fit(IcpWeights {
         source: Some(&short),
         target: None,
-    };
-    let r = icp_weighted(
-        &source,
-        &target,
-        &index,
-        Some(&normals.normals),
-        w,
-        &id,
-        &params,
-        &NoProgress,
-    );
+    });
     assert!(matches!(r, Err(GeomError::LengthMismatch { .. })));
 }
 

@@ -62,22 +62,36 @@ pub fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 /// Rotation matrix of a unit quaternion (w, x, y, z).
 pub fn quat_to_mat(q: [f64; 4]) -> Mat3 {
-    let [w, x, y, z] = q;
+    quat_rows(q)
+}
+
+/// Rotation matrix (row-major) of the unit quaternion (w, x, y, z) in the quaternion's own
+/// float type: the one formula behind [`quat_to_mat`], COLMAP's `qvec` rotation
+/// (`cameras::rotation_from_qvec`) and the f32 densification's `strategy::quat_to_matrix`.
+pub fn quat_rows<T>([w, x, y, z]: [T; 4]) -> [[T; 3]; 3]
+where
+    T: Copy
+        + From<f32>
+        + std::ops::Add<Output = T>
+        + std::ops::Sub<Output = T>
+        + std::ops::Mul<Output = T>,
+{
+    let (one, two) = (T::from(1.0), T::from(2.0));
     [
         [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
+            one - two * (y * y + z * z),
+            two * (x * y - w * z),
+            two * (x * z + w * y),
         ],
         [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
+            two * (x * y + w * z),
+            one - two * (x * x + z * z),
+            two * (y * z - w * x),
         ],
         [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
+            two * (x * z - w * y),
+            two * (y * z + w * x),
+            one - two * (x * x + y * y),
         ],
     ]
 }

@@ -5,7 +5,9 @@
 
 use crate::splat::model::SH_FLOATS;
 
-use crate::splat::gpu::buffers::{chunked_from, chunked_zeroed, read_buffer, uniform_from};
+use crate::splat::gpu::buffers::{
+    chunked_from, chunked_zeroed, read_buffer, uniform_from, wgsl_struct,
+};
 use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch_group, groups_for};
@@ -32,21 +34,22 @@ pub struct AdamRates {
     pub sh_rest: f32,
 }
 
-#[repr(C)]
-#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct AdamParams {
-    n_floats: u32,
-    stride: u32,
-    n_first: u32,
-    _pad: u32,
-    lr_first: f32,
-    lr_rest: f32,
-    bc1: f32,
-    bc2: f32,
-    beta1: f32,
-    beta2: f32,
-    eps: f32,
-    _pad2: f32,
+wgsl_struct! {
+    /// The uniform of `adam.wgsl`.
+    struct AdamParams {
+        n_floats: u32,
+        stride: u32,
+        n_first: u32,
+        _pad: u32,
+        lr_first: f32,
+        lr_rest: f32,
+        bc1: f32,
+        bc2: f32,
+        beta1: f32,
+        beta2: f32,
+        eps: f32,
+        _pad2: f32,
+    }
 }
 
 /// Bias corrections (1 − β1^t, 1 − β2^t) at 1-based step `t`, computed in f64.
@@ -109,12 +112,12 @@ pub fn adam_cpu_eps(
 /// The Adam pipeline of `adam.wgsl`, for flat buffers outside the model
 /// ([`encode_adam_flat`]).
 pub fn adam_pipeline(ctx: &GpuContext) -> wgpu::ComputePipeline {
-    crate::splat::gpu::buffers::pipeline(
-        ctx,
-        "adam",
-        include_str!("../../../shaders/adam.wgsl"),
-        "main",
-    )
+    let src = format!(
+        "{}\n{}",
+        AdamParams::wgsl(),
+        include_str!("../../../shaders/adam.wgsl")
+    );
+    crate::splat::gpu::buffers::pipeline(ctx, "adam", &src, "main")
 }
 
 /// Records one Adam step of the first `n_floats` floats of `param` (one rate `lr`, gradient

@@ -28,6 +28,15 @@ use crate::splat::model::SH_FLOATS;
 /// Floats per Gaussian of the widest per-Gaussian buffer (the SH block, its gradient and moments).
 pub const WIDEST_FLOATS: u64 = SH_FLOATS as u64;
 
+/// The bytes one chunk or slot binding may hold ([`GpuContext::chunk_binding_bytes`]), the
+/// alignment unit in Gaussians (whatever a buffer's floats per Gaussian, every offset a multiple
+/// of it is aligned), and how many whole units of Gaussians of `bytes_each` fit one binding.
+fn per_binding(ctx: &GpuContext, bytes_each: u64) -> (u64, u64, u64) {
+    let cap = ctx.chunk_binding_bytes();
+    let unit = (ctx.offset_alignment / 4).max(1);
+    (cap, unit, (cap / bytes_each) / unit * unit)
+}
+
 /// How `count` Gaussians split into chunks of `per_chunk` (the last one possibly shorter).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ChunkPlan {
@@ -47,9 +56,7 @@ pub struct Chunk {
 impl ChunkPlan {
     /// Plans chunks of `count` Gaussians under [`GpuContext::chunk_binding_bytes`].
     pub fn new(ctx: &GpuContext, count: u32) -> Result<Self, GpuError> {
-        let cap = ctx.chunk_binding_bytes();
-        let unit = (ctx.offset_alignment / 4).max(1);
-        let per = (cap / (WIDEST_FLOATS * 4)) / unit * unit;
+        let (cap, unit, per) = per_binding(ctx, WIDEST_FLOATS * 4);
         if per == 0 {
             return Err(GpuError::BufferTooLarge {
                 what: "one aligned chunk of per-Gaussian SH coefficients",
@@ -108,20 +115,12 @@ pub fn bind_ranges(
     pipeline: &wgpu::ComputePipeline,
     bindings: &[wgpu::BufferBinding],
 ) -> wgpu::BindGroup {
-    let layout = pipeline.get_bind_group_layout(0);
-    let entries: Vec<wgpu::BindGroupEntry> = bindings
+    let indexed: Vec<(u32, wgpu::BufferBinding)> = bindings
         .iter()
         .enumerate()
-        .map(|(i, b)| wgpu::BindGroupEntry {
-            binding: i as u32,
-            resource: wgpu::BindingResource::Buffer(b.clone()),
-        })
+        .map(|(i, b)| (i as u32, b.clone()))
         .collect();
-    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: None,
-        layout: &layout,
-        entries: &entries,
-    })
+    bind_entries(ctx, pipeline, &indexed)
 }
 
 /// Storage bindings through which the rasterisers reach the projected records, and as many for
@@ -146,9 +145,7 @@ impl SlotPlan {
     /// Plans slots of `count` Gaussians under [`GpuContext::chunk_binding_bytes`]; fails with
     /// [`GpuError::BufferTooLarge`] when [`SLOTS`] bindings cannot hold the projected records.
     pub fn new(ctx: &GpuContext, count: u32) -> Result<Self, GpuError> {
-        let cap = ctx.chunk_binding_bytes();
-        let unit = (ctx.offset_alignment / 4).max(1);
-        let per = (cap / SLOT_BYTES) / unit * unit;
+        let (_, _, per) = per_binding(ctx, SLOT_BYTES);
         if per == 0 || count as u64 > per * SLOTS as u64 {
             return Err(GpuError::BufferTooLarge {
                 what: "projected Gaussians (48 bytes each, read at random through 4 bindings)",

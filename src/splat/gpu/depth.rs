@@ -2,18 +2,23 @@
 //! [`crate::splat::depth::loss_and_grad`] written into the frame's depth gradient before the
 //! backward pass. The LiDAR maps are uploaded once per view and stay on the GPU; no read-back.
 
-use crate::splat::gpu::buffers::{pipeline, uniform_from};
+use crate::splat::gpu::buffers::{pipeline, uniform_from, wgsl_struct};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::frame::Frame;
 use crate::splat::gpu::project::{dispatch, groups_for};
 
-#[repr(C)]
-#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct DepthParams {
-    pixels: u32,
-    _p: [u32; 3],
-    coef: f32,
-    _f: [f32; 3],
+wgsl_struct! {
+    /// The uniform of `depth_loss.wgsl`.
+    struct DepthParams {
+        pixels: u32,
+        _p0: u32,
+        _p1: u32,
+        _p2: u32,
+        coef: f32,
+        _f0: f32,
+        _f1: f32,
+        _f2: f32,
+    }
 }
 
 /// The depth-loss pipeline.
@@ -28,7 +33,11 @@ impl DepthLoss {
             pipeline: pipeline(
                 ctx,
                 "depth loss",
-                include_str!("../../../shaders/depth_loss.wgsl"),
+                &format!(
+                    "{}\n{}",
+                    DepthParams::wgsl(),
+                    include_str!("../../../shaders/depth_loss.wgsl")
+                ),
                 "main",
             ),
         }
@@ -60,13 +69,17 @@ impl DepthLoss {
             "depth params",
             &DepthParams {
                 pixels,
-                _p: [0; 3],
+                _p0: 0,
+                _p1: 0,
+                _p2: 0,
                 coef: if valid > 0 {
                     weight / valid as f32
                 } else {
                     0.0
                 },
-                _f: [0.0; 3],
+                _f0: 0.0,
+                _f1: 0.0,
+                _f2: 0.0,
             },
         );
         dispatch(

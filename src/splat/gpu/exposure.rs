@@ -13,24 +13,31 @@ use crate::splat::exposure::{EXPOSURE_EPSILON, EXPOSURE_FLOATS, ExposureSlot, Ex
 use crate::splat::gpu::adam::{adam_pipeline, encode_adam_flat};
 use crate::splat::gpu::buffers::{
     bind_indexed, grid, pipeline, read_buffer, storage_from, storage_zeroed, uniform_from,
+    wgsl_struct,
 };
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::dispatch_group;
 
-const SHADER: &str = include_str!("../../../shaders/exposure.wgsl");
 /// Threads per workgroup of the per-pixel passes (one pixel each).
 const GROUP: u32 = 256;
 
-#[repr(C)]
-#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    width: u32,
-    height: u32,
-    index: u32,
-    left_half: u32,
-    n_partials: u32,
-    n_images: u32,
-    _pad: [u32; 2],
+wgsl_struct! {
+    /// The uniform of `exposure.wgsl`.
+    struct Params {
+        width: u32,
+        height: u32,
+        /// The image whose transform applies.
+        index: u32,
+        /// 1 on a held-out view's training step: pixels with x ≥ width / 2 take the photo and
+        /// give no gradient.
+        left_half: u32,
+        /// Workgroups of `backward` (12-float partial sums).
+        n_partials: u32,
+        /// Images (the gradient buffer holds 12 floats per image).
+        n_images: u32,
+        _pad0: u32,
+        _pad1: u32,
+    }
 }
 
 /// The per-step buffers of one image size: the exposed render, dL/d(exposed render) and the
@@ -96,10 +103,15 @@ impl GpuExposure {
         }
         let count = u32::try_from(n)
             .map_err(|_| GpuError::Invalid(format!("{n} exposures are too many")))?;
+        let shader = format!(
+            "{}\n{}",
+            Params::wgsl(),
+            include_str!("../../../shaders/exposure.wgsl")
+        );
         Ok(GpuExposure {
-            apply: pipeline(ctx, "exposure apply", SHADER, "apply"),
-            backward: pipeline(ctx, "exposure backward", SHADER, "backward"),
-            reduce: pipeline(ctx, "exposure reduce", SHADER, "reduce"),
+            apply: pipeline(ctx, "exposure apply", &shader, "apply"),
+            backward: pipeline(ctx, "exposure backward", &shader, "backward"),
+            reduce: pipeline(ctx, "exposure reduce", &shader, "reduce"),
             adam: adam_pipeline(ctx),
             count,
             params: storage_from(ctx, "exposures", state.params.as_flattened())?,
@@ -149,7 +161,8 @@ impl GpuExposure {
                 left_half: u32::from(slot.left_half),
                 n_partials: pixels.div_ceil(u64::from(GROUP)) as u32,
                 n_images: self.count,
-                _pad: [0; 2],
+                _pad0: 0,
+                _pad1: 0,
             },
         )
     }

@@ -1,28 +1,31 @@
 //! The MCMC strategy's per-step terms on the GPU ([`crate::splat::mcmc`]): the regularisers'
-//! gradients (`mcmc_regularise.wgsl`, after the backward passes) and the position noise
-//! (`mcmc_noise.wgsl`, after Adam), one thread per Gaussian of each chunk, no read-back. The CPU
+//! gradients (`mcmc.wgsl`'s `regularise`, after the backward passes) and the position noise
+//! (its `noise`, after Adam), one thread per Gaussian of each chunk, no read-back. The CPU
 //! twins are `mcmc::regularise_grads` and `mcmc::add_noise`.
 
-use crate::splat::gpu::buffers::{chunked_from, pipeline, uniform_from};
-use crate::splat::gpu::chunks::bind_ranges;
+use crate::splat::gpu::buffers::{chunked_from, pipeline, uniform_from, wgsl_struct};
+use crate::splat::gpu::chunks::{Chunk, bind_entries};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch_group, groups_for};
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
 use crate::splat::mcmc::{self, StepTerms};
 
-const COMMON: &str = include_str!("../../../shaders/mcmc_common.wgsl");
-
-#[repr(C)]
-#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct McmcParams {
-    n_total: u32,
-    step: u32,
-    seed: u32,
-    _p0: u32,
-    opacity_coef: f32,
-    scale_coef: f32,
-    scaler: f32,
-    _p1: f32,
+wgsl_struct! {
+    /// The uniform of both kernels.
+    struct McmcParams {
+        /// Gaussians in the whole model (the regularisers are means over all of them).
+        n_total: u32,
+        /// Optimiser step (1-based) and seed of the noise.
+        step: u32,
+        seed: u32,
+        _p0: u32,
+        /// λ_o / N and λ_s / (3 N).
+        opacity_coef: f32,
+        scale_coef: f32,
+        /// Position learning rate × noise_lr.
+        scaler: f32,
+        _p1: f32,
+    }
 }
 
 /// The two kernels, the terms and the per-Gaussian flags of the installed model.
@@ -39,24 +42,13 @@ impl GpuMcmc {
     /// Compiles the kernels for `terms` and uploads the flags of the Gaussians with trunk
     /// probabilities `trunk_prob`.
     pub fn new(ctx: &GpuContext, terms: StepTerms, trunk_prob: &[f32]) -> Result<Self, GpuError> {
-        let regularise = pipeline(
-            ctx,
-            "mcmc regularise",
-            &format!(
-                "{COMMON}\n{}",
-                include_str!("../../../shaders/mcmc_regularise.wgsl")
-            ),
-            "main",
+        let src = format!(
+            "{}\n{}",
+            McmcParams::wgsl(),
+            include_str!("../../../shaders/mcmc.wgsl")
         );
-        let noise = pipeline(
-            ctx,
-            "mcmc noise",
-            &format!(
-                "{COMMON}\n{}",
-                include_str!("../../../shaders/mcmc_noise.wgsl")
-            ),
-            "main",
-        );
+        let regularise = pipeline(ctx, "mcmc regularise", &src, "regularise");
+        let noise = pipeline(ctx, "mcmc noise", &src, "noise");
         let mut s = GpuMcmc {
             regularise,
             noise,
@@ -101,6 +93,24 @@ impl GpuMcmc {
         Ok(())
     }
 
+    /// Bindings 0-4 of both kernels for `chunk`: the parameters `u`, the chunk uniform `cu`,
+    /// the chunk's opacity logits, log-scales and flags.
+    fn shared_bindings<'a>(
+        &'a self,
+        u: &'a wgpu::Buffer,
+        cu: &'a wgpu::Buffer,
+        chunk: &Chunk,
+        splats: &'a GpuSplats,
+    ) -> Vec<(u32, wgpu::BufferBinding<'a>)> {
+        vec![
+            (0, u.as_entire_buffer_binding()),
+            (1, cu.as_entire_buffer_binding()),
+            (2, chunk.range(&splats.opacity_logits, 1)),
+            (3, chunk.range(&splats.log_scales, 3)),
+            (4, chunk.range(&self.flags, 1)),
+        ]
+    }
+
     /// Records the regularisers' gradients (before Adam).
     pub fn encode_regularise(
         &self,
@@ -113,19 +123,12 @@ impl GpuMcmc {
         let u = uniform_from(ctx, "mcmc params", &self.params(0, 0.0));
         for chunk in splats.plan.chunks() {
             let cu = chunk.uniform(ctx);
-            let bg = bind_ranges(
-                ctx,
-                &self.regularise,
-                &[
-                    u.as_entire_buffer_binding(),
-                    chunk.range(&splats.opacity_logits, 1),
-                    chunk.range(&splats.log_scales, 3),
-                    chunk.range(&self.flags, 1),
-                    chunk.range(&grads.opacity_logits, 1),
-                    chunk.range(&grads.log_scales, 3),
-                    cu.as_entire_buffer_binding(),
-                ],
-            );
+            let mut b = self.shared_bindings(&u, &cu, &chunk, splats);
+            b.extend([
+                (5, chunk.range(&grads.opacity_logits, 1)),
+                (6, chunk.range(&grads.log_scales, 3)),
+            ]);
+            let bg = bind_entries(ctx, &self.regularise, &b);
             dispatch_group(enc, &self.regularise, &bg, groups_for(chunk.len));
         }
         Ok(())
@@ -145,19 +148,12 @@ impl GpuMcmc {
         let u = uniform_from(ctx, "mcmc params", &self.params(step, lr_position));
         for chunk in splats.plan.chunks() {
             let cu = chunk.uniform(ctx);
-            let bg = bind_ranges(
-                ctx,
-                &self.noise,
-                &[
-                    u.as_entire_buffer_binding(),
-                    chunk.range(&splats.means, 3),
-                    chunk.range(&splats.log_scales, 3),
-                    chunk.range(&splats.rotations, 4),
-                    chunk.range(&splats.opacity_logits, 1),
-                    chunk.range(&self.flags, 1),
-                    cu.as_entire_buffer_binding(),
-                ],
-            );
+            let mut b = self.shared_bindings(&u, &cu, &chunk, splats);
+            b.extend([
+                (7, chunk.range(&splats.means, 3)),
+                (8, chunk.range(&splats.rotations, 4)),
+            ]);
+            let bg = bind_entries(ctx, &self.noise, &b);
             dispatch_group(enc, &self.noise, &bg, groups_for(chunk.len));
         }
         Ok(())

@@ -5,8 +5,8 @@ use crate::splat::gpu::buffers::pipeline;
 use crate::splat::gpu::chunks::{SLOTS, bind_ranges};
 use crate::splat::gpu::context::{AtomicMode, GpuContext};
 use crate::splat::gpu::frame::Frame;
-use crate::splat::gpu::project::{dispatch_group, with_common};
-use crate::splat::gpu::raster_fwd::SLOTS_WGSL;
+use crate::splat::gpu::project::dispatch_group;
+use crate::splat::gpu::raster_fwd::{band_bindings, raster_source};
 
 /// Binding of the first screen-space gradient slot (`raster_bwd.wgsl`).
 const GRADS2D_BINDING: u32 = 11;
@@ -35,12 +35,11 @@ impl RasterBwd {
             })
             .collect::<Vec<_>>()
             .join("\n");
-        let pix = ctx.raster_pixels.clamp(1, 16).next_power_of_two();
-        let src = with_common(&format!(
-            "const PIX: u32 = {pix}u;\nconst THREADS: u32 = {}u;\n{SLOTS_WGSL}\n{atomics}\n{}",
-            256 / pix,
-            include_str!("../../../shaders/raster_bwd.wgsl")
-        ));
+        let src = raster_source(
+            ctx,
+            &format!("{atomics}\n"),
+            include_str!("../../../shaders/raster_bwd.wgsl"),
+        );
         RasterBwd {
             pipeline: pipeline(ctx, "raster_bwd", &src, "main"),
         }
@@ -85,12 +84,8 @@ impl RasterBwd {
             })
             .collect();
         for band in &frame.bands {
-            let mut b = vec![frame.params_buf.as_entire_buffer_binding()];
-            b.extend(frame.slots.bindings(&frame.proj, 12, &frame.dummy));
+            let mut b = band_bindings(frame, band);
             b.extend([
-                band.uniform.as_entire_buffer_binding(),
-                band.values.as_entire_buffer_binding(),
-                frame.ranges.as_entire_buffer_binding(),
                 frame.final_t.as_entire_buffer_binding(),
                 frame.n_contrib.as_entire_buffer_binding(),
                 dl_dimage.as_entire_buffer_binding(),

@@ -9,7 +9,7 @@
 
 use crate::splat::bind::BindConfig;
 use crate::splat::gpu::buffers::{
-    pipeline, read_buffer, storage_from, storage_zeroed, uniform_from,
+    pipeline, read_buffer, storage_from, storage_zeroed, uniform_from, wgsl_struct,
 };
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch, groups_for};
@@ -22,15 +22,12 @@ const SOURCE: &str = include_str!("../../../shaders/semantic.wgsl");
 /// the trunk score q = sigmoid((d_l − d_t)/T) is 1 to f32 precision.
 const LEAF_CUTOFF_TEMPERATURES: f32 = 30.0;
 
-/// The text of one pass: everything before the first `#ifdef`, then the blocks `names` in
-/// order (e.g. `["GRID", "QUERY"]`).
+/// The text of one pass: the uniform [`GeoParams`], everything before the first `#ifdef`, then
+/// the blocks `names` in order (e.g. `["GRID", "QUERY"]`).
 pub fn pass_source(names: &[&str]) -> Result<String, GpuError> {
     // Directives stand at the start of a line (comments may mention them).
-    let mut text = SOURCE
-        .split("\n#ifdef ")
-        .next()
-        .unwrap_or_default()
-        .to_string();
+    let mut text = GeoParams::wgsl();
+    text.push_str(SOURCE.split("\n#ifdef ").next().unwrap_or_default());
     for name in names {
         let marker = format!("\n#ifdef {name}\n");
         let start = SOURCE
@@ -46,33 +43,39 @@ pub fn pass_source(names: &[&str]) -> Result<String, GpuError> {
     Ok(text)
 }
 
-#[repr(C)]
-#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct GeoParams {
-    n: u32,
-    k: u32,
-    leaf_cell_base: u32,
-    n_leaf: u32,
-    t_origin: [f32; 3],
-    t_cell: f32,
-    t_dims: [u32; 3],
-    _p0: u32,
-    l_origin: [f32; 3],
-    l_cell: f32,
-    l_dims: [u32; 3],
-    _p1: u32,
-    temperature: f32,
-    beta: f32,
-    eps: f32,
-    threshold: f32,
-    inv_npos2: f32,
-    gamma: f32,
-    leaf_cutoff: f32,
-    _p2: f32,
-    bind_band: f32,
-    bind_log_scale: f32,
-    bind_min_prob: f32,
-    _p3: f32,
+wgsl_struct! {
+    /// The uniform of every pass of `semantic.wgsl`.
+    struct GeoParams {
+        n: u32,
+        k: u32,
+        /// Index of the leaf grid's first cell in `starts`.
+        leaf_cell_base: u32,
+        n_leaf: u32,
+        t_origin: [f32; 3],
+        t_cell: f32,
+        t_dims: [u32; 3],
+        _p0: u32,
+        l_origin: [f32; 3],
+        l_cell: f32,
+        l_dims: [u32; 3],
+        _p1: u32,
+        temperature: f32,
+        beta: f32,
+        eps: f32,
+        threshold: f32,
+        inv_npos2: f32,
+        gamma: f32,
+        /// The leaf search stops once rings reach d_t + this (q saturates).
+        leaf_cutoff: f32,
+        _p2: f32,
+        /// Largest |offset| along the normal, metres.
+        bind_band: f32,
+        /// Cap of the z log-scale.
+        bind_log_scale: f32,
+        /// Gaussians with P at or above this are bound.
+        bind_min_prob: f32,
+        _p3: f32,
+    }
 }
 
 /// The anchors, their grids and the per-model scratch of L_geo on the GPU.

@@ -1,5 +1,6 @@
 //! Pipelines, scratch buffers and command encoding of the fused loss.
 
+use crate::gpu::buffers::wgsl_struct;
 use crate::splat::gpu::loss::{LossError, shader_header};
 use std::sync::Mutex;
 use wgpu::util::DeviceExt;
@@ -33,13 +34,15 @@ const PASSES: [(&str, &str); 5] = [
 /// Workgroup edge of the per-pixel passes.
 const TILE: u32 = 16;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    width: u32,
-    height: u32,
-    n_partials: u32,
-    pad: u32,
+wgsl_struct! {
+    /// The uniform of every pass (`common.wgsl`).
+    struct Params {
+        width: u32,
+        height: u32,
+        /// Number of (l1, ssim) partial-sum pairs written by the SSIM pass.
+        n_partials: u32,
+        _pad: u32,
+    }
 }
 
 /// Intermediate buffers for one image size.
@@ -64,7 +67,7 @@ impl LossKernel {
         let pipelines = PASSES
             .iter()
             .map(|(label, body)| {
-                let source = format!("{header}\n{COMMON}\n{body}");
+                let source = format!("{header}\n{}\n{COMMON}\n{body}", Params::wgsl());
                 let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
                     label: Some(label),
                     source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -145,7 +148,7 @@ impl LossKernel {
                 width,
                 height,
                 n_partials,
-                pad: 0,
+                _pad: 0,
             }),
             usage: wgpu::BufferUsages::UNIFORM,
         });
