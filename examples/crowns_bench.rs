@@ -4,7 +4,7 @@
 //!
 //! `cargo run --profile test --example crowns_bench -- [SEEDS] [voxel_m,k,max_edge_m,edge_power ...]`
 //! (SEEDS `5` for 1-5 or a range `6-10`; default 1-5 with the default parameters, then each
-//! setting given).
+//! setting given). With `CROWNS_BENCH_TREES` set, every tree's figures go to stderr.
 
 use std::time::Instant;
 
@@ -58,6 +58,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let Some(truth) = truth else { continue };
                 let crown_truth = 2.0 * (truth.crown_area_m2 / std::f64::consts::PI).sqrt();
                 sq += (tree.height_m - truth.height_m).powi(2);
+                if std::env::var_os("CROWNS_BENCH_TREES").is_some() {
+                    eprintln!(
+                        "seed {seed} stem {}: height {:.2} (truth {:.2}), crown {:.2} (truth \
+                         {crown_truth:.2}), {} points",
+                        stem.id, tree.height_m, truth.height_m, tree.crown_diameter_m, tree.points
+                    );
+                }
                 let e = tree.crown_diameter_m / crown_truth - 1.0;
                 rel += e.abs();
                 worst = worst.max(e.abs());

@@ -14,6 +14,7 @@ pub const CAPABILITIES: &[&str] = &[
     "postgres",
     "s3",
     "schemathesis",
+    "gdal",
     "real-data",
     "pypi",
     "colmap",

@@ -327,3 +327,111 @@ fn demo_runs_a_generated_plot_through_the_api_and_prints_the_inventory() {
     assert!(dir.path().join("demo-plot/truth.json").is_file());
     assert!(dir.path().join("sylva.db").is_file());
 }
+
+/// `sylva inventory` on a generated plot with `--crs`, `--summary`, `--geojson` and
+/// `--gpkg`: the stand figures printed and written, and a GeoPackage that GDAL's own reader
+/// (pyogrio, PyPI's GDAL bindings, in the test venv) opens: stems as points and crowns as
+/// polygons in the given CRS, one of each per tree, with the CSV's columns.
+#[test]
+fn inventory_prints_the_plot_and_writes_a_geopackage_gdal_reads() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let plot = synth_plot(dir.path(), 3);
+    let out = dir.path().join("trees.csv");
+    let gpkg = dir.path().join("trees.gpkg");
+    let output = Command::new(BIN)
+        .args(["inventory", "--crs", "EPSG:32633", "--summary", "--out"])
+        .arg(&out)
+        .arg("--gpkg")
+        .arg(&gpkg)
+        .arg("--geojson")
+        .arg(dir.path().join("trees.geojson"))
+        .arg(plot.join("lidar.laz"))
+        .output()
+        .expect("inventory");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(
+        stdout.contains("stems/ha") && stdout.contains("Chave"),
+        "{stdout}"
+    );
+    let summary = read_json(&dir.path().join("trees.plot.json"));
+    let rows = std::fs::read_to_string(&out).expect("csv").lines().count() - 1;
+    assert!(rows > 0);
+    assert_eq!(summary["stems"].as_u64(), Some(rows as u64), "{summary}");
+    assert_eq!(summary["dbh_source"], "lidar");
+    assert!(
+        summary["area_m2"].as_f64().unwrap_or(0.0) > 100.0,
+        "{summary}"
+    );
+    assert_eq!(
+        read_json(&dir.path().join("trees.crs.json"))["label"],
+        "EPSG:32633"
+    );
+
+    let python = match test_tool("SYLVA_TEST_PYTHON_GDAL", "python3") {
+        Ok(p)
+            if Command::new(&p)
+                .args(["-c", "import pyogrio"])
+                .status()
+                .is_ok_and(|s| s.success()) =>
+        {
+            p
+        }
+        _ => {
+            sylva::testing::skip(
+                "gdal",
+                "pyogrio (GDAL's reader, from PyPI) is not in target/test-venv; scripts/test installs it",
+            );
+            return;
+        }
+    };
+    let script = r#"
+import json, sys, pyogrio
+out = {}
+for layer in ("trees", "crowns"):
+    info = pyogrio.read_info(sys.argv[1], layer=layer)
+    out[layer] = {"crs": info["crs"], "features": int(info["features"]),
+                  "geometry": info["geometry_type"], "fields": list(info["fields"])}
+print(json.dumps(out))
+"#;
+    let run = Command::new(&python)
+        .args(["-c", script])
+        .arg(&gpkg)
+        .output()
+        .expect("python");
+    let text = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let info: serde_json::Value = serde_json::from_str(text.trim()).expect("json");
+    assert_eq!(info["trees"]["crs"], "EPSG:32633", "{info}");
+    assert_eq!(info["trees"]["geometry"], "Point", "{info}");
+    assert_eq!(
+        info["trees"]["features"].as_u64(),
+        Some(rows as u64),
+        "{info}"
+    );
+    let fields = info["trees"]["fields"].as_array().expect("fields");
+    for f in [
+        "tree_id",
+        "dbh_lidar_cm",
+        "height_m",
+        "crown_diameter_m",
+        "agb_kg",
+    ] {
+        assert!(fields.iter().any(|x| x == f), "{f}: {info}");
+    }
+    assert_eq!(info["crowns"]["geometry"], "Polygon", "{info}");
+    assert_eq!(info["crowns"]["crs"], "EPSG:32633", "{info}");
+    assert_eq!(
+        info["crowns"]["features"].as_u64(),
+        Some(rows as u64),
+        "{info}"
+    );
+}

@@ -64,11 +64,11 @@ fn effective_params(params: Option<Value>) -> Result<Value, ApiError> {
                 .with_error("params", "not an object"));
         }
     };
-    if let Some(text) = &parsed.crs {
-        if let Err(e) = crate::io::crs::Crs::parse_projected(text) {
-            return Err(ApiError::unprocessable(format!("params.crs: {e}"))
-                .with_error("params.crs", e.to_string()));
-        }
+    if let Some(text) = &parsed.crs
+        && let Err(e) = crate::io::crs::Crs::parse_projected(text)
+    {
+        return Err(ApiError::unprocessable(format!("params.crs: {e}"))
+            .with_error("params.crs", e.to_string()));
     }
     serde_json::to_value(parsed).map_err(ApiError::internal)
 }
@@ -553,10 +553,23 @@ pub async fn results(
         .iter()
         .filter_map(|s| s.metrics.clone().map(|m| (s.name.clone(), m)))
         .collect();
-    Ok(
-        Json(json!({ "job_id": job.id, "state": job.state.as_str(), "stages": stages }))
-            .into_response(),
-    )
+    // The stand figures of the latest stage that made them (dbh, else segment), and the CRS.
+    let latest = |key: &str| {
+        ["dbh", "segment"]
+            .iter()
+            .find_map(|s| stages.get(*s).and_then(|m| m.get(key)).filter(|v| !v.is_null()))
+            .cloned()
+    };
+    let plot = latest("plot");
+    let crs = latest("crs");
+    Ok(Json(json!({
+        "job_id": job.id,
+        "state": job.state.as_str(),
+        "stages": stages,
+        "plot": plot,
+        "crs": crs,
+    }))
+    .into_response())
 }
 
 #[cfg(test)]

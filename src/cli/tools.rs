@@ -91,9 +91,13 @@ pub struct InventoryArgs {
     /// Where to write the inventory CSV.
     #[arg(long, env = "SYLVA_INVENTORY_OUT", default_value = "trees.csv")]
     pub out: PathBuf,
-    /// Also write the stems as GeoJSON points here.
+    /// Also write the stems as GeoJSON points here (RFC 7946: WGS84 when the CRS is known).
     #[arg(long, env = "SYLVA_INVENTORY_GEOJSON")]
     pub geojson: Option<PathBuf>,
+    /// Also write a GeoPackage here: the stems as points and the crowns as polygons, in the
+    /// cloud's own CRS.
+    #[arg(long, env = "SYLVA_INVENTORY_GPKG")]
+    pub gpkg: Option<PathBuf>,
     /// Field-measured DBH (CSV x,y,dbh_cm): match trees within 1 m and print the accuracy.
     #[arg(long, env = "SYLVA_INVENTORY_FIELD")]
     pub field: Option<PathBuf>,
@@ -161,11 +165,22 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
         None => sylva::forest::InventoryParams::default(),
     };
     let path = a.cloud.clone();
+    let gpkg = a.gpkg.clone();
+    let gpkg_crs = crs.clone();
     let (rows, cloud_points, summary) =
         tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
             let progress = ConsoleProgress::new("inventory", None);
             let cloud = sylva::io::pointcloud::read_point_cloud(&path, &progress)?;
             let inv = sylva::forest::inventory(&cloud, &params, &progress)?;
+            if let Some(g) = &gpkg {
+                sylva::forest::write_trees_gpkg(
+                    g,
+                    &inv.trees,
+                    &inv.crowns,
+                    cloud.offset,
+                    &gpkg_crs,
+                )?;
+            }
             let summary =
                 sylva::forest::PlotFile::new(inv.summary(&inv.trees, &params)?, &inv.footprint);
             Ok((inv.trees, cloud.len(), summary))

@@ -45,7 +45,7 @@ pub use dbh::{
 pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
 pub use output::{
     PLOT_FILE, PlotFile, read_crs, trees_csv, trees_geojson, write_crs, write_trees_csv,
-    write_trees_geojson,
+    write_trees_geojson, write_trees_gpkg,
 };
 pub use ransac::{
     CenterPrior, CircleParams, RobustCircle, fit_circle_robust, fit_circle_robust_weighted,

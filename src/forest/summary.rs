@@ -162,7 +162,7 @@ pub fn summarise(
         None => (footprint.clone(), "footprint"),
     };
     let area_m2 = area_polygon.unsigned_area();
-    if !(area_m2 > 0.0) {
+    if area_m2.is_nan() || area_m2 <= 0.0 {
         return Err(ForestError::NotEnoughPoints(format!(
             "the plot's {area_from} has no area; give summary.boundary"
         )));

@@ -45,6 +45,9 @@ struct StemsFile {
     offset: [f64; 3],
     stems: Vec<StemRecord>,
     trees: Vec<TreeRow>,
+    /// The crowns, one per tree (absent from a segment stage that predates them).
+    #[serde(default)]
+    crowns: Vec<forest::TreeCrown>,
 }
 
 /// Trunk probability from which a Gaussian is a trunk Gaussian (0.5: the trunk label).
@@ -383,6 +386,14 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let crs = ctx.crs(Stage::Dbh)?;
     forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &rows, &crs)?;
     forest::write_crs(ctx.out_dir, &crs)?;
+    let offset = glam::DVec3::from_array(stems.offset);
+    forest::write_trees_gpkg(
+        &ctx.out_dir.join("trees.gpkg"),
+        &rows,
+        &stems.crowns,
+        offset,
+        &crs,
+    )?;
     // The stand figures again, now that the rows carry both diameters (the LiDAR one unless
     // the job asks for the Gaussians'), on the plot stage `segment` measured.
     let plot = match forest::PlotFile::read(&segment) {

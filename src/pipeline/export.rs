@@ -46,11 +46,13 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         let (from, to) = (dbh.join(name), ctx.out_dir.join(name));
         std::fs::copy(&from, &to).map_err(|e| super::io_err(&from, e))?;
     }
-    // plot.json exists where stage `dbh` ran with plot summaries.
-    let plot = dbh.join(crate::forest::PLOT_FILE);
-    if plot.is_file() {
-        let to = ctx.out_dir.join(crate::forest::PLOT_FILE);
-        std::fs::copy(&plot, &to).map_err(|e| super::io_err(&plot, e))?;
+    // plot.json and trees.gpkg exist where stage `dbh` ran with plot summaries.
+    for name in [crate::forest::PLOT_FILE, "trees.gpkg"] {
+        let from = dbh.join(name);
+        if from.is_file() {
+            let to = ctx.out_dir.join(name);
+            std::fs::copy(&from, &to).map_err(|e| super::io_err(&from, e))?;
+        }
     }
     let train_report: serde_json::Value = read_json(&train.join(super::REPORT_FILE))?;
     let register_report: serde_json::Value = read_json(&register.join(super::REPORT_FILE))?;

@@ -12,7 +12,7 @@
 //! 0 leaf / 1 trunk, `ground` 0/1, `trunk_prob`, `height_m` above the DTM, `tree` the tree id
 //! or 0), `anchors.ply` (anchor colour, normals, `label`, `trunk_prob`), `dtm.json`,
 //! `stems.json` (stems, rows and crowns), and the LiDAR-only inventory `trees.csv` /
-//! `trees.geojson` / `crs.json` / `plot.json` (original coordinates; stage `dbh` writes the
+//! `trees.geojson` / `trees.gpkg` / `crs.json` / `plot.json` (original coordinates; stage `dbh` writes the
 //! final one with the Gaussian diameters beside these).
 
 use serde_json::json;
@@ -150,6 +150,13 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let crs = ctx.crs(Stage::Segment)?;
     forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &inv.trees, &crs)?;
     forest::write_crs(ctx.out_dir, &crs)?;
+    forest::write_trees_gpkg(
+        &ctx.out_dir.join("trees.gpkg"),
+        &inv.trees,
+        &inv.crowns,
+        cloud.offset,
+        &crs,
+    )?;
     let comparison = match &ctx.inputs.field_dbh {
         Some(path) => {
             let cmp = forest::compare_with_field_file(&inv.trees, path)?;

@@ -605,19 +605,81 @@ async function renderInventory() {
   page.trees = rows.map((r) => Object.fromEntries(header.map((h, i) => [h, r[i] ?? ''])));
   page.treeHeader = header;
   drawTrees();
-  const dbh = page.trees.map((t) => Number(t.dbh_gs_cm || t.dbh_lidar_cm)).filter((d) => d > 0);
-  const ba = dbh.reduce((s, d) => s + Math.PI * (d / 200) ** 2, 0);
-  $('#inventory-summary').textContent = dbh.length
-    ? `${page.trees.length} trees · mean DBH ${(dbh.reduce((a, b) => a + b, 0) / dbh.length).toFixed(1)} cm · basal area ${ba.toFixed(3)} m²`
-    : `${page.trees.length} trees`;
+  // The stand figures come from the server (results.plot: LiDAR DBH unless the job asked for
+  // the Gaussians', and it says which); the page only formats them.
+  const res = await api(`/v1/jobs/${page.id}/results`);
+  const results = res.ok ? await res.json() : {};
+  const plot = results.plot;
+  const f = (v, d = 1) => (v === null || v === undefined ? '—' : Number(v).toFixed(d));
+  if (plot) {
+    const source = plot.dbh_source === 'gaussians' ? 'Gaussian' : 'LiDAR';
+    $('#inventory-summary').textContent = `${plot.stems} trees · ${source} DBH · mean ${f(plot.mean_dbh_cm)} cm · QMD ${f(plot.qmd_cm)} cm`;
+    $('#inventory-plot').textContent = `Plot ${f(plot.area_m2, 0)} m² (${plot.area_from}) · ${f(plot.stems_per_ha, 0)} stems/ha · basal area ${f(plot.basal_area_m2_per_ha)} m²/ha · `
+      + `height mean ${f(plot.mean_height_m)} m, dominant ${f(plot.dominant_height_m)} m · volume ${f(plot.volume_m3_per_ha)} m³/ha · `
+      + `biomass ${f(plot.agb_t_per_ha)} t/ha · carbon ${f(plot.carbon_t_per_ha)} t/ha · CRS ${results.crs || 'unknown'}`;
+    $('#inventory-plot').title = Object.values(plot.equations || {}).join('\n');
+    $('#inventory-plot').hidden = false;
+    $('#dbh-histogram').replaceChildren(dbhHistogram(plot.dbh_classes || []));
+    $('#height-dbh').replaceChildren(heightScatter(page.trees, plot.dbh_source === 'gaussians' ? 'dbh_gs_cm' : 'dbh_lidar_cm'));
+    $('#inventory-charts').hidden = false;
+  } else {
+    $('#inventory-summary').textContent = `${page.trees.length} trees`;
+  }
   $('#inventory-note').hidden = true;
   $('#trees').hidden = false;
   $('#inventory-downloads').hidden = false;
 }
 
+function dbhHistogram(classes) {
+  const W = 320, H = 180, P = 28;
+  const s = svg('svg', { viewBox: `0 0 ${W} ${H}`, role: 'img', 'aria-label': 'DBH distribution' });
+  const top = Math.max(1, ...classes.map((c) => c.stems));
+  const bw = (W - 2 * P) / Math.max(1, classes.length);
+  classes.forEach((c, i) => {
+    const h = ((H - 2 * P) * c.stems) / top;
+    const bar = svg('rect', { x: P + i * bw + 1, y: H - P - h, width: Math.max(1, bw - 2), height: h, fill: '#4f7d5c' });
+    const t = svg('title', {});
+    t.textContent = `${c.from_cm}–${c.to_cm} cm: ${c.stems}`;
+    bar.append(t);
+    s.append(bar);
+    if (i % Math.ceil(classes.length / 8) === 0) {
+      const lab = svg('text', { x: P + i * bw, y: H - P + 12, 'font-size': 9, fill: '#5f6f63' });
+      lab.textContent = `${c.from_cm}`;
+      s.append(lab);
+    }
+  });
+  const ymax = svg('text', { x: P - 4, y: P + 4, 'text-anchor': 'end', 'font-size': 9, fill: '#5f6f63' });
+  ymax.textContent = `${top}`;
+  s.append(ymax);
+  return s;
+}
+
+function heightScatter(trees, col) {
+  const W = 320, H = 180, P = 28;
+  const pts = trees.map((t) => [Number(t[col]), Number(t.height_m)]).filter(([d, h]) => d > 0 && h > 0);
+  const s = svg('svg', { viewBox: `0 0 ${W} ${H}`, role: 'img', 'aria-label': 'height against DBH' });
+  if (!pts.length) return s;
+  const dx = Math.max(...pts.map((p) => p[0])) * 1.05, hy = Math.max(...pts.map((p) => p[1])) * 1.05;
+  for (const [d, h] of pts) {
+    const c = svg('circle', { cx: P + ((W - 2 * P) * d) / dx, cy: H - P - ((H - 2 * P) * h) / hy, r: 3, fill: '#4f7d5c' });
+    const t = svg('title', {});
+    t.textContent = `DBH ${d.toFixed(1)} cm, height ${h.toFixed(1)} m`;
+    c.append(t);
+    s.append(c);
+  }
+  for (const [txt, x, y, anchor] of [[`${dx.toFixed(0)} cm`, W - P, H - P + 12, 'end'], [`${hy.toFixed(0)} m`, P - 4, P, 'end'], ['0', P - 4, H - P, 'end']]) {
+    const t = svg('text', { x, y, 'text-anchor': anchor, 'font-size': 9, fill: '#5f6f63' });
+    t.textContent = txt;
+    s.append(t);
+  }
+  return s;
+}
+
 const TREE_COLUMNS = {
   tree_id: 'Tree', x: 'x (m)', y: 'y (m)', ground_z: 'ground z (m)', dbh_lidar_cm: 'DBH LiDAR (cm)', dbh_gs_cm: 'DBH Gaussians (cm)',
   n_points: 'points', rms_mm: 'fit RMS (mm)', arc_coverage: 'arc covered', quality: 'quality', gs_quality: 'quality (Gaussians)',
+  height_m: 'height (m)', crown_base_m: 'crown base (m)', crown_area_m2: 'crown area (m²)', crown_diameter_m: 'crown ⌀ (m)',
+  basal_area_m2: 'basal area (m²)', volume_m3: 'volume (m³)', agb_kg: 'biomass (kg)', carbon_kg: 'carbon (kg)',
 };
 
 function drawTrees() {
@@ -816,6 +878,8 @@ async function enterJob(id) {
   $('#trees').hidden = true;
   $('#inventory-downloads').hidden = true;
   $('#inventory-note').hidden = false;
+  $('#inventory-plot').hidden = true;
+  $('#inventory-charts').hidden = true;
   $('#inventory-summary').textContent = '';
   $('#stem-panel').hidden = true;
   $('#viewer-source').textContent = '';
@@ -886,6 +950,10 @@ function start() {
   $('#job-delete').addEventListener('click', () => jobAction('', { method: 'DELETE' }, 'Delete this job and all its results?'));
   $('#dl-csv').addEventListener('click', () => download(`/v1/jobs/${page.id}/trees.csv`, `trees-${page.id.slice(0, 8)}.csv`));
   $('#dl-geojson').addEventListener('click', () => download(`/v1/jobs/${page.id}/trees.geojson`, `trees-${page.id.slice(0, 8)}.geojson`));
+  $('#dl-gpkg').addEventListener('click', () => {
+    const a = artifactEnding('trees.gpkg');
+    if (a) download(a.href, `trees-${page.id.slice(0, 8)}.gpkg`);
+  });
   $('#viewer-colour').addEventListener('change', () => {
     if (!page.viewer || !page.ply || artifact('export/splats.splat')) return;
     page.splats = SylvaViewer.pointsToSplats(page.ply, $('#viewer-colour').value);
