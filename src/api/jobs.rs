@@ -557,7 +557,12 @@ pub async fn results(
     let latest = |key: &str| {
         ["dbh", "segment"]
             .iter()
-            .find_map(|s| stages.get(*s).and_then(|m| m.get(key)).filter(|v| !v.is_null()))
+            .find_map(|s| {
+                stages
+                    .get(*s)
+                    .and_then(|m| m.get(key))
+                    .filter(|v| !v.is_null())
+            })
             .cloned()
     };
     let plot = latest("plot");
