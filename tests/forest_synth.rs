@@ -169,3 +169,122 @@ fn two_means_warm_start_on_many_rows_separates_the_blobs() {
         assert_eq!(l == blob, i % 3 == 0, "row {i}");
     }
 }
+
+/// Clouds that are not whole plots (issue 27.6), cut from a generated plot whose whole-cloud
+/// inventory is the reference: a height-normalised cloud (measured either way) and one with its
+/// ground cut away (measured under `cloud = normalised`), a single tree with its ground
+/// (measured as it is), and a breast-height slice (refused, saying what to give instead).
+#[test]
+fn partial_clouds_are_measured_under_their_assumption_or_refused_plainly() {
+    use sylva::forest::{CloudKind, ForestError};
+    use sylva::io::pointcloud::PointCloud;
+    let mut p = SynthParams::new(Preset::Tiny);
+    p.seed = 3;
+    let plot = sylva::synth::lidar_plot(&p, &NoProgress).expect("plot");
+    let whole = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress).expect("whole");
+    assert!(!whole.trees.is_empty());
+    let heights = whole.dtm.heights_above(&plot.cloud.positions);
+    let cut = |keep: &dyn Fn(usize) -> bool, normalise: bool| {
+        let mut offset = plot.cloud.offset;
+        if normalise {
+            offset.z = 0.0;
+        }
+        let positions = plot
+            .cloud
+            .positions
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| keep(*i))
+            .map(|(i, q)| {
+                if normalise {
+                    glam::Vec3::new(q.x, q.y, heights[i])
+                } else {
+                    *q
+                }
+            })
+            .collect();
+        PointCloud {
+            offset,
+            positions,
+            colors: None,
+            intensity: None,
+            format: plot.cloud.format,
+        }
+    };
+    let normalised = InventoryParams {
+        cloud: CloudKind::Normalised,
+        ..InventoryParams::default()
+    };
+    // Each measured cloud finds every stem of the whole cloud with its DBH within 0.5 cm and
+    // its height within 0.3 m.
+    let same_trees = |what: &str, inv: &sylva::forest::Inventory| {
+        assert_eq!(inv.trees.len(), whole.trees.len(), "{what}");
+        for (a, b) in inv.trees.iter().zip(&whole.trees) {
+            assert!((a.x - b.x).hypot(a.y - b.y) < 0.1, "{what}: {a:?} {b:?}");
+            assert!(
+                (a.dbh_lidar_cm - b.dbh_lidar_cm).abs() < 0.5,
+                "{what}: {a:?} {b:?}"
+            );
+            let (ha, hb) = (a.height_m.unwrap_or(0.0), b.height_m.unwrap_or(0.0));
+            assert!((ha - hb).abs() < 0.3, "{what}: height {ha} against {hb}");
+        }
+    };
+    let z_is_height = cut(&|_| true, true);
+    same_trees(
+        "height-normalised, normalised",
+        &inventory(&z_is_height, &normalised, &NoProgress).expect("normalised"),
+    );
+    same_trees(
+        "height-normalised, auto",
+        &inventory(&z_is_height, &InventoryParams::default(), &NoProgress).expect("auto"),
+    );
+    let no_ground_normalised = cut(&|i| heights[i] >= 0.5, true);
+    same_trees(
+        "no ground, normalised",
+        &inventory(&no_ground_normalised, &normalised, &NoProgress).expect("no ground"),
+    );
+
+    let refused = |what: &str, cloud: &PointCloud, words: &[&str]| match inventory(
+        cloud,
+        &InventoryParams::default(),
+        &NoProgress,
+    ) {
+        Err(ForestError::NotAPlot(m)) => {
+            println!("{what}: {m}");
+            for w in words {
+                assert!(m.contains(w), "{what}: {m}");
+            }
+        }
+        Err(e) => panic!("{what}: the wrong refusal: {e}"),
+        Ok(inv) => panic!(
+            "{what}: measured {} trees instead of refusing",
+            inv.trees.len()
+        ),
+    };
+    refused(
+        "breast-height slice",
+        &cut(&|i| (1.2..=1.4).contains(&heights[i]), false),
+        &["slice", "whole cloud"],
+    );
+
+    // One tree with the ground around it, cut 1.5 m around its stem: that stem, same DBH.
+    let first = &whole.trees[0];
+    let (ox, oy) = (plot.cloud.offset.x, plot.cloud.offset.y);
+    let one = cut(
+        &|i| {
+            let q = plot.cloud.positions[i];
+            (f64::from(q.x) + ox - first.x).hypot(f64::from(q.y) + oy - first.y) < 1.5
+        },
+        false,
+    );
+    let inv = inventory(&one, &InventoryParams::default(), &NoProgress).expect("one tree");
+    let found = inv
+        .trees
+        .iter()
+        .find(|r| (r.x - first.x).hypot(r.y - first.y) < 0.1)
+        .expect("the tree");
+    assert!(
+        (found.dbh_lidar_cm - first.dbh_lidar_cm).abs() < 0.5,
+        "{found:?} {first:?}"
+    );
+}

@@ -4,6 +4,7 @@
 
 use std::time::Instant;
 
+use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -39,6 +40,50 @@ pub struct InventoryParams {
     pub allometry: AllometryParams,
     /// The plot's stand figures: which DBH, and the plot boundary.
     pub summary: SummaryParams,
+    /// What the cloud is (default `auto`: a plot or a tree with its ground, checked).
+    pub cloud: CloudKind,
+}
+
+/// What a cloud holds, which decides where the ground is (issue 27.6).
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum CloudKind {
+    /// A plot or a single tree with its ground returns: the ground filter finds the ground,
+    /// and a cloud under 2 m tall (a slice) is refused, saying what to give instead. It
+    /// cannot tell a cloud whose ground returns were cut away: the cloth then settles on the
+    /// lowest points left, and heights and the breast-height slice are measured from there.
+    /// The share of ground-covered footprint does not separate the two (measured with 2 m
+    /// cells: 0.19–0.39 on generated plots cut 0.5 m above the ground, 0.53–0.68 on lidR's
+    /// whole airborne plots; docs/results/inventory.md), so such a cloud needs `normalised`.
+    #[default]
+    Auto,
+    /// A height-normalised cloud (as lidR's `normalize_height` or 3DFin write it): z is the
+    /// height above the ground, so the ground is the plane z = 0 and points within the ground
+    /// filter's `class_threshold_m` of it are ground, whether or not there are any.
+    Normalised,
+}
+
+/// Least height span of a cloud for `auto`, metres: the stems are followed from the ground
+/// to above breast height, so a thinner cloud is a slice.
+pub const MIN_CLOUD_HEIGHT_M: f32 = 2.0;
+
+/// The 0.5 % and 99.5 % quantiles of the heights of (at most 100 000 evenly taken) points.
+fn z_span(points: &[Vec3]) -> (f32, f32) {
+    let step = (points.len() / 100_000).max(1);
+    let mut z: Vec<f32> = points
+        .iter()
+        .step_by(step)
+        .map(|p| p.z)
+        .filter(|z| z.is_finite())
+        .collect();
+    if z.is_empty() {
+        return (0.0, 0.0);
+    }
+    z.sort_unstable_by(f32::total_cmp);
+    let at = |q: f64| z[((z.len() - 1) as f64 * q).round() as usize];
+    (at(0.005), at(0.995))
 }
 
 /// One tree of the inventory: one row of trees.csv.
@@ -146,6 +191,24 @@ impl Inventory {
     }
 }
 
+/// The ground of a height-normalised cloud: the plane at file z = 0 (local z = −`offset_z`)
+/// as a one-cell DTM, and every point within `class_threshold_m` of it as ground.
+fn normalised_ground(pts: &[Vec3], offset_z: f64, p: &CsfParams) -> super::ground::GroundResult {
+    let zero = (-offset_z) as f32;
+    let threshold = p.class_threshold_m as f32;
+    super::ground::GroundResult {
+        is_ground: pts.iter().map(|q| q.z - zero <= threshold).collect(),
+        dtm: Dtm {
+            origin: [0.0, 0.0],
+            cell: 1.0,
+            nx: 1,
+            ny: 1,
+            heights: vec![zero],
+        },
+        iterations: 0,
+    }
+}
+
 /// Runs ground → segmentation (non-ground points only) → stems → DBH on `cloud`.
 pub fn inventory(
     cloud: &PointCloud,
@@ -163,8 +226,28 @@ pub fn inventory(
     }
     let mut seconds = PhaseSeconds::default();
     let t = Instant::now();
-    progress.log("ground: cloth simulation");
-    let ground = classify_ground(pts, &params.ground, &SubProgress::new(progress, 0.0, 0.1))?;
+    let (z_lo, z_hi) = z_span(pts);
+    if params.cloud == CloudKind::Auto && z_hi - z_lo < MIN_CLOUD_HEIGHT_M {
+        return Err(ForestError::NotAPlot(format!(
+            "the cloud is only {:.2} m tall (z {:.2} to {:.2} m): a slice, not a plot or a \
+             tree. Sylva finds the stems from the ground up and cuts its own breast-height \
+             slice, so it needs the whole cloud, with the ground and the stems to at least \
+             {MIN_CLOUD_HEIGHT_M} m",
+            z_hi - z_lo,
+            cloud.offset.z + f64::from(z_lo),
+            cloud.offset.z + f64::from(z_hi)
+        )));
+    }
+    let ground = match params.cloud {
+        CloudKind::Auto => {
+            progress.log("ground: cloth simulation");
+            classify_ground(pts, &params.ground, &SubProgress::new(progress, 0.0, 0.1))?
+        }
+        CloudKind::Normalised => {
+            progress.log("ground: z = 0 (a height-normalised cloud)");
+            normalised_ground(pts, cloud.offset.z, &params.ground)
+        }
+    };
     let heights = ground.dtm.heights_above(pts);
     seconds.ground = t.elapsed().as_secs_f64();
 

@@ -42,7 +42,7 @@ pub use dbh::{
     DbhParams, FitQuality, SliceCenterPrior, SliceSource, StemDbh, measure_dbh, measure_dbh_of,
     slice_offsets,
 };
-pub use inventory::{Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
+pub use inventory::{CloudKind, Inventory, InventoryParams, PhaseSeconds, TreeRow, inventory};
 pub use output::{
     PLOT_FILE, PlotFile, read_crs, trees_csv, trees_geojson, write_crs, write_trees_csv,
     write_trees_geojson, write_trees_gpkg,
@@ -68,6 +68,10 @@ pub enum ForestError {
     /// The cloud (or the part of it an operation needs) is too small.
     #[error("not enough points: {0}")]
     NotEnoughPoints(String),
+    /// The cloud is not what the inventory can measure as asked (a slice, no ground); the
+    /// message says what is missing and what to do.
+    #[error("{0}")]
+    NotAPlot(String),
     /// The ground filter failed.
     #[error("ground filter: {0}")]
     Ground(GroundError),
