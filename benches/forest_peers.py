@@ -114,6 +114,7 @@ def run_3dfin(cloud, kind, work):
                 continue  # a header line
     found = len(rows)
     with_dbh = sum(1 for r in rows if len(r) > 1 and r[1] > 0)
+    PEER_ROWS[(cloud, kind)] = rows
     return (secs, rss, found, with_dbh), ""
 
 
@@ -125,6 +126,7 @@ def run_sylva(sylva, cloud, work):
         return (secs, rss, 0, 0), f"exit {code}: {last_error(log)}"
     with open(out) as f:
         rows = list(csv.DictReader(f))
+    PEER_ROWS[(cloud, "sylva")] = rows
     with_dbh = sum(1 for r in rows if r.get("dbh_lidar_cm", "") not in ("", None))
     found = with_dbh
     with open(log, errors="replace") as f:
@@ -136,6 +138,40 @@ def run_sylva(sylva, cloud, work):
         qualities[r.get("quality", "?")] = qualities.get(r.get("quality", "?"), 0) + 1
     note = ", ".join(f"{v} {k}" for k, v in sorted(qualities.items()))
     return (secs, rss, found, with_dbh), note
+
+
+# The rows each run wrote, by (cloud, run): 3DFin's as lists of numbers, sylva's as dicts.
+PEER_ROWS = {}
+
+
+def heights_side_by_side(cloud):
+    """Sylva's tree heights beside 3DFin's for the same stems (nearest within 1 m in x, y).
+
+    3DFin's `_dbh_and_heights.txt` rows are read as [total height m, DBH m, x, y] (its column
+    order); a run that wrote none leaves its column empty."""
+    mine = PEER_ROWS.get((cloud, "sylva")) or []
+    if not mine:
+        return
+    peers = {k: PEER_ROWS.get((cloud, k)) or [] for k in ("default", "sparse")}
+    print(f"\nHeights on {os.path.basename(cloud)}: sylva against 3DFin (default / tuned), "
+          "stems matched within 1 m")
+    print("| tree | x | y | sylva height m | 3DFin default m | 3DFin tuned m | sylva DBH cm |")
+    print("|---|---|---|---|---|---|---|")
+    for r in mine:
+        x, y = float(r["x"]), float(r["y"])
+        cells = []
+        for k in ("default", "sparse"):
+            best = None
+            for p in peers[k]:
+                if len(p) < 4:
+                    continue
+                d = ((p[2] - x) ** 2 + (p[3] - y) ** 2) ** 0.5
+                if d < 1.0 and (best is None or d < best[0]):
+                    best = (d, p[0])
+            cells.append(f"{best[1]:.2f}" if best else "")
+        h = r.get("height_m", "")
+        print(f"| {r['tree_id']} | {x:.2f} | {y:.2f} | {h} | {cells[0]} | {cells[1]} | "
+              f"{float(r['dbh_lidar_cm']):.1f} |")
 
 
 def big_cloud(work_root):
@@ -206,6 +242,7 @@ def main():
             print(f"| {name} | {tool} | {secs:.1f} | {found} | {with_dbh} | {rss:.0f} | {note} |",
                   flush=True)
         shutil.rmtree(work, ignore_errors=True)
+        heights_side_by_side(cloud)
     print("\n3DFin tuned settings (changes to its shipped 3DFinconfig.ini): "
           + ", ".join(f"[{s}] {k}={v}" for (s, k), v in SPARSE_TLS.items()))
     return 0

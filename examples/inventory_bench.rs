@@ -59,7 +59,7 @@ fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
         )
     });
     println!(
-        "| {name} | {} | {} | {:.2} | {:.2} ({:.1} k-NN, {:.1} coarse, {:.1} 2-means, {:.1} clean-up) | {:.2} | {:.2} | {:.2} | {cpu} | {load} |{acc}",
+        "| {name} | {} | {} | {:.2} | {:.2} ({:.1} k-NN, {:.1} coarse, {:.1} 2-means, {:.1} clean-up) | {:.2} | {:.2} | {:.2} | {:.2} | {cpu} | {load} |{acc}",
         cloud.len(),
         inv.trees.len(),
         s.ground,
@@ -70,6 +70,7 @@ fn run(name: &str, cloud: &PointCloud, field: Option<&[FieldTree]>) {
         g.cleanup,
         s.stems,
         s.dbh,
+        s.crowns,
         total
     );
 }
@@ -80,7 +81,7 @@ fn main() {
         .and_then(|a| a.parse().ok())
         .unwrap_or(10e6);
     println!(
-        "threads: {}\n\n| cloud | points | stems | ground s | segment s | stems s | dbh s | total s | CPU s | load before |\n|---|---|---|---|---|---|---|---|---|---|",
+        "threads: {}\n\n| cloud | points | stems | ground s | segment s | stems s | dbh s | trees s | total s | CPU s | load before |\n|---|---|---|---|---|---|---|---|---|---|---|",
         rayon::current_num_threads()
     );
     if target > 0.0 {
