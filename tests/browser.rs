@@ -127,6 +127,39 @@ async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
         .eval("return [...document.querySelectorAll('#trees tbody tr')].map(r => r.dataset.tree)")
         .await;
     assert_eq!(shown, json!(ids));
+    // The stand figures come from the server's plot summary (LiDAR DBH), with a bar per 5 cm
+    // DBH class and a dot per tree in the height-DBH scatter.
+    b.wait_for(
+        "the plot summary and its charts",
+        "return !document.querySelector('#inventory-charts').hidden",
+        60,
+    )
+    .await;
+    let header = b
+        .eval("return document.querySelector('#inventory-summary').textContent + ' | ' + document.querySelector('#inventory-plot').textContent")
+        .await;
+    let header = header.as_str().unwrap_or_default().to_string();
+    assert!(
+        header.contains("LiDAR DBH") && header.contains("stems/ha"),
+        "{header}"
+    );
+    let results = send(client().get(format!("{}/v1/jobs/{id}/results", srv.base)))
+        .await
+        .json::<serde_json::Value>()
+        .await
+        .expect("results");
+    let classes = results["plot"]["dbh_classes"]
+        .as_array()
+        .map_or(0, Vec::len);
+    assert!(classes > 0, "{results}");
+    let bars = b
+        .eval("return document.querySelectorAll('#dbh-histogram rect').length")
+        .await;
+    assert_eq!(bars, json!(classes));
+    let dots = b
+        .eval("return document.querySelectorAll('#height-dbh circle').length")
+        .await;
+    assert_eq!(dots, json!(n));
     // Sorting by DBH, both ways.
     let dbh_col = "return [...document.querySelectorAll('#trees tbody tr')].map(r => Number(r.children[4].textContent))";
     b.click("#trees th[data-col=dbh_lidar_cm]").await;
