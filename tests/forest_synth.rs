@@ -173,7 +173,8 @@ fn two_means_warm_start_on_many_rows_separates_the_blobs() {
 /// Clouds that are not whole plots (issue 27.6), cut from a generated plot whose whole-cloud
 /// inventory is the reference: a height-normalised cloud (measured either way) and one with its
 /// ground cut away (measured under `cloud = normalised`), a single tree with its ground
-/// (measured as it is), and a breast-height slice (refused, saying what to give instead).
+/// (measured as it is), and a breast-height slice and a cloud without ground under `auto`
+/// (refused, saying what to give instead).
 #[test]
 fn partial_clouds_are_measured_under_their_assumption_or_refused_plainly() {
     use sylva::forest::{CloudKind, ForestError};
@@ -265,6 +266,11 @@ fn partial_clouds_are_measured_under_their_assumption_or_refused_plainly() {
         "breast-height slice",
         &cut(&|i| (1.2..=1.4).contains(&heights[i]), false),
         &["slice", "whole cloud"],
+    );
+    refused(
+        "no ground, auto",
+        &cut(&|i| heights[i] >= 0.5, false),
+        &["ground", "normalised"],
     );
 
     // One tree with the ground around it, cut 1.5 m around its stem: that stem, same DBH.

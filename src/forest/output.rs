@@ -99,34 +99,46 @@ pub fn write_trees_csv(path: &Path, rows: &[TreeRow]) -> Result<(), IoError> {
     std::fs::write(path, trees_csv(rows)).map_err(|e| IoError::io(path, e))
 }
 
+/// Writes `value` to `path` as pretty-printed JSON; `what` names it in an error.
+fn write_json<T: serde::Serialize>(path: &Path, value: &T, what: &str) -> Result<(), IoError> {
+    let text = serde_json::to_string_pretty(value)
+        .map_err(|e| IoError::format(path, format!("cannot encode {what}: {e}")))?;
+    std::fs::write(path, text).map_err(|e| IoError::io(path, e))
+}
+
+/// Reads JSON from `path`; `None` when there is no such file; `what` names it in an error.
+fn read_json<T: serde::de::DeserializeOwned>(
+    path: &Path,
+    what: &str,
+) -> Result<Option<T>, IoError> {
+    match std::fs::read(path) {
+        Ok(bytes) => serde_json::from_slice(&bytes)
+            .map(Some)
+            .map_err(|e| IoError::format(path, format!("not {what}: {e}"))),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(IoError::io(path, e)),
+    }
+}
+
 /// Writes trees.geojson to `path` (pretty-printed).
 pub fn write_trees_geojson(path: &Path, rows: &[TreeRow], crs: &CrsRecord) -> Result<(), IoError> {
     let value = trees_geojson(rows, crs).map_err(|e| IoError::format(path, e.to_string()))?;
-    let text = serde_json::to_string_pretty(&value)
-        .map_err(|e| IoError::format(path, format!("cannot encode GeoJSON: {e}")))?;
-    std::fs::write(path, text).map_err(|e| IoError::io(path, e))
+    write_json(path, &value, "GeoJSON")
 }
 
 /// Writes the CRS sidecar `crs.json` into `dir` (pretty-printed [`CrsRecord`]).
 pub fn write_crs(dir: &Path, crs: &CrsRecord) -> Result<(), IoError> {
-    let path = dir.join(CRS_FILE);
-    let text = serde_json::to_string_pretty(crs)
-        .map_err(|e| IoError::format(&path, format!("cannot encode the CRS: {e}")))?;
-    std::fs::write(&path, text).map_err(|e| IoError::io(&path, e))
+    write_json(&dir.join(CRS_FILE), crs, "the CRS")
 }
 
 /// Reads the CRS sidecar of `dir`; a folder written before sidecars existed has none and
 /// reads as an unknown CRS.
 pub fn read_crs(dir: &Path) -> Result<CrsRecord, IoError> {
-    let path = dir.join(CRS_FILE);
-    match std::fs::read(&path) {
-        Ok(bytes) => serde_json::from_slice(&bytes)
-            .map_err(|e| IoError::format(&path, format!("not a CRS record: {e}"))),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(CrsRecord::unknown(
-            "this output predates CRS records, so its CRS is unknown",
-        )),
-        Err(e) => Err(IoError::io(&path, e)),
-    }
+    Ok(
+        read_json(&dir.join(CRS_FILE), "a CRS record")?.unwrap_or_else(|| {
+            CrsRecord::unknown("this output predates CRS records, so its CRS is unknown")
+        }),
+    )
 }
 
 /// The file name of the plot summary every inventory folder holds.
@@ -162,18 +174,13 @@ impl PlotFile {
 
     /// Writes plot.json into `dir`.
     pub fn write(&self, dir: &Path) -> Result<(), IoError> {
-        let path = dir.join(PLOT_FILE);
-        let text = serde_json::to_string_pretty(self)
-            .map_err(|e| IoError::format(&path, format!("cannot encode the plot: {e}")))?;
-        std::fs::write(&path, text).map_err(|e| IoError::io(&path, e))
+        write_json(&dir.join(PLOT_FILE), self, "the plot")
     }
 
-    /// Reads plot.json from `dir`.
-    pub fn read(dir: &Path) -> Result<Self, IoError> {
-        let path = dir.join(PLOT_FILE);
-        let bytes = std::fs::read(&path).map_err(|e| IoError::io(&path, e))?;
-        serde_json::from_slice(&bytes)
-            .map_err(|e| IoError::format(&path, format!("not a plot summary: {e}")))
+    /// Reads plot.json from `dir`; `None` where a stage wrote none (one that predates plot
+    /// summaries).
+    pub fn read(dir: &Path) -> Result<Option<Self>, IoError> {
+        read_json(&dir.join(PLOT_FILE), "a plot summary")
     }
 }
 

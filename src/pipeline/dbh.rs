@@ -396,21 +396,16 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     )?;
     // The stand figures again, now that the rows carry both diameters (the LiDAR one unless
     // the job asks for the Gaussians'), on the plot stage `segment` measured.
-    let plot = match forest::PlotFile::read(&segment) {
-        Ok(previous) => {
+    // A segment stage that predates plot summaries left none: the job still finishes.
+    let plot = match forest::PlotFile::read(&segment)? {
+        Some(previous) => {
             let footprint = previous.footprint();
             let seg = &ctx.params.segment;
             let summary = forest::summarise(&rows, &footprint, &seg.summary, &seg.allometry)?;
             forest::PlotFile::new(summary.clone(), &footprint).write(ctx.out_dir)?;
             Some(summary)
         }
-        // A segment stage that predates plot summaries: the job still finishes.
-        Err(crate::io::IoError::Io { source, .. })
-            if source.kind() == std::io::ErrorKind::NotFound =>
-        {
-            None
-        }
-        Err(e) => return Err(e.into()),
+        None => None,
     };
     ctx.progress.set(1.0);
     let field = match &ctx.inputs.field_dbh {
