@@ -45,9 +45,11 @@ fn run_stops_with_a_clear_error_when_registration_is_impossible() {
         .expect("run");
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
-    // The fixture's photos do not show its LiDAR scene: registration must refuse, not guess.
+    // The fixture's photos do not show its LiDAR scene: the automatic alignment (the default
+    // without control points) must refuse, not guess, and say what to supply.
     assert!(stderr.contains("stage register failed"), "{stderr}");
-    assert!(stderr.contains("control points are required"), "{stderr}");
+    assert!(stderr.contains("automatic registration"), "{stderr}");
+    assert!(stderr.contains("supply control points"), "{stderr}");
     let results = read_json(&out.join("results.json"));
     assert!(results.get("ingest").is_some());
     assert!(results.get("register").is_none());

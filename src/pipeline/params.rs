@@ -81,10 +81,13 @@ pub struct RegisterParams {
     /// The LiDAR cloud is thinned to this voxel size (metres) as the ICP target (default
     /// 0.05 m: well below SfM point noise, and fast).
     pub target_voxel_m: f64,
-    /// Try the automatic alignment when no control points are given (default false: it
-    /// reaches the goals on `stand` but refuses on small plots such as `tiny`,
-    /// docs/results/registration.md; without it a job with no control points stops with a clear
-    /// request for them).
+    /// Align automatically when no control points are given (default true: most users have
+    /// none). The alignment verifies itself and, when it cannot be sure (confidence, fitness
+    /// or the standard errors of the result below their floors), the stage fails saying why,
+    /// listing the candidates it weighed, and asking for control points; on `stand` it reaches
+    /// the registration goals and on small plots such as `tiny` it refuses
+    /// (docs/results/registration.md). False: a job without control points stops at once and
+    /// asks for them.
     pub automatic: bool,
     /// The automatic alignment must reach this confidence in [0, 1], or the stage refuses
     /// and asks for control points (default 0.5). The confidence comes from ICP run from each
@@ -151,7 +154,7 @@ impl Default for RegisterParams {
             estimate_scale: true,
             point_to_plane: false,
             target_voxel_m: 0.05,
-            automatic: false,
+            automatic: true,
             min_confidence: 0.5,
             min_fitness: 0.3,
             refine: true,

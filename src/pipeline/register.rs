@@ -102,6 +102,37 @@ fn candidates_json(runs: &[CandidateRun]) -> serde_json::Value {
     )
 }
 
+/// The candidates an automatic alignment weighed, for a refusal: how many, and the best five
+/// by score (share of SfM points on the LiDAR cloud after ICP, plus the share of those standing
+/// above the ground), each with its rotation and scale.
+fn weighed(runs: &[CandidateRun]) -> String {
+    let mut order: Vec<&CandidateRun> = runs.iter().collect();
+    let score = |r: &CandidateRun| r.on_cloud + r.elevated_on_cloud;
+    order.sort_by(|a, b| score(b).total_cmp(&score(a)));
+    let best: Vec<String> = order
+        .iter()
+        .take(5)
+        .map(|r| {
+            format!(
+                "on cloud {:.2}, elevated {:.2} (rotation {:.1}°, scale {:.3})",
+                r.on_cloud,
+                r.elevated_on_cloud,
+                r.refined.rotation_angle_deg(),
+                r.refined.scale
+            )
+        })
+        .collect();
+    format!(
+        "Candidates weighed: {}; best: {}",
+        runs.len(),
+        if best.is_empty() {
+            "none".to_string()
+        } else {
+            best.join("; ")
+        }
+    )
+}
+
 fn load_inputs(ctx: &StageContext<'_>) -> Result<(PointCloud, ColmapModel), StageError> {
     let ingest = ctx.output_of(Stage::Ingest, Stage::Register)?;
     let cloud = pointcloud::read_point_cloud(
@@ -112,7 +143,25 @@ fn load_inputs(ctx: &StageContext<'_>) -> Result<(PointCloud, ColmapModel), Stag
     Ok((cloud, model))
 }
 
+/// What a refusal of the automatic alignment asks for.
+const SUPPLY_CONTROL_POINTS: &str =
+    "supply control points (at least 4 pairs, CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)";
+
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
+    let automatic = ctx.inputs.control_points.is_none() && ctx.params.register.automatic;
+    match align(ctx) {
+        // Every refusal of the automatic alignment says what to supply, also one from deep in
+        // the geometry (a degenerate surface fit, too few points on the cloud).
+        Err(StageError::Input(why)) if automatic && !why.contains("control points") => {
+            Err(StageError::Input(format!(
+                "automatic registration failed: {why}; {SUPPLY_CONTROL_POINTS}"
+            )))
+        }
+        other => other,
+    }
+}
+
+fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let p = &ctx.params.register;
     let (cloud, model) = load_inputs(ctx)?;
     if model.points.len() < 10 {
@@ -198,8 +247,8 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         None if !p.automatic => {
             return Err(StageError::Input(
                 "control points are required: supply at least 4 pairs (CSV \
-                 sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), or set \
-                 params.register.automatic = true to try the experimental automatic alignment"
+                 sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), or leave \
+                 params.register.automatic on (its default) to align automatically"
                     .into(),
             ));
         }
@@ -255,18 +304,25 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                 return Err(StageError::Input(format!(
                     "automatic registration rejected: after ICP and the surface refinement only \
                      {:.0}% of the SfM points lie on the LiDAR cloud (< {:.0}%); the photos \
-                     and the scan may not overlap; supply control points (at least 4 pairs)",
+                     and the scan may not overlap. {}. Supply control points (at least 4 \
+                     pairs, CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)",
                     v.best_fit * 100.0,
-                    p.min_fitness * 100.0
+                    p.min_fitness * 100.0,
+                    weighed(&v.candidates)
                 )));
             }
             if v.confidence < p.min_confidence {
                 return Err(StageError::Input(format!(
                     "automatic registration is not confident enough ({:.2} < {:.2}): no \
-                     candidate alignment clearly puts the photos' points on the LiDAR cloud; \
-                     the photos and the scan may not overlap; supply control points (at least \
-                     4 pairs, CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)",
-                    v.confidence, p.min_confidence
+                     candidate alignment clearly puts the photos' points on the LiDAR cloud \
+                     (the best scores {:.2}, the best distinct other {:.2}); the photos and the \
+                     scan may not overlap. {}. Supply control points (at least 4 pairs, CSV \
+                     sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)",
+                    v.confidence,
+                    p.min_confidence,
+                    v.best_fit + v.best_elevated,
+                    v.runner_up,
+                    weighed(&v.candidates)
                 )));
             }
             (

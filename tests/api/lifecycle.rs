@@ -220,9 +220,11 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
     let (job, _) = wait_job(&c, &base, &id, LONG, is_terminal).await;
     assert_eq!(job["state"], "failed");
     assert_eq!(job["stage"], "register");
-    // The fixture's photos do not show its LiDAR scene: registration refuses clearly.
+    // The fixture's photos do not show its LiDAR scene: the automatic alignment (what a job
+    // without control points does) refuses, saying what to supply.
     assert!(
-        detail(&job["error"]).contains("control points are required"),
+        detail(&job["error"]).contains("automatic registration")
+            && detail(&job["error"]).contains("supply control points"),
         "{job}"
     );
     assert_eq!(job["error"]["status"], 422);
@@ -258,7 +260,7 @@ async fn a_failed_stage_fails_the_job_clearly_and_retry_resumes_there(db: Db) {
         "ingest was not redone"
     );
     assert!(
-        detail(&job["error"]).contains("control points are required"),
+        detail(&job["error"]).contains("supply control points"),
         "{job}"
     );
     if db.bucket().is_some() {
