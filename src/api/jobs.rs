@@ -70,6 +70,12 @@ fn effective_params(params: Option<Value>) -> Result<Value, ApiError> {
         return Err(ApiError::unprocessable(format!("params.crs: {e}"))
             .with_error("params.crs", e.to_string()));
     }
+    if let Err(e) = parsed.segment.allometry.validate() {
+        return Err(
+            ApiError::unprocessable(format!("params.segment.allometry: {e}"))
+                .with_error("params.segment.allometry", e.to_string()),
+        );
+    }
     serde_json::to_value(parsed).map_err(ApiError::internal)
 }
 

@@ -101,6 +101,10 @@ async fn errors_are_problem_json_with_real_status_codes() {
         let p = send_problem(job(bad_crs), StatusCode::UNPROCESSABLE_ENTITY).await;
         assert!(detail(&p).contains("params.crs"), "{p}");
     }
+    // So is a wood density no wood has.
+    let dense = json!({ "inputs": inputs, "params": { "segment": { "allometry": { "wood_density_g_cm3": 5.0 } } } });
+    let p = send_problem(job(dense), StatusCode::UNPROCESSABLE_ENTITY).await;
+    assert!(detail(&p).contains("wood_density_g_cm3"), "{p}");
     let swapped = json!({ "inputs": { "lidar": inputs["colmap"], "colmap": inputs["colmap"] } });
     let p = send_problem(job(swapped), StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(detail(&p).contains("inputs.lidar"), "{p}");
