@@ -97,7 +97,7 @@ impl Renderer {
         background: [f32; 3],
         options: RenderOptions,
     ) -> Result<Frame, GpuError> {
-        self.render_impl(ctx, splats, cam, background, options, false)
+        self.render_passes(ctx, splats, cam, background, options, false)
             .map(|(f, _)| f)
     }
 
@@ -110,10 +110,12 @@ impl Renderer {
         background: [f32; 3],
         options: RenderOptions,
     ) -> Result<(Frame, PassTimings), GpuError> {
-        self.render_impl(ctx, splats, cam, background, options, true)
+        self.render_passes(ctx, splats, cam, background, options, true)
     }
 
-    fn render_impl(
+    /// [`Renderer::render_timed`] when `timed`, else [`Renderer::render_with`] (with zero
+    /// timings).
+    pub fn render_passes(
         &self,
         ctx: &GpuContext,
         splats: &GpuSplats,
