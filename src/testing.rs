@@ -7,6 +7,9 @@
 //! `all`), the test fails instead: CI sets it for everything its machine installs, so a CI
 //! machine that silently lost lavapipe or PostgreSQL goes red rather than green.
 
+#[doc(hidden)]
+pub mod postgres;
+
 /// Capabilities tests may need, as `SYLVA_TEST_REQUIRE` names them.
 pub const CAPABILITIES: &[&str] = &[
     "gpu",

@@ -1,8 +1,6 @@
 // Pass 2: vertical blur of the statistics, SSIM per pixel and channel, its partial derivatives
 // with respect to the blurred maps (scaled by -LAMBDA / count), and per-workgroup partial sums
-// of |x - y| and SSIM (fixed-order tree reduction in workgroup memory).
-
-var<workgroup> sums: array<vec2<f32>, 256>;
+// of |x - y| and SSIM (`workgroup_sum`).
 
 @compute @workgroup_size(16, 16)
 fn main(
@@ -54,17 +52,10 @@ fn main(
         let diff = abs(load_rendered(i) - load_target(i));
         local = vec2<f32>(diff.x + diff.y + diff.z, ssim.x + ssim.y + ssim.z);
     }
-    sums[lid] = local;
-    workgroupBarrier();
-    for (var stride = 128u; stride > 0u; stride = stride >> 1u) {
-        if (lid < stride) {
-            sums[lid] += sums[lid + stride];
-        }
-        workgroupBarrier();
-    }
+    let total = workgroup_sum(lid, local);
     if (lid == 0u) {
         let g = wid.y * nwg.x + wid.x;
-        partials[2u * g] = sums[0].x;
-        partials[2u * g + 1u] = sums[0].y;
+        partials[2u * g] = total.x;
+        partials[2u * g + 1u] = total.y;
     }
 }

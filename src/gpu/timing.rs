@@ -28,6 +28,18 @@ pub(crate) struct Clock {
 }
 
 impl Clock {
+    /// A clock marking from now; when `on`, it first waits for the work already submitted so
+    /// that it is not counted.
+    pub(crate) fn start(ctx: &GpuContext, on: bool) -> Result<Clock, GpuError> {
+        if on {
+            ctx.wait()?;
+        }
+        Ok(Clock {
+            on,
+            last: Instant::now(),
+        })
+    }
+
     /// Submits `enc`; when timing, waits and returns the milliseconds since the last mark.
     pub(crate) fn submit(
         &mut self,

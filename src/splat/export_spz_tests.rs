@@ -1,27 +1,17 @@
 //! Tests of the SPZ writer and reader: a round trip within the quantisation steps.
 
 use super::*;
-use crate::rng::SplitMix64;
 use crate::splat::model::Gaussian;
 
 fn random_model(n: usize, seed: u64, spread: f32) -> Gaussians {
-    let mut rng = SplitMix64::new(seed);
-    let mut r = move || rng.normal() as f32;
-    let mut g = Gaussians {
-        sh_degree: 3,
-        ..Default::default()
-    };
-    for _ in 0..n {
-        g.push(Gaussian {
-            mean: [r() * spread, r() * spread, r() * spread],
-            log_scale: [r() - 4.0, r() - 4.0, r() - 4.0],
-            rotation: [r(), r(), r(), r()],
-            opacity_logit: r() * 2.0,
-            sh: std::array::from_fn(|k| if k < 3 { r() } else { 0.3 * r() }),
-            trunk_prob: 0.5,
-        });
-    }
-    g
+    crate::splat::cpu::test_scenes::normal_gaussians(n, seed, |r| Gaussian {
+        mean: [r() * spread, r() * spread, r() * spread],
+        log_scale: [r() - 4.0, r() - 4.0, r() - 4.0],
+        rotation: [r(), r(), r(), r()],
+        opacity_logit: r() * 2.0,
+        sh: std::array::from_fn(|k| if k < 3 { r() } else { 0.3 * r() }),
+        trunk_prob: 0.5,
+    })
 }
 
 fn encode(g: &Gaussians) -> Vec<u8> {

@@ -1,27 +1,17 @@
 //! Tests of the INRIA PLY writer and reader.
 
 use super::*;
-use crate::rng::SplitMix64;
 use crate::splat::model::{Gaussian, SH_FLOATS};
 
 fn random_model(n: usize, seed: u64) -> Gaussians {
-    let mut rng = SplitMix64::new(seed);
-    let mut r = move || rng.normal() as f32;
-    let mut g = Gaussians {
-        sh_degree: 3,
-        ..Default::default()
-    };
-    for _ in 0..n {
-        g.push(Gaussian {
-            mean: [r(), r(), r()],
-            log_scale: [r(), r(), r()],
-            rotation: [r(), r(), r(), r()],
-            opacity_logit: r(),
-            sh: std::array::from_fn(|_| r()),
-            trunk_prob: r().abs().min(1.0),
-        });
-    }
-    g
+    crate::splat::cpu::test_scenes::normal_gaussians(n, seed, |r| Gaussian {
+        mean: [r(), r(), r()],
+        log_scale: [r(), r(), r()],
+        rotation: [r(), r(), r(), r()],
+        opacity_logit: r(),
+        sh: std::array::from_fn(|_| r()),
+        trunk_prob: r().abs().min(1.0),
+    })
 }
 
 fn header_of(bytes: &[u8]) -> String {

@@ -57,6 +57,41 @@ pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ 
     }
 }
 
+/// The size and SHA-256 of bytes as they stream past.
+#[derive(Default)]
+struct Tally {
+    hasher: Sha256,
+    size: u64,
+}
+
+impl Tally {
+    /// Counts and hashes `bytes`.
+    fn add(&mut self, bytes: &[u8]) {
+        self.hasher.update(bytes);
+        self.size += bytes.len() as u64;
+    }
+
+    /// Counts and hashes the next piece of a request body, refused ([`StoreError::TooLarge`])
+    /// once the body passes `limit` bytes.
+    fn take<E: std::fmt::Display>(
+        &mut self,
+        chunk: Result<bytes::Bytes, E>,
+        limit: u64,
+    ) -> Result<bytes::Bytes, StoreError> {
+        let chunk = chunk.map_err(|e| StoreError::Body(e.to_string()))?;
+        if self.size + chunk.len() as u64 > limit {
+            return Err(StoreError::TooLarge { limit });
+        }
+        self.add(&chunk);
+        Ok(chunk)
+    }
+
+    /// Size and lower-case hex SHA-256.
+    fn finish(self) -> (u64, String) {
+        (self.size, hex::encode(self.hasher.finalize()))
+    }
+}
+
 /// Extensions an upload blob may carry, so format detection by name still works. A client's
 /// file name contributes at most one of these, never a path.
 const KNOWN_EXTENSIONS: &[&str] = &[
@@ -181,19 +216,13 @@ impl BlobStore {
         let tmp = dir.join(format!(".{n}.{}.tmp", uuid::Uuid::new_v4().simple()));
         let result = async {
             let mut file = tokio::fs::File::create(&tmp).await.map_err(io(&tmp))?;
-            let mut hasher = Sha256::new();
-            let mut size = 0u64;
+            let mut tally = Tally::default();
             while let Some(chunk) = body.next().await {
-                let chunk = chunk.map_err(|e| StoreError::Body(e.to_string()))?;
-                size += chunk.len() as u64;
-                if size > limit {
-                    return Err(StoreError::TooLarge { limit });
-                }
-                hasher.update(&chunk);
+                let chunk = tally.take(chunk, limit)?;
                 file.write_all(&chunk).await.map_err(io(&tmp))?;
             }
             file.sync_all().await.map_err(io(&tmp))?;
-            Ok((size, hex::encode(hasher.finalize())))
+            Ok(tally.finish())
         }
         .await;
         match result {
@@ -246,8 +275,7 @@ impl BlobStore {
         let dest = self.upload_blob(id, filename);
         let tmp = dest.with_extension(format!("{}.assembling", uuid::Uuid::new_v4().simple()));
         let mut out = std::fs::File::create(&tmp).map_err(io(&tmp))?;
-        let mut hasher = Sha256::new();
-        let mut size = 0u64;
+        let mut tally = Tally::default();
         let mut buf = vec![0u8; 1 << 20];
         for n in 0..parts {
             let p = self.part_path(id, n);
@@ -257,14 +285,13 @@ impl BlobStore {
                 if k == 0 {
                     break;
                 }
-                hasher.update(&buf[..k]);
+                tally.add(&buf[..k]);
                 out.write_all(&buf[..k]).map_err(io(&tmp))?;
-                size += k as u64;
             }
         }
         out.sync_all().map_err(io(&tmp))?;
         std::fs::rename(&tmp, &dest).map_err(io(&dest))?;
-        Ok((size, hex::encode(hasher.finalize())))
+        Ok(tally.finish())
     }
 
     /// Removes an assembled blob found unusable (and its extracted folder).

@@ -20,10 +20,9 @@ use futures::{Stream, StreamExt, TryStreamExt};
 use object_store::path::Path as Key;
 use object_store::signer::Signer;
 use object_store::{ObjectStore, ObjectStoreExt, WriteMultipart};
-use sha2::{Digest, Sha256};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-use super::StoreError;
+use super::{StoreError, Tally};
 
 /// Bytes per multipart piece (S3's smallest part, except the last, is 5 MiB).
 const PIECE: usize = 5 << 20;
@@ -128,16 +127,10 @@ impl Remote {
     {
         let upload = self.store.put_multipart(&self.key(rel)).await.map_err(os)?;
         let mut w = WriteMultipart::new_with_chunk_size(upload, PIECE);
-        let mut hasher = Sha256::new();
-        let mut size = 0u64;
+        let mut tally = Tally::default();
         let result = async {
             while let Some(chunk) = body.next().await {
-                let chunk = chunk.map_err(|e| StoreError::Body(e.to_string()))?;
-                size += chunk.len() as u64;
-                if size > limit {
-                    return Err(StoreError::TooLarge { limit });
-                }
-                hasher.update(&chunk);
+                let chunk = tally.take(chunk, limit)?;
                 w.wait_for_capacity(IN_FLIGHT).await.map_err(os)?;
                 w.put(chunk);
             }
@@ -147,7 +140,7 @@ impl Remote {
         match result {
             Ok(()) => {
                 w.finish().await.map_err(os)?;
-                Ok((size, hex::encode(hasher.finalize())))
+                Ok(tally.finish())
             }
             Err(e) => {
                 let _ = w.abort().await;
@@ -176,23 +169,16 @@ impl Remote {
             .await
             .map_err(os)?;
         let mut w = WriteMultipart::new_with_chunk_size(upload, PIECE);
-        let mut hasher = Sha256::new();
-        let mut size = 0u64;
+        let mut tally = Tally::default();
         let result = async {
             let mut file = tokio::fs::File::create(&tmp)
                 .await
                 .map_err(super::io(&tmp))?;
             for rel in parts {
-                let mut stream = self
-                    .store
-                    .get(&self.key(rel))
-                    .await
-                    .map_err(os)?
-                    .into_stream();
+                let mut stream = self.get_stream(rel).await?;
                 while let Some(chunk) = stream.next().await {
                     let chunk = chunk.map_err(os)?;
-                    hasher.update(&chunk);
-                    size += chunk.len() as u64;
+                    tally.add(&chunk);
                     file.write_all(&chunk).await.map_err(super::io(&tmp))?;
                     w.wait_for_capacity(IN_FLIGHT).await.map_err(os)?;
                     w.put(chunk);
@@ -208,7 +194,7 @@ impl Remote {
                 tokio::fs::rename(&tmp, copy)
                     .await
                     .map_err(super::io(copy))?;
-                Ok((size, hex::encode(hasher.finalize())))
+                Ok(tally.finish())
             }
             Err(e) => {
                 let _ = w.abort().await;
@@ -216,6 +202,20 @@ impl Remote {
                 Err(e)
             }
         }
+    }
+
+    /// The object `rel`, as it comes down.
+    async fn get_stream(
+        &self,
+        rel: &str,
+    ) -> Result<futures::stream::BoxStream<'static, object_store::Result<bytes::Bytes>>, StoreError>
+    {
+        Ok(self
+            .store
+            .get(&self.key(rel))
+            .await
+            .map_err(os)?
+            .into_stream())
     }
 
     /// Uploads the local file `src` as the object `rel`.
@@ -254,12 +254,7 @@ impl Remote {
         }
         let tmp = dest.with_extension(format!("{}.fetching", uuid::Uuid::new_v4().simple()));
         let result = async {
-            let mut stream = self
-                .store
-                .get(&self.key(rel))
-                .await
-                .map_err(os)?
-                .into_stream();
+            let mut stream = self.get_stream(rel).await?;
             let mut file = tokio::fs::File::create(&tmp)
                 .await
                 .map_err(super::io(&tmp))?;

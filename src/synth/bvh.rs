@@ -132,6 +132,35 @@ impl Bvh {
         Bvh { nodes, order }
     }
 
+    /// At inner node `node`: the child the ray meets to visit next, the nearer one when it
+    /// meets both (the farther is pushed on `stack`); `None` when it meets neither.
+    #[inline(always)]
+    fn descend(
+        &self,
+        node: &Node,
+        o: Vec3,
+        inv: Vec3,
+        span: Interval,
+        stack: &mut [u32; STACK],
+        sp: &mut usize,
+    ) -> Option<usize> {
+        let (l, r) = (node.first as usize, node.first as usize + 1);
+        match (
+            slab(&self.nodes[l], o, inv, span),
+            slab(&self.nodes[r], o, inv, span),
+        ) {
+            (Some(a), Some(b)) => {
+                let (near, far) = if a <= b { (l, r) } else { (r, l) };
+                stack[*sp] = far as u32;
+                *sp += 1;
+                Some(near)
+            }
+            (Some(_), None) => Some(l),
+            (None, Some(_)) => Some(r),
+            (None, None) => None,
+        }
+    }
+
     /// Nearest hit: (distance, primitive index) of the closest `hit(prim, span)` in `span`.
     #[inline]
     pub fn intersect(
@@ -158,28 +187,9 @@ impl Bvh {
                         best = Some((t, p));
                     }
                 }
-            } else {
-                let (l, r) = (node.first as usize, node.first as usize + 1);
-                let tl = slab(&self.nodes[l], o, inv, span);
-                let tr = slab(&self.nodes[r], o, inv, span);
-                match (tl, tr) {
-                    (Some(a), Some(b)) => {
-                        let (near, far) = if a <= b { (l, r) } else { (r, l) };
-                        stack[sp] = far as u32;
-                        sp += 1;
-                        ni = near;
-                        continue;
-                    }
-                    (Some(_), None) => {
-                        ni = l;
-                        continue;
-                    }
-                    (None, Some(_)) => {
-                        ni = r;
-                        continue;
-                    }
-                    (None, None) => {}
-                }
+            } else if let Some(next) = self.descend(node, o, inv, span, &mut stack, &mut sp) {
+                ni = next;
+                continue;
             }
             // Pop the next node that can still hold a closer hit.
             loop {
@@ -219,29 +229,9 @@ impl Bvh {
                 if (node.first..node.first + node.count).any(|p| hit(p, span)) {
                     return true;
                 }
-            } else {
-                let (l, r) = (node.first as usize, node.first as usize + 1);
-                match (
-                    slab(&self.nodes[l], o, inv, span),
-                    slab(&self.nodes[r], o, inv, span),
-                ) {
-                    (Some(a), Some(b)) => {
-                        let (near, far) = if a <= b { (l, r) } else { (r, l) };
-                        stack[sp] = far as u32;
-                        sp += 1;
-                        ni = near;
-                        continue;
-                    }
-                    (Some(_), None) => {
-                        ni = l;
-                        continue;
-                    }
-                    (None, Some(_)) => {
-                        ni = r;
-                        continue;
-                    }
-                    (None, None) => {}
-                }
+            } else if let Some(next) = self.descend(node, o, inv, span, &mut stack, &mut sp) {
+                ni = next;
+                continue;
             }
             if sp == 0 {
                 return false;

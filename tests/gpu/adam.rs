@@ -36,20 +36,8 @@ fn gpu_adam_matches_cpu_twin() {
         .iter()
         .map(|s| (vec![0.0; s * n as usize], vec![0.0; s * n as usize]))
         .collect();
-    let lr = [
-        (rates.means, rates.means, 3),
-        (rates.log_scales, rates.log_scales, 3),
-        (rates.rotations, rates.rotations, 4),
-        (rates.opacity, rates.opacity, 1),
-        (rates.sh_dc, rates.sh_rest, 3),
-    ];
-    let grad_bufs = [
-        &grads.means,
-        &grads.log_scales,
-        &grads.rotations,
-        &grads.opacity_logits,
-        &grads.sh,
-    ];
+    let lr = rates.per_buffer();
+    let grad_bufs = grads.buffers();
     for step in 1..=4u32 {
         for k in 0..5 {
             let g: Vec<f32> = (0..cpu_params[k].len())
@@ -70,7 +58,7 @@ fn gpu_adam_matches_cpu_twin() {
                 m,
                 v,
                 strides[k],
-                lr[k].2,
+                lr[k].2 as usize,
                 lr[k].0,
                 lr[k].1,
                 step,

@@ -80,6 +80,25 @@ pub fn random_gaussians(seed: u64, n: usize, degree: u32, draw: &Draw) -> Gaussi
     g
 }
 
+/// `n` Gaussians with SH of degree 3, each made by `make` from standard normal draws (`r()`,
+/// SplitMix64 seeded with `seed`, one stream for the whole model).
+pub fn normal_gaussians(
+    n: usize,
+    seed: u64,
+    mut make: impl FnMut(&mut dyn FnMut() -> f32) -> Gaussian,
+) -> Gaussians {
+    let mut rng = SplitMix64::new(seed);
+    let mut r = move || rng.normal() as f32;
+    let mut g = Gaussians {
+        sh_degree: 3,
+        ..Default::default()
+    };
+    for _ in 0..n {
+        g.push(make(&mut r));
+    }
+    g
+}
+
 /// Grey blobs at jittered positions of the true Gaussians: the start of the training tests.
 pub fn grey_blobs(truth: &Gaussians) -> Gaussians {
     let mut init = Gaussians::default();

@@ -34,6 +34,20 @@ pub struct AdamRates {
     pub sh_rest: f32,
 }
 
+impl AdamRates {
+    /// Per parameter buffer, in [`GpuSplats::buffers`]' order: the rate of the first `n_first`
+    /// floats of each Gaussian, the rate of the others, and `n_first`.
+    pub fn per_buffer(&self) -> [(f32, f32, u32); 5] {
+        [
+            (self.means, self.means, 3),
+            (self.log_scales, self.log_scales, 3),
+            (self.rotations, self.rotations, 4),
+            (self.opacity, self.opacity, 1),
+            (self.sh_dc, self.sh_rest, 3),
+        ]
+    }
+}
+
 wgsl_struct! {
     /// The uniform of `adam.wgsl`.
     struct AdamParams {
@@ -252,20 +266,8 @@ impl GpuAdam {
         }
         self.step += 1;
         let (bc1, bc2) = bias_corrections(self.step);
-        let grad_bufs = [
-            &grads.means,
-            &grads.log_scales,
-            &grads.rotations,
-            &grads.opacity_logits,
-            &grads.sh,
-        ];
-        let lrs = [
-            (rates.means, rates.means, 3),
-            (rates.log_scales, rates.log_scales, 3),
-            (rates.rotations, rates.rotations, 4),
-            (rates.opacity, rates.opacity, 1),
-            (rates.sh_dc, rates.sh_rest, 3),
-        ];
+        let grad_bufs = grads.buffers();
+        let lrs = rates.per_buffer();
         for (k, ((param, stride), (m, v))) in
             splats.buffers().into_iter().zip(&self.moments).enumerate()
         {

@@ -249,29 +249,21 @@ impl Backend for GpuBackend {
         state.splats.sh_degree = sh_degree.min(3);
         // Timed: wait after projection (with its read-back), sort and raster so that each lands
         // in its own column; untimed, the forward's GPU work finishes inside later phases.
-        let frame = if self.timed {
-            let (frame, pt) = self.renderer.render_timed(
-                &self.ctx,
-                &state.splats,
-                &view.camera,
-                self.background,
-                self.options,
-            )?;
+        let (frame, pt) = self.renderer.render_passes(
+            &self.ctx,
+            &state.splats,
+            &view.camera,
+            self.background,
+            self.options,
+            self.timed,
+        )?;
+        if self.timed {
             self.times.projection_ms += pt.project_ms;
             self.times.sort_ms += pt.sort_ms;
             self.times.raster_ms += pt.raster_ms;
-            frame
         } else {
-            let frame = self.renderer.render_with(
-                &self.ctx,
-                &state.splats,
-                &view.camera,
-                self.background,
-                self.options,
-            )?;
             self.times.raster_ms += t.elapsed().as_secs_f64() * 1000.0;
-            frame
-        };
+        }
         self.times.intersections += u64::from(frame.intersections);
         let (Some(target), Some((_, dl))) = (self.targets.get(&view.name), self.dl_dimage.as_ref())
         else {

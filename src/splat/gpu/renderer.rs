@@ -7,14 +7,12 @@
 //! sort and ranges, and both rasterisers run once per band. A tile's run lies in one band, so
 //! blending and its backward are unchanged.
 
-use std::time::Instant;
-
 use crate::splat::camera::{Camera, RenderOptions};
 
 use crate::splat::gpu::buffers::{
     chunked_zeroed, read_buffer, read_buffer_at, storage_zeroed, uniform_from,
 };
-use crate::splat::gpu::chunks::{SlotPlan, bind_entries, bind_ranges};
+use crate::splat::gpu::chunks::{Chunk, SlotPlan, bind_entries, bind_ranges};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::frame::{Band, Frame};
 use crate::splat::gpu::params::RenderParams;
@@ -27,6 +25,31 @@ use crate::splat::gpu::sort::{RadixSorter, bits_for};
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
 use crate::splat::gpu::timing::{Clock, PassTimings};
 use crate::splat::model::SH_FLOATS;
+
+/// Records one dispatch of `pipeline` per chunk of `splats`, binding the render parameters
+/// (0), the chunk's projected records (1) and its chunk uniform (7), and what `more` gives for
+/// the chunk.
+fn dispatch_projected<'a>(
+    ctx: &GpuContext,
+    enc: &mut wgpu::CommandEncoder,
+    splats: &GpuSplats,
+    pipeline: &wgpu::ComputePipeline,
+    params_buf: &'a wgpu::Buffer,
+    proj: &'a wgpu::Buffer,
+    more: impl Fn(&Chunk) -> Vec<(u32, wgpu::BufferBinding<'a>)>,
+) {
+    for chunk in splats.plan.chunks() {
+        let cu = chunk.uniform(ctx);
+        let mut bindings = vec![
+            (0, params_buf.as_entire_buffer_binding()),
+            (1, chunk.range(proj, 12)),
+            (7, cu.as_entire_buffer_binding()),
+        ];
+        bindings.extend(more(&chunk));
+        let bg = bind_entries(ctx, pipeline, &bindings);
+        dispatch_group(enc, pipeline, &bg, groups_for(chunk.len));
+    }
+}
 
 /// All pipelines of the forward and backward rasteriser.
 pub struct Renderer {
@@ -74,7 +97,7 @@ impl Renderer {
         background: [f32; 3],
         options: RenderOptions,
     ) -> Result<Frame, GpuError> {
-        self.render_impl(ctx, splats, cam, background, options, false)
+        self.render_passes(ctx, splats, cam, background, options, false)
             .map(|(f, _)| f)
     }
 
@@ -87,10 +110,12 @@ impl Renderer {
         background: [f32; 3],
         options: RenderOptions,
     ) -> Result<(Frame, PassTimings), GpuError> {
-        self.render_impl(ctx, splats, cam, background, options, true)
+        self.render_passes(ctx, splats, cam, background, options, true)
     }
 
-    fn render_impl(
+    /// [`Renderer::render_timed`] when `timed`, else [`Renderer::render_with`] (with zero
+    /// timings).
+    pub fn render_passes(
         &self,
         ctx: &GpuContext,
         splats: &GpuSplats,
@@ -111,14 +136,7 @@ impl Renderer {
             ));
         }
         let mut times = PassTimings::default();
-        let mut clock = Clock {
-            on: timed,
-            last: Instant::now(),
-        };
-        if timed {
-            ctx.wait()?;
-            clock.last = Instant::now();
-        }
+        let mut clock = Clock::start(ctx, timed)?;
         let n = splats.count;
         let slots = SlotPlan::new(ctx, n)?;
         let mut params = RenderParams::new(cam, background, n, splats.sh_degree, options);
@@ -204,44 +222,34 @@ impl Renderer {
             let values = storage_zeroed(ctx, "sorted ids", m)?;
             let offs = match &band_offsets {
                 Some(b) => {
-                    for chunk in s.plan.chunks() {
-                        let cu = chunk.uniform(ctx);
-                        let bg = bind_entries(
-                            ctx,
-                            &p.band_counts,
-                            &[
-                                (0, params_buf.as_entire_buffer_binding()),
-                                (1, chunk.range(&proj, 12)),
-                                (7, cu.as_entire_buffer_binding()),
+                    dispatch_projected(
+                        ctx,
+                        &mut enc,
+                        s,
+                        &p.band_counts,
+                        &params_buf,
+                        &proj,
+                        |chunk| {
+                            vec![
                                 (8, uniform.as_entire_buffer_binding()),
                                 (10, chunk.range(b, 1)),
-                            ],
-                        );
-                        dispatch_group(&mut enc, &p.band_counts, &bg, groups_for(chunk.len));
-                    }
+                            ]
+                        },
+                    );
                     self.scanner.encode(ctx, &mut enc, b, n + 1)?;
                     b
                 }
                 None => &offsets,
             };
-            for chunk in s.plan.chunks() {
-                let cu = chunk.uniform(ctx);
-                let bg = bind_entries(
-                    ctx,
-                    &p.emit,
-                    &[
-                        (0, params_buf.as_entire_buffer_binding()),
-                        (1, chunk.range(&proj, 12)),
-                        (2, chunk.range(offs, 1)),
-                        (3, keys_hi.as_entire_buffer_binding()),
-                        (4, keys_lo.as_entire_buffer_binding()),
-                        (5, values.as_entire_buffer_binding()),
-                        (7, cu.as_entire_buffer_binding()),
-                        (8, uniform.as_entire_buffer_binding()),
-                    ],
-                );
-                dispatch_group(&mut enc, &p.emit, &bg, groups_for(chunk.len));
-            }
+            dispatch_projected(ctx, &mut enc, s, &p.emit, &params_buf, &proj, |chunk| {
+                vec![
+                    (2, chunk.range(offs, 1)),
+                    (3, keys_hi.as_entire_buffer_binding()),
+                    (4, keys_lo.as_entire_buffer_binding()),
+                    (5, values.as_entire_buffer_binding()),
+                    (8, uniform.as_entire_buffer_binding()),
+                ]
+            });
             self.sorter.encode(
                 ctx,
                 &mut enc,
@@ -310,20 +318,15 @@ impl Renderer {
         let rows = storage_zeroed(ctx, "intersections per tile row", ty as u64 * 4)?;
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         let p = &self.project;
-        for chunk in splats.plan.chunks() {
-            let cu = chunk.uniform(ctx);
-            let bg = bind_entries(
-                ctx,
-                &p.row_counts,
-                &[
-                    (0, params_buf.as_entire_buffer_binding()),
-                    (1, chunk.range(proj, 12)),
-                    (7, cu.as_entire_buffer_binding()),
-                    (9, rows.as_entire_buffer_binding()),
-                ],
-            );
-            dispatch_group(&mut enc, &p.row_counts, &bg, groups_for(chunk.len));
-        }
+        dispatch_projected(
+            ctx,
+            &mut enc,
+            splats,
+            &p.row_counts,
+            params_buf,
+            proj,
+            |_| vec![(9, rows.as_entire_buffer_binding())],
+        );
         ctx.queue.submit([enc.finish()]);
         read_buffer(ctx, &rows, ty as usize)
     }
@@ -401,14 +404,7 @@ impl Renderer {
                 .encode(ctx, enc, splats, frame, &grads2d, grads);
             return Ok(times);
         }
-        let mut clock = Clock {
-            on: timed,
-            last: Instant::now(),
-        };
-        if timed {
-            ctx.wait()?;
-            clock.last = Instant::now();
-        }
+        let mut clock = Clock::start(ctx, timed)?;
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         self.raster_bwd
             .encode(ctx, &mut enc, frame, dl_dimage, &grads2d);

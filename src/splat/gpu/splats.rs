@@ -101,6 +101,18 @@ pub struct GpuGrads {
 }
 
 impl GpuGrads {
+    /// The parameter gradients in [`GpuSplats::buffers`]' order (the densification statistics
+    /// not included).
+    pub fn buffers(&self) -> [&wgpu::Buffer; 5] {
+        [
+            &self.means,
+            &self.log_scales,
+            &self.rotations,
+            &self.opacity_logits,
+            &self.sh,
+        ]
+    }
+
     /// Zero gradients and statistics for `count` Gaussians.
     pub fn new(ctx: &GpuContext, count: u32) -> Result<Self, GpuError> {
         let n = count as u64 * 4;

@@ -9,25 +9,33 @@ use wgpu::util::DeviceExt;
 pub const LOSS_OUT_BYTES: u64 = 16;
 
 const COMMON: &str = include_str!("../../../../shaders/loss/common.wgsl");
-const PASSES: [(&str, &str); 5] = [
+/// The workgroup reduction of the passes that sum partials (`workgroup_sum`).
+const SUM: &str = include_str!("../../../../shaders/loss/workgroup_sum.wgsl");
+/// Each pass: label, snippet it needs besides [`COMMON`] (or none), body.
+const PASSES: [(&str, &str, &str); 5] = [
     (
         "loss blur stats",
+        "",
         include_str!("../../../../shaders/loss/blur_stats.wgsl"),
     ),
     (
         "loss ssim map",
+        SUM,
         include_str!("../../../../shaders/loss/ssim_map.wgsl"),
     ),
     (
         "loss blur grad",
+        "",
         include_str!("../../../../shaders/loss/blur_grad.wgsl"),
     ),
     (
         "loss grad",
+        "",
         include_str!("../../../../shaders/loss/grad.wgsl"),
     ),
     (
         "loss finalize",
+        SUM,
         include_str!("../../../../shaders/loss/finalize.wgsl"),
     ),
 ];
@@ -66,8 +74,8 @@ impl LossKernel {
         let header = shader_header();
         let pipelines = PASSES
             .iter()
-            .map(|(label, body)| {
-                let source = format!("{header}\n{}\n{COMMON}\n{body}", Params::wgsl());
+            .map(|(label, snippet, body)| {
+                let source = format!("{header}\n{}\n{COMMON}\n{snippet}\n{body}", Params::wgsl());
                 let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
                     label: Some(label),
                     source: wgpu::ShaderSource::Wgsl(source.into()),
