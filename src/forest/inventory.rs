@@ -172,31 +172,23 @@ pub struct TreeRow {
     /// here, and in rows written before it existed).
     #[serde(default)]
     pub gs_quality: Option<FitQuality>,
-    /// Total height, the tree's highest point above its stem base, metres (`forest::crowns`;
-    /// `None` in rows written before it existed). This and the fields below are `None` in
-    /// rows written before they existed.
-    #[serde(default)]
+    /// Total height, the tree's highest point above its stem base, metres (`forest::crowns`).
+    /// This and the fields below read as `None` from rows written before they existed (serde
+    /// takes a missing `Option` field as `None`).
     pub height_m: Option<f64>,
     /// Crown base height above the stem base, metres.
-    #[serde(default)]
     pub crown_base_m: Option<f64>,
     /// Crown projection area (convex hull), m².
-    #[serde(default)]
     pub crown_area_m2: Option<f64>,
     /// Diameter of the circle of the crown projection area, metres.
-    #[serde(default)]
     pub crown_diameter_m: Option<f64>,
     /// Basal area from the LiDAR DBH, m².
-    #[serde(default)]
     pub basal_area_m2: Option<f64>,
     /// Stem volume, m³ (`forest::allometry`, from the LiDAR DBH and the height).
-    #[serde(default)]
     pub volume_m3: Option<f64>,
     /// Above-ground biomass, kg (Chave et al. 2014 eq. 4 by default).
-    #[serde(default)]
     pub agb_kg: Option<f64>,
     /// Carbon, kg.
-    #[serde(default)]
     pub carbon_kg: Option<f64>,
 }
 

@@ -13,8 +13,8 @@
 //! - Quadratic mean diameter: QMD = sqrt(Σ DBH² / n).
 //! - Dominant height: the mean height of the 100 thickest trees per hectare (Assmann's top
 //!   height; on a plot of A ha, the round(100 A) thickest, at least one).
-//! - Volume, biomass, carbon: sums of the trees' `forest::allometry` figures (LiDAR DBH, as
-//!   the rows carry them) over the area; the trees without a height are counted as missing.
+//! - Volume, biomass, carbon: the trees' `forest::allometry` figures from the chosen DBH and
+//!   their height, summed over the area; trees without a height add none and are counted.
 
 use geo::{Area, Contains, ConvexHull, LineString, MultiPoint, Point, Polygon};
 use glam::DVec3;
@@ -205,8 +205,14 @@ pub fn summarise(
         .max(1)
         .min(with_height.len());
     let dominant: Vec<f64> = with_height[..dominant_n].iter().map(|(_, h)| *h).collect();
-    let sum =
-        |f: fn(&TreeRow) -> Option<f64>| counted.iter().filter_map(|(_, r)| f(r)).sum::<f64>();
+    // Volume, biomass and carbon from the DBH the figures use (the rows carry the LiDAR one's).
+    let per_tree: Vec<_> = counted
+        .iter()
+        .map(|(d, r)| super::allometry::tree_allometry(*d, r.height_m, allometry))
+        .collect();
+    let sum = |f: fn(&super::allometry::TreeAllometry) -> Option<f64>| {
+        per_tree.iter().filter_map(f).sum::<f64>()
+    };
     let top = dbhs.iter().copied().fold(0.0, f64::max);
     let classes = (top / DBH_CLASS_CM).floor() as usize + 1;
     let mut dbh_classes: Vec<DbhClass> = (0..if n > 0 { classes } else { 0 })
@@ -236,9 +242,9 @@ pub fn summarise(
         mean_height_m: mean(&heights),
         dominant_height_m: mean(&dominant),
         stems_with_height: heights.len(),
-        volume_m3_per_ha: sum(|r| r.volume_m3) / ha,
-        agb_t_per_ha: sum(|r| r.agb_kg) / 1000.0 / ha,
-        carbon_t_per_ha: sum(|r| r.carbon_kg) / 1000.0 / ha,
+        volume_m3_per_ha: sum(|a| a.volume_m3) / ha,
+        agb_t_per_ha: sum(|a| a.agb_kg) / 1000.0 / ha,
+        carbon_t_per_ha: sum(|a| a.carbon_kg) / 1000.0 / ha,
         dbh_classes,
         equations: allometry.equations(),
     })
@@ -362,6 +368,12 @@ mod tests {
         let s = summarise(&rows, &plot, &params, &p).expect("summary");
         assert_eq!((s.area_m2, s.stems, s.stems_outside), (1000.0, 2, 2));
         assert_eq!(s.mean_dbh_cm, Some(16.0));
+        // Biomass from the Gaussian DBH (11 and 21 cm), not the rows' LiDAR figures.
+        let agb: f64 = [(11.0, 10.0), (21.0, 20.0)]
+            .iter()
+            .filter_map(|&(d, h)| super::super::allometry::tree_allometry(d, Some(h), &p).agb_kg)
+            .sum();
+        assert!((s.agb_t_per_ha - agb / 1000.0 / 0.1).abs() < 1e-9, "{s:?}");
         // 0.1 ha: round(10) = 10 thickest, but only two have a height.
         assert_eq!(s.dominant_height_m, Some(15.0));
         assert!(summary_lines(&s)[0].contains("Gaussians"));
