@@ -95,6 +95,48 @@ async fn finished_segment_job(base: &str, plot: &Path) -> Value {
     job
 }
 
+/// A job whose automatic registration refuses (its photos show another plot) says why and
+/// lists the candidate alignments it weighed, one row each, as the job's problem carries them.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_refused_registration_lists_the_candidates_it_weighed() {
+    let Some((b, dir, srv)) = browser_and_server("refused registration test", &[]).await else {
+        return;
+    };
+    let lidar = synthetic_plot(&dir.path().join("a"), 11);
+    let photos = synthetic_plot(&dir.path().join("b"), 12);
+    let form = multipart(&[
+        ("lidar", lidar.join("lidar.laz")),
+        ("colmap", photos.join("colmap.zip")),
+    ])
+    .text("params", r#"{"until":"register"}"#);
+    let c = client();
+    let resp = send(c.post(format!("{}/v1/jobs", srv.base)).multipart(form)).await;
+    assert_eq!(resp.status(), 202, "{:?}", resp.text().await);
+    let id = id_of(&resp.json().await.expect("json"));
+    let (job, _) = wait_job(&c, &srv.base, &id, Duration::from_secs(600), is_terminal).await;
+    assert_eq!(job["state"], "failed", "{job}");
+    let n = job["error"]["candidates"].as_array().map_or(0, Vec::len);
+    assert!(n > 0, "the refusal carries no candidates: {job}");
+
+    b.goto(&format!("{}/#/jobs/{id}", srv.base)).await;
+    b.wait_for(
+        "the candidates table",
+        &format!("return document.querySelectorAll('#job-candidates tbody tr').length === {n}"),
+        30,
+    )
+    .await;
+    let text = b
+        .eval("return document.querySelector('#job-error').textContent")
+        .await;
+    let text = text.as_str().unwrap_or_default();
+    assert!(
+        text.contains("supply control points") && text.contains("Candidate alignments weighed"),
+        "{text}"
+    );
+    b.screenshot(&output_dir().join("refused-registration.png"))
+        .await;
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn job_page_lists_the_trees_draws_the_twin_and_plots_a_stem_slice() {
     let Some((b, dir, srv)) = browser_and_server("job page test", &[]).await else {

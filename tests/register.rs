@@ -85,20 +85,31 @@ fn register(
     control: Option<&Path>,
     automatic: bool,
 ) -> Result<serde_json::Value, String> {
+    let mut params = PipelineParams::default();
+    params.register.automatic = automatic;
+    register_with(work, lidar, colmap, control, &params).map_err(|e| e.to_string())
+}
+
+/// Stages `ingest` and `register` under `params`; the register report.
+fn register_with(
+    work: &Path,
+    lidar: &Path,
+    colmap: &Path,
+    control: Option<&Path>,
+    params: &PipelineParams,
+) -> Result<serde_json::Value, pipeline::StageError> {
     let inputs = StageInputs {
         lidar: lidar.to_path_buf(),
         colmap: colmap.to_path_buf(),
         control_points: control.map(Path::to_path_buf),
         field_dbh: None,
     };
-    let mut params = PipelineParams::default();
-    params.register.automatic = automatic;
     for stage in [Stage::Ingest, Stage::Register] {
-        pipeline::execute_stage(stage, &inputs, work, &params, &NoProgress)
-            .map_err(|e| e.to_string())?;
+        pipeline::execute_stage(stage, &inputs, work, params, &NoProgress)?;
     }
-    let text = std::fs::read(work.join("register/report.json")).map_err(|e| e.to_string())?;
-    serde_json::from_slice(&text).map_err(|e| e.to_string())
+    let path = work.join("register/report.json");
+    let text = std::fs::read(&path).map_err(|e| sylva::io::IoError::io(&path, e))?;
+    Ok(serde_json::from_slice(&text).expect("report json"))
 }
 
 #[test]
@@ -264,6 +275,73 @@ fn automatic_alignment_reaches_the_goals_on_a_stand() {
     assert_goals(rot_err, scale_err, trans_err);
 }
 
+/// Photos tagged with GPS positions (3 m noise) and a LiDAR file that declares its CRS: the
+/// alignment starts from the GPS, needs no search, and reaches the goals; the report says
+/// how far the photos' GPS positions lie from where the alignment puts their cameras. With a
+/// wrong CRS (UTM 33N instead of 32N: the positions land hundreds of kilometres away) the GPS
+/// start fails, the search finds the plot, and the stage refuses because its alignment
+/// contradicts the photos' GPS, rather than accepting either.
+#[test]
+fn gps_tagged_photos_start_the_alignment_and_a_wrong_crs_is_refused() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut p = SynthParams::new(Preset::Stand);
+    p.seed = 1;
+    p.images = Some(30);
+    p.width = Some(320);
+    p.height = Some(180);
+    p.lidar_points = Some(800_000);
+    p.points3d = Some(10_000);
+    p.gps_noise_m = Some(3.0);
+    let out = generate(dir.path(), p);
+    let params = PipelineParams::default();
+    let report = register_with(
+        &dir.path().join("work"),
+        &out.join("lidar.laz"),
+        &out.join("colmap"),
+        None,
+        &params,
+    )
+    .expect("GPS-started registration");
+    let (rot_err, scale_err, trans_err) = errors(&report, &out);
+    println!(
+        "stand, GPS start: rotation {rot_err:.4}°, scale {:.4}%, translation {:.2} cm; gps {}",
+        scale_err * 100.0,
+        trans_err * 100.0,
+        report["gps"]
+    );
+    assert_eq!(report["start"], "gps", "{report}");
+    assert_eq!(report["gps"]["photos"], 30);
+    let fit = report["gps"]["fit_rms_m"].as_f64().expect("fit rms");
+    let final_rms = report["gps"]["final_rms_m"].as_f64().expect("final rms");
+    assert!(
+        (1.5..6.0).contains(&fit),
+        "GPS fit RMS {fit} m for 3 m noise"
+    );
+    assert!(
+        (1.5..6.0).contains(&final_rms),
+        "GPS residual {final_rms} m"
+    );
+    assert_goals(rot_err, scale_err, trans_err);
+
+    let wrong = PipelineParams {
+        crs: Some("EPSG:32633".into()),
+        ..Default::default()
+    };
+    let err = register_with(
+        &dir.path().join("work-wrong-crs"),
+        &out.join("lidar.laz"),
+        &out.join("colmap"),
+        None,
+        &wrong,
+    )
+    .expect_err("an alignment that contradicts the GPS must be refused");
+    let text = err.to_string();
+    assert!(
+        text.contains("GPS") && text.contains("control points"),
+        "{text}"
+    );
+}
+
 #[test]
 fn photos_of_another_plot_are_refused_not_misaligned() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -280,5 +358,28 @@ fn photos_of_another_plot_are_refused_not_misaligned() {
         )
         .expect_err("no overlap must be refused");
         assert!(err.contains("control points"), "{err}");
+    }
+    // The automatic refusal carries the candidates it weighed, for the job's problem and the
+    // web page, as many as its message counts.
+    let err = register_with(
+        &dir.path().join("work-candidates"),
+        &a.join("lidar.laz"),
+        &b.join("colmap"),
+        None,
+        &PipelineParams::default(),
+    )
+    .expect_err("no overlap must be refused");
+    let pipeline::StageError::Refused { detail, candidates } = &err else {
+        panic!("not a refusal with candidates: {err}");
+    };
+    assert!(!candidates.is_empty(), "{detail}");
+    assert!(
+        detail.contains(&format!("Candidates weighed: {}", candidates.len())),
+        "{detail}"
+    );
+    for c in candidates {
+        let share = c["on_cloud"].as_f64().expect("on_cloud");
+        assert!((0.0..=1.0).contains(&share), "{c}");
+        assert!(c["rotation_deg"].as_f64().is_some() && c["scale"].as_f64().is_some());
     }
 }

@@ -81,6 +81,22 @@ pub struct SynthArgs {
     /// Write PNG photos instead of JPEG.
     #[arg(long, env = "SYLVA_SYNTH_PNG", default_value_t = false)]
     pub png: bool,
+    /// Tag the photos with GPS positions of this horizontal noise, metres (the LiDAR file
+    /// then declares EPSG:32632 so that the positions can be placed on it).
+    #[arg(long, env = "SYLVA_SYNTH_GPS_NOISE_M")]
+    pub gps_noise_m: Option<f64>,
+    /// Scale of the SfM frame, units per metre (default: drawn in 0.2–5).
+    #[arg(long, env = "SYLVA_SYNTH_SFM_SCALE")]
+    pub sfm_scale: Option<f64>,
+    /// Grade of the terrain, percent (default: drawn in 0–8 %).
+    #[arg(long, env = "SYLVA_SYNTH_SLOPE_PCT")]
+    pub slope_pct: Option<f64>,
+    /// Share of the plot the LiDAR covers, in (0.05, 1] (default 1).
+    #[arg(long, env = "SYLVA_SYNTH_LIDAR_COVERAGE")]
+    pub lidar_coverage: Option<f64>,
+    /// Scan the trees without leaves while the photos show them leafy.
+    #[arg(long, env = "SYLVA_SYNTH_LIDAR_LEAF_OFF", default_value_t = false)]
+    pub lidar_leaf_off: bool,
 }
 
 #[derive(Debug, Args)]
@@ -134,6 +150,11 @@ pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
     p.binary = a.binary;
     p.leafless = a.leafless;
     p.png = a.png;
+    p.gps_noise_m = a.gps_noise_m;
+    p.sfm_scale = a.sfm_scale;
+    p.slope_pct = a.slope_pct;
+    p.lidar_coverage = a.lidar_coverage;
+    p.lidar_leaf_off = a.lidar_leaf_off;
     let out = a.out.clone();
     let summary = tokio::task::spawn_blocking(move || {
         sylva::synth::generate(&p, &out, &ConsoleProgress::new("synth", None))

@@ -71,6 +71,22 @@ pub struct CoarseAlignment {
     pub scale: f64,
 }
 
+impl CoarseAlignment {
+    /// A start that was given, not searched: confidence 1, no scores, its own yaw (about z)
+    /// and scale.
+    pub fn fixed(transform: Similarity) -> Self {
+        let x = transform.rotation * DVec3::X;
+        Self {
+            transform,
+            confidence: 1.0,
+            score: 0.0,
+            runner_up: 0.0,
+            yaw_deg: x.y.atan2(x.x).to_degrees(),
+            scale: transform.scale,
+        }
+    }
+}
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
         return 0.0;
@@ -586,21 +602,14 @@ pub fn align_candidates(
             translation: DVec3::new(h.t[0], h.t[1], 0.0),
         };
         let moved: Vec<DVec3> = sfm.iter().map(|p| partial.apply(*p)).collect();
-        let (nx, ny) = (fine.lidar.nx, fine.lidar.ny);
-        let ground_a = rasterise_ground(&moved, fine.x0, fine.y0, fine.cell, nx, ny);
-        let mut dz: Vec<f64> = ground_a
-            .iter()
-            .zip(&ground_b)
-            .filter(|(x, y)| !x.is_nan() && !y.is_nan())
-            .map(|(x, y)| y - x)
-            .collect();
-        let offset_z = if dz.is_empty() {
-            let mut za: Vec<f64> = moved.iter().map(|p| p.z).collect();
-            let mut zb: Vec<f64> = lid.iter().map(|p| p.z).collect();
-            percentile(&mut zb, 0.02) - percentile(&mut za, 0.02)
-        } else {
-            percentile(&mut dz, 0.5)
+        let grid = Grid {
+            x0: fine.x0,
+            y0: fine.y0,
+            cell: fine.cell,
+            nx: fine.lidar.nx,
+            ny: fine.lidar.ny,
         };
+        let offset_z = terrain_offset(&moved, &lid, &grid, &ground_b);
         let transform = Similarity {
             translation: partial.translation + DVec3::new(0.0, 0.0, offset_z),
             ..partial
@@ -623,6 +632,210 @@ pub fn align_candidates(
     }
     progress.set(1.0);
     Ok(out)
+}
+
+/// A raster grid: corner (`x0`, `y0`), `cell` metres, `nx` × `ny` cells.
+struct Grid {
+    x0: f64,
+    y0: f64,
+    cell: f64,
+    nx: usize,
+    ny: usize,
+}
+
+/// The vertical offset (metres) that puts the levelled, placed SfM points `moved` on the
+/// LiDAR's terrain: the median over the cells of `grid` both clouds cover of the LiDAR's
+/// lowest point (`ground_lidar`, from [`rasterise_ground`]) minus the SfM's; without a shared
+/// cell, the difference of the two clouds' 2nd height percentiles.
+fn terrain_offset(moved: &[DVec3], lidar: &[DVec3], grid: &Grid, ground_lidar: &[f64]) -> f64 {
+    let ground_sfm = rasterise_ground(moved, grid.x0, grid.y0, grid.cell, grid.nx, grid.ny);
+    let mut dz: Vec<f64> = ground_sfm
+        .iter()
+        .zip(ground_lidar)
+        .filter(|(x, y)| !x.is_nan() && !y.is_nan())
+        .map(|(x, y)| y - x)
+        .collect();
+    if dz.is_empty() {
+        let mut za: Vec<f64> = moved.iter().map(|p| p.z).collect();
+        let mut zb: Vec<f64> = lidar.iter().map(|p| p.z).collect();
+        percentile(&mut zb, 0.02) - percentile(&mut za, 0.02)
+    } else {
+        percentile(&mut dz, 0.5)
+    }
+}
+
+/// `t` with its vertical translation replaced so that the SfM points it moves sit on the
+/// LiDAR's terrain ([`terrain_offset`] on 1 m cells over the LiDAR's extent, coarser beyond 2 km): for starts
+/// whose heights are not to be trusted (GPS altitudes, a model aligned in another vertical
+/// datum).
+pub fn on_terrain(t: &Similarity, sfm: &[DVec3], lidar: &[Vec3]) -> Similarity {
+    let lid: Vec<DVec3> = lidar.iter().map(|p| p.as_dvec3()).collect();
+    let (mut lo, mut hi) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
+    for p in &lid {
+        lo = lo.min(*p);
+        hi = hi.max(*p);
+    }
+    if lid.is_empty() {
+        return *t;
+    }
+    // 1 m cells, coarser beyond 2 km so the grid stays within 2049² cells.
+    let cell = ((hi.x - lo.x).max(hi.y - lo.y) / 2048.0).max(1.0);
+    let grid = Grid {
+        x0: lo.x,
+        y0: lo.y,
+        cell,
+        nx: ((hi.x - lo.x) / cell).ceil() as usize + 1,
+        ny: ((hi.y - lo.y) / cell).ceil() as usize + 1,
+    };
+    let ground = rasterise_ground(&lid, grid.x0, grid.y0, grid.cell, grid.nx, grid.ny);
+    let level = Similarity {
+        translation: DVec3::new(t.translation.x, t.translation.y, 0.0),
+        ..*t
+    };
+    let moved: Vec<DVec3> = sfm.iter().map(|p| level.apply(*p)).collect();
+    let dz = terrain_offset(&moved, &lid, &grid, &ground);
+    Similarity {
+        translation: level.translation + DVec3::new(0.0, 0.0, dz),
+        ..*t
+    }
+}
+
+/// A coarse alignment from measured camera positions (e.g. GPS), with how well they fit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PositionFit {
+    /// SfM → LiDAR local; `confidence` 1, `score` 0, `runner_up` 0 (nothing was searched).
+    pub alignment: CoarseAlignment,
+    /// RMS horizontal residual of the pairs kept, metres (the positions' noise).
+    pub rms_m: f64,
+    /// Pairs kept, and pairs given.
+    pub used: usize,
+    pub given: usize,
+    /// One standard error of the yaw from the residuals and the pairs' spread, degrees.
+    pub yaw_std_deg: f64,
+}
+
+/// Smallest horizontal RMS spread of the measured camera positions around their centroid,
+/// metres, that pins the yaw: with a few metres of GPS noise a 10 m spread leaves it within a
+/// few degrees, which ICP and the surface refinement then take (their reach is the ICP's
+/// 1 m start distance at the plot's edge).
+pub const MIN_POSITION_SPREAD_M: f64 = 10.0;
+
+/// The coarse similarity from where the photos were taken: `pairs` of (camera centre in the
+/// SfM frame, its measured position in the LiDAR local frame, e.g. a GPS fix projected into
+/// the LiDAR's CRS minus the ingest offset). Measured heights are not used (GPS altitudes
+/// are noisy and their vertical datum unknown): up comes from the cameras as in [`align`],
+/// yaw, scale and the horizontal offset from a least-squares 2-D similarity of the levelled
+/// centres onto the measured x, y (dropping pairs more than 3 robust sigmas, and at least
+/// 1 m, off and fitting again, three times), and the vertical offset from the terrain of
+/// both clouds. At least 4 pairs spread [`MIN_POSITION_SPREAD_M`] or more.
+pub fn from_positions(
+    sfm: &[DVec3],
+    cameras: &[(DVec3, DVec3)],
+    pairs: &[(DVec3, DVec3)],
+    lidar: &[Vec3],
+) -> Result<PositionFit, GeomError> {
+    if pairs.len() < 4 {
+        return Err(GeomError::Empty("fewer than 4 photos with a position"));
+    }
+    if sfm.len() < 10 || lidar.is_empty() {
+        return Err(GeomError::Empty("too few points for registration"));
+    }
+    let r_up = level(up_from_cameras(cameras)?);
+    let src: Vec<[f64; 2]> = pairs
+        .iter()
+        .map(|(c, _)| {
+            let l = r_up * *c;
+            [l.x, l.y]
+        })
+        .collect();
+    let dst: Vec<[f64; 2]> = pairs.iter().map(|(_, m)| [m.x, m.y]).collect();
+    let mut keep = vec![true; pairs.len()];
+    // 2-D similarity as complex numbers: w = c z + t, c = s e^{i yaw}.
+    let fit = |keep: &[bool]| -> Option<([f64; 2], [f64; 2], f64)> {
+        let n = keep.iter().filter(|k| **k).count() as f64;
+        if n < 4.0 {
+            return None;
+        }
+        let mean = |v: &[[f64; 2]]| {
+            let s = v
+                .iter()
+                .zip(keep)
+                .filter(|(_, k)| **k)
+                .fold([0.0, 0.0], |a, (p, _)| [a[0] + p[0], a[1] + p[1]]);
+            [s[0] / n, s[1] / n]
+        };
+        let (ms, md) = (mean(&src), mean(&dst));
+        let (mut re, mut im, mut norm, mut spread) = (0.0, 0.0, 0.0, 0.0);
+        for ((a, b), k) in src.iter().zip(&dst).zip(keep) {
+            if !*k {
+                continue;
+            }
+            let (zx, zy) = (a[0] - ms[0], a[1] - ms[1]);
+            let (wx, wy) = (b[0] - md[0], b[1] - md[1]);
+            re += zx * wx + zy * wy;
+            im += zx * wy - zy * wx;
+            norm += zx * zx + zy * zy;
+            spread += wx * wx + wy * wy;
+        }
+        if norm <= 0.0 {
+            return None;
+        }
+        let c = [re / norm, im / norm];
+        let t = [
+            md[0] - (c[0] * ms[0] - c[1] * ms[1]),
+            md[1] - (c[1] * ms[0] + c[0] * ms[1]),
+        ];
+        Some((c, t, (spread / n).sqrt()))
+    };
+    let residual = |c: [f64; 2], t: [f64; 2], i: usize| {
+        let (a, b) = (src[i], dst[i]);
+        let x = c[0] * a[0] - c[1] * a[1] + t[0];
+        let y = c[1] * a[0] + c[0] * a[1] + t[1];
+        ((x - b[0]).powi(2) + (y - b[1]).powi(2)).sqrt()
+    };
+    let mut model = fit(&keep).ok_or(GeomError::Degenerate("the photos' positions coincide"))?;
+    for _ in 0..3 {
+        let (c, t, _) = model;
+        let mut r: Vec<f64> = (0..pairs.len()).map(|i| residual(c, t, i)).collect();
+        let mut sorted = r.clone();
+        let sigma = 1.4826 * percentile(&mut sorted, 0.5);
+        let limit = (3.0 * sigma).max(1.0);
+        for (k, ri) in keep.iter_mut().zip(r.iter_mut()) {
+            *k = *ri <= limit;
+        }
+        model = fit(&keep).ok_or(GeomError::Degenerate(
+            "the photos' positions disagree with their cameras",
+        ))?;
+    }
+    let (c, t, spread) = model;
+    if spread < MIN_POSITION_SPREAD_M {
+        return Err(GeomError::Degenerate(
+            "the photos' positions spread too little to give a direction",
+        ));
+    }
+    let used = keep.iter().filter(|k| **k).count();
+    let sq: f64 = (0..pairs.len())
+        .filter(|&i| keep[i])
+        .map(|i| residual(c, t, i).powi(2))
+        .sum();
+    let rms_m = (sq / used as f64).sqrt();
+    let scale = (c[0] * c[0] + c[1] * c[1]).sqrt();
+    let yaw = c[1].atan2(c[0]);
+    let (sn, cs) = yaw.sin_cos();
+    let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
+    let partial = Similarity {
+        scale,
+        rotation: rz * r_up,
+        translation: DVec3::new(t[0], t[1], 0.0),
+    };
+    let transform = on_terrain(&partial, sfm, lidar);
+    Ok(PositionFit {
+        alignment: CoarseAlignment::fixed(transform),
+        rms_m,
+        used,
+        given: pairs.len(),
+        yaw_std_deg: (rms_m / (spread * (used as f64).sqrt())).to_degrees(),
+    })
 }
 
 /// Row-major index of the cell holding `p` in the `nx` × `ny` grid of `cell`-metre cells whose
@@ -653,4 +866,109 @@ fn rasterise_ground(
         lo[k] = if lo[k].is_nan() { p.z } else { lo[k].min(p.z) };
     }
     lo
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::ChaCha8Rng;
+    use rand::{RngExt, SeedableRng};
+
+    /// A 60 × 60 m plot: rolling ground (0.25 m spacing) with 3 m posts on a 10 m grid, in the
+    /// LiDAR local frame.
+    fn plot() -> Vec<Vec3> {
+        let mut pts = Vec::new();
+        for i in 0..240 {
+            for j in 0..240 {
+                let (x, y) = (i as f32 * 0.25 - 30.0, j as f32 * 0.25 - 30.0);
+                pts.push(Vec3::new(x, y, 0.05 * x + 0.6 * (0.2 * y).sin()));
+            }
+        }
+        for i in -2..=2 {
+            for j in -2..=2 {
+                for k in 0..30 {
+                    let (x, y) = (i as f32 * 10.0 + 1.0, j as f32 * 10.0 - 2.0);
+                    pts.push(Vec3::new(x, y, 0.05 * x + k as f32 * 0.1));
+                }
+            }
+        }
+        pts
+    }
+
+    fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+        let (u, v): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random_range(0.0..1.0));
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
+    /// SfM frame = truth⁻¹ of the LiDAR frame; 49 nadir cameras at 40 m on a 7 × 7 grid over
+    /// the plot; GPS with 3 m horizontal noise, a 35 m altitude bias (another vertical datum)
+    /// and two fixes 60 m off.
+    #[test]
+    fn camera_positions_with_gps_noise_give_a_start_within_icp_reach() {
+        let lidar = plot();
+        let truth = Similarity {
+            scale: 0.37,
+            rotation: DMat3::from_euler(glam::EulerRot::ZYX, 2.1, 0.4, -0.7),
+            translation: DVec3::new(5.0, -3.0, 1.5),
+        };
+        let inv = truth.inverse();
+        let sfm: Vec<DVec3> = lidar
+            .iter()
+            .step_by(7)
+            .map(|p| inv.apply(p.as_dvec3()))
+            .collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (mut cameras, mut pairs) = (Vec::new(), Vec::new());
+        for i in 0..7 {
+            for j in 0..7 {
+                let c = DVec3::new(i as f64 * 8.0 - 24.0, j as f64 * 8.0 - 24.0, 40.0);
+                let look = DVec3::new(0.02 * gauss(&mut rng), 0.02 * gauss(&mut rng), -1.0);
+                let (cs, ds) = (inv.apply(c), (inv.rotation * look).normalize());
+                cameras.push((cs, ds));
+                let mut gps = c + DVec3::new(3.0 * gauss(&mut rng), 3.0 * gauss(&mut rng), 35.0);
+                if i == 3 && j < 2 {
+                    gps.x += 60.0;
+                }
+                pairs.push((cs, gps));
+            }
+        }
+        let fit = from_positions(&sfm, &cameras, &pairs, &lidar).expect("a start");
+        assert_eq!((fit.used, fit.given), (47, 49), "{fit:?}");
+        assert!(fit.rms_m > 2.0 && fit.rms_m < 4.5, "{fit:?}");
+        let rel = truth.inverse().then(&fit.alignment.transform);
+        assert!(
+            rel.rotation_angle_deg() < 2.0,
+            "{} °",
+            rel.rotation_angle_deg()
+        );
+        assert!((rel.scale - 1.0).abs() < 0.03, "scale {}", rel.scale);
+        let centre = inv.apply(DVec3::ZERO);
+        let off = fit.alignment.transform.apply(centre);
+        assert!(off.truncate().length() < 1.5, "horizontal {off}");
+        assert!(
+            off.z.abs() < 0.3,
+            "vertical {off} (the 35 m altitude bias must not leak)"
+        );
+        assert!(fit.yaw_std_deg > 0.1 && fit.yaw_std_deg < 2.0, "{fit:?}");
+    }
+
+    #[test]
+    fn too_few_or_bunched_positions_are_refused() {
+        let lidar = plot();
+        let sfm: Vec<DVec3> = lidar.iter().step_by(7).map(|p| p.as_dvec3()).collect();
+        let cam = |x: f64, y: f64| (DVec3::new(x, y, 40.0), DVec3::NEG_Z);
+        let cameras: Vec<_> = (0..9)
+            .map(|k| cam((k % 3) as f64 * 2.0, (k / 3) as f64 * 2.0))
+            .collect();
+        let pairs: Vec<_> = cameras.iter().map(|c| (c.0, c.0)).collect();
+        assert!(matches!(
+            from_positions(&sfm, &cameras, &pairs[..3], &lidar),
+            Err(GeomError::Empty(_))
+        ));
+        // Nine photos within 4 m: no direction.
+        assert!(matches!(
+            from_positions(&sfm, &cameras, &pairs, &lidar),
+            Err(GeomError::Degenerate(_))
+        ));
+    }
 }

@@ -365,29 +365,49 @@ impl Crs {
     /// Transforms `points` (x, y in this CRS: metres, or degrees when geographic) to WGS84
     /// (longitude, latitude) in degrees, in place.
     pub fn to_wgs84(&self, points: &mut [(f64, f64)]) -> Result<(), CrsError> {
+        self.transform(points, true)
+    }
+
+    /// Transforms WGS84 (longitude, latitude) in degrees to x, y in this CRS (metres, or
+    /// degrees when geographic), in place: the inverse of [`Crs::to_wgs84`].
+    pub fn from_wgs84(&self, points: &mut [(f64, f64)]) -> Result<(), CrsError> {
+        self.transform(points, false)
+    }
+
+    fn transform(&self, points: &mut [(f64, f64)], to_wgs84: bool) -> Result<(), CrsError> {
         let fail = |why: String| CrsError::Transform {
             from: self.label(),
             why,
         };
-        let from = Proj::from_proj_string(&self.proj).map_err(|e| fail(e.to_string()))?;
-        let to = Proj::from_proj_string(crs_definitions::EPSG_4326.proj4)
+        let this = Proj::from_proj_string(&self.proj).map_err(|e| fail(e.to_string()))?;
+        let wgs84 = Proj::from_proj_string(crs_definitions::EPSG_4326.proj4)
             .map_err(|e| fail(e.to_string()))?;
-        let geographic = self.is_geographic();
+        let (from, to, degrees_in, degrees_out) = if to_wgs84 {
+            (&this, &wgs84, self.is_geographic(), true)
+        } else {
+            (&wgs84, &this, true, self.is_geographic())
+        };
         for p in points.iter_mut() {
-            let mut xyz = if geographic {
+            let mut xyz = if degrees_in {
                 (p.0.to_radians(), p.1.to_radians(), 0.0)
             } else {
                 (p.0, p.1, 0.0)
             };
-            proj4rs::transform::transform(&from, &to, &mut xyz).map_err(|e| fail(e.to_string()))?;
-            let (lon, lat) = (xyz.0.to_degrees(), xyz.1.to_degrees());
-            if !(lon.is_finite() && lat.is_finite() && lat.abs() <= 90.0) {
+            proj4rs::transform::transform(from, to, &mut xyz).map_err(|e| fail(e.to_string()))?;
+            let out = if degrees_out {
+                (xyz.0.to_degrees(), xyz.1.to_degrees())
+            } else {
+                (xyz.0, xyz.1)
+            };
+            let on_earth =
+                out.0.is_finite() && out.1.is_finite() && (!degrees_out || out.1.abs() <= 90.0);
+            if !on_earth {
                 return Err(fail(format!(
                     "({}, {}) has no place on the Earth",
                     p.0, p.1
                 )));
             }
-            *p = (lon, lat);
+            *p = out;
         }
         Ok(())
     }
@@ -441,6 +461,27 @@ mod tests {
         assert!((p[0].1 - 27.122_469_6).abs() < 1e-6, "{p:?}");
         // 100 km east at 27° N is about 1.01° of longitude.
         assert!((p[1].0 - 112.0).abs() < 0.05 && p[1].1 < p[0].1, "{p:?}");
+    }
+
+    /// WGS84 back to UTM 49N lands where it started (to 1 mm), the anchor of the GPS starts
+    /// of stage `register`.
+    #[test]
+    fn wgs84_to_utm_inverts_utm_to_wgs84() {
+        let crs = Crs::parse("EPSG:32649").expect("epsg");
+        let start = [(500_000.0, 3_000_000.0), (612_345.678, 3_987_654.321)];
+        let mut p = start;
+        crs.to_wgs84(&mut p).expect("forward");
+        crs.from_wgs84(&mut p).expect("inverse");
+        for (a, b) in p.iter().zip(&start) {
+            assert!(
+                (a.0 - b.0).abs() < 1e-3 && (a.1 - b.1).abs() < 1e-3,
+                "{a:?} vs {b:?}"
+            );
+        }
+        let mut q = [(111.0, 27.122_469_6)];
+        crs.from_wgs84(&mut q).expect("inverse");
+        assert!((q[0].0 - 500_000.0).abs() < 1e-3, "{q:?}");
+        assert!((q[0].1 - 3_000_000.0).abs() < 0.1, "{q:?}");
     }
 
     #[test]

@@ -11,6 +11,7 @@ pub mod colmap;
 pub mod crs;
 pub mod e57;
 pub mod gpkg;
+pub mod gps;
 pub mod las;
 pub mod ply;
 pub mod pointcloud;

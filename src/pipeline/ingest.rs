@@ -5,13 +5,19 @@
 //! registered image present and decodable at its camera's size) and copied as text to
 //! `ingest/sparse/`, and optional control points and field DBH tables are parsed. The cloud's
 //! CRS (the job's `crs`, else the file's declaration) is settled here once and written as
-//! `ingest/crs.json`, which every later stage that writes coordinates copies beside them. Anything
+//! `ingest/crs.json`, which every later stage that writes coordinates copies beside them. The
+//! photos' EXIF GPS positions, when they carry any, become `ingest/gps.json` (stage `register`
+//! starts from them when the CRS is known). Anything
 //! unusable fails the stage with a message naming the file and the fault.
 
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
 use serde_json::json;
 
 use super::{StageContext, StageError};
 use crate::io::colmap::{self, CameraModel};
+use crate::io::gps::{self, GpsFix};
 use crate::io::{ply, pointcloud, tables};
 use crate::progress::SubProgress;
 
@@ -117,7 +123,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             supported_models()
         )));
     }
-    let Some(_) = project.images_dir.as_ref() else {
+    let Some(images_dir) = project.images_dir.as_ref() else {
         return Err(StageError::Input(
             "COLMAP project: no images/ folder beside the sparse model".into(),
         ));
@@ -160,6 +166,12 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }
     if ctx.progress.is_cancelled() {
         return Err(StageError::Cancelled);
+    }
+    let gps = read_gps(images_dir, &model, &mut warnings);
+    if !gps.is_empty() {
+        let path = ctx.out_dir.join(GPS_FILE);
+        let text = serde_json::to_vec_pretty(&gps).map_err(|e| StageError::Input(e.to_string()))?;
+        std::fs::write(&path, text).map_err(|e| crate::io::IoError::io(&path, e))?;
     }
     let sparse_out = ctx.out_dir.join("sparse");
     std::fs::create_dir_all(&sparse_out).map_err(|e| crate::io::IoError::Io {
@@ -211,11 +223,52 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "images_registered": model.images.len(),
             "points3d": model.points.len(),
             "images_checked": check.as_ref().map(|c| c.images_found),
+            "images_with_gps": gps.len(),
         },
         "control_points": control_points,
         "field_trees": field_trees,
         "warnings": warnings,
     }))
+}
+
+/// Stage `ingest`'s record of the photos' GPS positions (EXIF): image name → WGS84 fix.
+/// Written only when at least one registered photo has one; stage `register` starts from it.
+pub const GPS_FILE: &str = "gps.json";
+
+/// The EXIF GPS position of every registered photo that has one, by name. A photo whose
+/// EXIF is malformed adds a warning and no position.
+fn read_gps(
+    images_dir: &std::path::Path,
+    model: &colmap::ColmapModel,
+    warnings: &mut Vec<String>,
+) -> BTreeMap<String, GpsFix> {
+    let names: Vec<&String> = model.images.values().map(|im| &im.name).collect();
+    let read: Vec<(String, Result<Option<GpsFix>, String>)> = names
+        .par_iter()
+        .filter_map(|name| {
+            let path = colmap::image_path(images_dir, name)?;
+            Some(((*name).clone(), gps::read_fix(&path)))
+        })
+        .collect();
+    let mut bad = Vec::new();
+    let mut out = BTreeMap::new();
+    for (name, r) in read {
+        match r {
+            Ok(Some(fix)) => {
+                out.insert(name, fix);
+            }
+            Ok(None) => {}
+            Err(e) => bad.push(format!("{name} ({e})")),
+        }
+    }
+    if !bad.is_empty() {
+        warnings.push(format!(
+            "{} photo(s) carry unreadable GPS tags and are used without a position: {}",
+            bad.len(),
+            list(&bad)
+        ));
+    }
+    out
 }
 
 fn supported_models() -> String {

@@ -51,6 +51,14 @@ pub enum StageError {
     /// The GPU is missing or failed (the service's fault, not the input's).
     #[error("{0}")]
     Device(String),
+    /// The data were usable but a gate refused the result (the automatic registration was
+    /// not sure): `detail` says why and what to supply, `candidates` what was weighed (the
+    /// job's problem carries them, the web page lists them).
+    #[error("{detail}")]
+    Refused {
+        detail: String,
+        candidates: Vec<serde_json::Value>,
+    },
     /// The job was cancelled while the stage ran.
     #[error("cancelled")]
     Cancelled,
@@ -73,7 +81,7 @@ impl From<crate::geom::GeomError> for StageError {
 impl StageError {
     /// True when the failure is the user's input (a 422-like fault), not the service's.
     pub fn is_input_fault(&self) -> bool {
-        matches!(self, StageError::Input(_))
+        matches!(self, StageError::Input(_) | StageError::Refused { .. })
             || matches!(self, StageError::Io(IoError::Format { .. }))
     }
 

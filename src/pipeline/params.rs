@@ -141,6 +141,34 @@ pub struct RegisterParams {
     /// target picked by hand in a photo model and in a LiDAR cloud, each to about a
     /// centimetre). The pairs enter the refinement with this weight against the SfM points.
     pub control_point_sigma_m: f64,
+    /// Where the automatic alignment starts (default `auto`; docs/method.md, georeferenced
+    /// starts). Control points, when given, are used instead.
+    pub start: RegisterStart,
+    /// A georeferenced start is accepted only when the final alignment puts the camera
+    /// centres within this many metres (RMS, horizontal) of their GPS positions, or within
+    /// three times the GPS fit's own RMS if that is larger (default 10 m: consumer GPS on a
+    /// drone is good to a few metres; an alignment that moves the photos further than that
+    /// from where they were taken contradicts them).
+    pub max_gps_disagreement_m: f64,
+}
+
+/// Where the automatic alignment of stage `register` starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum RegisterStart {
+    /// A georeferenced start when the data give one (the model's frame already is the
+    /// LiDAR's CRS, else GPS positions in the photos with the LiDAR's CRS known), verified
+    /// like a searched candidate; when there is none, or it fails verification, the raster
+    /// search.
+    Auto,
+    /// Always the raster search over yaw, scale and offset.
+    Search,
+    /// The photos' GPS positions (EXIF), projected into the LiDAR's CRS; the stage fails
+    /// when they or the CRS are missing.
+    Gps,
+    /// The COLMAP model's coordinates already are the LiDAR file's (e.g. aligned to
+    /// projected GPS or survey positions with COLMAP's model_aligner).
+    ModelFrame,
 }
 
 impl Default for RegisterParams {
@@ -167,6 +195,8 @@ impl Default for RegisterParams {
             refine_rounds: 3,
             uncertainty_splits: 16,
             control_point_sigma_m: 0.015,
+            start: RegisterStart::Auto,
+            max_gps_disagreement_m: 10.0,
         }
     }
 }

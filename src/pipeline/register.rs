@@ -17,19 +17,23 @@
 //! LiDAR cloud's local frame (file coordinates minus the ingest offset) so f32 positions stay
 //! precise; the report gives `sfm_to_lidar` in the file's own coordinates.
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use glam::{DMat3, DVec3, Vec3};
 use serde_json::json;
 
-use super::params::RegisterParams;
+use super::ingest::GPS_FILE;
+use super::params::{RegisterParams, RegisterStart};
 use super::{Stage, StageContext, StageError};
+use crate::geom::coarse::CoarseAlignment;
 use crate::geom::register::{
     AUTOMATIC_MAX_STD_ROTATION_DEG, AUTOMATIC_MAX_STD_SCALE, AUTOMATIC_REFINE_PASSES, CandidateRun,
     SurfaceTarget, icp_two_phase, refine_on_surface, verify_candidates,
 };
 use crate::geom::{self, IcpMethod, IcpParams, RobustKernel, Similarity, VoxelParams};
 use crate::io::colmap::{self, ColmapModel};
+use crate::io::gps::GpsFix;
 use crate::io::pointcloud::{self, PointCloud};
 use crate::io::{IoError, tables};
 use crate::progress::SubProgress;
@@ -205,6 +209,12 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     // the surface refinement, whose surface and result the refinement below goes on from.
     let mut surface: Option<SurfaceTarget> = None;
     let mut refine_start: Option<Similarity> = None;
+    let mut start_used = "control_points";
+    let gps = if ctx.inputs.control_points.is_none() && p.start != RegisterStart::Search {
+        gps_pairs(ctx, &model, &sfm, &cloud.positions, offset)?
+    } else {
+        None
+    };
     let (coarse, method, pairs, confidence, fine, candidates) = match &ctx.inputs.control_points {
         Some(path) => {
             let cps = tables::read_control_points(path)?;
@@ -254,77 +264,165 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         }
         None => {
             let rays = camera_rays(&model);
-            let cands = geom::coarse::align_candidates(
-                &sfm,
-                &rays,
-                &cloud.positions,
-                &geom::coarse::CoarseParams::default(),
-                &SubProgress::new(ctx.progress, 0.15, 0.35),
-            )
-            .map_err(|e| match e {
-                geom::GeomError::Cancelled => StageError::Cancelled,
-                other => StageError::Input(format!(
-                    "automatic registration failed ({other}); supply control points \
-                     (at least 4 pairs, CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)"
-                )),
-            })?;
             let st = SurfaceTarget::new(
                 &cloud.positions,
                 p.refine_voxel_m,
-                &SubProgress::new(ctx.progress, 0.5, 0.05),
+                &SubProgress::new(ctx.progress, 0.12, 0.03),
             )?;
-            if cands.is_empty() {
-                return Err(StageError::Input(
-                    "automatic registration found no candidate alignment; supply control \
-                     points (at least 4 pairs, CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)"
-                        .into(),
+            let starts = georeferenced_starts(ctx, &sfm, &cloud, gps.as_ref())?;
+            let mut chosen: Option<(geom::register::Verified, &'static str)> = None;
+            // Each georeferenced start is verified on its own (one far off the cloud, as from
+            // a wrong CRS, fails ICP without taking the others down); the best that passes
+            // the gates is taken.
+            let mut competing: Vec<(&'static str, CoarseAlignment)> = Vec::new();
+            let mut failures: Vec<String> = Vec::new();
+            let mut weighed_runs: Vec<CandidateRun> = Vec::new();
+            for (k, (label, start)) in starts.iter().enumerate() {
+                let share = 0.15 / starts.len() as f64;
+                let verified = verify_candidates(
+                    &sfm,
+                    std::slice::from_ref(start),
+                    &target,
+                    &params,
+                    &st,
+                    &surface_params(p),
+                    &SubProgress::new(ctx.progress, 0.15 + share * k as f64, share),
+                );
+                let v = match verified {
+                    Ok(v) => v,
+                    Err(geom::GeomError::Cancelled) => return Err(StageError::Cancelled),
+                    Err(e) => {
+                        ctx.progress
+                            .log(&format!("the {label} start does not reach the cloud: {e}"));
+                        failures.push(format!("the {label} start does not reach the cloud ({e})"));
+                        continue;
+                    }
+                };
+                ctx.progress.log(&format!(
+                    "{label} start: on-cloud share {:.3} (elevated {:.3}); confidence {:.2}",
+                    v.best_fit, v.best_elevated, v.confidence
                 ));
+                weighed_runs.extend(v.candidates.iter().copied());
+                competing.push((label, start.clone()));
+                let passes = v.best_fit >= p.min_fitness && v.confidence >= p.min_confidence;
+                if !passes {
+                    failures.push(format!(
+                        "from the {label} start ICP and the surface refinement put {:.0}% of the \
+                         SfM points on the LiDAR cloud (at least {:.0}% needed) with confidence \
+                         {:.2} (at least {:.2} needed)",
+                        v.best_fit * 100.0,
+                        p.min_fitness * 100.0,
+                        v.confidence,
+                        p.min_confidence
+                    ));
+                } else if chosen.as_ref().is_none_or(|(c, _)| {
+                    v.best_fit + v.best_elevated > c.best_fit + c.best_elevated
+                }) {
+                    chosen = Some((v, label));
+                }
             }
-            let v = verify_candidates(
-                &sfm,
-                &cands,
-                &target,
-                &params,
-                &st,
-                &surface_params(p),
-                &SubProgress::new(ctx.progress, 0.55, 0.35),
-            )?;
+            if chosen.is_none() && !starts.is_empty() {
+                if p.start != RegisterStart::Auto {
+                    let labels: Vec<&str> = competing.iter().map(|s| s.0).collect();
+                    return Err(refused(
+                        &weighed_runs,
+                        &labels,
+                        format!(
+                            "automatic registration rejected: {}. {}. Set \
+                             params.register.start = \"search\" to search without it, or \
+                             {SUPPLY_CONTROL_POINTS}",
+                            failures.join("; "),
+                            weighed(&weighed_runs)
+                        ),
+                    ));
+                }
+                ctx.progress.log(
+                    "no georeferenced start verified; searching over yaw, scale and offset \
+                     instead",
+                );
+            }
+            let (v, start) = match chosen {
+                Some(found) => found,
+                None => {
+                    let mut cands = geom::coarse::align_candidates(
+                        &sfm,
+                        &rays,
+                        &cloud.positions,
+                        &geom::coarse::CoarseParams::default(),
+                        &SubProgress::new(ctx.progress, 0.3, 0.2),
+                    )
+                    .map_err(|e| match e {
+                        geom::GeomError::Cancelled => StageError::Cancelled,
+                        other => StageError::Input(format!(
+                            "automatic registration failed ({other}); {SUPPLY_CONTROL_POINTS}"
+                        )),
+                    })?;
+                    if cands.is_empty() {
+                        return Err(StageError::Input(format!(
+                            "automatic registration found no candidate alignment; \
+                             {SUPPLY_CONTROL_POINTS}"
+                        )));
+                    }
+                    // A georeferenced start that reached the cloud but did not verify alone
+                    // still competes.
+                    let mut labels = vec!["search"; cands.len()];
+                    labels.extend(competing.iter().map(|s| s.0));
+                    cands.extend(competing.iter().map(|s| s.1.clone()));
+                    let v = verify_candidates(
+                        &sfm,
+                        &cands,
+                        &target,
+                        &params,
+                        &st,
+                        &surface_params(p),
+                        &SubProgress::new(ctx.progress, 0.55, 0.35),
+                    )?;
+                    ctx.progress.log(&format!(
+                        "automatic alignment: {} candidates verified by ICP; best on-cloud share \
+                         {:.3} (elevated {:.3}), best distinct other {:.3}; confidence {:.2}",
+                        cands.len(),
+                        v.best_fit,
+                        v.best_elevated,
+                        v.runner_up,
+                        v.confidence
+                    ));
+                    if v.best_fit < p.min_fitness {
+                        return Err(refused(
+                            &v.candidates,
+                            &labels,
+                            format!(
+                                "automatic registration rejected: after ICP and the surface \
+                             refinement only {:.0}% of the SfM points lie on the LiDAR cloud \
+                             (< {:.0}%); the photos and the scan may not overlap. {}; {SUPPLY_CONTROL_POINTS}",
+                                v.best_fit * 100.0,
+                                p.min_fitness * 100.0,
+                                weighed(&v.candidates)
+                            ),
+                        ));
+                    }
+                    if v.confidence < p.min_confidence {
+                        return Err(refused(
+                            &v.candidates,
+                            &labels,
+                            format!(
+                                "automatic registration is not confident enough ({:.2} < {:.2}): \
+                             no candidate alignment clearly puts the photos' points on the \
+                             LiDAR cloud (the best scores {:.2}, the best distinct other \
+                             {:.2}); the photos and the scan may not overlap. {}; {SUPPLY_CONTROL_POINTS}",
+                                v.confidence,
+                                p.min_confidence,
+                                v.best_fit + v.best_elevated,
+                                v.runner_up,
+                                weighed(&v.candidates)
+                            ),
+                        ));
+                    }
+                    (v, "search")
+                }
+            };
             surface = Some(st);
             refine_start = Some(v.refined);
-            ctx.progress.log(&format!(
-                "automatic alignment: {} candidates verified by ICP; best on-cloud share {:.3} \
-                 (elevated {:.3}), best distinct other {:.3}; confidence {:.2}",
-                cands.len(),
-                v.best_fit,
-                v.best_elevated,
-                v.runner_up,
-                v.confidence
-            ));
-            if v.best_fit < p.min_fitness {
-                return Err(StageError::Input(format!(
-                    "automatic registration rejected: after ICP and the surface refinement only \
-                     {:.0}% of the SfM points lie on the LiDAR cloud (< {:.0}%); the photos \
-                     and the scan may not overlap. {}. Supply control points (at least 4 \
-                     pairs, CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)",
-                    v.best_fit * 100.0,
-                    p.min_fitness * 100.0,
-                    weighed(&v.candidates)
-                )));
-            }
-            if v.confidence < p.min_confidence {
-                return Err(StageError::Input(format!(
-                    "automatic registration is not confident enough ({:.2} < {:.2}): no \
-                     candidate alignment clearly puts the photos' points on the LiDAR cloud \
-                     (the best scores {:.2}, the best distinct other {:.2}); the photos and the \
-                     scan may not overlap. {}. Supply control points (at least 4 pairs, CSV \
-                     sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z)",
-                    v.confidence,
-                    p.min_confidence,
-                    v.best_fit + v.best_elevated,
-                    v.runner_up,
-                    weighed(&v.candidates)
-                )));
-            }
+            start_used = start;
             (
                 v.coarse,
                 "automatic",
@@ -472,6 +570,39 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             serde_json::Value::Null,
         )
     };
+    // The photos' GPS positions against where the alignment puts their cameras.
+    let gps_report = match &gps {
+        Some(g) => {
+            let fit = g.fit.as_ref();
+            let final_rms = g.rms_under(&local);
+            let bound = p
+                .max_gps_disagreement_m
+                .max(fit.map_or(0.0, |f| 3.0 * f.rms_m));
+            ctx.progress.log(&format!(
+                "GPS: {} photos with a position; the alignment puts their cameras {final_rms:.2} m \
+                 (RMS, horizontal) from them",
+                g.pairs.len()
+            ));
+            if method == "automatic" && final_rms > bound {
+                return Err(StageError::Input(format!(
+                    "automatic registration contradicts the photos' GPS positions: it puts the \
+                     cameras {final_rms:.1} m (RMS, horizontal) from where their GPS says they \
+                     were (at most {bound:.1} m accepted). Check the LiDAR's CRS (params.crs), \
+                     set params.register.start = \"search\" to ignore the GPS, or \
+                     {SUPPLY_CONTROL_POINTS}"
+                )));
+            }
+            json!({
+                "photos": g.pairs.len(),
+                "fit_used": fit.map(|f| f.used),
+                "fit_rms_m": fit.map(|f| f.rms_m),
+                "fit_yaw_std_deg": fit.map(|f| f.yaw_std_deg),
+                "fit_error": g.fit_error,
+                "final_rms_m": final_rms,
+            })
+        }
+        None => serde_json::Value::Null,
+    };
     // Each control pair's residual under the final transform too (metres, LiDAR frame).
     let pairs: Vec<serde_json::Value> = match &ctx.inputs.control_points {
         Some(path) => {
@@ -504,6 +635,8 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "sfm_to_lidar_local": similarity_json(&local),
         "lidar_offset": [offset.x, offset.y, offset.z],
         "method": method,
+        "start": start_used,
+        "gps": gps_report,
         "coarse": similarity_json(&coarse),
         "pairs": pairs,
         "fitness": fitness,
@@ -519,6 +652,198 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "lidar_points_target": target.len(),
         "registered_model_frame": "lidar_local",
     }))
+}
+
+/// The photos' GPS positions (stage `ingest`'s gps.json) paired with their cameras, in the
+/// LiDAR cloud's local frame, and the coarse alignment they give.
+struct GpsPairs {
+    /// (camera centre in the SfM frame, GPS position: x, y projected into the LiDAR's CRS,
+    /// z the EXIF altitude, all minus the ingest offset) per photo with a position.
+    pairs: Vec<(DVec3, DVec3)>,
+    /// The start from them ([`geom::coarse::from_positions`]), or why there is none.
+    fit: Option<geom::coarse::PositionFit>,
+    fit_error: Option<String>,
+}
+
+impl GpsPairs {
+    /// RMS horizontal distance, metres, between the cameras moved by `t` and their GPS
+    /// positions.
+    fn rms_under(&self, t: &Similarity) -> f64 {
+        let sq: f64 = self
+            .pairs
+            .iter()
+            .map(|(c, g)| (t.apply(*c) - *g).truncate().length_squared())
+            .sum();
+        (sq / self.pairs.len().max(1) as f64).sqrt()
+    }
+}
+
+/// The photos' GPS positions with their cameras, when ingest found any and the LiDAR's CRS
+/// is known (else `None`, saying why in the log; an error when `start` is `gps`).
+fn gps_pairs(
+    ctx: &StageContext<'_>,
+    model: &ColmapModel,
+    sfm: &[DVec3],
+    lidar: &[Vec3],
+    offset: DVec3,
+) -> Result<Option<GpsPairs>, StageError> {
+    let p = &ctx.params.register;
+    let forced = p.start == RegisterStart::Gps;
+    let ingest = ctx.output_of(Stage::Ingest, Stage::Register)?;
+    let path = ingest.join(GPS_FILE);
+    let fixes: BTreeMap<String, GpsFix> = match std::fs::read(&path) {
+        Ok(bytes) => serde_json::from_slice(&bytes)
+            .map_err(|e| IoError::format(&path, format!("GPS positions: {e}")))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            if forced {
+                return Err(StageError::Input(
+                    "params.register.start is \"gps\" but no registered photo carries a GPS \
+                     position (EXIF GPSLatitude/GPSLongitude)"
+                        .into(),
+                ));
+            }
+            return Ok(None);
+        }
+        Err(e) => return Err(IoError::io(&path, e).into()),
+    };
+    let crs = crate::forest::output::read_crs(&ingest)?;
+    let Some(crs) = crs.crs else {
+        let why = format!(
+            "{} photos carry GPS positions, but the LiDAR's CRS is unknown, so they cannot be \
+             placed on the cloud; give it with params.crs to start from them",
+            fixes.len()
+        );
+        if forced {
+            return Err(StageError::Input(why));
+        }
+        ctx.progress.log(&why);
+        return Ok(None);
+    };
+    let mut pairs = Vec::new();
+    for im in model.images.values() {
+        let Some(fix) = fixes.get(&im.name) else {
+            continue;
+        };
+        let mut xy = [(fix.lon, fix.lat)];
+        crs.from_wgs84(&mut xy)
+            .map_err(|e| StageError::Input(format!("GPS position of {}: {e}", im.name)))?;
+        let centre = geom::register::camera_ray(im.qvec, im.tvec).0;
+        let gps = DVec3::new(xy[0].0, xy[0].1, fix.alt.unwrap_or(offset.z)) - offset;
+        pairs.push((centre, gps));
+    }
+    if pairs.is_empty() {
+        return Ok(None);
+    }
+    let rays = camera_rays(model);
+    let (fit, fit_error) = match geom::coarse::from_positions(sfm, &rays, &pairs, lidar) {
+        Ok(f) => (Some(f), None),
+        Err(e) if forced => {
+            return Err(StageError::Input(format!(
+                "the photos' GPS positions give no start: {e}"
+            )));
+        }
+        Err(e) => (None, Some(e.to_string())),
+    };
+    Ok(Some(GpsPairs {
+        pairs,
+        fit,
+        fit_error,
+    }))
+}
+
+/// Whether the COLMAP model's points, read as LiDAR file coordinates, mostly lie within the
+/// LiDAR cloud's extent widened by 20 m (100 m vertically): then its frame is probably the
+/// LiDAR's CRS already.
+fn model_in_lidar_frame(sfm: &[DVec3], cloud: &PointCloud) -> bool {
+    let (mut lo, mut hi) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
+    for q in &cloud.positions {
+        lo = lo.min(q.as_dvec3());
+        hi = hi.max(q.as_dvec3());
+    }
+    let margin = DVec3::new(20.0, 20.0, 100.0);
+    let (lo, hi) = (lo - margin + cloud.offset, hi + margin + cloud.offset);
+    let inside = sfm
+        .iter()
+        .filter(|q| q.cmpge(lo).all() && q.cmple(hi).all())
+        .count();
+    !sfm.is_empty() && inside * 2 >= sfm.len()
+}
+
+/// The georeferenced starts `params.register.start` asks for, labelled: `model_frame` (the
+/// model's coordinates taken as the LiDAR file's, its height settled on the terrain) and
+/// `gps` (from the photos' positions). `auto` takes those the data give.
+fn georeferenced_starts(
+    ctx: &StageContext<'_>,
+    sfm: &[DVec3],
+    cloud: &PointCloud,
+    gps: Option<&GpsPairs>,
+) -> Result<Vec<(&'static str, CoarseAlignment)>, StageError> {
+    let p = &ctx.params.register;
+    let mut starts = Vec::new();
+    let frame = match p.start {
+        RegisterStart::ModelFrame => true,
+        RegisterStart::Auto => model_in_lidar_frame(sfm, cloud),
+        _ => false,
+    };
+    if frame {
+        let identity = Similarity {
+            scale: 1.0,
+            rotation: DMat3::IDENTITY,
+            translation: -cloud.offset,
+        };
+        let t = geom::coarse::on_terrain(&identity, sfm, &cloud.positions);
+        ctx.progress.log(&format!(
+            "the COLMAP model's frame is taken as the LiDAR's (height moved {:.2} m onto the \
+             terrain)",
+            t.translation.z - identity.translation.z
+        ));
+        starts.push(("model_frame", CoarseAlignment::fixed(t)));
+    }
+    if matches!(p.start, RegisterStart::Auto | RegisterStart::Gps)
+        && let Some(g) = gps
+    {
+        match (&g.fit, &g.fit_error) {
+            (Some(fit), _) => {
+                ctx.progress.log(&format!(
+                    "GPS start: {} of {} photos' positions fit their cameras to {:.2} m RMS; \
+                     yaw {:.1}° ± {:.2}°, scale {:.4}",
+                    fit.used,
+                    fit.given,
+                    fit.rms_m,
+                    fit.alignment.yaw_deg,
+                    fit.yaw_std_deg,
+                    fit.alignment.scale
+                ));
+                starts.push(("gps", fit.alignment.clone()));
+            }
+            (None, why) => ctx.progress.log(&format!(
+                "the photos' GPS positions give no start: {}",
+                why.as_deref().unwrap_or("no fit")
+            )),
+        }
+    }
+    Ok(starts)
+}
+
+/// A refusal of the automatic alignment: `detail`, with every candidate it weighed
+/// (labelled by where it started) for the job's problem and the web page.
+fn refused(runs: &[CandidateRun], labels: &[&str], detail: String) -> StageError {
+    let candidates = runs
+        .iter()
+        .zip(labels.iter().chain(std::iter::repeat(&"search")))
+        .map(|(r, start)| {
+            json!({
+                "start": start,
+                "on_cloud": r.on_cloud,
+                "elevated_on_cloud": r.elevated_on_cloud,
+                "elevated_points": r.elevated_points,
+                "rotation_deg": r.refined.rotation_angle_deg(),
+                "scale": r.refined.scale,
+                "icp_fitness": r.fine.fitness,
+            })
+        })
+        .collect();
+    StageError::Refused { detail, candidates }
 }
 
 /// The surface refinement's parameters from the stage's.

@@ -47,6 +47,8 @@ pub struct LayoutParams {
     /// DBH of the first trees, centimetres, in place of the draw (see
     /// [`super::SynthParams::stem_dbh_cm`]).
     pub stem_dbh_cm: Vec<f64>,
+    /// Grade of the terrain's planar part, percent, in place of the draw.
+    pub slope_pct: Option<f64>,
 }
 
 /// Lognormal DBH (cm) truncated to the species range.
@@ -106,6 +108,7 @@ pub fn build_plot(p: &LayoutParams) -> Plot {
         radius + TERRAIN_MARGIN_M,
         cfg.relief_m,
         noise_seed,
+        p.slope_pct.map(|g| g / 100.0),
     );
 
     let mut placed: Vec<[f64; 2]> = Vec::with_capacity(n);

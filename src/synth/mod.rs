@@ -45,7 +45,9 @@ use rayon::prelude::*;
 
 use crate::io::IoError;
 use crate::io::colmap::{ColmapModel, write_binary, write_text};
-use crate::io::las::write_las;
+use crate::io::crs::Crs;
+use crate::io::gps::{self, GpsFix};
+use crate::io::las::write_las_with_crs;
 use crate::io::pointcloud::{CloudFormat, PointCloud};
 use crate::progress::{Progress, SubProgress};
 
@@ -112,19 +114,27 @@ pub(crate) fn run(
 
     // 1. Scene.
     progress.log("synth: building the scene");
-    let plot = layout::build_plot(&layout_params(params));
+    let mut plot = layout::build_plot(&layout_params(params));
     let closure = layout::canopy_closure(&plot);
     lap("scene", &mut timings);
     cancelled()?;
 
-    // 2. LiDAR.
+    // 2. LiDAR (of the plot without its leaves for a leaf-off scan).
     progress.log("synth: scanning");
+    let leafy = params.lidar_leaf_off.then(|| {
+        let bare = plot.scene.without_leaves();
+        std::mem::replace(&mut plot.scene, bare)
+    });
     let scan = lidar::scan(
         &plot,
         &lidar_params(params),
         params.seed,
         &SubProgress::new(progress, 0.0, 0.4),
-    )?;
+    );
+    if let Some(scene) = leafy {
+        plot.scene = scene;
+    }
+    let scan = cover(scan?, params.lidar_coverage);
     lap("lidar", &mut timings);
     let n_points = scan.positions.len();
     let mut label_counts = [0usize; 4];
@@ -139,7 +149,13 @@ pub(crate) fn run(
         intensity: Some(scan.intensity),
         format: CloudFormat::Laz,
     };
-    write_las(&out.join("lidar.laz"), &cloud, true)?;
+    let crs = match params.gps_noise_m {
+        Some(_) => {
+            Some(Crs::from_epsg(GPS_EPSG).map_err(|e| SynthError::InvalidParams(e.to_string()))?)
+        }
+        None => None,
+    };
+    write_las_with_crs(&out.join("lidar.laz"), &cloud, true, crs.as_ref())?;
     drop(cloud);
     lap("laz", &mut timings);
     cancelled()?;
@@ -163,7 +179,11 @@ pub(crate) fn run(
             }
             let pixels = camera::render(&plot.scene, &light, &intr, v, params.samples_per_pixel);
             let path = images_dir.join(&v.name);
-            encode(&path, &pixels, width, height, params.png)?;
+            let exif = match (params.gps_noise_m, &crs) {
+                (Some(sigma), Some(crs)) => Some(gps_exif(v, k, sigma, offset, crs, params.seed)?),
+                _ => None,
+            };
+            encode(&path, &pixels, width, height, params.png, exif)?;
             let c = colmap_export::candidates(
                 &plot.scene,
                 &intr,
@@ -182,7 +202,11 @@ pub(crate) fn run(
 
     // 4. SfM model.
     progress.log("synth: building the COLMAP model");
-    let world_to_sfm = Similarity::random(&mut rng::Stream::new(params.seed, rng::domain::SFM, 0));
+    let mut world_to_sfm =
+        Similarity::random(&mut rng::Stream::new(params.seed, rng::domain::SFM, 0));
+    if let Some(s) = params.sfm_scale {
+        world_to_sfm.scale = s;
+    }
     let cands: Vec<Candidate> = cands.into_iter().flatten().collect();
     let export = ExportParams {
         points3d: target_points,
@@ -305,6 +329,7 @@ fn layout_params(params: &SynthParams) -> LayoutParams {
         trees: params.trees,
         leafless: params.leafless,
         stem_dbh_cm: params.stem_dbh_cm.clone(),
+        slope_pct: params.slope_pct,
     }
 }
 
@@ -343,11 +368,17 @@ pub struct LidarPlot {
 /// benchmarks of the LiDAR side, which then need neither the renderer's time nor a folder.
 pub fn lidar_plot(params: &SynthParams, progress: &dyn Progress) -> Result<LidarPlot, SynthError> {
     params::check(params)?;
-    let plot = layout::build_plot(&layout_params(params));
+    let mut plot = layout::build_plot(&layout_params(params));
     if progress.is_cancelled() {
         return Err(SynthError::Cancelled);
     }
-    let scan = lidar::scan(&plot, &lidar_params(params), params.seed, progress)?;
+    if params.lidar_leaf_off {
+        plot.scene = plot.scene.without_leaves();
+    }
+    let scan = cover(
+        lidar::scan(&plot, &lidar_params(params), params.seed, progress)?,
+        params.lidar_coverage,
+    );
     progress.set(1.0);
     Ok(LidarPlot {
         cloud: PointCloud {
@@ -363,8 +394,69 @@ pub fn lidar_plot(params: &SynthParams, progress: &dyn Progress) -> Result<Lidar
     })
 }
 
-/// Writes one image as JPEG (quality 92) or PNG.
-fn encode(path: &Path, rgb: &[u8], w: u32, h: u32, png: bool) -> Result<(), SynthError> {
+/// The CRS the LiDAR file declares when the photos carry GPS positions: UTM zone 32N, in
+/// which the default `geo_offset` (500 000 E, 4 000 000 N) lies at about 9° E, 36.1° N.
+pub const GPS_EPSG: u32 = 32632;
+
+/// The EXIF block of view `k`'s GPS position: its true centre in file coordinates plus
+/// Gaussian noise (`sigma` metres horizontally, 1.5 `sigma` vertically), in WGS84.
+fn gps_exif(
+    v: &View,
+    k: usize,
+    sigma: f64,
+    offset: DVec3,
+    crs: &Crs,
+    seed: u64,
+) -> Result<Vec<u8>, SynthError> {
+    let mut rng = rng::Stream::new(seed, rng::domain::GPS, k as u64);
+    let noise = DVec3::new(rng.normal(), rng.normal(), 1.5 * rng.normal()) * sigma;
+    let p = v.center + offset + noise;
+    let mut lonlat = [(p.x, p.y)];
+    crs.to_wgs84(&mut lonlat)
+        .map_err(|e| SynthError::InvalidParams(e.to_string()))?;
+    let fix = GpsFix {
+        lon: lonlat[0].0,
+        lat: lonlat[0].1,
+        alt: Some(p.z),
+    };
+    gps::exif_block(&fix).map_err(SynthError::InvalidParams)
+}
+
+/// Keeps the returns whose x lies in the first `coverage` share of the scan's x extent (all
+/// of them without a coverage).
+fn cover(mut scan: lidar::LidarScan, coverage: Option<f64>) -> lidar::LidarScan {
+    let Some(c) = coverage.filter(|c| *c < 1.0) else {
+        return scan;
+    };
+    let (lo, hi) = scan
+        .positions
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(a, b), p| (a.min(p.x), b.max(p.x)));
+    let cut = lo + (hi - lo) * c as f32;
+    let keep: Vec<bool> = scan.positions.iter().map(|p| p.x <= cut).collect();
+    fn kept<T>(v: Vec<T>, keep: &[bool]) -> Vec<T> {
+        v.into_iter()
+            .zip(keep)
+            .filter(|(_, k)| **k)
+            .map(|(x, _)| x)
+            .collect()
+    }
+    scan.positions = kept(scan.positions, &keep);
+    scan.labels = kept(scan.labels, &keep);
+    scan.intensity = kept(scan.intensity, &keep);
+    scan.colors = scan.colors.map(|c| kept(c, &keep));
+    scan
+}
+
+/// Writes one image as JPEG (quality 92, with `exif` when given) or PNG.
+fn encode(
+    path: &Path,
+    rgb: &[u8],
+    w: u32,
+    h: u32,
+    png: bool,
+    exif: Option<Vec<u8>>,
+) -> Result<(), SynthError> {
     let file = File::create(path).map_err(|e| SynthError::Io(IoError::io(path, e)))?;
     let mut out = BufWriter::new(file);
     let res = if png {
@@ -375,12 +467,12 @@ fn encode(path: &Path, rgb: &[u8], w: u32, h: u32, png: bool) -> Result<(), Synt
             image::ExtendedColorType::Rgb8,
         )
     } else {
-        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 92).write_image(
-            rgb,
-            w,
-            h,
-            image::ExtendedColorType::Rgb8,
-        )
+        let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 92);
+        if let Some(exif) = exif {
+            // The JPEG encoder takes EXIF (only formats without EXIF refuse it).
+            let _ = enc.set_exif_metadata(exif);
+        }
+        enc.write_image(rgb, w, h, image::ExtendedColorType::Rgb8)
     };
     res.map_err(|source| SynthError::Image {
         path: path.to_path_buf(),

@@ -53,6 +53,29 @@ pub struct SynthParams {
     /// put the ends of a DBH range (the 8 and 60 cm of the forest tests) into a plot.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub stem_dbh_cm: Vec<f64>,
+    /// GPS positions in the photos' EXIF, with this horizontal noise sigma in metres (1.5 ×
+    /// that vertically), as a drone's consumer GPS gives (default none: no GPS tags). The
+    /// LiDAR file then declares EPSG:32632 (UTM 32N, where the default `geo_offset` lies at
+    /// about 9° E, 36.1° N), so that the positions can be placed on the cloud. JPEG only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gps_noise_m: Option<f64>,
+    /// Scale of the SfM frame, SfM units per metre, in place of the random draw (log-uniform
+    /// in 0.2–5; the registration tests' "SfM scale off by 10× and 0.1×").
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sfm_scale: Option<f64>,
+    /// Grade of the terrain's planar part, percent (default: drawn in 0–8 %; a steep slope
+    /// is 30–60 %).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub slope_pct: Option<f64>,
+    /// Share of the plot the LiDAR covers, in (0, 1] (default 1): the scan keeps the points
+    /// whose x lies in that share of its x extent from the low end, as if the scanner walked
+    /// only part of the photographed area.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lidar_coverage: Option<f64>,
+    /// Scan the trees without their leaves while the photos show them leafy (a leaf-off scan
+    /// against leaf-on photos; default false).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub lidar_leaf_off: bool,
 }
 
 impl SynthParams {
@@ -78,6 +101,11 @@ impl SynthParams {
             lidar_rgb: true,
             geo_offset: [500_000.0, 4_000_000.0, 50.0],
             stem_dbh_cm: Vec::new(),
+            gps_noise_m: None,
+            sfm_scale: None,
+            slope_pct: None,
+            lidar_coverage: None,
+            lidar_leaf_off: false,
         }
     }
 }
@@ -179,6 +207,33 @@ pub(crate) fn check(params: &SynthParams) -> Result<(), SynthError> {
         .all(|d| d.is_finite() && (2.0..=300.0).contains(d))
     {
         return bad("stem_dbh_cm must be between 2 and 300 cm");
+    }
+    if params
+        .gps_noise_m
+        .is_some_and(|v| !(v.is_finite() && (0.0..=100.0).contains(&v)))
+    {
+        return bad("gps_noise_m must be in [0, 100]");
+    }
+    if params.gps_noise_m.is_some() && params.png {
+        return bad("gps_noise_m needs JPEG photos (the GPS goes into their EXIF)");
+    }
+    if params
+        .sfm_scale
+        .is_some_and(|v| !(v.is_finite() && (1e-3..=1e3).contains(&v)))
+    {
+        return bad("sfm_scale must be between 0.001 and 1000");
+    }
+    if params
+        .slope_pct
+        .is_some_and(|v| !(v.is_finite() && (0.0..=100.0).contains(&v)))
+    {
+        return bad("slope_pct must be in [0, 100]");
+    }
+    if params
+        .lidar_coverage
+        .is_some_and(|v| !(v.is_finite() && v > 0.05 && v <= 1.0))
+    {
+        return bad("lidar_coverage must be in (0.05, 1]");
     }
     Ok(())
 }

@@ -21,6 +21,7 @@ pub mod domain {
     pub const CONTROL: u64 = 7;
     pub const SHRUB: u64 = 8;
     pub const TRACK: u64 = 9;
+    pub const GPS: u64 = 10;
 }
 
 /// One deterministic random stream.

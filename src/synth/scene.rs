@@ -135,6 +135,17 @@ impl Scene {
         }
     }
 
+    /// The same scene without its leaves (a leaf-off scan of a leafy plot).
+    pub fn without_leaves(&self) -> Scene {
+        let prims = self
+            .prims
+            .iter()
+            .filter(|p| p.material != Material::Leaf)
+            .copied()
+            .collect();
+        Scene::new(prims, self.terrain.clone(), self.texture_seed)
+    }
+
     /// Nearest hit along the unit direction `d` in (tmin, tmax).
     #[inline]
     pub fn intersect(&self, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> Option<Hit> {

@@ -29,10 +29,18 @@ pub struct Terrain {
 }
 
 impl Terrain {
-    /// A square terrain of half-width `half` metres around the origin. Slope 0–8 % in a random
-    /// direction, relief amplitude `relief` metres.
-    pub fn generate(rng: &mut Stream, half: f64, relief: f64, noise_seed: u32) -> Terrain {
-        let grade = rng.range(0.0, 0.08);
+    /// A square terrain of half-width `half` metres around the origin. Slope 0–8 % (or
+    /// `grade`, a fraction, when given) in a random direction, relief amplitude `relief`
+    /// metres.
+    pub fn generate(
+        rng: &mut Stream,
+        half: f64,
+        relief: f64,
+        noise_seed: u32,
+        grade: Option<f64>,
+    ) -> Terrain {
+        let drawn = rng.range(0.0, 0.08);
+        let grade = grade.unwrap_or(drawn);
         let dir = rng.range(0.0, std::f64::consts::TAU);
         let slope = [grade * dir.cos(), grade * dir.sin()];
         let n = (2.0 * half / TERRAIN_CELL_M).ceil() as usize + 1;
@@ -140,7 +148,7 @@ mod tests {
     #[test]
     fn height_matches_traced_triangles() {
         let mut rng = Stream::new(1, 0, 0);
-        let t = Terrain::generate(&mut rng, 5.0, 0.4, 9);
+        let t = Terrain::generate(&mut rng, 5.0, 0.4, 9, None);
         assert!(t.height(0.0, 0.0).abs() < 1e-12);
         let tris = t.triangles();
         for k in 0..40 {

@@ -126,13 +126,17 @@ fn stage_problem(stage: Stage, e: &StageError) -> serde_json::Value {
         _ if e.is_input_fault() => ("input-unusable", "Input unusable", 422),
         _ => ("stage-failed", "Stage failed", 500),
     };
-    json!({
+    let mut problem = json!({
         "type": format!("urn:sylva:problem:{slug}"),
         "title": title,
         "status": status,
         "detail": e.to_string(),
         "stage": stage.name(),
-    })
+    });
+    if let StageError::Refused { candidates, .. } = e {
+        problem["candidates"] = json!(candidates);
+    }
+    problem
 }
 
 enum Outcome {

@@ -442,7 +442,28 @@ function renderHeader(j) {
   $('#job-retry').disabled = !(j.state === 'failed' || j.state === 'canceled');
   const err = $('#job-error');
   err.hidden = !j.error;
-  if (j.error) err.textContent = `${j.error.title || 'Failed'}: ${j.error.detail || ''}`;
+  if (j.error) {
+    err.replaceChildren(`${j.error.title || 'Failed'}: ${j.error.detail || ''}`);
+    const cands = Array.isArray(j.error.candidates) ? j.error.candidates : [];
+    if (cands.length) err.append(candidateTable(cands));
+  }
+}
+
+/** The alignments a refused automatic registration weighed, best first. */
+function candidateTable(cands) {
+  const score = (c) => c.on_cloud + c.elevated_on_cloud;
+  const pct = (v) => `${(v * 100).toFixed(1)} %`;
+  const rows = [...cands].sort((a, b) => score(b) - score(a)).map((c, i) => el('tr', {},
+    el('td', {}, String(i + 1)),
+    el('td', {}, c.start || 'search'),
+    el('td', {}, pct(c.on_cloud)),
+    el('td', {}, `${pct(c.elevated_on_cloud)} of ${c.elevated_points}`),
+    el('td', {}, `${c.rotation_deg.toFixed(1)}°`),
+    el('td', {}, c.scale.toPrecision(4))));
+  return el('table', { id: 'job-candidates', class: 'candidates' },
+    el('caption', {}, `Candidate alignments weighed (${cands.length})`),
+    el('thead', {}, el('tr', {}, ...['#', 'start', 'SfM points on the cloud', 'elevated points on the cloud', 'rotation', 'scale'].map((h) => el('th', {}, h)))),
+    el('tbody', {}, ...rows));
 }
 
 function renderTimeline(j) {

@@ -273,3 +273,87 @@ fn lidar_plot_is_the_scan_generate_writes_and_stem_dbh_sets_the_first_trees() {
         Err(SynthError::InvalidParams(_))
     ));
 }
+
+/// The registration cases' knobs: a leaf-off scan of a leafy plot has no leaf returns while
+/// the same plot scanned leafy has them; a 60 % coverage keeps the low 60 % of the x extent;
+/// the grade replaces the drawn slope; the SfM scale replaces the drawn one.
+#[test]
+fn leaf_off_scans_coverage_slope_and_sfm_scale_do_what_they_say() {
+    let leafy = lidar_plot(&small(6), &NoProgress).expect("leafy");
+    assert!(leafy.labels.contains(&2), "a leafy scan has leaf returns");
+    let off = lidar_plot(
+        &SynthParams {
+            lidar_leaf_off: true,
+            ..small(6)
+        },
+        &NoProgress,
+    )
+    .expect("leaf-off");
+    assert!(!off.labels.contains(&2), "a leaf-off scan has leaf returns");
+    assert!(off.labels.iter().filter(|&&l| l == 1).count() > 500);
+    let x_extent = |c: &[glam::Vec3]| {
+        let (lo, hi) = c
+            .iter()
+            .fold((f32::MAX, f32::MIN), |(a, b), p| (a.min(p.x), b.max(p.x)));
+        hi - lo
+    };
+    let part = lidar_plot(
+        &SynthParams {
+            lidar_coverage: Some(0.6),
+            ..small(6)
+        },
+        &NoProgress,
+    )
+    .expect("partial");
+    let ratio = x_extent(&part.cloud.positions) / x_extent(&leafy.cloud.positions);
+    assert!((ratio - 0.6).abs() < 0.01, "x extent ratio {ratio}");
+    assert_eq!(part.labels.len(), part.cloud.positions.len());
+    assert!(part.cloud.positions.len() < leafy.cloud.positions.len());
+
+    let dir = tempfile::tempdir().expect("tmp");
+    let p = SynthParams {
+        slope_pct: Some(40.0),
+        sfm_scale: Some(10.0),
+        images: Some(3),
+        ..small(6)
+    };
+    let (_, art) = run(&p, dir.path(), &NoProgress).expect("generate");
+    let [gx, gy] = art.plot.scene.terrain.slope;
+    assert!((gx.hypot(gy) - 0.4).abs() < 1e-12, "grade {gx}, {gy}");
+    assert!((similarity(&truth(dir.path())["world_to_sfm"]).scale - 10.0).abs() < 1e-9);
+}
+
+/// GPS-tagged photos carry their camera's position within the noise, in WGS84 of the CRS
+/// the LiDAR file now declares; PNG photos cannot carry them.
+#[test]
+fn gps_tags_place_the_photos_where_their_cameras_are() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let p = SynthParams {
+        gps_noise_m: Some(0.0),
+        images: Some(4),
+        ..small(7)
+    };
+    let (_, art) = run(&p, dir.path(), &NoProgress).expect("generate");
+    let crs = crate::io::las::read_crs(&dir.path().join("lidar.laz"))
+        .expect("read")
+        .expect("parse")
+        .expect("a declared CRS");
+    assert_eq!(crs.epsg, Some(super::GPS_EPSG));
+    let offset = glam::DVec3::from_array(p.geo_offset);
+    for v in &art.views {
+        let path = dir.path().join("colmap/images").join(&v.name);
+        let fix = crate::io::gps::read_fix(&path)
+            .expect("exif")
+            .expect("a fix");
+        let mut xy = [(fix.lon, fix.lat)];
+        crs.from_wgs84(&mut xy).expect("project");
+        let truth = v.center + offset;
+        assert!((xy[0].0 - truth.x).abs() < 0.01 && (xy[0].1 - truth.y).abs() < 0.01);
+        assert!((fix.alt.expect("altitude") - truth.z).abs() < 0.01);
+    }
+    let png = SynthParams { png: true, ..p };
+    assert!(matches!(
+        generate(&png, dir.path(), &NoProgress),
+        Err(SynthError::InvalidParams(_))
+    ));
+}
