@@ -342,6 +342,63 @@ fn gps_tagged_photos_start_the_alignment_and_a_wrong_crs_is_refused() {
     );
 }
 
+/// A COLMAP model already in the LiDAR file's coordinates (as COLMAP's model_aligner leaves
+/// one aligned to projected positions) is recognised: the alignment starts from it, with its
+/// height 3 m off (another vertical datum) settled on the terrain, and reaches the goals.
+#[test]
+fn a_model_already_in_the_lidar_frame_is_taken_as_the_start() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = plot(dir.path(), 1);
+    let truth: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("truth.json")).expect("truth"))
+            .expect("json");
+    let mut to_file =
+        sylva::pipeline::register::similarity_from_json(&truth["sfm_to_world"]).expect("truth");
+    to_file.translation.z += 3.0;
+    let model =
+        sylva::io::colmap::read_model(&out.join("colmap/sparse/0"), &NoProgress).expect("model");
+    let moved = sylva::pipeline::register::transform_model(&model, &to_file);
+    let colmap = dir.path().join("georeferenced");
+    std::fs::create_dir_all(colmap.join("sparse/0")).expect("mkdir");
+    sylva::io::colmap::write_text(&moved, &colmap.join("sparse/0")).expect("write");
+    let copy = |from: &Path, to: &Path| {
+        std::fs::create_dir_all(to).expect("mkdir");
+        for e in std::fs::read_dir(from).expect("images") {
+            let e = e.expect("entry");
+            std::fs::copy(e.path(), to.join(e.file_name())).expect("copy");
+        }
+    };
+    copy(&out.join("colmap/images"), &colmap.join("images"));
+    let report = register_with(
+        &dir.path().join("work"),
+        &out.join("lidar.laz"),
+        &colmap,
+        None,
+        &PipelineParams::default(),
+    )
+    .expect("registration from the model's own frame");
+    assert_eq!(report["start"], "model_frame", "{report}");
+    // The model's frame is the file's: the truth is the identity (in file coordinates).
+    let (s, r, t) = similarity(&report["sfm_to_lidar"]);
+    let rot = glam::DQuat::from_mat3(&r)
+        .angle_between(glam::DQuat::IDENTITY)
+        .to_degrees();
+    let c = &truth["plot_center"];
+    let centre = DVec3::new(
+        c[0].as_f64().expect("x"),
+        c[1].as_f64().expect("y"),
+        c[2].as_f64().expect("z") + 3.0,
+    );
+    let moved_centre = r * centre * s + t;
+    let trans = (moved_centre - (centre - DVec3::Z * 3.0)).length();
+    println!(
+        "model frame: rotation {rot:.4}°, scale {:.4}%, {:.2} cm",
+        (s - 1.0) * 100.0,
+        trans * 100.0
+    );
+    assert_goals(rot, (s - 1.0).abs(), trans);
+}
+
 #[test]
 fn photos_of_another_plot_are_refused_not_misaligned() {
     let dir = tempfile::tempdir().expect("tempdir");

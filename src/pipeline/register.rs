@@ -417,7 +417,14 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                             ),
                         ));
                     }
-                    (v, "search")
+                    let best = v
+                        .candidates
+                        .iter()
+                        .enumerate()
+                        .max_by(|a, b| a.1.score().total_cmp(&b.1.score()))
+                        .map_or(0, |(i, _)| i);
+                    let start = labels.get(best).copied().unwrap_or("search");
+                    (v, start)
                 }
             };
             surface = Some(st);
