@@ -11,7 +11,9 @@
 //!    a log-spaced range of scales (from the ratio of robust horizontal and vertical
 //!    extents); the best few distinct hypotheses are then refined on rasters of a third and
 //!    a ninth of the coarse cell.
-//! 4. The vertical offset comes from the terrain rasters; each hypothesis carries a raster
+//! 4. The residual tilt and the vertical offset come from the terrain rasters (a robust
+//!    plane through the per-cell height differences; cameras that follow a slope leave the
+//!    plane of the flight, and so "up", tilted); each hypothesis carries a raster
 //!    confidence (how clearly it beats the best distinct other one, and its correlation).
 //!
 //! The raster confidence cannot tell a right alignment from a wrong one reliably, so stage
@@ -593,7 +595,7 @@ pub fn align_candidates(
     );
     let mut out = Vec::with_capacity(kept.len());
     for (k, h) in kept.iter().enumerate() {
-        // Compose, then the vertical offset from the terrain.
+        // Compose, then the tilt and the vertical offset from the terrain.
         let (sn, cs) = h.yaw.to_radians().sin_cos();
         let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
         let partial = Similarity {
@@ -601,7 +603,6 @@ pub fn align_candidates(
             rotation: rz * r_up,
             translation: DVec3::new(h.t[0], h.t[1], 0.0),
         };
-        let moved: Vec<DVec3> = sfm.iter().map(|p| partial.apply(*p)).collect();
         let grid = Grid {
             x0: fine.x0,
             y0: fine.y0,
@@ -609,11 +610,7 @@ pub fn align_candidates(
             nx: fine.lidar.nx,
             ny: fine.lidar.ny,
         };
-        let offset_z = terrain_offset(&moved, &lid, &grid, &ground_b);
-        let transform = Similarity {
-            translation: partial.translation + DVec3::new(0.0, 0.0, offset_z),
-            ..partial
-        };
+        let transform = settle_on_terrain(&partial, sfm, &lid, &grid, &ground_b);
         let runner_up = kept
             .iter()
             .enumerate()
@@ -664,10 +661,108 @@ fn terrain_offset(moved: &[DVec3], lidar: &[DVec3], grid: &Grid, ground_lidar: &
     }
 }
 
-/// `t` with its vertical translation replaced so that the SfM points it moves sit on the
-/// LiDAR's terrain ([`terrain_offset`] on 1 m cells over the LiDAR's extent, coarser beyond 2 km): for starts
-/// whose heights are not to be trusted (GPS altitudes, a model aligned in another vertical
-/// datum).
+/// Largest tilt, degrees, that [`settle_on_terrain`] corrects: beyond it the plane through
+/// the height differences is not a tilt of the right pose but a wrong one.
+const MAX_TILT_DEG: f64 = 15.0;
+/// Smallest tilt, degrees, worth correcting: below it the fine steps take over.
+const MIN_TILT_DEG: f64 = 0.2;
+
+/// The slope (dz/dx, dz/dy) of the plane through the per-cell height differences between the
+/// LiDAR's terrain (`ground_lidar`) and the placed SfM points' lowest points: a residual tilt
+/// of "up" (cameras that follow a slope leave the plane of the flight tilted). Robust: cells
+/// where the SfM's lowest point is canopy, not ground, are dropped as outliers (three rounds
+/// of least squares keeping residuals within 3 robust sigmas, and at least 0.15 m). `None`
+/// with fewer than 30 cells or too little spread to fit a plane.
+fn terrain_tilt(moved: &[DVec3], grid: &Grid, ground_lidar: &[f64]) -> Option<(f64, f64)> {
+    let ground_sfm = rasterise_ground(moved, grid.x0, grid.y0, grid.cell, grid.nx, grid.ny);
+    let cells: Vec<(f64, f64, f64)> = ground_sfm
+        .iter()
+        .zip(ground_lidar)
+        .enumerate()
+        .filter(|(_, (a, b))| !a.is_nan() && !b.is_nan())
+        .map(|(k, (a, b))| {
+            let (i, j) = ((k % grid.nx) as f64, (k / grid.nx) as f64);
+            (
+                grid.x0 + (i + 0.5) * grid.cell,
+                grid.y0 + (j + 0.5) * grid.cell,
+                b - a,
+            )
+        })
+        .collect();
+    if cells.len() < 30 {
+        return None;
+    }
+    let mut dz: Vec<f64> = cells.iter().map(|c| c.2).collect();
+    let mut plane = (0.0, 0.0, percentile(&mut dz, 0.5));
+    let (xm, ym) = (
+        cells.iter().map(|c| c.0).sum::<f64>() / cells.len() as f64,
+        cells.iter().map(|c| c.1).sum::<f64>() / cells.len() as f64,
+    );
+    for _ in 0..3 {
+        let r: Vec<f64> = cells
+            .iter()
+            .map(|c| c.2 - (plane.2 + plane.0 * (c.0 - xm) + plane.1 * (c.1 - ym)))
+            .collect();
+        let mut abs: Vec<f64> = r.iter().map(|v| v.abs()).collect();
+        let limit = (3.0 * 1.4826 * percentile(&mut abs, 0.5)).max(0.15);
+        let mut m = DMat3::ZERO;
+        let mut v = DVec3::ZERO;
+        let mut kept = 0;
+        for (c, ri) in cells.iter().zip(&r) {
+            if ri.abs() > limit {
+                continue;
+            }
+            let a = DVec3::new(c.0 - xm, c.1 - ym, 1.0);
+            m += DMat3::from_cols(a * a.x, a * a.y, a * a.z);
+            v += a * c.2;
+            kept += 1;
+        }
+        if kept < 30 || m.determinant().abs() < 1e-9 {
+            return None;
+        }
+        let sol = m.inverse() * v;
+        plane = (sol.x, sol.y, sol.z);
+    }
+    Some((plane.0, plane.1))
+}
+
+/// `partial` (a placed, levelled SfM frame) tilted by the slope of [`terrain_tilt`] about the
+/// moved points' centroid when that tilt lies between [`MIN_TILT_DEG`] and [`MAX_TILT_DEG`],
+/// then moved vertically onto the terrain ([`terrain_offset`]).
+fn settle_on_terrain(
+    partial: &Similarity,
+    sfm: &[DVec3],
+    lidar: &[DVec3],
+    grid: &Grid,
+    ground_lidar: &[f64],
+) -> Similarity {
+    let mut t = *partial;
+    let moved: Vec<DVec3> = sfm.iter().map(|p| t.apply(*p)).collect();
+    if let Some((gx, gy)) = terrain_tilt(&moved, grid, ground_lidar) {
+        let n = DVec3::new(-gx, -gy, 1.0).normalize();
+        let angle = n.z.acos().to_degrees();
+        if (MIN_TILT_DEG..=MAX_TILT_DEG).contains(&angle) {
+            let pivot = moved.iter().copied().sum::<DVec3>() / moved.len().max(1) as f64;
+            let r = DMat3::from_quat(glam::DQuat::from_rotation_arc(DVec3::Z, n));
+            t = t.then(&Similarity {
+                scale: 1.0,
+                rotation: r,
+                translation: pivot - r * pivot,
+            });
+        }
+    }
+    let moved: Vec<DVec3> = sfm.iter().map(|p| t.apply(*p)).collect();
+    let dz = terrain_offset(&moved, lidar, grid, ground_lidar);
+    Similarity {
+        translation: t.translation + DVec3::new(0.0, 0.0, dz),
+        ..t
+    }
+}
+
+/// `t` tilted and moved vertically so that the SfM points it moves sit on the LiDAR's terrain
+/// ([`settle_on_terrain`] on 1 m cells over the LiDAR's extent, coarser beyond 2 km): for
+/// starts whose heights and "up" are not to be trusted (GPS altitudes, cameras that followed
+/// a slope, a model aligned in another vertical datum).
 pub fn on_terrain(t: &Similarity, sfm: &[DVec3], lidar: &[Vec3]) -> Similarity {
     let lid: Vec<DVec3> = lidar.iter().map(|p| p.as_dvec3()).collect();
     let (mut lo, mut hi) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
@@ -692,12 +787,7 @@ pub fn on_terrain(t: &Similarity, sfm: &[DVec3], lidar: &[Vec3]) -> Similarity {
         translation: DVec3::new(t.translation.x, t.translation.y, 0.0),
         ..*t
     };
-    let moved: Vec<DVec3> = sfm.iter().map(|p| level.apply(*p)).collect();
-    let dz = terrain_offset(&moved, &lid, &grid, &ground);
-    Similarity {
-        translation: level.translation + DVec3::new(0.0, 0.0, dz),
-        ..*t
-    }
+    settle_on_terrain(&level, sfm, &lid, &grid, &ground)
 }
 
 /// A coarse alignment from measured camera positions (e.g. GPS), with how well they fit.
@@ -740,11 +830,33 @@ pub fn from_positions(
     if sfm.len() < 10 || lidar.is_empty() {
         return Err(GeomError::Empty("too few points for registration"));
     }
-    let r_up = level(up_from_cameras(cameras)?);
+    // Twice: the terrain's tilt correction changes the levelling, and with it where the
+    // cameras, high above the ground, stand horizontally.
+    let mut r_level = level(up_from_cameras(cameras)?);
+    let mut out = None;
+    for _ in 0..2 {
+        let fit = fit_positions(pairs, &r_level)?;
+        let transform = on_terrain(&fit.alignment.transform, sfm, lidar);
+        let (sn, cs) = fit.alignment.yaw_deg.to_radians().sin_cos();
+        let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
+        // transform.rotation = tilt · rz · r_level: the levelling the tilt asks for.
+        r_level = rz.transpose() * transform.rotation;
+        out = Some(PositionFit {
+            alignment: CoarseAlignment::fixed(transform),
+            ..fit
+        });
+    }
+    out.ok_or(GeomError::Degenerate("no fit"))
+}
+
+/// The robust 2-D similarity of [`from_positions`] with the SfM frame levelled by `r_level`:
+/// `alignment.transform` has no vertical offset, `alignment.yaw_deg` is the yaw about the
+/// levelled z.
+fn fit_positions(pairs: &[(DVec3, DVec3)], r_level: &DMat3) -> Result<PositionFit, GeomError> {
     let src: Vec<[f64; 2]> = pairs
         .iter()
         .map(|(c, _)| {
-            let l = r_up * *c;
+            let l = *r_level * *c;
             [l.x, l.y]
         })
         .collect();
@@ -823,14 +935,16 @@ pub fn from_positions(
     let yaw = c[1].atan2(c[0]);
     let (sn, cs) = yaw.sin_cos();
     let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
-    let partial = Similarity {
+    let transform = Similarity {
         scale,
-        rotation: rz * r_up,
+        rotation: rz * *r_level,
         translation: DVec3::new(t[0], t[1], 0.0),
     };
-    let transform = on_terrain(&partial, sfm, lidar);
     Ok(PositionFit {
-        alignment: CoarseAlignment::fixed(transform),
+        alignment: CoarseAlignment {
+            yaw_deg: yaw.to_degrees(),
+            ..CoarseAlignment::fixed(transform)
+        },
         rms_m,
         used,
         given: pairs.len(),
@@ -950,6 +1064,45 @@ mod tests {
             "vertical {off} (the 35 m altitude bias must not leak)"
         );
         assert!(fit.yaw_std_deg > 0.1 && fit.yaw_std_deg < 2.0, "{fit:?}");
+    }
+
+    /// Cameras that followed a slope: their centres' plane is tilted 4° from the horizontal,
+    /// so "up" from the cameras is 4° off. The plane through the terrain's height
+    /// differences takes the tilt out of the start.
+    #[test]
+    fn a_flight_tilted_with_the_slope_is_levelled_on_the_terrain() {
+        let lidar = plot();
+        let truth = Similarity {
+            scale: 2.5,
+            rotation: DMat3::from_euler(glam::EulerRot::ZYX, -0.9, 0.2, 0.3),
+            translation: DVec3::new(-4.0, 7.0, -2.0),
+        };
+        let inv = truth.inverse();
+        let sfm: Vec<DVec3> = lidar
+            .iter()
+            .step_by(7)
+            .map(|p| inv.apply(p.as_dvec3()))
+            .collect();
+        let tilt = DMat3::from_rotation_x(4f64.to_radians());
+        let (mut cameras, mut pairs) = (Vec::new(), Vec::new());
+        for i in 0..7 {
+            for j in 0..7 {
+                let c = tilt * DVec3::new(i as f64 * 8.0 - 24.0, j as f64 * 8.0 - 24.0, 40.0);
+                let look = tilt * DVec3::NEG_Z;
+                let cs = inv.apply(c);
+                cameras.push((cs, (inv.rotation * look).normalize()));
+                pairs.push((cs, c));
+            }
+        }
+        let fit = from_positions(&sfm, &cameras, &pairs, &lidar).expect("a start");
+        let rel = truth.inverse().then(&fit.alignment.transform);
+        assert!(
+            rel.rotation_angle_deg() < 0.3,
+            "{} ° left of a 4° tilt",
+            rel.rotation_angle_deg()
+        );
+        let off = fit.alignment.transform.apply(inv.apply(DVec3::ZERO));
+        assert!(off.length() < 0.3, "{off}");
     }
 
     #[test]
