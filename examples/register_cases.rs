@@ -8,7 +8,8 @@
 //! noise and a LiDAR file that declares its CRS), `partial` (the LiDAR covers 60 % of the
 //! plot's x extent), `leaf_off` (the scan without leaves, the photos leafy), `slope` (a 40 %
 //! grade), `scale10` and `scale0.1` (the SfM frame 10× and 0.1× metric), `few_stems` (3
-//! trees). Plots are cached under `$REG_CASES_DIR` (default `/tmp/sylva-register-cases`).
+//! trees). Plots are cached under `$REG_CASES_DIR` (default `/tmp/sylva-register-cases`);
+//! `REG_CASES_LOG=1` prints the stage's log (every candidate and start) under each run.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -69,6 +70,18 @@ fn similarity(v: &serde_json::Value) -> Option<Similarity> {
     })
 }
 
+/// Prints the stage's log lines when `REG_CASES_LOG` is set.
+struct Printer;
+
+impl sylva::progress::Progress for Printer {
+    fn set(&self, _fraction: f64) {}
+    fn log(&self, message: &str) {
+        if std::env::var_os("REG_CASES_LOG").is_some() {
+            println!("    {message}");
+        }
+    }
+}
+
 #[derive(Default)]
 struct Tally {
     good: usize,
@@ -120,7 +133,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             let t0 = Instant::now();
             let result =
-                pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &NoProgress);
+                pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &Printer);
             let secs = t0.elapsed().as_secs_f64();
             tally.seconds.push(secs);
             let truth: serde_json::Value =
