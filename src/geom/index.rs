@@ -408,19 +408,12 @@ mod tests {
 
     #[test]
     fn batch_query_stops_on_cancel() {
-        let flag = crate::progress::CancelFlag::new();
-        flag.cancel();
-        struct P(crate::progress::CancelFlag);
-        impl Progress for P {
-            fn set(&self, _: f64) {}
-            fn is_cancelled(&self) -> bool {
-                self.0.is_cancelled()
-            }
-        }
         let pts = cloud(100, 1);
         let index = PointIndex::new(&pts).unwrap();
         assert_eq!(
-            index.knn_batch(&pts, 4, &P(flag)).unwrap_err(),
+            index
+                .knn_batch(&pts, 4, &crate::progress::Cancelled)
+                .unwrap_err(),
             GeomError::Cancelled
         );
     }
