@@ -14,7 +14,7 @@ use sha2::{Digest, Sha256};
 
 use super::auth::Caller;
 use super::problem::ApiError;
-use super::uploads::{self, new_id, valid_id};
+use super::uploads::{self, new_id};
 use super::{AppState, count_upload_bytes, views};
 use crate::jobs::{Admission, Created, NewJob, WebhookSpec};
 use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
@@ -33,15 +33,9 @@ struct JobCreate {
 /// The job `id` if `caller` may see it; another owner's job answers exactly as a missing one
 /// (404, the same body), so existence does not leak.
 pub async fn load(state: &AppState, caller: &Caller, id: &str) -> Result<JobRecord, ApiError> {
-    if !valid_id(id) {
-        return Err(ApiError::not_found(format!("no job {id}")));
-    }
-    state
-        .db
-        .get_job(id)
-        .await?
-        .filter(|j| caller.sees(&j.owner))
-        .ok_or_else(|| ApiError::not_found(format!("no job {id}")))
+    caller
+        .load_visible("job", id, || state.db.get_job(id), |j: &JobRecord| &j.owner)
+        .await
 }
 
 fn json_error(e: serde_json::Error, what: &str) -> ApiError {

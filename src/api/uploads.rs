@@ -75,15 +75,14 @@ pub fn new_id() -> String {
 /// The upload `id` if `caller` may see it; another owner's upload answers exactly as a
 /// missing one (404, the same body), so existence does not leak.
 pub async fn load(state: &AppState, caller: &Caller, id: &str) -> Result<UploadRecord, ApiError> {
-    if !valid_id(id) {
-        return Err(ApiError::not_found(format!("no upload {id}")));
-    }
-    state
-        .db
-        .get_upload(id)
-        .await?
-        .filter(|u| caller.sees(&u.owner))
-        .ok_or_else(|| ApiError::not_found(format!("no upload {id}")))
+    caller
+        .load_visible(
+            "upload",
+            id,
+            || state.db.get_upload(id),
+            |u: &UploadRecord| &u.owner,
+        )
+        .await
 }
 
 /// Checks an upload request and records it; shared by `POST /v1/uploads` and one-request
