@@ -30,7 +30,7 @@ use crate::geom::register::{
 };
 use crate::geom::{self, IcpMethod, IcpParams, RobustKernel, Similarity, VoxelParams};
 use crate::io::colmap::{self, ColmapModel};
-use crate::io::pointcloud::{self, PointCloud};
+use crate::io::pointcloud::PointCloud;
 use crate::io::{IoError, tables};
 use crate::progress::SubProgress;
 
@@ -135,10 +135,7 @@ fn weighed(runs: &[CandidateRun]) -> String {
 
 fn load_inputs(ctx: &StageContext<'_>) -> Result<(PointCloud, ColmapModel), StageError> {
     let ingest = ctx.output_of(Stage::Ingest, Stage::Register)?;
-    let cloud = pointcloud::read_point_cloud(
-        &ingest.join("cloud.ply"),
-        &SubProgress::new(ctx.progress, 0.0, 0.1),
-    )?;
+    let cloud = ctx.read_ingest_cloud(&ingest, 0.1)?;
     let model = colmap::read_model(&ingest.join("sparse"), &crate::progress::NoProgress)?;
     Ok((cloud, model))
 }

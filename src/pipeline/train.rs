@@ -709,7 +709,7 @@ struct StemCircle {
 /// The local frame's offset (file coordinates of the origin), from stage `ingest`'s cloud.
 fn read_offset(ctx: &StageContext<'_>) -> Result<[f64; 3], StageError> {
     let ingest = ctx.output_of(Stage::Ingest, Stage::Train)?;
-    let info = ply::inspect_ply(&ingest.join("cloud.ply"))?;
+    let info = ply::inspect_ply(&ingest.join(super::INGEST_CLOUD))?;
     Ok(info.sylva_offset.unwrap_or([0.0; 3]))
 }
 
