@@ -52,6 +52,21 @@ impl std::fmt::Debug for PointIndex {
 }
 
 impl PointIndex {
+    /// Builds the index of `points` (reporting a tenth of `progress` done), then runs `f` with
+    /// it and the other nine tenths of `progress`.
+    pub fn build_then<T>(
+        points: &[Vec3],
+        progress: &dyn Progress,
+        f: impl FnOnce(&PointIndex, &dyn Progress) -> Result<T, GeomError>,
+    ) -> Result<T, GeomError> {
+        let index = PointIndex::new(points)?;
+        progress.set(0.1);
+        f(
+            &index,
+            &crate::progress::SubProgress::new(progress, 0.1, 0.9),
+        )
+    }
+
     /// Builds the tree (in parallel above kiddo's threshold). Errors on non-finite points
     /// and on more than `u32::MAX` points.
     pub fn new(points: &[Vec3]) -> Result<Self, GeomError> {

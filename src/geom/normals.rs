@@ -123,14 +123,9 @@ pub fn estimate_normals(
     params: &NormalParams,
     progress: &dyn Progress,
 ) -> Result<Normals, GeomError> {
-    let index = PointIndex::new(points)?;
-    progress.set(0.1);
-    estimate_normals_with_index(
-        points,
-        &index,
-        params,
-        &SubProgress::new(progress, 0.1, 0.9),
-    )
+    PointIndex::build_then(points, progress, |index, rest| {
+        estimate_normals_with_index(points, index, params, rest)
+    })
 }
 
 /// As [`estimate_normals`], with a prebuilt index over exactly `points`.
