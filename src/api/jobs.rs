@@ -5,7 +5,7 @@ use std::collections::HashMap;
 
 use axum::Json;
 use axum::body::Bytes;
-use axum::extract::{Extension, FromRequest, Multipart, Path, Query, Request, State};
+use axum::extract::{Extension, FromRequest, Multipart, Query, Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
@@ -15,7 +15,7 @@ use sha2::{Digest, Sha256};
 use super::auth::Caller;
 use super::problem::ApiError;
 use super::uploads::{self, new_id};
-use super::{AppState, count_upload_bytes, views};
+use super::{AppState, IdRequest, count_upload_bytes, views};
 use crate::jobs::{Admission, Created, NewJob, WebhookSpec};
 use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
 use crate::pipeline::{PipelineParams, Stage};
@@ -410,11 +410,7 @@ pub async fn list(
     Ok(Json(json!({ "jobs": views, "next_cursor": next })).into_response())
 }
 
-pub async fn get(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn get(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     Ok(Json(views::job(
         &load(&state, &caller, &id).await?,
         state.retention(),
@@ -422,11 +418,7 @@ pub async fn get(
     .into_response())
 }
 
-pub async fn delete(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn delete(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     load(&state, &caller, &id).await?;
     state.db.delete_job(&id).await?;
     state.blobs.remove_job(&id).await?;
@@ -435,9 +427,7 @@ pub async fn delete(
 }
 
 pub async fn log(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
+    IdRequest { state, caller, id }: IdRequest,
     Query(q): Query<HashMap<String, String>>,
 ) -> Result<Response, ApiError> {
     let since = query_int(&q, "since", 0, 0, i64::MAX)?;
@@ -459,11 +449,7 @@ pub fn log_line(l: &crate::jobs::LogLine) -> Value {
     })
 }
 
-pub async fn cancel(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn cancel(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     load(&state, &caller, &id).await?;
     let next = state.db.cancel(&id).await?;
     let _ = state
@@ -492,9 +478,7 @@ struct RetryBody {
 }
 
 pub async fn retry(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
+    IdRequest { state, caller, id }: IdRequest,
     body: Bytes,
 ) -> Result<Response, ApiError> {
     files_kept(&load(&state, &caller, &id).await?)?;
@@ -542,11 +526,7 @@ async fn wake_workers(state: &AppState, id: &str) {
     }
 }
 
-pub async fn results(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn results(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let job = load(&state, &caller, &id).await?;
     let stages: serde_json::Map<String, Value> = job
         .stages

@@ -14,7 +14,7 @@ use serde_json::json;
 
 use super::auth::Caller;
 use super::problem::ApiError;
-use super::{AppState, count_upload_bytes, views};
+use super::{AppState, IdRequest, count_upload_bytes, views};
 use crate::jobs::{UploadKind, UploadRecord, now_ms};
 use crate::pipeline::inspect::{self, InspectError};
 use crate::progress::NoProgress;
@@ -218,11 +218,7 @@ fn status_headers(u: &UploadRecord) -> HeaderMap {
     h
 }
 
-pub async fn status(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn status(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let u = load(&state, &caller, &id).await?;
     Ok((status_headers(&u), Json(views::upload(&u))).into_response())
 }
@@ -289,11 +285,7 @@ impl Drop for CompletingGuard {
     }
 }
 
-pub async fn complete(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn complete(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let u = load(&state, &caller, &id).await?;
     if u.complete {
         return Ok((status_headers(&u), Json(views::upload(&u))).into_response());

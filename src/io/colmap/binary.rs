@@ -82,7 +82,7 @@ impl<'a> Bin<'a> {
         every: u64,
         progress: &dyn Progress,
     ) -> Result<(), IoError> {
-        if k % every == 0 {
+        if k.is_multiple_of(every) {
             check_cancel(progress)?;
             progress.set(k as f64 / count as f64);
         }
