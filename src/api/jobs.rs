@@ -452,16 +452,19 @@ pub fn log_line(l: &crate::jobs::LogLine) -> Value {
 pub async fn cancel(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     load(&state, &caller, &id).await?;
     let next = state.db.cancel(&id).await?;
-    let _ = state
-        .db
-        .append_log(
-            &id,
-            "info",
-            None,
-            &format!("cancel requested; job {}", next.as_str()),
-        )
-        .await;
-    let job = load(&state, &caller, &id).await?;
+    let line = format!("cancel requested; job {}", next.as_str());
+    note(&state, &id, &line).await;
+    accepted(&state, &caller, &id).await
+}
+
+/// Notes `message` in the job's log at level info (best effort).
+async fn note(state: &AppState, id: &str, message: &str) {
+    let _ = state.db.append_log(id, "info", None, message).await;
+}
+
+/// 202 Accepted with the job as it is now.
+async fn accepted(state: &AppState, caller: &Caller, id: &str) -> Result<Response, ApiError> {
+    let job = load(state, caller, id).await?;
     Ok((
         StatusCode::ACCEPTED,
         Json(views::job(&job, state.retention())),
@@ -496,25 +499,10 @@ pub async fn retry(
     };
     let reset = state.db.retry(&id, from).await?;
     state.blobs.remove_stages(&id, &reset).await?;
-    let _ = state
-        .db
-        .append_log(
-            &id,
-            "info",
-            None,
-            &format!(
-                "retry requested from stage {}",
-                reset.first().map(String::as_str).unwrap_or("?")
-            ),
-        )
-        .await;
+    let first = reset.first().map(String::as_str).unwrap_or("?");
+    note(&state, &id, &format!("retry requested from stage {first}")).await;
     wake_workers(&state, &id).await;
-    let job = load(&state, &caller, &id).await?;
-    Ok((
-        StatusCode::ACCEPTED,
-        Json(views::job(&job, state.retention())),
-    )
-        .into_response())
+    accepted(&state, &caller, &id).await
 }
 
 /// Wakes idle workers for a job that can now be claimed: this process's own, and through
