@@ -19,14 +19,14 @@
 
 use std::path::Path;
 
-use glam::{DMat3, DVec3, Vec3};
+use glam::{DMat3, DVec3};
 use serde_json::json;
 
 use super::params::RegisterParams;
 use super::{Stage, StageContext, StageError};
 use crate::geom::register::{
     AUTOMATIC_MAX_STD_ROTATION_DEG, AUTOMATIC_MAX_STD_SCALE, AUTOMATIC_REFINE_PASSES, CandidateRun,
-    SurfaceTarget, icp_two_phase, refine_on_surface, verify_candidates,
+    SurfaceTarget, icp_from, refine_on_surface, verify_candidates,
 };
 use crate::geom::{self, IcpMethod, IcpParams, RobustKernel, Similarity, VoxelParams};
 use crate::io::colmap::{self, ColmapModel};
@@ -222,16 +222,8 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             if ctx.progress.is_cancelled() {
                 return Err(StageError::Cancelled);
             }
-            let source: Vec<Vec3> = sfm
-                .iter()
-                .map(|x| fit.transform.apply(*x).as_vec3())
-                .collect();
-            let fine = icp_two_phase(
-                &source,
-                &target,
-                &params,
-                &SubProgress::new(ctx.progress, 0.5, 0.4),
-            )?;
+            let icp_progress = SubProgress::new(ctx.progress, 0.5, 0.4);
+            let fine = icp_from(&sfm, &fit.transform, &target, &params, &icp_progress)?;
             (
                 fit.transform,
                 "control_points",
