@@ -125,16 +125,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let t0 = Instant::now();
         let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &Printer);
         let secs = t0.elapsed().as_secs_f64();
-        let truth: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
-        let t = &truth["sfm_to_world"];
-        let rows: [[f64; 3]; 3] = serde_json::from_value(t["rotation"].clone())?;
-        let truth_sim = Similarity {
-            scale: t["scale"].as_f64().ok_or("scale")?,
-            rotation: DMat3::from_cols_array_2d(&rows).transpose(),
-            translation: DVec3::from_array(serde_json::from_value(t["translation"].clone())?),
-        };
-        let centre = DVec3::from_array(serde_json::from_value(truth["plot_center"].clone())?);
+        let (truth_sim, centre) = truth_of(&out)?;
         let report = match result {
             Ok(o) => o.report,
             Err(e) => {

@@ -32,6 +32,17 @@ impl Progress for NoProgress {
     fn set(&self, _fraction: f64) {}
 }
 
+/// A progress sink that is cancelled from the start: for checking that a loop stops promptly.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct Cancelled;
+
+impl Progress for Cancelled {
+    fn set(&self, _fraction: f64) {}
+    fn is_cancelled(&self) -> bool {
+        true
+    }
+}
+
 /// A shared cancellation flag: cheap to clone, set once, read from any thread.
 #[derive(Debug, Default, Clone)]
 pub struct CancelFlag(Arc<AtomicBool>);

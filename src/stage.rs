@@ -51,6 +51,11 @@ impl Stage {
         self as usize
     }
 
+    /// The stages that run before this one, in order.
+    pub fn predecessors(self) -> &'static [Stage] {
+        &Stage::ALL[..self.index()]
+    }
+
     /// Share of a whole job's progress bar this stage takes; training dominates a real run.
     pub fn weight(self) -> f64 {
         match self {

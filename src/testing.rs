@@ -63,6 +63,18 @@ pub fn peak_rss_mib() -> f64 {
         .map_or(0.0, |kb| kb / 1024.0)
 }
 
+/// A cheap deterministic source of test coordinates: uniform in [-0.5, 0.5) from a 64-bit linear
+/// congruential generator (Knuth's MMIX constants) seeded with `seed`, its top 24 bits per draw.
+pub fn centred_unit(seed: u64) -> impl FnMut() -> f32 {
+    let mut state = seed;
+    move || {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

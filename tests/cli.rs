@@ -34,17 +34,15 @@ fn run_until_ingest_writes_stage_folders_and_results() {
 fn run_stops_with_a_clear_error_when_registration_is_impossible() {
     let fx = fixture();
     let out = fx.dir.path().join("out");
-    let output = Command::new(BIN)
-        .args(["run", "--lidar"])
-        .arg(&fx.lidar)
-        .arg("--colmap")
-        .arg(&fx.colmap_dir)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .expect("run");
-    assert!(!output.status.success());
-    let stderr = String::from_utf8_lossy(&output.stderr);
+    let stderr = fails(
+        Command::new(BIN)
+            .args(["run", "--lidar"])
+            .arg(&fx.lidar)
+            .arg("--colmap")
+            .arg(&fx.colmap_dir)
+            .arg("--out")
+            .arg(&out),
+    );
     // The fixture's photos do not show its LiDAR scene: the automatic alignment (the default
     // without control points) must refuse, not guess, and say what to supply.
     assert!(stderr.contains("stage register failed"), "{stderr}");
@@ -60,17 +58,15 @@ fn bad_input_fails_with_the_file_named() {
     let fx = fixture();
     let bad = fx.dir.path().join("bad.las");
     std::fs::write(&bad, b"LASF but not really a LAS file").expect("write");
-    let output = Command::new(BIN)
-        .args(["run", "--until", "ingest", "--lidar"])
-        .arg(&bad)
-        .arg("--colmap")
-        .arg(&fx.colmap_dir)
-        .arg("--out")
-        .arg(fx.dir.path().join("out"))
-        .output()
-        .expect("run");
-    assert!(!output.status.success());
-    let stderr = String::from_utf8_lossy(&output.stderr);
+    let stderr = fails(
+        Command::new(BIN)
+            .args(["run", "--until", "ingest", "--lidar"])
+            .arg(&bad)
+            .arg("--colmap")
+            .arg(&fx.colmap_dir)
+            .arg("--out")
+            .arg(fx.dir.path().join("out")),
+    );
     assert!(stderr.contains("bad.las"), "{stderr}");
 }
 
@@ -220,11 +216,7 @@ fn run_takes_the_crs_from_the_flag_and_refuses_degrees() {
         read_json(&out.join("ingest/crs.json"))["label"],
         "EPSG:25832"
     );
-    let refused = run("EPSG:4326", &fx.dir.path().join("out2"))
-        .output()
-        .expect("run");
-    assert!(!refused.status.success());
-    let stderr = String::from_utf8_lossy(&refused.stderr);
+    let stderr = fails(&mut run("EPSG:4326", &fx.dir.path().join("out2")));
     assert!(
         stderr.contains("--crs") && stderr.contains("degrees"),
         "{stderr}"
@@ -340,22 +332,17 @@ fn inventory_prints_the_plot_and_writes_a_geopackage_gdal_reads() {
     let plot = synth_plot(dir.path(), 3);
     let out = dir.path().join("trees.csv");
     let gpkg = dir.path().join("trees.gpkg");
-    let output = Command::new(BIN)
-        .args(["inventory", "--crs", "EPSG:32633", "--summary", "--out"])
-        .arg(&out)
-        .arg("--gpkg")
-        .arg(&gpkg)
-        .arg("--geojson")
-        .arg(dir.path().join("trees.geojson"))
-        .arg(plot.join("lidar.laz"))
-        .output()
-        .expect("inventory");
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&output.stderr)
+    let output = succeeds(
+        Command::new(BIN)
+            .args(["inventory", "--crs", "EPSG:32633", "--summary", "--out"])
+            .arg(&out)
+            .arg("--gpkg")
+            .arg(&gpkg)
+            .arg("--geojson")
+            .arg(dir.path().join("trees.geojson"))
+            .arg(plot.join("lidar.laz")),
     );
+    let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(
         stdout.contains("stems/ha") && stdout.contains("Chave"),
         "{stdout}"
@@ -400,25 +387,19 @@ for layer in ("trees", "crowns"):
                   "geometry": info["geometry_type"], "fields": list(info["fields"])}
 print(json.dumps(out))
 "#;
-    let run = Command::new(&python)
-        .args(["-c", script])
-        .arg(&gpkg)
-        .output()
-        .expect("python");
+    let run = succeeds(Command::new(&python).args(["-c", script]).arg(&gpkg));
     let text = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "{text}\n{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     let info: serde_json::Value = serde_json::from_str(text.trim()).expect("json");
-    assert_eq!(info["trees"]["crs"], "EPSG:32633", "{info}");
-    assert_eq!(info["trees"]["geometry"], "Point", "{info}");
-    assert_eq!(
-        info["trees"]["features"].as_u64(),
-        Some(rows as u64),
-        "{info}"
-    );
+    // One feature per tree in each layer, in the given CRS.
+    for (layer, geometry) in [("trees", "Point"), ("crowns", "Polygon")] {
+        assert_eq!(info[layer]["crs"], "EPSG:32633", "{info}");
+        assert_eq!(info[layer]["geometry"], geometry, "{info}");
+        assert_eq!(
+            info[layer]["features"].as_u64(),
+            Some(rows as u64),
+            "{info}"
+        );
+    }
     let fields = info["trees"]["fields"].as_array().expect("fields");
     for f in [
         "tree_id",
@@ -429,11 +410,4 @@ print(json.dumps(out))
     ] {
         assert!(fields.iter().any(|x| x == f), "{f}: {info}");
     }
-    assert_eq!(info["crowns"]["geometry"], "Polygon", "{info}");
-    assert_eq!(info["crowns"]["crs"], "EPSG:32633", "{info}");
-    assert_eq!(
-        info["crowns"]["features"].as_u64(),
-        Some(rows as u64),
-        "{info}"
-    );
 }

@@ -149,13 +149,7 @@ fn stands_of_five_seeds_meet_the_accuracy_goals() {
 fn two_means_warm_start_on_many_rows_separates_the_blobs() {
     use sylva::forest::kmeans::kmeans;
     let n = 600_000;
-    let mut state = 1u64;
-    let mut unit = move || {
-        state = state
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
-    };
+    let mut unit = sylva::testing::centred_unit(1);
     let mut rows = Vec::with_capacity(n * 3);
     for i in 0..n {
         let c = if i % 3 == 0 { 4.0 } else { 0.0 };

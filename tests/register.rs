@@ -112,20 +112,26 @@ fn register_with(
     Ok(serde_json::from_slice(&text).expect("report json"))
 }
 
+/// Stages ingest and register on the plot generated in `out`: with its control points, or
+/// without them and `automatic`.
+fn register_plot(work: &Path, out: &Path, automatic: bool) -> Result<serde_json::Value, String> {
+    let control = out.join("control_points.csv");
+    register(
+        work,
+        &out.join("lidar.laz"),
+        &out.join("colmap"),
+        (!automatic).then_some(control.as_path()),
+        automatic,
+    )
+}
+
 #[test]
 fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
     let dir = tempfile::tempdir().expect("tempdir");
     for seed in 1..=5 {
         let out = plot(dir.path(), seed);
         let work = dir.path().join(format!("work-{seed}"));
-        let report = register(
-            &work,
-            &out.join("lidar.laz"),
-            &out.join("colmap"),
-            Some(&out.join("control_points.csv")),
-            false,
-        )
-        .expect("registration");
+        let report = register_plot(&work, &out, false).expect("registration");
         let (rot_err, scale_err, trans_err) = errors(&report, &out);
         let u = &report["uncertainty"];
         let std_rot = u["rotation_deg"]
@@ -187,14 +193,7 @@ fn control_points_and_icp_recover_the_true_similarity_on_five_seeds() {
 fn control_points_reach_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = light_stand(dir.path(), 5_000);
-    let report = register(
-        &dir.path().join("work"),
-        &out.join("lidar.laz"),
-        &out.join("colmap"),
-        Some(&out.join("control_points.csv")),
-        false,
-    )
-    .expect("registration");
+    let report = register_plot(&dir.path().join("work"), &out, false).expect("registration");
     let (rot_err, scale_err, trans_err) = errors(&report, &out);
     println!(
         "stand: rotation {rot_err:.4}°, scale {:.4}%, translation {:.2} cm",
@@ -220,13 +219,7 @@ fn automatic_alignment_on_tiny_reaches_the_goals_or_refuses() {
     for seed in 1..=5 {
         let out = plot(dir.path(), seed);
         let work = dir.path().join(format!("work-{seed}"));
-        match register(
-            &work,
-            &out.join("lidar.laz"),
-            &out.join("colmap"),
-            None,
-            true,
-        ) {
+        match register_plot(&work, &out, true) {
             Ok(report) => {
                 let (rot_err, scale_err, trans_err) = errors(&report, &out);
                 println!(
@@ -255,14 +248,8 @@ fn automatic_alignment_on_tiny_reaches_the_goals_or_refuses() {
 fn automatic_alignment_reaches_the_goals_on_a_stand() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = light_stand(dir.path(), 10_000);
-    let report = register(
-        &dir.path().join("work"),
-        &out.join("lidar.laz"),
-        &out.join("colmap"),
-        None,
-        true,
-    )
-    .expect("automatic registration");
+    let report =
+        register_plot(&dir.path().join("work"), &out, true).expect("automatic registration");
     let (rot_err, scale_err, trans_err) = errors(&report, &out);
     println!(
         "stand, automatic: rotation {rot_err:.4}°, scale {:.4}%, translation {:.2} cm, confidence {}",

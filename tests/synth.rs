@@ -2,32 +2,33 @@
 //! laspy (Python, in a venv made here) for the LAZ, COLMAP itself for the model where the
 //! Debian package is installed.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use common::{BIN, succeeds};
 use serde_json::Value;
 
-const BIN: &str = env!("CARGO_BIN_EXE_sylva");
-
 fn synth(out: &Path, extra: &[&str]) {
-    let output = Command::new(BIN)
-        .args(["synth", "--preset", "tiny", "--seed", "5", "--out"])
-        .arg(out)
-        .args(extra)
-        .output()
-        .expect("run sylva synth");
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
+    succeeds(
+        Command::new(BIN)
+            .args(["synth", "--preset", "tiny", "--seed", "5", "--out"])
+            .arg(out)
+            .args(extra),
     );
 }
 
 #[test]
 fn synth_cli_writes_what_a_field_team_brings_home_plus_the_truth() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let out = dir.path().join("plot");
-    synth(&out, &["--binary", "--noise-cm", "0.5"]);
+    // The same plot into `dir/name`.
+    let synth_into = |name: &str| {
+        let out = dir.path().join(name);
+        synth(&out, &["--binary", "--noise-cm", "0.5"]);
+        out
+    };
+    let out = synth_into("plot");
     for f in [
         "lidar.laz",
         "control_points.csv",
@@ -74,8 +75,7 @@ fn synth_cli_writes_what_a_field_team_brings_home_plus_the_truth() {
         cloud.offset
     );
     // The same seed gives the same bytes, through the CLI too.
-    let again = dir.path().join("again");
-    synth(&again, &["--binary", "--noise-cm", "0.5"]);
+    let again = synth_into("again");
     for f in [
         "lidar.laz",
         "truth.json",
@@ -135,16 +135,11 @@ las = laspy.read(sys.argv[1])
 print(json.dumps({"n": len(las.points), "min": [float(las.x.min()), float(las.y.min()), float(las.z.min())],
                   "max": [float(las.x.max()), float(las.y.max()), float(las.z.max())], "version": str(las.header.version)}))
 "#;
-    let run = Command::new(&python)
-        .arg("-c")
-        .arg(script)
-        .arg(out.join("lidar.laz"))
-        .output()
-        .expect("python");
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let run = succeeds(
+        Command::new(&python)
+            .arg("-c")
+            .arg(script)
+            .arg(out.join("lidar.laz")),
     );
     let v: Value = serde_json::from_slice(&run.stdout).expect("json");
     let cloud = sylva::io::pointcloud::read_point_cloud(
@@ -206,23 +201,18 @@ fn inventory_of_a_synthetic_plot_matches_its_field_measurements() {
     synth(&out, &[]);
     let csv = dir.path().join("trees.csv");
     let geojson = dir.path().join("trees.geojson");
-    let run = Command::new(BIN)
-        .arg("inventory")
-        .arg(out.join("lidar.laz"))
-        .arg("--out")
-        .arg(&csv)
-        .arg("--geojson")
-        .arg(&geojson)
-        .arg("--field")
-        .arg(out.join("field_dbh.csv"))
-        .output()
-        .expect("run inventory");
-    let stdout = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&run.stderr)
+    let run = succeeds(
+        Command::new(BIN)
+            .arg("inventory")
+            .arg(out.join("lidar.laz"))
+            .arg("--out")
+            .arg(&csv)
+            .arg("--geojson")
+            .arg(&geojson)
+            .arg("--field")
+            .arg(out.join("field_dbh.csv")),
     );
+    let stdout = String::from_utf8_lossy(&run.stdout);
     let text = std::fs::read_to_string(&csv).expect("trees.csv");
     assert!(
         text.starts_with(

@@ -304,15 +304,13 @@ fn keys_create_refuses_bad_input_clearly() {
         ),
         (vec!["keys", "revoke", "nobody"], "no key"),
     ] {
-        let out = sylva_command(&args, &data).output().expect("run");
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "{args:?} succeeded");
+        let err = fails(&mut sylva_command(&args, &data));
         assert!(err.contains(says), "{args:?}: {err}");
     }
     Db::sqlite().create_key(&data, "twice", &[]);
-    let out = sylva_command(&["keys", "create", "--name", "twice"], &data)
-        .output()
-        .expect("run");
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("exists already"));
+    let err = fails(&mut sylva_command(
+        &["keys", "create", "--name", "twice"],
+        &data,
+    ));
+    assert!(err.contains("exists already"), "{err}");
 }

@@ -25,12 +25,7 @@ fn arm(
     gpu: bool,
 ) -> (Value, Value) {
     std::fs::create_dir_all(out).expect("arm dir");
-    for stage in [
-        Stage::Ingest,
-        Stage::Register,
-        Stage::Anchors,
-        Stage::Segment,
-    ] {
+    for &stage in Stage::Train.predecessors() {
         std::os::unix::fs::symlink(shared.join(stage.name()), out.join(stage.name()))
             .expect("link");
     }
@@ -75,12 +70,7 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
     };
     let shared = dir.path().join("shared");
     let defaults = PipelineParams::default();
-    for stage in [
-        Stage::Ingest,
-        Stage::Register,
-        Stage::Anchors,
-        Stage::Segment,
-    ] {
+    for &stage in Stage::Train.predecessors() {
         pipeline::execute_stage(stage, &inputs, &shared, &defaults, &NoProgress).expect("stage");
     }
     let gpu = sylva::splat::gpu::GpuContext::new().is_ok();

@@ -288,11 +288,10 @@ async fn a_hung_stage_fails_at_its_runtime_limit() {
 #[test]
 fn a_bad_stage_limit_is_refused_at_start() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let out = sylva_command(&["worker", "--max-stage-secs", "train=soon"], dir.path())
-        .output()
-        .expect("run");
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
+    let err = fails(&mut sylva_command(
+        &["worker", "--max-stage-secs", "train=soon"],
+        dir.path(),
+    ));
     assert!(
         err.contains("--max-stage-secs") && err.contains("train=soon"),
         "{err}"

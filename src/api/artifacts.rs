@@ -12,10 +12,10 @@ use axum::response::{IntoResponse, Response};
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio_util::io::ReaderStream;
 
-use super::AppState;
 use super::auth::Caller;
 use super::jobs::{files_kept, load};
 use super::problem::ApiError;
+use super::{AppState, IdRequest};
 use crate::jobs::ArtifactRecord;
 
 /// A parsed `Range` header against a resource of `size` bytes.
@@ -185,18 +185,14 @@ async fn by_file_name(
 }
 
 pub async fn trees_csv(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
+    IdRequest { state, caller, id }: IdRequest,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     by_file_name(&state, &caller, &id, "trees.csv", &headers).await
 }
 
 pub async fn trees_geojson(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
+    IdRequest { state, caller, id }: IdRequest,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     by_file_name(&state, &caller, &id, "trees.geojson", &headers).await

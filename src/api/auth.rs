@@ -55,6 +55,29 @@ impl Caller {
         self.admin || self.owner == owner
     }
 
+    /// The record `id` as `fetch` finds it, if this caller may see it (`owner` gives a record's
+    /// owner). A malformed id (not looked up), a missing record and another owner's record all
+    /// answer the same 404 ("no {what} {id}"), so existence does not leak.
+    pub async fn load_visible<T, Fut>(
+        &self,
+        what: &str,
+        id: &str,
+        fetch: impl FnOnce() -> Fut,
+        owner: impl Fn(&T) -> &str,
+    ) -> Result<T, ApiError>
+    where
+        Fut: std::future::Future<Output = Result<Option<T>, crate::jobs::DbError>>,
+    {
+        let found = if super::uploads::valid_id(id) {
+            fetch().await?
+        } else {
+            None
+        };
+        found
+            .filter(|r| self.sees(owner(r)))
+            .ok_or_else(|| ApiError::not_found(format!("no {what} {id}")))
+    }
+
     /// The owner filter of a list: `None` (everyone's) for an admin.
     pub fn list_owner(&self) -> Option<&str> {
         (!self.admin).then_some(self.owner.as_str())

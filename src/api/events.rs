@@ -8,18 +8,16 @@
 use std::convert::Infallible;
 use std::time::Duration;
 
-use axum::extract::{Extension, Path, State};
 use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use futures::stream::{self, Stream};
 use serde_json::Value;
 
-use super::AppState;
-use super::auth::Caller;
 use super::jobs::{load, log_line};
 use super::problem::ApiError;
 use super::views;
+use super::{AppState, IdRequest};
 
 const POLL: Duration = Duration::from_millis(250);
 
@@ -102,9 +100,7 @@ async fn next_events(mut c: Cursor) -> Option<(Result<Event, Infallible>, Cursor
 }
 
 pub async fn events(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
+    IdRequest { state, caller, id }: IdRequest,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     load(&state, &caller, &id).await?;

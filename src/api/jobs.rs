@@ -5,7 +5,7 @@ use std::collections::HashMap;
 
 use axum::Json;
 use axum::body::Bytes;
-use axum::extract::{Extension, FromRequest, Multipart, Path, Query, Request, State};
+use axum::extract::{Extension, FromRequest, Multipart, Query, Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
@@ -14,8 +14,8 @@ use sha2::{Digest, Sha256};
 
 use super::auth::Caller;
 use super::problem::ApiError;
-use super::uploads::{self, new_id, valid_id};
-use super::{AppState, count_upload_bytes, views};
+use super::uploads::{self, new_id};
+use super::{AppState, IdRequest, count_upload_bytes, views};
 use crate::jobs::{Admission, Created, NewJob, WebhookSpec};
 use crate::jobs::{JobInputs, JobRecord, JobState, UploadKind, UploadRecord, now_ms};
 use crate::pipeline::{PipelineParams, Stage};
@@ -33,15 +33,9 @@ struct JobCreate {
 /// The job `id` if `caller` may see it; another owner's job answers exactly as a missing one
 /// (404, the same body), so existence does not leak.
 pub async fn load(state: &AppState, caller: &Caller, id: &str) -> Result<JobRecord, ApiError> {
-    if !valid_id(id) {
-        return Err(ApiError::not_found(format!("no job {id}")));
-    }
-    state
-        .db
-        .get_job(id)
-        .await?
-        .filter(|j| caller.sees(&j.owner))
-        .ok_or_else(|| ApiError::not_found(format!("no job {id}")))
+    caller
+        .load_visible("job", id, || state.db.get_job(id), |j: &JobRecord| &j.owner)
+        .await
 }
 
 fn json_error(e: serde_json::Error, what: &str) -> ApiError {
@@ -416,11 +410,7 @@ pub async fn list(
     Ok(Json(json!({ "jobs": views, "next_cursor": next })).into_response())
 }
 
-pub async fn get(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn get(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     Ok(Json(views::job(
         &load(&state, &caller, &id).await?,
         state.retention(),
@@ -428,11 +418,7 @@ pub async fn get(
     .into_response())
 }
 
-pub async fn delete(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn delete(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     load(&state, &caller, &id).await?;
     state.db.delete_job(&id).await?;
     state.blobs.remove_job(&id).await?;
@@ -441,9 +427,7 @@ pub async fn delete(
 }
 
 pub async fn log(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
+    IdRequest { state, caller, id }: IdRequest,
     Query(q): Query<HashMap<String, String>>,
 ) -> Result<Response, ApiError> {
     let since = query_int(&q, "since", 0, 0, i64::MAX)?;
@@ -465,23 +449,22 @@ pub fn log_line(l: &crate::jobs::LogLine) -> Value {
     })
 }
 
-pub async fn cancel(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn cancel(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     load(&state, &caller, &id).await?;
     let next = state.db.cancel(&id).await?;
-    let _ = state
-        .db
-        .append_log(
-            &id,
-            "info",
-            None,
-            &format!("cancel requested; job {}", next.as_str()),
-        )
-        .await;
-    let job = load(&state, &caller, &id).await?;
+    let line = format!("cancel requested; job {}", next.as_str());
+    note(&state, &id, &line).await;
+    accepted(&state, &caller, &id).await
+}
+
+/// Notes `message` in the job's log at level info (best effort).
+async fn note(state: &AppState, id: &str, message: &str) {
+    let _ = state.db.append_log(id, "info", None, message).await;
+}
+
+/// 202 Accepted with the job as it is now.
+async fn accepted(state: &AppState, caller: &Caller, id: &str) -> Result<Response, ApiError> {
+    let job = load(state, caller, id).await?;
     Ok((
         StatusCode::ACCEPTED,
         Json(views::job(&job, state.retention())),
@@ -498,9 +481,7 @@ struct RetryBody {
 }
 
 pub async fn retry(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
+    IdRequest { state, caller, id }: IdRequest,
     body: Bytes,
 ) -> Result<Response, ApiError> {
     files_kept(&load(&state, &caller, &id).await?)?;
@@ -518,25 +499,10 @@ pub async fn retry(
     };
     let reset = state.db.retry(&id, from).await?;
     state.blobs.remove_stages(&id, &reset).await?;
-    let _ = state
-        .db
-        .append_log(
-            &id,
-            "info",
-            None,
-            &format!(
-                "retry requested from stage {}",
-                reset.first().map(String::as_str).unwrap_or("?")
-            ),
-        )
-        .await;
+    let first = reset.first().map(String::as_str).unwrap_or("?");
+    note(&state, &id, &format!("retry requested from stage {first}")).await;
     wake_workers(&state, &id).await;
-    let job = load(&state, &caller, &id).await?;
-    Ok((
-        StatusCode::ACCEPTED,
-        Json(views::job(&job, state.retention())),
-    )
-        .into_response())
+    accepted(&state, &caller, &id).await
 }
 
 /// Wakes idle workers for a job that can now be claimed: this process's own, and through
@@ -548,11 +514,7 @@ async fn wake_workers(state: &AppState, id: &str) {
     }
 }
 
-pub async fn results(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn results(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let job = load(&state, &caller, &id).await?;
     let stages: serde_json::Map<String, Value> = job
         .stages

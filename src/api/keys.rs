@@ -4,15 +4,15 @@
 //! record they do not own.
 
 use axum::Json;
-use axum::extract::{Extension, Path, State};
+use axum::extract::{Extension, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 use serde_json::{Value, json};
 
-use super::AppState;
 use super::auth::Caller;
 use super::problem::ApiError;
+use super::{AppState, IdRequest};
 use crate::jobs::keys::{self, ApiKey};
 use crate::jobs::{DbError, now_ms, rfc3339};
 
@@ -138,11 +138,7 @@ pub async fn create(
 
 /// `DELETE /v1/keys/{id}`: revokes a key (admin only; others get 404, as for any record they
 /// do not own). An admin may not revoke the key it is calling with.
-pub async fn revoke(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn revoke(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let missing = || ApiError::not_found(format!("no key {id}"));
     if !caller.admin || !id.starts_with("key_") {
         return Err(missing());

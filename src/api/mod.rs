@@ -20,10 +20,11 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use axum::Router;
-use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::extract::{DefaultBodyLimit, Extension, FromRequestParts, Path, Request, State};
+use axum::http::request::Parts;
 use axum::http::{Method, StatusCode};
 use axum::middleware::{self, Next};
-use axum::response::Response;
+use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
 use tokio::sync::Notify;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
@@ -41,6 +42,32 @@ use problem::ApiError;
 pub struct Counters {
     pub upload_bytes: AtomicU64,
     pub http_requests: Mutex<BTreeMap<u16, u64>>,
+}
+
+/// What a handler of a route with one `{id}` starts from: the state, the caller (set by
+/// [`auth::require_token`]) and the id, extracted in that order.
+pub struct IdRequest {
+    pub state: AppState,
+    pub caller: auth::Caller,
+    pub id: String,
+}
+
+impl FromRequestParts<AppState> for IdRequest {
+    type Rejection = Response;
+
+    async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, Response> {
+        let Extension(caller) = Extension::<auth::Caller>::from_request_parts(parts, state)
+            .await
+            .map_err(IntoResponse::into_response)?;
+        let Path(id) = Path::<String>::from_request_parts(parts, state)
+            .await
+            .map_err(IntoResponse::into_response)?;
+        Ok(IdRequest {
+            state: state.clone(),
+            caller,
+            id,
+        })
+    }
 }
 
 /// Everything a handler may use.

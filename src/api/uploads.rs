@@ -14,7 +14,7 @@ use serde_json::json;
 
 use super::auth::Caller;
 use super::problem::ApiError;
-use super::{AppState, count_upload_bytes, views};
+use super::{AppState, IdRequest, count_upload_bytes, views};
 use crate::jobs::{UploadKind, UploadRecord, now_ms};
 use crate::pipeline::inspect::{self, InspectError};
 use crate::progress::NoProgress;
@@ -75,15 +75,14 @@ pub fn new_id() -> String {
 /// The upload `id` if `caller` may see it; another owner's upload answers exactly as a
 /// missing one (404, the same body), so existence does not leak.
 pub async fn load(state: &AppState, caller: &Caller, id: &str) -> Result<UploadRecord, ApiError> {
-    if !valid_id(id) {
-        return Err(ApiError::not_found(format!("no upload {id}")));
-    }
-    state
-        .db
-        .get_upload(id)
-        .await?
-        .filter(|u| caller.sees(&u.owner))
-        .ok_or_else(|| ApiError::not_found(format!("no upload {id}")))
+    caller
+        .load_visible(
+            "upload",
+            id,
+            || state.db.get_upload(id),
+            |u: &UploadRecord| &u.owner,
+        )
+        .await
 }
 
 /// Checks an upload request and records it; shared by `POST /v1/uploads` and one-request
@@ -219,11 +218,7 @@ fn status_headers(u: &UploadRecord) -> HeaderMap {
     h
 }
 
-pub async fn status(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn status(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let u = load(&state, &caller, &id).await?;
     Ok((status_headers(&u), Json(views::upload(&u))).into_response())
 }
@@ -290,11 +285,7 @@ impl Drop for CompletingGuard {
     }
 }
 
-pub async fn complete(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn complete(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let u = load(&state, &caller, &id).await?;
     if u.complete {
         return Ok((status_headers(&u), Json(views::upload(&u))).into_response());

@@ -1,13 +1,13 @@
 //! Webhook routes: a caller's signing secret and its rotation, and a job's deliveries.
 
 use axum::Json;
-use axum::extract::{Extension, Path, State};
+use axum::extract::{Extension, State};
 use axum::response::{IntoResponse, Response};
 use serde_json::{Value, json};
 
 use super::auth::Caller;
 use super::problem::ApiError;
-use super::{AppState, jobs, views};
+use super::{AppState, IdRequest, jobs, views};
 use crate::jobs::keys::SecretGeneration;
 use crate::jobs::{now_ms, rfc3339};
 use crate::webhooks::sign::{DELIVERY_HEADER, EVENT_HEADER, SIGNATURE_HEADER, TIMESTAMP_HEADER};
@@ -74,11 +74,7 @@ pub async fn rotate(
 }
 
 /// `GET /v1/jobs/{id}/webhooks`: the job's webhook and every delivery made for it.
-pub async fn deliveries(
-    State(state): State<AppState>,
-    Extension(caller): Extension<Caller>,
-    Path(id): Path<String>,
-) -> Result<Response, ApiError> {
+pub async fn deliveries(IdRequest { state, caller, id }: IdRequest) -> Result<Response, ApiError> {
     let job = jobs::load(&state, &caller, &id).await?;
     let deliveries: Vec<Value> = state
         .db

@@ -77,11 +77,7 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             a.what
         );
     }
-    let backend = match a.backend.as_str() {
-        "gpu" => TrainBackend::Gpu,
-        "cpu" => TrainBackend::Cpu,
-        other => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
-    };
+    let backend = super::run::parse_backend(&a.backend)?;
     if a.raster_pixels != 0 && !(a.raster_pixels.is_power_of_two() && a.raster_pixels <= 16) {
         anyhow::bail!(
             "--raster-pixels must be 1, 2, 4, 8 or 16 (0: the device's default), got {}",

@@ -118,12 +118,7 @@ pub(super) async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
     // 4. Follow it.
     let mut last = String::new();
     let job = loop {
-        let j: serde_json::Value = http
-            .get(format!("{base}/v1/jobs/{id}"))
-            .send()
-            .await?
-            .json()
-            .await?;
+        let j = get_json(&http, format!("{base}/v1/jobs/{id}")).await?;
         let line = format!(
             "{} {} {:.0}%",
             j["state"].as_str().unwrap_or("?"),
@@ -153,61 +148,53 @@ pub(super) async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
             .text()
             .await?;
         println!("\ntree inventory (trees.csv):\n{csv}");
-        let results: serde_json::Value = http
-            .get(format!("{base}/v1/jobs/{id}/results"))
-            .send()
-            .await?
-            .json()
-            .await?;
+        let results = get_json(&http, format!("{base}/v1/jobs/{id}/results")).await?;
         let st = &results["stages"];
         let f = |v: &serde_json::Value| v.as_f64().map_or("n/a".to_string(), |x| format!("{x:.2}"));
         println!("| quality | value |\n|---|---|");
-        println!(
-            "| registration RMSE (m) | {} |",
-            f(&st["register"]["rmse_m"])
-        );
-        println!(
-            "| held-out PSNR (dB) | {} |",
-            f(&st["train"]["render"]["psnr"])
-        );
-        println!("| held-out SSIM | {} |", f(&st["train"]["render"]["ssim"]));
-        println!(
-            "| held-out pixels measured | {} |",
-            match st["train"]["render"]["region"].as_str() {
-                Some("right_half") => "right halves (exposure compensation on)",
-                Some(_) => "full images",
-                None => "n/a",
-            }
-        );
-        println!(
-            "| mean-colour PSNR (dB) | {} |",
-            f(&st["train"]["baseline_psnr"])
-        );
-        println!(
-            "| DBH RMSE, Gaussians (cm) | {} |",
-            f(&st["dbh"]["dbh"]["rmse_gs_cm"])
-        );
-        println!(
-            "| DBH RMSE, LiDAR (cm) | {} |",
-            f(&st["dbh"]["dbh"]["rmse_lidar_cm"])
-        );
-        println!(
-            "| DBH RMSE, Gaussians against LiDAR (cm) | {} |",
-            f(&st["dbh"]["gs_vs_lidar"]["rmse_cm"])
-        );
-        println!("| trees matched | {} |", st["dbh"]["dbh"]["matched"]);
-        println!(
-            "| trunk Gaussians to LiDAR stem surface, mean absolute (mm) | {} |",
-            f(&st["dbh"]["mean_radial_dev_mm"])
-        );
-        println!(
-            "| trunk Gaussians to LiDAR stem surface, mean signed (mm, + outside) | {} |",
-            f(&st["dbh"]["mean_surface_offset_mm"])
-        );
-        println!(
-            "| trunk term | {} |",
-            st["train"]["semantic"]["term"].as_str().unwrap_or("n/a")
-        );
+        let region = match st["train"]["render"]["region"].as_str() {
+            Some("right_half") => "right halves (exposure compensation on)",
+            Some(_) => "full images",
+            None => "n/a",
+        };
+        let rows = [
+            ("registration RMSE (m)", f(&st["register"]["rmse_m"])),
+            ("held-out PSNR (dB)", f(&st["train"]["render"]["psnr"])),
+            ("held-out SSIM", f(&st["train"]["render"]["ssim"])),
+            ("held-out pixels measured", region.to_string()),
+            ("mean-colour PSNR (dB)", f(&st["train"]["baseline_psnr"])),
+            (
+                "DBH RMSE, Gaussians (cm)",
+                f(&st["dbh"]["dbh"]["rmse_gs_cm"]),
+            ),
+            (
+                "DBH RMSE, LiDAR (cm)",
+                f(&st["dbh"]["dbh"]["rmse_lidar_cm"]),
+            ),
+            (
+                "DBH RMSE, Gaussians against LiDAR (cm)",
+                f(&st["dbh"]["gs_vs_lidar"]["rmse_cm"]),
+            ),
+            ("trees matched", st["dbh"]["dbh"]["matched"].to_string()),
+            (
+                "trunk Gaussians to LiDAR stem surface, mean absolute (mm)",
+                f(&st["dbh"]["mean_radial_dev_mm"]),
+            ),
+            (
+                "trunk Gaussians to LiDAR stem surface, mean signed (mm, + outside)",
+                f(&st["dbh"]["mean_surface_offset_mm"]),
+            ),
+            (
+                "trunk term",
+                st["train"]["semantic"]["term"]
+                    .as_str()
+                    .unwrap_or("n/a")
+                    .to_string(),
+            ),
+        ];
+        for (quality, value) in rows {
+            println!("| {quality} | {value} |");
+        }
         let tr = &st["train"];
         println!(
             "| training budget | {} steps at {} px, {} Gaussians ({}), {} |",
@@ -228,20 +215,21 @@ pub(super) async fn demo(a: DemoArgs) -> anyhow::Result<ExitCode> {
         );
         println!("| training time (s) | {} |", f(&tr["seconds"]));
     }
-    let ok = job["state"] == "succeeded";
-    if a.exit {
-        server.abort();
-        return Ok(if ok {
-            ExitCode::SUCCESS
-        } else {
-            ExitCode::FAILURE
-        });
-    }
-    println!("\nthe web page: {base}/  (Ctrl-C to stop)");
-    server.await??;
-    Ok(if ok {
+    let code = if job["state"] == "succeeded" {
         ExitCode::SUCCESS
     } else {
         ExitCode::FAILURE
-    })
+    };
+    if a.exit {
+        server.abort();
+        return Ok(code);
+    }
+    println!("\nthe web page: {base}/  (Ctrl-C to stop)");
+    server.await??;
+    Ok(code)
+}
+
+/// The JSON body of a GET of `url`.
+async fn get_json(http: &reqwest::Client, url: String) -> anyhow::Result<serde_json::Value> {
+    Ok(http.get(url).send().await?.json().await?)
 }

@@ -78,35 +78,58 @@ pub struct RunArgs {
 /// `--strategy`'s value.
 pub(super) fn parse_strategy(s: &str) -> anyhow::Result<sylva::pipeline::params::DensifyStrategy> {
     use sylva::pipeline::params::DensifyStrategy;
-    match s {
-        "default" => Ok(DensifyStrategy::Default),
-        "mcmc" => Ok(DensifyStrategy::Mcmc),
-        other => anyhow::bail!("--strategy must be default or mcmc, not {other:?}"),
+    choice(
+        "--strategy",
+        s,
+        &[
+            ("default", DensifyStrategy::Default),
+            ("mcmc", DensifyStrategy::Mcmc),
+        ],
+    )
+}
+
+/// `--backend`'s value.
+pub(super) fn parse_backend(s: &str) -> anyhow::Result<sylva::pipeline::params::TrainBackend> {
+    use sylva::pipeline::params::TrainBackend;
+    choice(
+        "--backend",
+        s,
+        &[("gpu", TrainBackend::Gpu), ("cpu", TrainBackend::Cpu)],
+    )
+}
+
+/// The value of flag `flag` named `value` among `choices`; anything else is an error naming the
+/// flag and its choices.
+fn choice<T: Copy>(flag: &str, value: &str, choices: &[(&str, T)]) -> anyhow::Result<T> {
+    if let Some(&(_, v)) = choices.iter().find(|(name, _)| *name == value) {
+        return Ok(v);
     }
+    let names: Vec<&str> = choices.iter().map(|(name, _)| *name).collect();
+    let (last, rest) = names.split_last().expect("choices");
+    anyhow::bail!(
+        "{flag} must be {} or {last}, not {value:?}",
+        rest.join(", ")
+    )
 }
 
 /// Applies `sylva run`'s training flags to `params`.
 fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result<()> {
-    use sylva::pipeline::params::{InitSource, TrainBackend, TrunkTerm};
+    use sylva::pipeline::params::{InitSource, TrunkTerm};
     let t = &mut params.train;
-    match a.init.as_deref() {
-        None => {}
-        Some("lidar") => t.init = InitSource::Lidar,
-        Some("sfm") => t.init = InitSource::Sfm,
-        Some(other) => anyhow::bail!("--init must be lidar or sfm, not {other:?}"),
+    if let Some(v) = a.init.as_deref() {
+        let init = [("lidar", InitSource::Lidar), ("sfm", InitSource::Sfm)];
+        t.init = choice("--init", v, &init)?;
     }
-    match a.semantic.as_deref() {
-        None => {}
-        Some("bind") => t.semantic = TrunkTerm::Bind,
-        Some("paper") => t.semantic = TrunkTerm::Paper,
-        Some("off") => t.semantic = TrunkTerm::Off,
-        Some(other) => anyhow::bail!("--semantic must be bind, paper or off, not {other:?}"),
+    if let Some(v) = a.semantic.as_deref() {
+        let terms = [
+            ("bind", TrunkTerm::Bind),
+            ("paper", TrunkTerm::Paper),
+            ("off", TrunkTerm::Off),
+        ];
+        t.semantic = choice("--semantic", v, &terms)?;
     }
-    match a.backend.as_deref() {
-        None => {}
-        Some("gpu") => t.backend = TrainBackend::Gpu,
-        Some("cpu") => t.backend = TrainBackend::Cpu,
-        Some(other) => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
+    if let Some(v) = a.backend.as_deref() {
+        t.backend = parse_backend(v)?;
     }
     if let Some(s) = a.strategy.as_deref() {
         t.strategy = parse_strategy(s)?;
@@ -132,11 +155,7 @@ fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result
 /// `on` or `off` of flag `flag` as a bool; anything else is an error naming the flag.
 /// The value of an on/off flag.
 pub(super) fn on_off(flag: &str, value: &str) -> anyhow::Result<bool> {
-    match value {
-        "on" => Ok(true),
-        "off" => Ok(false),
-        other => anyhow::bail!("{flag} must be on or off, not {other:?}"),
-    }
+    choice(flag, value, &[("on", true), ("off", false)])
 }
 
 /// Adds the summary keys of results.json: `registration`, `render` = {psnr, ssim, views},

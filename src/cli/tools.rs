@@ -1,6 +1,6 @@
 //! The one-off commands on local files: `sylva synth`, `sylva inventory`, `sylva train`.
 
-use super::run::{on_off, parse_strategy};
+use super::run::{on_off, parse_backend, parse_strategy};
 use super::*;
 
 #[derive(Debug, Args)]
@@ -241,12 +241,8 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
 }
 
 pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
-    use sylva::pipeline::params::{TrainBackend, TrainParams};
-    let backend = match a.backend.as_str() {
-        "gpu" => TrainBackend::Gpu,
-        "cpu" => TrainBackend::Cpu,
-        other => anyhow::bail!("--backend must be gpu or cpu, not {other:?}"),
-    };
+    use sylva::pipeline::params::TrainParams;
+    let backend = parse_backend(&a.backend)?;
     let params = TrainParams {
         steps: a.steps,
         resolution: a.resolution,

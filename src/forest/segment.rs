@@ -667,13 +667,7 @@ mod tests {
     /// leaf: the lone-line test relabels the twig's inner points and none of the others.
     #[test]
     fn lone_lines_take_a_thin_twig_and_leave_planes_and_blobs() {
-        let mut state = 7u64;
-        let mut unit = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
-        };
+        let mut unit = crate::testing::centred_unit(7);
         let mut pts = Vec::new();
         // Twig along x, 1 m long, 600 points, ±4 mm across.
         for i in 0..600 {

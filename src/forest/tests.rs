@@ -5,7 +5,7 @@
 use super::*;
 use crate::io::pointcloud::{PointCloud, read_point_cloud};
 use crate::io::tables::FieldTree;
-use crate::progress::{NoProgress, Progress};
+use crate::progress::{Cancelled, NoProgress};
 use crate::synth::scene::Label;
 use crate::synth::trees::TreeTruth;
 use crate::synth::{Preset, SynthParams, lidar_plot};
@@ -92,18 +92,28 @@ fn field_of(plot: &Plot) -> Vec<FieldTree> {
         .collect()
 }
 
-#[test]
-fn wood_leaf_labels_match_the_generated_truth() {
-    let plot = dense();
-    let include: Vec<bool> = plot.is_ground.iter().map(|g| !g).collect();
-    let wood = segment_wood_leaf(
+/// Per point of `plot`: whether it is off the ground (what the segmentation tests include).
+fn non_ground(plot: &Plot) -> Vec<bool> {
+    plot.is_ground.iter().map(|g| !g).collect()
+}
+
+/// The wood/leaf segmentation of `plot`'s points marked in `include` (default parameters).
+fn segment_non_ground(plot: &Plot, colors: Option<&[[u8; 3]]>, include: &[bool]) -> WoodLeaf {
+    segment_wood_leaf(
         &plot.cloud.positions,
-        None,
-        Some(&include),
+        colors,
+        Some(include),
         &SegmentParams::default(),
         &NoProgress,
     )
-    .expect("segmentation");
+    .expect("segmentation")
+}
+
+#[test]
+fn wood_leaf_labels_match_the_generated_truth() {
+    let plot = dense();
+    let include = non_ground(&plot);
+    let wood = segment_non_ground(&plot, None, &include);
     let (mut tp, mut fp, mut fneg) = (0usize, 0usize, 0usize);
     for i in 0..plot.cloud.len() {
         if plot.is_ground[i] {
@@ -127,14 +137,7 @@ fn wood_leaf_labels_match_the_generated_truth() {
     assert!(recall >= 0.90, "trunk recall {recall}");
     assert!(precision >= 0.85, "trunk precision {precision}");
     // Deterministic: the same cloud gives the same labels.
-    let again = segment_wood_leaf(
-        &plot.cloud.positions,
-        None,
-        Some(&include),
-        &SegmentParams::default(),
-        &NoProgress,
-    )
-    .expect("segmentation");
+    let again = segment_non_ground(&plot, None, &include);
     assert_eq!(again.labels, wood.labels);
 }
 
@@ -216,13 +219,6 @@ fn leaning_stems_are_cut_across_their_own_axis() {
 
 #[test]
 fn cancelling_stops_the_inventory() {
-    struct Cancelled;
-    impl Progress for Cancelled {
-        fn set(&self, _: f64) {}
-        fn is_cancelled(&self) -> bool {
-            true
-        }
-    }
     // Any cloud will do: a small `tiny` plot.
     let plot = generate(&SynthParams {
         seed: 1,
@@ -233,13 +229,19 @@ fn cancelling_stops_the_inventory() {
     assert!(matches!(r, Err(ForestError::Cancelled)), "{r:?}");
 }
 
+/// The inventory (default parameters) of the real cloud `rel` under the real-data folder, or
+/// `None` where this machine lacks it.
+fn real_data_inventory(rel: &str) -> Option<Inventory> {
+    let path = crate::io::real_data(rel)?;
+    let cloud = read_point_cloud(&path, &NoProgress).expect("read");
+    Some(inventory(&cloud, &InventoryParams::default(), &NoProgress).expect("inventory"))
+}
+
 #[test]
 fn pine_plot_gives_a_dbh_with_quality_figures_for_every_stem() {
-    let Some(path) = crate::io::real_data("TreeLS_extdata/pine_plot.laz") else {
+    let Some(inv) = real_data_inventory("TreeLS_extdata/pine_plot.laz") else {
         return;
     };
-    let cloud = read_point_cloud(&path, &NoProgress).expect("read");
-    let inv = inventory(&cloud, &InventoryParams::default(), &NoProgress).expect("inventory");
     println!("{}", trees_csv(&inv.trees));
     // About 14 stems of DBH 9-30 cm (TreeLS documentation); the plot's edges cut one or two
     // more (measured: 16, DBH 8.2-30.1 cm, every fit converged, RMS 4.5-6.7 mm).
@@ -272,11 +274,9 @@ fn pine_plot_gives_a_dbh_with_quality_figures_for_every_stem() {
 
 #[test]
 fn single_pine_gives_one_tree_of_about_25_cm() {
-    let Some(path) = crate::io::real_data("TreeLS_extdata/pine.laz") else {
+    let Some(inv) = real_data_inventory("TreeLS_extdata/pine.laz") else {
         return;
     };
-    let cloud = read_point_cloud(&path, &NoProgress).expect("read");
-    let inv = inventory(&cloud, &InventoryParams::default(), &NoProgress).expect("inventory");
     assert_eq!(inv.trees.len(), 1, "{:?}", inv.trees);
     let dbh = inv.trees[0].dbh_lidar_cm;
     assert!((23.5..26.5).contains(&dbh), "DBH {dbh} cm");
@@ -306,7 +306,7 @@ fn lidr_trunk_slice_gives_one_trunk_circle() {
 #[test]
 fn colour_joins_the_features_when_the_cloud_has_it() {
     let plot = dense();
-    let include: Vec<bool> = plot.is_ground.iter().map(|g| !g).collect();
+    let include = non_ground(&plot);
     // Brown bark, green leaves, with some spread.
     let colors: Vec<[u8; 3]> = plot
         .is_trunk
@@ -322,14 +322,7 @@ fn colour_joins_the_features_when_the_cloud_has_it() {
         })
         .collect();
     let score = |colors: Option<&[[u8; 3]]>| {
-        let w = segment_wood_leaf(
-            &plot.cloud.positions,
-            colors,
-            Some(&include),
-            &SegmentParams::default(),
-            &NoProgress,
-        )
-        .expect("segmentation");
+        let w = segment_non_ground(&plot, colors, &include);
         let ok = (0..plot.cloud.len())
             .filter(|&i| include[i] && (w.labels[i] == TRUNK) == plot.is_trunk[i])
             .count();

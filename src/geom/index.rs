@@ -52,6 +52,21 @@ impl std::fmt::Debug for PointIndex {
 }
 
 impl PointIndex {
+    /// Builds the index of `points` (reporting a tenth of `progress` done), then runs `f` with
+    /// it and the other nine tenths of `progress`.
+    pub fn build_then<T>(
+        points: &[Vec3],
+        progress: &dyn Progress,
+        f: impl FnOnce(&PointIndex, &dyn Progress) -> Result<T, GeomError>,
+    ) -> Result<T, GeomError> {
+        let index = PointIndex::new(points)?;
+        progress.set(0.1);
+        f(
+            &index,
+            &crate::progress::SubProgress::new(progress, 0.1, 0.9),
+        )
+    }
+
     /// Builds the tree (in parallel above kiddo's threshold). Errors on non-finite points
     /// and on more than `u32::MAX` points.
     pub fn new(points: &[Vec3]) -> Result<Self, GeomError> {
@@ -408,19 +423,12 @@ mod tests {
 
     #[test]
     fn batch_query_stops_on_cancel() {
-        let flag = crate::progress::CancelFlag::new();
-        flag.cancel();
-        struct P(crate::progress::CancelFlag);
-        impl Progress for P {
-            fn set(&self, _: f64) {}
-            fn is_cancelled(&self) -> bool {
-                self.0.is_cancelled()
-            }
-        }
         let pts = cloud(100, 1);
         let index = PointIndex::new(&pts).unwrap();
         assert_eq!(
-            index.knn_batch(&pts, 4, &P(flag)).unwrap_err(),
+            index
+                .knn_batch(&pts, 4, &crate::progress::Cancelled)
+                .unwrap_err(),
             GeomError::Cancelled
         );
     }

@@ -123,14 +123,9 @@ pub fn estimate_normals(
     params: &NormalParams,
     progress: &dyn Progress,
 ) -> Result<Normals, GeomError> {
-    let index = PointIndex::new(points)?;
-    progress.set(0.1);
-    estimate_normals_with_index(
-        points,
-        &index,
-        params,
-        &SubProgress::new(progress, 0.1, 0.9),
-    )
+    PointIndex::build_then(points, progress, |index, rest| {
+        estimate_normals_with_index(points, index, params, rest)
+    })
 }
 
 /// As [`estimate_normals`], with a prebuilt index over exactly `points`.
@@ -227,7 +222,7 @@ fn pca_at(points: &[Vec3], nb: &[Neighbour]) -> (Vec3, [f32; 3]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::progress::NoProgress;
+    use crate::progress::{Cancelled, NoProgress};
     use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
 
     fn tilted_plane(rng: &mut ChaCha8Rng) -> (Vec<Vec3>, Vec3) {
@@ -347,13 +342,6 @@ mod tests {
 
     #[test]
     fn normals_stop_on_cancel() {
-        struct Cancelled;
-        impl Progress for Cancelled {
-            fn set(&self, _: f64) {}
-            fn is_cancelled(&self) -> bool {
-                true
-            }
-        }
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let pts = cylinder(&mut rng);
         let err = estimate_normals(&pts, &NormalParams::default(), &Cancelled).unwrap_err();

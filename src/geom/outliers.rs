@@ -6,7 +6,7 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use super::{GeomError, PointIndex};
-use crate::progress::{Progress, SubProgress};
+use crate::progress::Progress;
 
 /// Parameters of [`statistical_outlier_filter`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -49,14 +49,9 @@ pub fn statistical_outlier_filter(
     params: &OutlierParams,
     progress: &dyn Progress,
 ) -> Result<OutlierFilter, GeomError> {
-    let index = PointIndex::new(points)?;
-    progress.set(0.1);
-    statistical_outlier_filter_with_index(
-        points,
-        &index,
-        params,
-        &SubProgress::new(progress, 0.1, 0.9),
-    )
+    PointIndex::build_then(points, progress, |index, rest| {
+        statistical_outlier_filter_with_index(points, index, params, rest)
+    })
 }
 
 /// As [`statistical_outlier_filter`], with a prebuilt index over exactly `points`.

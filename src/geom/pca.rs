@@ -109,26 +109,25 @@ fn null_vector(m: DMat3, lambda: f64) -> DVec3 {
     let s = m - DMat3::from_diagonal(DVec3::splat(lambda));
     // Symmetric: rows equal columns.
     let (r0, r1, r2) = (s.x_axis, s.y_axis, s.z_axis);
-    let cands = [r0.cross(r1), r0.cross(r2), r1.cross(r2)];
-    let best = cands
-        .iter()
-        .copied()
-        .max_by(|a, b| a.length_squared().total_cmp(&b.length_squared()))
-        .unwrap_or(DVec3::X);
+    let best = longest([r0.cross(r1), r0.cross(r2), r1.cross(r2)]);
     if best.length_squared() > 1e-30 {
         best.normalize()
     } else {
         // Rank <= 1: any vector orthogonal to the largest row.
-        let r = [r0, r1, r2]
-            .into_iter()
-            .max_by(|a, b| a.length_squared().total_cmp(&b.length_squared()))
-            .unwrap_or(DVec3::X);
+        let r = longest([r0, r1, r2]);
         if r.length_squared() > 1e-30 {
             r.any_orthonormal_vector()
         } else {
             DVec3::X
         }
     }
+}
+
+/// The longest of `vs` (the last of equally long ones).
+fn longest(vs: [DVec3; 3]) -> DVec3 {
+    vs.into_iter()
+        .max_by(|a, b| a.length_squared().total_cmp(&b.length_squared()))
+        .unwrap_or(DVec3::X)
 }
 
 /// Null vector of `m - λI` constrained orthogonal to `u` (unit).

@@ -80,6 +80,18 @@ pub fn transform_pose(qvec: [f64; 4], tvec: [f64; 3], s: &Similarity) -> ([f64; 
     ([qn.w, qn.x, qn.y, qn.z], t_new.to_array())
 }
 
+/// [`icp_two_phase`] of the SfM points `sfm` placed by `coarse` (as f32) onto `target`.
+pub fn icp_from(
+    sfm: &[DVec3],
+    coarse: &Similarity,
+    target: &[Vec3],
+    params: &IcpParams,
+    progress: &dyn Progress,
+) -> Result<IcpResult, GeomError> {
+    let source: Vec<Vec3> = sfm.iter().map(|x| coarse.apply(*x).as_vec3()).collect();
+    icp_two_phase(&source, target, params, progress)
+}
+
 /// ICP rigid first, then with scale from there: the point-to-point similarity step is
 /// unstable when scale and rotation are both off, a rigid phase settles the rotation first.
 /// The second phase starts at twice the first's final correspondence distance (at least
@@ -389,16 +401,8 @@ pub fn verify_candidates(
         if progress.is_cancelled() {
             return Err(GeomError::Cancelled);
         }
-        let source: Vec<Vec3> = sfm
-            .iter()
-            .map(|x| c.transform.apply(*x).as_vec3())
-            .collect();
-        let fine = icp_two_phase(
-            &source,
-            target,
-            icp,
-            &SubProgress::new(progress, k as f64 / n, 0.5 / n),
-        )?;
+        let icp_progress = SubProgress::new(progress, k as f64 / n, 0.5 / n);
+        let fine = icp_from(sfm, &c.transform, target, icp, &icp_progress)?;
         let t = refine_on_surface(
             sfm,
             surface,

@@ -166,12 +166,25 @@ pub fn bind_indexed(
     pipeline: &wgpu::ComputePipeline,
     buffers: &[(u32, &wgpu::Buffer)],
 ) -> wgpu::BindGroup {
+    let whole: Vec<(u32, wgpu::BufferBinding)> = buffers
+        .iter()
+        .map(|(i, b)| (*i, b.as_entire_buffer_binding()))
+        .collect();
+    bind_entries(ctx, pipeline, &whole)
+}
+
+/// Binds each `(binding, range)` of `pipeline`'s group 0 (for entry points that use a subset).
+pub fn bind_entries(
+    ctx: &GpuContext,
+    pipeline: &wgpu::ComputePipeline,
+    bindings: &[(u32, wgpu::BufferBinding)],
+) -> wgpu::BindGroup {
     let layout = pipeline.get_bind_group_layout(0);
-    let entries: Vec<wgpu::BindGroupEntry> = buffers
+    let entries: Vec<wgpu::BindGroupEntry> = bindings
         .iter()
         .map(|(i, b)| wgpu::BindGroupEntry {
             binding: *i,
-            resource: b.as_entire_binding(),
+            resource: wgpu::BindingResource::Buffer(b.clone()),
         })
         .collect();
     ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {

@@ -198,7 +198,7 @@ mod tests {
     use super::*;
     use crate::io::pointcloud::{inspect_point_cloud, read_point_cloud};
     use crate::io::real_data;
-    use crate::progress::NoProgress;
+    use crate::progress::{Cancelled, NoProgress};
 
     fn write(dir: &Path, name: &str, text: &str) -> std::path::PathBuf {
         let p = dir.join(name);
@@ -273,14 +273,7 @@ mod tests {
     fn cancellation_stops_reading() {
         let dir = tempfile::tempdir().unwrap();
         let p = write(dir.path(), "a.xyz", "1 2 3\n");
-        struct Stop;
-        impl Progress for Stop {
-            fn set(&self, _: f64) {}
-            fn is_cancelled(&self) -> bool {
-                true
-            }
-        }
-        assert!(matches!(read_xyz(&p, &Stop), Err(IoError::Cancelled)));
+        assert!(matches!(read_xyz(&p, &Cancelled), Err(IoError::Cancelled)));
     }
 
     #[test]

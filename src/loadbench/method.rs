@@ -221,12 +221,7 @@ fn prepare_plot(
     };
     let shared = dir.join("shared");
     let params = PipelineParams::default();
-    for stage in [
-        Stage::Ingest,
-        Stage::Register,
-        Stage::Anchors,
-        Stage::Segment,
-    ] {
+    for &stage in Stage::Train.predecessors() {
         if !shared
             .join(stage.name())
             .join(pipeline::REPORT_FILE)
@@ -244,12 +239,7 @@ fn prepare_plot(
 fn arm_dir(dir: &Path, name: &str) -> anyhow::Result<PathBuf> {
     let out = dir.join(name);
     std::fs::create_dir_all(&out)?;
-    for stage in [
-        Stage::Ingest,
-        Stage::Register,
-        Stage::Anchors,
-        Stage::Segment,
-    ] {
+    for &stage in Stage::Train.predecessors() {
         let link = out.join(stage.name());
         if !link.exists() {
             std::os::unix::fs::symlink(dir.join("shared").join(stage.name()), &link)?;

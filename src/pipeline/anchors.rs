@@ -12,7 +12,7 @@ use super::{Stage, StageContext, StageError};
 use crate::geom::{self, NormalOrientation, NormalParams, OutlierParams, VoxelParams};
 use crate::io::colmap;
 use crate::io::ply::{self, ScalarField};
-use crate::io::pointcloud::{self, PointCloud};
+use crate::io::pointcloud::PointCloud;
 use crate::progress::{NoProgress, SubProgress};
 
 /// Grey given to LiDAR points of a cloud without colour, so SfM colours survive the fusion.
@@ -22,10 +22,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let p = &ctx.params.anchors;
     let ingest = ctx.output_of(Stage::Ingest, Stage::Anchors)?;
     let register = ctx.output_of(Stage::Register, Stage::Anchors)?;
-    let lidar = pointcloud::read_point_cloud(
-        &ingest.join("cloud.ply"),
-        &SubProgress::new(ctx.progress, 0.0, 0.1),
-    )?;
+    let lidar = ctx.read_ingest_cloud(&ingest, 0.1)?;
     let model = colmap::read_model(&register.join("sparse"), &NoProgress)?;
     let lidar_has_colour = lidar.colors.is_some();
     let n_lidar = lidar.len();

@@ -789,14 +789,19 @@ mod tests {
         let mut g = Gaussians::default();
         cylinder(&mut g, base, Vec3::Z, 0.12, 0.0, 120.0, 2.0, None);
         let s = stem(base, Vec3::Z, 0.12);
-        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
-        assert_eq!(fit.dbh.quality, FitQuality::PartialArc, "{fit:?}");
-        assert_eq!(fit.dbh.slice_height_m, 1.3);
+        // The fit of `g` against `s`: its flag, its slice and the 24 cm diameter.
+        let check = |g: &Gaussians, quality: FitQuality, slice_height_m: f32| {
+            let fit = gaussian_dbh(&trunk(g), &s, &params()).expect("fit");
+            assert_eq!(fit.dbh.quality, quality, "{fit:?}");
+            assert_eq!(fit.dbh.slice_height_m, slice_height_m);
+            assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
+            fit
+        };
+        let fit = check(&g, FitQuality::PartialArc, 1.3);
         assert!(
             (fit.dbh.circle.arc_coverage - 12.0 / 36.0).abs() < 0.03,
             "{fit:?}"
         );
-        assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
         // No Gaussians between 1.19 m and 1.41 m: the 1.1 m slice gives the diameter.
         let mut g = Gaussians::default();
         cylinder(
@@ -809,10 +814,7 @@ mod tests {
             5.0,
             Some((1.19, 1.41)),
         );
-        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
-        assert_eq!(fit.dbh.quality, FitQuality::FallbackSlice, "{fit:?}");
-        assert_eq!(fit.dbh.slice_height_m, 1.1);
-        assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
+        check(&g, FitQuality::FallbackSlice, 1.1);
         // A third of the stem at breast height, all of it elsewhere: the LiDAR centre prior
         // holds the arc, so the fit stays at 1.3 m (flagged) rather than trade it for taper.
         let mut g = Gaussians::default();
@@ -827,10 +829,7 @@ mod tests {
             2.0,
             Some((1.19, 1.41)),
         );
-        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
-        assert_eq!(fit.dbh.quality, FitQuality::PartialArc, "{fit:?}");
-        assert_eq!(fit.dbh.slice_height_m, 1.3);
-        assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
+        check(&g, FitQuality::PartialArc, 1.3);
         // Where the LiDAR fit took the 1.1 m slice, so does the Gaussian one, flagged alike.
         let mut s11 = stem(base, Vec3::Z, 0.12);
         s11.dbh.slice_height_m = 1.1;

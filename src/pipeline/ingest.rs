@@ -92,7 +92,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         warnings.push(format!("{lidar_name}: {note}"));
     }
     crate::forest::write_crs(ctx.out_dir, &crs)?;
-    let cloud_path = ctx.out_dir.join("cloud.ply");
+    let cloud_path = ctx.out_dir.join(super::INGEST_CLOUD);
     ply::write_ply(&cloud_path, &cloud, &[])?;
     if ctx.progress.is_cancelled() {
         return Err(StageError::Cancelled);

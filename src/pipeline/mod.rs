@@ -103,7 +103,24 @@ pub struct StageContext<'a> {
     pub progress: &'a dyn Progress,
 }
 
+/// The LiDAR cloud stage ingest leaves in its folder (local coordinates, PLY).
+pub const INGEST_CLOUD: &str = "cloud.ply";
+
 impl StageContext<'_> {
+    /// The LiDAR cloud stage ingest wrote in its folder `ingest`, read with progress over the
+    /// first `share` of this stage.
+    pub fn read_ingest_cloud(
+        &self,
+        ingest: &Path,
+        share: f64,
+    ) -> Result<crate::io::pointcloud::PointCloud, StageError> {
+        let progress = crate::progress::SubProgress::new(self.progress, 0.0, share);
+        Ok(crate::io::pointcloud::read_point_cloud(
+            &ingest.join(INGEST_CLOUD),
+            &progress,
+        )?)
+    }
+
     /// The job's CRS as stage `ingest` settled it (its `crs.json`), for a stage that writes
     /// georeferenced outputs; the caller writes it again beside them.
     pub fn crs(&self, me: Stage) -> Result<crate::io::crs::CrsRecord, StageError> {

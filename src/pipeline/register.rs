@@ -29,12 +29,12 @@ use super::{Stage, StageContext, StageError};
 use crate::geom::coarse::CoarseAlignment;
 use crate::geom::register::{
     AUTOMATIC_MAX_STD_ROTATION_DEG, AUTOMATIC_MAX_STD_SCALE, AUTOMATIC_REFINE_PASSES, CandidateRun,
-    SurfaceTarget, icp_two_phase, refine_on_surface, verify_candidates,
+    SurfaceTarget, icp_from, refine_on_surface, verify_candidates,
 };
 use crate::geom::{self, IcpMethod, IcpParams, RobustKernel, Similarity, VoxelParams};
 use crate::io::colmap::{self, ColmapModel};
 use crate::io::gps::GpsFix;
-use crate::io::pointcloud::{self, PointCloud};
+use crate::io::pointcloud::PointCloud;
 use crate::io::{IoError, tables};
 use crate::progress::SubProgress;
 
@@ -139,10 +139,7 @@ fn weighed(runs: &[CandidateRun]) -> String {
 
 fn load_inputs(ctx: &StageContext<'_>) -> Result<(PointCloud, ColmapModel), StageError> {
     let ingest = ctx.output_of(Stage::Ingest, Stage::Register)?;
-    let cloud = pointcloud::read_point_cloud(
-        &ingest.join("cloud.ply"),
-        &SubProgress::new(ctx.progress, 0.0, 0.1),
-    )?;
+    let cloud = ctx.read_ingest_cloud(&ingest, 0.1)?;
     let model = colmap::read_model(&ingest.join("sparse"), &crate::progress::NoProgress)?;
     Ok((cloud, model))
 }
@@ -235,16 +232,8 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             if ctx.progress.is_cancelled() {
                 return Err(StageError::Cancelled);
             }
-            let source: Vec<Vec3> = sfm
-                .iter()
-                .map(|x| fit.transform.apply(*x).as_vec3())
-                .collect();
-            let fine = icp_two_phase(
-                &source,
-                &target,
-                &params,
-                &SubProgress::new(ctx.progress, 0.5, 0.4),
-            )?;
+            let icp_progress = SubProgress::new(ctx.progress, 0.5, 0.4);
+            let fine = icp_from(&sfm, &fit.transform, &target, &params, &icp_progress)?;
             (
                 fit.transform,
                 "control_points",

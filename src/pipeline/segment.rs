@@ -21,7 +21,6 @@ use super::{Stage, StageContext, StageError};
 use crate::forest::{self, ForestError};
 use crate::geom::PointIndex;
 use crate::io::ply::{self, ScalarField};
-use crate::io::pointcloud;
 use crate::progress::SubProgress;
 
 impl From<ForestError> for StageError {
@@ -48,10 +47,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let params = &ctx.params.segment;
     let ingest = ctx.output_of(Stage::Ingest, Stage::Segment)?;
     let anchors_dir = ctx.output_of(Stage::Anchors, Stage::Segment)?;
-    let cloud = pointcloud::read_point_cloud(
-        &ingest.join("cloud.ply"),
-        &SubProgress::new(ctx.progress, 0.0, 0.05),
-    )?;
+    let cloud = ctx.read_ingest_cloud(&ingest, 0.05)?;
     let inv = forest::inventory(&cloud, params, &SubProgress::new(ctx.progress, 0.05, 0.8))?;
 
     let heights = inv.dtm.heights_above(&cloud.positions);

@@ -709,7 +709,7 @@ struct StemCircle {
 /// The local frame's offset (file coordinates of the origin), from stage `ingest`'s cloud.
 fn read_offset(ctx: &StageContext<'_>) -> Result<[f64; 3], StageError> {
     let ingest = ctx.output_of(Stage::Ingest, Stage::Train)?;
-    let info = ply::inspect_ply(&ingest.join("cloud.ply"))?;
+    let info = ply::inspect_ply(&ingest.join(super::INGEST_CLOUD))?;
     Ok(info.sylva_offset.unwrap_or([0.0; 3]))
 }
 
@@ -756,22 +756,25 @@ mod tests {
 
     #[test]
     fn a_cap_keeps_a_share_for_the_trunks_and_lends_what_one_side_leaves() {
-        // Few trunk Gaussians: all are kept, the others fill the cap.
-        let mut g = scene(50, 10_000);
-        cap_gaussians(&mut g, 1000, 7, None, 0);
-        assert_eq!((g.len(), trunk_count(&g)), (1000, 50));
-        // Many: half the cap for each side.
-        let mut g = scene(5000, 10_000);
-        cap_gaussians(&mut g, 1000, 7, None, 0);
-        assert_eq!((g.len(), trunk_count(&g)), (1000, 500));
-        // Room for 100 Gaussians added later comes from the others' share.
-        let mut g = scene(5000, 10_000);
-        cap_gaussians(&mut g, 900, 7, None, 100);
-        assert_eq!((g.len(), trunk_count(&g)), (900, 500));
-        // Few others: the trunks take the rest of the cap.
-        let mut g = scene(5000, 100);
-        cap_gaussians(&mut g, 1000, 7, None, 0);
-        assert_eq!((g.len(), trunk_count(&g)), (1000, 900));
+        // (trunk Gaussians, others), cap, room for Gaussians added later; then (kept, trunks kept).
+        for ((trunk, other), cap, later, kept) in [
+            // Few trunk Gaussians: all are kept, the others fill the cap.
+            ((50, 10_000), 1000, 0, (1000, 50)),
+            // Many: half the cap for each side.
+            ((5000, 10_000), 1000, 0, (1000, 500)),
+            // Room for 100 Gaussians added later comes from the others' share.
+            ((5000, 10_000), 900, 100, (900, 500)),
+            // Few others: the trunks take the rest of the cap.
+            ((5000, 100), 1000, 0, (1000, 900)),
+        ] {
+            let mut g = scene(trunk, other);
+            cap_gaussians(&mut g, cap, 7, None, later);
+            assert_eq!(
+                (g.len(), trunk_count(&g)),
+                kept,
+                "{trunk} + {other} capped at {cap}"
+            );
+        }
         // Under the cap, or no cap: nothing goes.
         let mut g = scene(10, 10);
         cap_gaussians(&mut g, 1000, 7, None, 0);

@@ -258,43 +258,44 @@ impl AdamState {
         self.step += 1;
         let bc1 = 1.0 - BETA1.powi(self.step as i32);
         let bc2 = 1.0 - BETA2.powi(self.step as i32);
-        self.means.update(
-            model.means.as_flattened_mut(),
-            grads.means.as_flattened(),
-            bc1,
-            bc2,
-            |_| lr.position,
-        );
-        self.log_scales.update(
-            model.log_scales.as_flattened_mut(),
-            grads.log_scales.as_flattened(),
-            bc1,
-            bc2,
-            |_| lr.scale,
-        );
-        self.rotations.update(
-            model.rotations.as_flattened_mut(),
-            grads.rotations.as_flattened(),
-            bc1,
-            bc2,
-            |_| lr.rotation,
-        );
-        self.opacity_logits.update(
-            &mut model.opacity_logits,
-            &grads.opacity_logits,
-            bc1,
-            bc2,
-            |_| lr.opacity,
-        );
-        self.sh.update(
-            model.sh.as_flattened_mut(),
-            grads.sh.as_flattened(),
-            bc1,
-            bc2,
-            |k| {
-                if k < 3 { lr.sh_dc } else { lr.sh_rest }
-            },
-        );
+        // Per group, in the order of `groups_mut`: parameters, gradients, and the learning
+        // rates of the first three floats of a stride and of the rest (they differ for SH only).
+        let groups = [
+            (
+                model.means.as_flattened_mut(),
+                grads.means.as_flattened(),
+                (lr.position, lr.position),
+            ),
+            (
+                model.log_scales.as_flattened_mut(),
+                grads.log_scales.as_flattened(),
+                (lr.scale, lr.scale),
+            ),
+            (
+                model.rotations.as_flattened_mut(),
+                grads.rotations.as_flattened(),
+                (lr.rotation, lr.rotation),
+            ),
+            (
+                &mut model.opacity_logits[..],
+                &grads.opacity_logits[..],
+                (lr.opacity, lr.opacity),
+            ),
+            (
+                model.sh.as_flattened_mut(),
+                grads.sh.as_flattened(),
+                (lr.sh_dc, lr.sh_rest),
+            ),
+        ];
+        for (moments, (params, grads, (first, rest))) in self.groups_mut().into_iter().zip(groups) {
+            moments.update(
+                params,
+                grads,
+                bc1,
+                bc2,
+                |k| if k < 3 { first } else { rest },
+            );
+        }
         Ok(())
     }
 }

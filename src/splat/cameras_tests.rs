@@ -6,6 +6,21 @@ use crate::splat::packed_image::unpack;
 const W: u32 = 96;
 const H: u32 = 64;
 
+/// [`load_view`] of photo "a.jpg" from a `width`×`height` PINHOLE camera with intrinsics
+/// `params` at the world origin, unrotated.
+fn pinhole_view(
+    params: &[f64; 4],
+    width: u32,
+    height: u32,
+    image: &PackedImage,
+    long_side: Option<u32>,
+) -> Result<View, CameraError> {
+    let identity = [1.0, 0.0, 0.0, 0.0];
+    load_view(
+        "a.jpg", "PINHOLE", params, width, height, identity, [0.0; 3], image, long_side,
+    )
+}
+
 fn opencv() -> CameraModel {
     CameraModel::from_colmap(
         "OPENCV",
@@ -143,17 +158,7 @@ fn unsupported_models_and_wrong_parameter_counts_are_explained() {
         })
     );
     let img = PackedImage::filled(10, 10, [0; 4]);
-    let err = load_view(
-        "a.jpg",
-        "PINHOLE",
-        &[10.0, 10.0, 5.0, 5.0],
-        20,
-        10,
-        [1.0, 0.0, 0.0, 0.0],
-        [0.0; 3],
-        &img,
-        None,
-    );
+    let err = pinhole_view(&[10.0, 10.0, 5.0, 5.0], 20, 10, &img, None);
     assert!(matches!(err, Err(CameraError::SizeMismatch { .. })));
 }
 
@@ -161,18 +166,7 @@ fn unsupported_models_and_wrong_parameter_counts_are_explained() {
 fn downscaling_to_a_long_side_scales_the_intrinsics() {
     let m = CameraModel::from_colmap("PINHOLE", &[100.0, 90.0, 50.0, 30.0]).expect("4 params");
     let img = PackedImage::filled(100, 60, [10, 20, 30, 255]);
-    let v = load_view(
-        "a",
-        "PINHOLE",
-        &[100.0, 90.0, 50.0, 30.0],
-        100,
-        60,
-        [1.0, 0.0, 0.0, 0.0],
-        [0.0; 3],
-        &img,
-        Some(50),
-    )
-    .expect("valid view");
+    let v = pinhole_view(&[100.0, 90.0, 50.0, 30.0], 100, 60, &img, Some(50)).expect("valid view");
     assert_eq!((v.image.width, v.image.height), (50, 30));
     assert_eq!(
         (v.camera.fx, v.camera.fy, v.camera.cx, v.camera.cy),

@@ -161,14 +161,7 @@ mod tests {
     use super::*;
 
     fn cam() -> Camera {
-        Camera::look_at(
-            [0.0, -5.0, 0.0],
-            [0.0, 0.0, 0.0],
-            [0.0, 0.0, 1.0],
-            40,
-            30,
-            40.0,
-        )
+        crate::splat::cpu::test_scenes::camera_facing_origin([0.0, -5.0, 0.0], 40, 30, 40.0)
     }
 
     /// A dense wall at y = `y` spanning x, z in [−half, half], points every `step` metres.

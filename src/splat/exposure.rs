@@ -114,7 +114,7 @@ impl ExposureState {
         self.step += 1;
         let mut g = vec![0.0f32; n * EXPOSURE_FLOATS];
         g[index * EXPOSURE_FLOATS..(index + 1) * EXPOSURE_FLOATS].copy_from_slice(grad);
-        crate::splat::gpu::adam::adam_cpu_eps(
+        crate::splat::gpu::adam::adam_cpu(
             self.params.as_flattened_mut(),
             &g,
             &mut self.m,

@@ -1,8 +1,7 @@
 use super::*;
-use crate::splat::camera::Camera;
 use crate::splat::config::{StrategyKind, TrainConfig};
 use crate::splat::cpu;
-use crate::splat::cpu::test_scenes::random_scene;
+use crate::splat::cpu::test_scenes::{camera_facing_origin, random_scene};
 use crate::splat::model::Gaussian;
 
 fn terms() -> StepTerms {
@@ -37,14 +36,7 @@ fn one_copy_is_the_gaussian_itself_and_n_copies_keep_its_opacity() {
 /// rendered — far closer than copies that keep the original's opacity and scale.
 #[test]
 fn relocated_copies_render_like_the_original() {
-    let cam = Camera::look_at(
-        [0.0, -3.0, 0.0],
-        [0.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0],
-        48,
-        48,
-        60.0,
-    );
+    let cam = camera_facing_origin([0.0, -3.0, 0.0], 48, 48, 60.0);
     let g = Gaussian::isotropic([0.0; 3], 0.2, [0.8, 0.5, 0.3], 0.7);
     let render = |m: &Gaussians| cpu::render(m, &cam, [0.0; 3]).expect("render").image;
     let mut one = Gaussians::default();

@@ -563,34 +563,30 @@ mod tests {
         let in_s = targets.iter().filter(|t| t.weight > 0.0).count();
         assert!(in_s > 20, "only {in_s} Gaussians in S");
         let (_, d_mu, d_s) = geo_loss_and_grad(&g, &targets, anchors.n_pos);
+        // The centres and the log-scales, with their analytic gradients.
+        type Field = fn(&mut Gaussians) -> &mut Vec<[f32; 3]>;
+        let fields: [(&str, Field, &[[f64; 3]]); 2] = [
+            ("mu", |g| &mut g.means, &d_mu),
+            ("s", |g| &mut g.log_scales, &d_s),
+        ];
         let h = 1e-3f32;
         let mut checked = 0;
         for i in (0..g.len()).filter(|&i| targets[i].weight > 0.0).take(15) {
             for a in 0..3 {
-                let x = g.means[i][a];
-                g.means[i][a] = x + h;
-                let up = geo_loss_and_grad(&g, &targets, anchors.n_pos).0;
-                g.means[i][a] = x - h;
-                let dn = geo_loss_and_grad(&g, &targets, anchors.n_pos).0;
-                g.means[i][a] = x;
-                let fd = (up - dn) / (2.0 * f64::from(h));
-                assert!(
-                    (fd - d_mu[i][a]).abs() <= 1e-6 + 1e-3 * fd.abs(),
-                    "mu {i} {a}: {fd} vs {}",
-                    d_mu[i][a]
-                );
-                let x = g.log_scales[i][a];
-                g.log_scales[i][a] = x + h;
-                let up = geo_loss_and_grad(&g, &targets, anchors.n_pos).0;
-                g.log_scales[i][a] = x - h;
-                let dn = geo_loss_and_grad(&g, &targets, anchors.n_pos).0;
-                g.log_scales[i][a] = x;
-                let fd = (up - dn) / (2.0 * f64::from(h));
-                assert!(
-                    (fd - d_s[i][a]).abs() <= 1e-6 + 1e-3 * fd.abs(),
-                    "s {i} {a}: {fd} vs {}",
-                    d_s[i][a]
-                );
+                for (name, field, analytic) in fields {
+                    let x = field(&mut g)[i][a];
+                    field(&mut g)[i][a] = x + h;
+                    let up = geo_loss_and_grad(&g, &targets, anchors.n_pos).0;
+                    field(&mut g)[i][a] = x - h;
+                    let dn = geo_loss_and_grad(&g, &targets, anchors.n_pos).0;
+                    field(&mut g)[i][a] = x;
+                    let fd = (up - dn) / (2.0 * f64::from(h));
+                    assert!(
+                        (fd - analytic[i][a]).abs() <= 1e-6 + 1e-3 * fd.abs(),
+                        "{name} {i} {a}: {fd} vs {}",
+                        analytic[i][a]
+                    );
+                }
                 checked += 1;
             }
         }

@@ -340,6 +340,17 @@ mod tests {
     };
     use crate::splat::model::Gaussian;
 
+    /// The default configuration of a `steps`-step run as `change` leaves it, its schedules
+    /// scaled to the run.
+    fn config_for(steps: u32, change: impl FnOnce(&mut TrainConfig)) -> TrainConfig {
+        let mut cfg = TrainConfig {
+            steps,
+            ..TrainConfig::default()
+        };
+        change(&mut cfg);
+        cfg.scaled_to(steps)
+    }
+
     /// Trains `init` on `data` with `backend` and `cfg`'s default strategy.
     fn train_cpu(
         backend: &mut CpuBackend,
@@ -356,11 +367,7 @@ mod tests {
         let truth = random_scene(7, 30, 0);
         let data = ring_dataset(&truth, 16);
         let init = grey_blobs(&truth);
-        let cfg = TrainConfig {
-            steps: 300,
-            ..TrainConfig::default()
-        }
-        .scaled_to(300);
+        let cfg = config_for(300, |_| {});
         let mut backend = CpuBackend::new([0.0; 3]);
         let out = train_cpu(&mut backend, &data, init, &cfg);
         let first = out.losses.first().expect("loss").loss;
@@ -384,12 +391,7 @@ mod tests {
         let exposures = jitter_exposures(&mut data, 5);
         let init = grey_blobs(&truth);
         let run = |exposure: bool| {
-            let cfg = TrainConfig {
-                steps: 300,
-                exposure,
-                ..TrainConfig::default()
-            }
-            .scaled_to(300);
+            let cfg = config_for(300, |c| c.exposure = exposure);
             let mut backend = CpuBackend::new([0.0; 3]);
             train_cpu(&mut backend, &data, init.clone(), &cfg)
         };
@@ -408,12 +410,7 @@ mod tests {
         use crate::splat::camera::RenderOptions;
         let truth = random_scene(8, 20, 0);
         let data = ring_dataset(&truth, 16);
-        let cfg = TrainConfig {
-            steps: 20,
-            antialias: true,
-            ..TrainConfig::default()
-        }
-        .scaled_to(20);
+        let cfg = config_for(20, |c| c.antialias = true);
         let mut backend = CpuBackend::new([0.0; 3]);
         let out = train_cpu(&mut backend, &data, truth.clone(), &cfg);
         assert_eq!(out.renders.len(), data.test.len());
@@ -435,13 +432,10 @@ mod tests {
         init.opacity_logits[0] = -9.0;
         init.opacity_logits[1] = -9.0;
         let cap = 16;
-        let cfg = TrainConfig {
-            steps: 300,
-            max_gaussians: Some(cap),
-            strategy: StrategyKind::Mcmc,
-            ..TrainConfig::default()
-        }
-        .scaled_to(300);
+        let cfg = config_for(300, |c| {
+            c.max_gaussians = Some(cap);
+            c.strategy = StrategyKind::Mcmc;
+        });
         let mut backend = CpuBackend::new([0.0; 3]);
         let mut strategy = strategy_for(&cfg).expect("strategy");
         let out = train(
@@ -482,11 +476,7 @@ mod tests {
                 .collect()
         };
         let init = grey_blobs(&truth);
-        let cfg = TrainConfig {
-            steps: 300,
-            ..TrainConfig::default()
-        }
-        .scaled_to(300);
+        let cfg = config_for(300, |_| {});
         let run = |weight: f32| {
             let mut backend = CpuBackend::new([0.0; 3]);
             backend
@@ -539,12 +529,7 @@ mod tests {
             init.push(g);
         }
         let run = |semantic: SemanticConfig| {
-            let cfg = TrainConfig {
-                steps: 300,
-                semantic,
-                ..TrainConfig::default()
-            }
-            .scaled_to(300);
+            let cfg = config_for(300, |c| c.semantic = semantic);
             let mut backend = CpuBackend::new([0.0; 3]);
             backend
                 .set_semantic(&anchors, &cfg.semantic)

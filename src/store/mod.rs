@@ -505,9 +505,18 @@ mod tests {
     async fn parts_assemble_in_order_with_checksum() {
         let dir = tempfile::tempdir().expect("tempdir");
         let store = BlobStore::open(dir.path()).expect("store");
-        let body = |b: &'static [u8]| {
-            futures::stream::iter(vec![Ok::<_, std::io::Error>(bytes::Bytes::from_static(b))])
-        };
+        write_hello_world(&store).await;
+        assemble_hello_world(&store).await;
+        assert!(store.free_bytes().expect("statvfs") > 0);
+    }
+
+    fn body(b: &'static [u8]) -> impl Stream<Item = Result<bytes::Bytes, std::io::Error>> + Unpin {
+        futures::stream::iter(vec![Ok(bytes::Bytes::from_static(b))])
+    }
+
+    /// Writes upload "u" as parts "hello " and "world" (out of order, parts of at most 16
+    /// bytes), and checks that a longer third part is refused.
+    async fn write_hello_world(store: &BlobStore) {
         store
             .write_part("u", 1, body(b"world"), 16)
             .await
@@ -520,6 +529,10 @@ mod tests {
             .write_part("u", 2, body(b"this part is too long"), 16)
             .await;
         assert!(matches!(err, Err(StoreError::TooLarge { .. })));
+    }
+
+    /// Assembles the parts of [`write_hello_world`] into `a.xyz` and checks the blob.
+    async fn assemble_hello_world(store: &BlobStore) {
         let (size, sha) = store.assemble("u", "a.xyz", 2).await.expect("assemble");
         assert_eq!(size, 11);
         assert_eq!(sha, hex::encode(Sha256::digest(b"hello world")));
@@ -527,11 +540,6 @@ mod tests {
             std::fs::read(store.upload_blob("u", "a.xyz")).expect("blob"),
             b"hello world"
         );
-        assert!(store.free_bytes().expect("statvfs") > 0);
-    }
-
-    fn body(b: &'static [u8]) -> impl Stream<Item = Result<bytes::Bytes, std::io::Error>> + Unpin {
-        futures::stream::iter(vec![Ok(bytes::Bytes::from_static(b))])
     }
 
     /// Two "machines" (data directories) sharing one object store: what one stores, the other
@@ -545,16 +553,7 @@ mod tests {
         assert_eq!(a.kind(), "file");
         let remote = a.remote().expect("remote").clone();
 
-        a.write_part("u", 1, body(b"world"), 16)
-            .await
-            .expect("part 1");
-        a.write_part("u", 0, body(b"hello "), 16)
-            .await
-            .expect("part 0");
-        let err = a
-            .write_part("u", 2, body(b"this part is too long"), 16)
-            .await;
-        assert!(matches!(err, Err(StoreError::TooLarge { .. })));
+        write_hello_world(&a).await;
         let parts = remote.list("uploads/u/parts").await.expect("list");
         assert_eq!(parts, vec![("0".to_string(), 6), ("1".to_string(), 5)]);
         assert!(
@@ -562,13 +561,7 @@ mod tests {
             "parts stay off the local disk"
         );
 
-        let (size, sha) = a.assemble("u", "a.xyz", 2).await.expect("assemble");
-        assert_eq!(size, 11);
-        assert_eq!(sha, hex::encode(Sha256::digest(b"hello world")));
-        assert_eq!(
-            std::fs::read(a.upload_blob("u", "a.xyz")).expect("copy"),
-            b"hello world"
-        );
+        assemble_hello_world(&a).await;
         a.drop_parts("u").await;
         assert!(
             remote

@@ -565,7 +565,6 @@ impl WorkerPool {
                     limit.as_secs()
                 );
                 tracing::warn!("{detail}");
-                self.log(job, "error", Some(stage), &detail).await;
                 let end = RunEnd::Failed {
                     stage: Some(stage.name().into()),
                     problem: json!({
@@ -576,40 +575,43 @@ impl WorkerPool {
                         "stage": stage.name(),
                     }),
                 };
-                let _ = self.db.finish_job(job, token, &end).await;
-                Outcome::Stop
+                self.end_in_stage(job, token, stage, "error", &detail, &end)
+                    .await
             }
             Err(StageError::Cancelled) | Err(_) if progress.cancel.is_cancelled() => {
-                self.log(
-                    job,
-                    "info",
-                    Some(stage),
-                    &format!("canceled during stage {stage}"),
-                )
-                .await;
                 let end = RunEnd::Canceled {
                     stage: Some(stage.name().into()),
                 };
-                let _ = self.db.finish_job(job, token, &end).await;
-                Outcome::Stop
+                let line = format!("canceled during stage {stage}");
+                self.end_in_stage(job, token, stage, "info", &line, &end)
+                    .await
             }
             Err(e) => {
                 tracing::warn!(error = %e, "stage {stage} failed");
-                self.log(
-                    job,
-                    "error",
-                    Some(stage),
-                    &format!("stage {stage} failed: {e}"),
-                )
-                .await;
                 let end = RunEnd::Failed {
                     stage: Some(stage.name().into()),
                     problem: stage_problem(stage, &e),
                 };
-                let _ = self.db.finish_job(job, token, &end).await;
-                Outcome::Stop
+                let line = format!("stage {stage} failed: {e}");
+                self.end_in_stage(job, token, stage, "error", &line, &end)
+                    .await
             }
         }
+    }
+
+    /// Ends the run of `job` in `stage` as `end`, after logging `line` at `level`.
+    async fn end_in_stage(
+        &self,
+        job: &str,
+        token: &str,
+        stage: Stage,
+        level: &str,
+        line: &str,
+        end: &RunEnd,
+    ) -> Outcome {
+        self.log(job, level, Some(stage), line).await;
+        let _ = self.db.finish_job(job, token, end).await;
+        Outcome::Stop
     }
 }
 

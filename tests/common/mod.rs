@@ -181,18 +181,30 @@ pub fn synth_plot(dir: &Path, seed: u64) -> PathBuf {
     plot
 }
 
-/// Runs `cmd` to its end and returns its output, failing the test (with its stderr) unless it
-/// succeeded.
+/// Runs `cmd` to its end and returns its output, failing the test (with its stdout and
+/// stderr) unless it succeeded.
 pub fn succeeds(cmd: &mut Command) -> Output {
     let out = cmd.output().expect("run the command");
     assert!(
         out.status.success(),
-        "{:?} failed ({}): {}",
+        "{:?} failed ({}): {}\n{}",
         cmd.get_args().collect::<Vec<_>>(),
         out.status,
+        String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
     out
+}
+
+/// Runs `cmd` to its end and returns its stderr, failing the test if it succeeded.
+pub fn fails(cmd: &mut Command) -> String {
+    let out = cmd.output().expect("run the command");
+    assert!(
+        !out.status.success(),
+        "{:?} succeeded",
+        cmd.get_args().collect::<Vec<_>>()
+    );
+    String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
 /// A tool the tests run: `$VAR` (its path, or `none` to go without), else

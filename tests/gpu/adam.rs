@@ -3,7 +3,7 @@
 use crate::common;
 
 use rand::{RngExt, SeedableRng};
-use sylva::splat::gpu::adam::{AdamRates, GpuAdam, adam_cpu};
+use sylva::splat::gpu::adam::{AdamRates, EPSILON, GpuAdam, adam_cpu};
 use sylva::splat::gpu::{GpuGrads, GpuSplats};
 use sylva::splat::model::SH_FLOATS;
 
@@ -62,6 +62,7 @@ fn gpu_adam_matches_cpu_twin() {
                 lr[k].0,
                 lr[k].1,
                 step,
+                EPSILON,
             );
         }
         adam.step(&ctx, &splats, &grads, &rates).expect("step");

@@ -31,14 +31,7 @@ pub fn context_with(mode: Option<AtomicMode>) -> Option<GpuContext> {
 
 /// A `width`×`height` camera 4 m from the origin looking at it (z up).
 pub fn camera(width: u32, height: u32, fx: f32) -> Camera {
-    Camera::look_at(
-        [0.4, -4.0, 0.3],
-        [0.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0],
-        width,
-        height,
-        fx,
-    )
+    crate::test_scenes::camera_facing_origin([0.4, -4.0, 0.3], width, height, fx)
 }
 
 /// `n` random anisotropic, rotated Gaussians within ±`spread` m of the origin (all in front of

@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::geom::{Normals, estimate_normals};
-use crate::progress::NoProgress;
+use crate::progress::{Cancelled, NoProgress};
 use glam::{DMat3, DQuat};
 use rand::{RngExt, SeedableRng, rngs::ChaCha8Rng};
 
@@ -296,13 +296,6 @@ fn a_fixed_rotation_refines_translation_only() {
 
 #[test]
 fn icp_stops_on_cancel_and_rejects_bad_input() {
-    struct Cancelled;
-    impl Progress for Cancelled {
-        fn set(&self, _: f64) {}
-        fn is_cancelled(&self) -> bool {
-            true
-        }
-    }
     let mut rng = ChaCha8Rng::seed_from_u64(23);
     let target = scene(&mut rng, 0.0, 12.0, 2_000, 200);
     let p = IcpParams::default();

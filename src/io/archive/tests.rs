@@ -3,7 +3,7 @@
 use std::io::Write;
 
 use super::*;
-use crate::progress::NoProgress;
+use crate::progress::{Cancelled, NoProgress};
 use zip::write::SimpleFileOptions;
 
 /// Builds a zip of (name, contents) files; `symlink` adds a link entry.
@@ -266,19 +266,12 @@ fn too_many_entries_empty_and_unknown_archives_are_refused() {
 
 #[test]
 fn cancellation_stops_and_cleans_up() {
-    struct Stop;
-    impl Progress for Stop {
-        fn set(&self, _: f64) {}
-        fn is_cancelled(&self) -> bool {
-            true
-        }
-    }
     let dir = tempfile::tempdir().unwrap();
     let zip = dir.path().join("a.zip");
     zip_of(&zip, &[("a.txt", b"x")], None);
     let dest = dir.path().join("c");
     std::fs::create_dir(&dest).unwrap();
-    let e = extract_archive(&zip, &dest, &ExtractLimits::default(), &Stop);
+    let e = extract_archive(&zip, &dest, &ExtractLimits::default(), &Cancelled);
     assert!(matches!(e, Err(ArchiveError::Cancelled)));
     assert!(dest.is_dir() && std::fs::read_dir(&dest).unwrap().next().is_none());
 }

@@ -73,6 +73,23 @@ impl<'a> Bin<'a> {
         self.bytes().map(f64::from_le_bytes)
     }
 
+    /// Starts record `k` of `count`, reporting progress and checking for cancellation every
+    /// `every` records.
+    fn start_record(
+        &mut self,
+        k: u64,
+        count: u64,
+        every: u64,
+        progress: &dyn Progress,
+    ) -> Result<(), IoError> {
+        if k.is_multiple_of(every) {
+            check_cancel(progress)?;
+            progress.set(k as f64 / count as f64);
+        }
+        self.record = k;
+        Ok(())
+    }
+
     /// After the last record the file must end.
     fn finish(mut self) -> Result<(), IoError> {
         let mut b = [0u8; 1];
@@ -130,11 +147,7 @@ pub(super) fn read_images(
     let count = b.u64()?;
     let mut out = BTreeMap::new();
     for k in 0..count {
-        if k % 256 == 0 {
-            check_cancel(progress)?;
-            progress.set(k as f64 / count as f64);
-        }
-        b.record = k;
+        b.start_record(k, count, 256, progress)?;
         let id = b.u32()?;
         let qvec = [b.f64()?, b.f64()?, b.f64()?, b.f64()?];
         let tvec = [b.f64()?, b.f64()?, b.f64()?];
@@ -180,11 +193,7 @@ pub(super) fn read_points(path: &Path, progress: &dyn Progress) -> Result<Vec<Po
     let count = b.u64()?;
     let mut out = Vec::with_capacity(count.min(MAX_PREALLOC) as usize);
     for k in 0..count {
-        if k % 65_536 == 0 {
-            check_cancel(progress)?;
-            progress.set(k as f64 / count as f64);
-        }
-        b.record = k;
+        b.start_record(k, count, 65_536, progress)?;
         let id = b.u64()?;
         let xyz = DVec3::new(b.f64()?, b.f64()?, b.f64()?);
         let rgb = [b.u8()?, b.u8()?, b.u8()?];

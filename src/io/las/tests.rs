@@ -159,14 +159,9 @@ fn real_las_and_laz_files_read_fully() {
     }
 }
 
-/// Re-encodes an uncompressed LAS 1.2 file as LAZ with fixed chunks of `chunk` points (the
-/// `las` writer always uses 50,000), through laz-rs's own compressor.
-fn recompress_with_chunks(las: &[u8], chunk: u32) -> Vec<u8> {
-    recompress(las, Err(chunk))
-}
-
-/// Re-encodes an uncompressed LAS 1.2 file as LAZ: variable-size chunks of the given point
-/// counts (`Ok`) or fixed chunks (`Err(points per chunk)`).
+/// Re-encodes an uncompressed LAS 1.2 file as LAZ, through laz-rs's own compressor:
+/// variable-size chunks of the given point counts (`Ok`) or fixed chunks (`Err(points per
+/// chunk)`; the `las` writer always uses 50,000).
 fn recompress(las: &[u8], chunks: Result<&[usize], u32>) -> Vec<u8> {
     let u16_at = |o: usize| u16::from_le_bytes([las[o], las[o + 1]]);
     let u32_at = |o: usize| u32::from_le_bytes([las[o], las[o + 1], las[o + 2], las[o + 3]]);
@@ -236,6 +231,21 @@ fn big_sample(n: usize) -> PointCloud {
     }
 }
 
+/// `cloud` as the LAZ file `dir/name` with the chunk layout `chunks` ([`recompress`]), from
+/// its uncompressed LAS `dir/src.las`.
+fn laz_file(
+    dir: &Path,
+    name: &str,
+    cloud: &PointCloud,
+    chunks: Result<&[usize], u32>,
+) -> std::path::PathBuf {
+    let las = dir.join("src.las");
+    write_las(&las, cloud, false).unwrap();
+    let path = dir.join(name);
+    std::fs::write(&path, recompress(&std::fs::read(&las).unwrap(), chunks)).unwrap();
+    path
+}
+
 /// The fused reader's cloud, which must exist (the file is one it handles).
 fn fused(path: &Path) -> PointCloud {
     let info = inspect_las(path).unwrap();
@@ -261,12 +271,8 @@ fn assert_identical(a: &PointCloud, b: &PointCloud, what: &str) {
 fn fused_laz_reader_matches_the_las_crate_on_small_partial_chunks() {
     let dir = tempfile::tempdir().unwrap();
     let truth = big_sample(70_500);
-    let las = dir.path().join("src.las");
-    write_las(&las, &truth, false).unwrap();
-    let bytes = std::fs::read(&las).unwrap();
     // 70,500 points in chunks of 5,000: 15 chunks, the last one holding 500.
-    let path = dir.path().join("c5000.laz");
-    std::fs::write(&path, recompress_with_chunks(&bytes, 5_000)).unwrap();
+    let path = laz_file(dir.path(), "c5000.laz", &truth, Err(5_000));
     let a = fused(&path);
     assert_identical(&a, &crate_path(&path), "chunks of 5,000");
     assert_identical(&a, &read_las(&path, &NoProgress).unwrap(), "read_las");
@@ -278,14 +284,10 @@ fn fused_laz_reader_matches_the_las_crate_on_small_partial_chunks() {
 fn fused_laz_reader_matches_the_las_crate_on_variable_size_chunks() {
     let dir = tempfile::tempdir().unwrap();
     let truth = big_sample(66_500);
-    let las = dir.path().join("src.las");
-    write_las(&las, &truth, false).unwrap();
-    let bytes = std::fs::read(&las).unwrap();
     // Point counts come from the chunk table; the origin rule's first 65,536 points end
     // inside the last chunk.
-    let path = dir.path().join("var.laz");
     let sizes = [7_000, 13, 30_000, 1, 29_486];
-    std::fs::write(&path, recompress(&bytes, Ok(&sizes))).unwrap();
+    let path = laz_file(dir.path(), "var.laz", &truth, Ok(&sizes));
     let a = fused(&path);
     assert_identical(&a, &crate_path(&path), "variable-size chunks");
     assert_close(&truth, &a);
@@ -381,10 +383,8 @@ fn fused_laz_reader_leaves_wrong_header_bounds_to_the_las_crate() {
 #[test]
 fn truncated_laz_is_a_format_error() {
     let dir = tempfile::tempdir().unwrap();
-    let las = dir.path().join("src.las");
-    write_las(&las, &big_sample(20_000), false).unwrap();
-    let full = recompress_with_chunks(&std::fs::read(&las).unwrap(), 2_000);
-    let path = dir.path().join("t.laz");
+    let path = laz_file(dir.path(), "t.laz", &big_sample(20_000), Err(2_000));
+    let full = std::fs::read(&path).unwrap();
     // Cut in the middle: the chunk table at the end is gone.
     std::fs::write(&path, &full[..full.len() / 2]).unwrap();
     let e = read_las(&path, &NoProgress).unwrap_err();
@@ -426,14 +426,7 @@ impl Progress for CancelAfterFirst {
 #[test]
 fn fused_laz_reader_reports_progress_and_stops_on_cancel() {
     let dir = tempfile::tempdir().unwrap();
-    let las = dir.path().join("src.las");
-    write_las(&las, &big_sample(20_000), false).unwrap();
-    let path = dir.path().join("p.laz");
-    std::fs::write(
-        &path,
-        recompress_with_chunks(&std::fs::read(&las).unwrap(), 1_000),
-    )
-    .unwrap();
+    let path = laz_file(dir.path(), "p.laz", &big_sample(20_000), Err(1_000));
     let p = CancelAfterFirst::default();
     assert!(matches!(read_las(&path, &p), Err(IoError::Cancelled)));
     // 20 chunks; cancelled after the first one finished, so at most one per core more ran.

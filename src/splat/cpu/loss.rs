@@ -40,29 +40,29 @@ pub fn ssim_window() -> [f64; SSIM_WINDOW] {
 /// "Same" 2-D convolution of one channel plane with the separable window, zero padding.
 /// The window is symmetric, so this operator is also its own adjoint.
 pub(crate) fn blur(plane: &[f64], width: usize, height: usize) -> Vec<f64> {
+    let rows = blur_1d(plane, width, height, false);
+    blur_1d(&rows, width, height, true)
+}
+
+/// One 1-D pass of the window along every row (or, if `vertical`, every column), zero padding.
+fn blur_1d(src: &[f64], width: usize, height: usize, vertical: bool) -> Vec<f64> {
     let w = ssim_window();
     let half = (SSIM_WINDOW / 2) as isize;
-    let mut tmp = vec![0.0; plane.len()];
+    let (len, stride) = if vertical {
+        (height, width as isize)
+    } else {
+        (width, 1)
+    };
+    let mut out = vec![0.0; src.len()];
     for y in 0..height {
         for x in 0..width {
+            let along = if vertical { y } else { x } as isize;
+            let i = (y * width + x) as isize;
             let mut s = 0.0;
             for (k, wk) in w.iter().enumerate() {
-                let xx = x as isize + k as isize - half;
-                if (0..width as isize).contains(&xx) {
-                    s += wk * plane[y * width + xx as usize];
-                }
-            }
-            tmp[y * width + x] = s;
-        }
-    }
-    let mut out = vec![0.0; plane.len()];
-    for y in 0..height {
-        for x in 0..width {
-            let mut s = 0.0;
-            for (k, wk) in w.iter().enumerate() {
-                let yy = y as isize + k as isize - half;
-                if (0..height as isize).contains(&yy) {
-                    s += wk * tmp[yy as usize * width + x];
+                let d = k as isize - half;
+                if (0..len as isize).contains(&(along + d)) {
+                    s += wk * src[(i + d * stride) as usize];
                 }
             }
             out[y * width + x] = s;

@@ -16,16 +16,14 @@ use crate::splat::trainer::TrainOutcome;
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
 
+/// A `width`×`height` camera at `eye` looking at the origin (z up), fx = fy = `fx` px.
+pub fn camera_facing_origin(eye: [f32; 3], width: u32, height: u32, fx: f32) -> Camera {
+    Camera::look_at(eye, [0.0; 3], [0.0, 0.0, 1.0], width, height, fx)
+}
+
 /// A 32×24 camera 4 m from the origin looking along +y (z up), fx = fy = 30 px.
 pub fn small_camera() -> Camera {
-    Camera::look_at(
-        [0.3, -4.0, 0.2],
-        [0.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0],
-        32,
-        24,
-        30.0,
-    )
+    camera_facing_origin([0.3, -4.0, 0.2], 32, 24, 30.0)
 }
 
 /// `n` anisotropic, rotated, overlapping Gaussians within ±1.2 m × ±0.8 m of the origin (all
@@ -275,14 +273,7 @@ pub fn random_image(width: usize, height: usize, seed: u64) -> Vec<[f64; 3]> {
 /// 64×48), focal length 19.2 · k px: 4 m from the origin looking along +y (z up), 4.8 · k px
 /// per metre at the origin's depth.
 pub fn sub_pixel_grid_camera(k: u32) -> Camera {
-    Camera::look_at(
-        [0.0, -4.0, 0.0],
-        [0.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0],
-        32 * k,
-        24 * k,
-        19.2 * k as f32,
-    )
+    camera_facing_origin([0.0, -4.0, 0.0], 32 * k, 24 * k, 19.2 * k as f32)
 }
 
 /// 20 white, anisotropic, rotated Gaussians of opacity 0.9 on a 5 × 4 grid 1 m apart in the

@@ -4,7 +4,8 @@ use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cpu::loss::{blur, loss_f64, ssim_window};
 use crate::splat::cpu::raster::T_MIN;
 use crate::splat::cpu::test_scenes::{
-    mean_intensity, random_image, random_scene, small_camera, sub_pixel_grid, sub_pixel_grid_camera,
+    camera_facing_origin, mean_intensity, random_image, random_scene, small_camera, sub_pixel_grid,
+    sub_pixel_grid_camera,
 };
 use crate::splat::cpu::{CpuError, loss_and_grad_f64, render, render_backward, render_with};
 use crate::splat::eval::{PSNR_IDENTICAL, psnr, ssim};
@@ -12,14 +13,7 @@ use crate::splat::model::{Gaussian, Gaussians};
 
 fn centred_camera() -> Camera {
     // Principal point on a pixel centre so the Gaussian at the origin lands exactly there.
-    let mut cam = Camera::look_at(
-        [0.0, -4.0, 0.0],
-        [0.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0],
-        33,
-        25,
-        30.0,
-    );
+    let mut cam = camera_facing_origin([0.0, -4.0, 0.0], 33, 25, 30.0);
     cam.cx = 16.5;
     cam.cy = 12.5;
     cam
@@ -204,14 +198,7 @@ fn inconsistent_inputs_are_errors() {
 #[test]
 fn render_64x64_with_500_gaussians_gives_gradients() {
     let model = random_scene(12, 500, 3);
-    let cam = Camera::look_at(
-        [0.3, -4.0, 0.2],
-        [0.0, 0.0, 0.0],
-        [0.0, 0.0, 1.0],
-        64,
-        64,
-        50.0,
-    );
+    let cam = camera_facing_origin([0.3, -4.0, 0.2], 64, 64, 50.0);
     let r = render(&model, &cam, [0.0; 3]).unwrap();
     let (_, stat) =
         render_backward(&model, &cam, [0.0; 3], &r, &vec![[0.1; 3]; r.image.len()]).unwrap();

@@ -76,28 +76,11 @@ pub fn bias_corrections(step: u32) -> (f32, f32) {
 }
 
 /// The CPU twin of `adam.wgsl` for one buffer at 1-based step `step`: floats whose index within
-/// a stride of `stride` is below `n_first` use `lr_first`, the others `lr_rest`.
+/// a stride of `stride` is below `n_first` use `lr_first`, the others `lr_rest`; `eps` is the
+/// denominator ε ([`EPSILON`] for the model, torch's default
+/// [`crate::splat::exposure::EXPOSURE_EPSILON`] for the exposures).
 #[allow(clippy::too_many_arguments)]
 pub fn adam_cpu(
-    params: &mut [f32],
-    grads: &[f32],
-    m: &mut [f32],
-    v: &mut [f32],
-    stride: usize,
-    n_first: usize,
-    lr_first: f32,
-    lr_rest: f32,
-    step: u32,
-) {
-    adam_cpu_eps(
-        params, grads, m, v, stride, n_first, lr_first, lr_rest, step, EPSILON,
-    );
-}
-
-/// [`adam_cpu`] with the denominator ε `eps` instead of [`EPSILON`] (the exposures use
-/// torch's default, [`crate::splat::exposure::EXPOSURE_EPSILON`]).
-#[allow(clippy::too_many_arguments)]
-pub fn adam_cpu_eps(
     params: &mut [f32],
     grads: &[f32],
     m: &mut [f32],
@@ -136,7 +119,7 @@ pub fn adam_pipeline(ctx: &GpuContext) -> wgpu::ComputePipeline {
 
 /// Records one Adam step of the first `n_floats` floats of `param` (one rate `lr`, gradient
 /// `grad`, moments `m` and `v`, all whole storage buffers) at 1-based step `step` with
-/// denominator `eps`; `pipeline` from [`adam_pipeline`]. The CPU twin is [`adam_cpu_eps`].
+/// denominator `eps`; `pipeline` from [`adam_pipeline`]. The CPU twin is [`adam_cpu`].
 #[allow(clippy::too_many_arguments)]
 pub fn encode_adam_flat(
     ctx: &GpuContext,

@@ -21,7 +21,7 @@
 
 use std::num::NonZeroU64;
 
-use crate::splat::gpu::buffers::uniform_from;
+use crate::splat::gpu::buffers::{bind_entries, uniform_from};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::model::SH_FLOATS;
 
@@ -186,25 +186,4 @@ impl SlotPlan {
             })
             .collect()
     }
-}
-
-/// Binds each `(binding, range)` of `pipeline`'s group 0 (for entry points that use a subset).
-pub fn bind_entries(
-    ctx: &GpuContext,
-    pipeline: &wgpu::ComputePipeline,
-    bindings: &[(u32, wgpu::BufferBinding)],
-) -> wgpu::BindGroup {
-    let layout = pipeline.get_bind_group_layout(0);
-    let entries: Vec<wgpu::BindGroupEntry> = bindings
-        .iter()
-        .map(|(i, b)| wgpu::BindGroupEntry {
-            binding: *i,
-            resource: wgpu::BindingResource::Buffer(b.clone()),
-        })
-        .collect();
-    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: None,
-        layout: &layout,
-        entries: &entries,
-    })
 }

@@ -212,23 +212,14 @@ impl GpuExposure {
             ));
         }
         let u = self.uniform(ctx, width, height, slot);
-        let bg = bind_indexed(
-            ctx,
-            &self.apply,
-            &[
-                (0, &u),
-                (1, rendered),
-                (2, target.unwrap_or(&self.dummy)),
-                (3, &self.params),
-                (4, &scratch.exposed),
-            ],
-        );
-        dispatch_group(
-            enc,
-            &self.apply,
-            &bg,
-            grid((width * height).div_ceil(GROUP)),
-        );
+        let buffers = [
+            (0, &u),
+            (1, rendered),
+            (2, target.unwrap_or(&self.dummy)),
+            (3, &self.params),
+            (4, &scratch.exposed),
+        ];
+        dispatch_pixels(ctx, enc, &self.apply, &buffers, width * height);
         Ok(())
     }
 
@@ -250,24 +241,15 @@ impl GpuExposure {
     ) -> Result<(), GpuError> {
         self.check(scratch, width, height, slot)?;
         let u = self.uniform(ctx, width, height, slot);
-        let bg = bind_indexed(
-            ctx,
-            &self.backward,
-            &[
-                (0, &u),
-                (1, rendered),
-                (3, &self.params),
-                (5, &scratch.dl_out),
-                (6, dl_drgb),
-                (7, &scratch.partials),
-            ],
-        );
-        dispatch_group(
-            enc,
-            &self.backward,
-            &bg,
-            grid((width * height).div_ceil(GROUP)),
-        );
+        let buffers = [
+            (0, &u),
+            (1, rendered),
+            (3, &self.params),
+            (5, &scratch.dl_out),
+            (6, dl_drgb),
+            (7, &scratch.partials),
+        ];
+        dispatch_pixels(ctx, enc, &self.backward, &buffers, width * height);
         let bg = bind_indexed(
             ctx,
             &self.reduce,
@@ -295,4 +277,16 @@ impl GpuExposure {
             EXPOSURE_EPSILON,
         );
     }
+}
+
+/// Records `pipeline` with `buffers` bound (group 0), one thread per pixel of `pixels`.
+fn dispatch_pixels(
+    ctx: &GpuContext,
+    enc: &mut wgpu::CommandEncoder,
+    pipeline: &wgpu::ComputePipeline,
+    buffers: &[(u32, &wgpu::Buffer)],
+    pixels: u32,
+) {
+    let bg = bind_indexed(ctx, pipeline, buffers);
+    dispatch_group(enc, pipeline, &bg, grid(pixels.div_ceil(GROUP)));
 }

@@ -3,8 +3,9 @@
 //! (its `noise`, after Adam), one thread per Gaussian of each chunk, no read-back. The CPU
 //! twins are `mcmc::regularise_grads` and `mcmc::add_noise`.
 
+use crate::splat::gpu::buffers::bind_entries;
 use crate::splat::gpu::buffers::{chunked_from, pipeline, uniform_from, wgsl_struct};
-use crate::splat::gpu::chunks::{Chunk, bind_entries};
+use crate::splat::gpu::chunks::Chunk;
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch_group, groups_for};
 use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
@@ -119,19 +120,8 @@ impl GpuMcmc {
         splats: &GpuSplats,
         grads: &GpuGrads,
     ) -> Result<(), GpuError> {
-        self.check(splats)?;
-        let u = uniform_from(ctx, "mcmc params", &self.params(0, 0.0));
-        for chunk in splats.plan.chunks() {
-            let cu = chunk.uniform(ctx);
-            let mut b = self.shared_bindings(&u, &cu, &chunk, splats);
-            b.extend([
-                (5, chunk.range(&grads.opacity_logits, 1)),
-                (6, chunk.range(&grads.log_scales, 3)),
-            ]);
-            let bg = bind_entries(ctx, &self.regularise, &b);
-            dispatch_group(enc, &self.regularise, &bg, groups_for(chunk.len));
-        }
-        Ok(())
+        let extra = [(5, &grads.opacity_logits, 1), (6, &grads.log_scales, 3)];
+        self.encode_pass(ctx, enc, splats, &self.regularise, (0, 0.0), extra)
     }
 
     /// Records the position noise of optimiser step `step` (after Adam) with the step's
@@ -144,17 +134,30 @@ impl GpuMcmc {
         step: u32,
         lr_position: f32,
     ) -> Result<(), GpuError> {
+        let extra = [(7, &splats.means, 3), (8, &splats.rotations, 4)];
+        self.encode_pass(ctx, enc, splats, &self.noise, (step, lr_position), extra)
+    }
+
+    /// Records `pipeline` (either kernel) once per chunk with the parameters of optimiser step
+    /// `step` at position learning rate `lr`: the shared bindings plus the chunk's range of each
+    /// `(binding, buffer, floats per Gaussian)` of `extra`.
+    fn encode_pass(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        splats: &GpuSplats,
+        pipeline: &wgpu::ComputePipeline,
+        (step, lr): (u32, f32),
+        extra: [(u32, &wgpu::Buffer, u32); 2],
+    ) -> Result<(), GpuError> {
         self.check(splats)?;
-        let u = uniform_from(ctx, "mcmc params", &self.params(step, lr_position));
+        let u = uniform_from(ctx, "mcmc params", &self.params(step, lr));
         for chunk in splats.plan.chunks() {
             let cu = chunk.uniform(ctx);
             let mut b = self.shared_bindings(&u, &cu, &chunk, splats);
-            b.extend([
-                (7, chunk.range(&splats.means, 3)),
-                (8, chunk.range(&splats.rotations, 4)),
-            ]);
-            let bg = bind_entries(ctx, &self.noise, &b);
-            dispatch_group(enc, &self.noise, &bg, groups_for(chunk.len));
+            b.extend(extra.map(|(slot, buffer, floats)| (slot, chunk.range(buffer, floats))));
+            let bg = bind_entries(ctx, pipeline, &b);
+            dispatch_group(enc, pipeline, &bg, groups_for(chunk.len));
         }
         Ok(())
     }

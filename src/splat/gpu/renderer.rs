@@ -9,10 +9,11 @@
 
 use crate::splat::camera::{Camera, RenderOptions};
 
+use crate::splat::gpu::buffers::bind_entries;
 use crate::splat::gpu::buffers::{
     chunked_zeroed, read_buffer, read_buffer_at, storage_zeroed, uniform_from,
 };
-use crate::splat::gpu::chunks::{Chunk, SlotPlan, bind_entries, bind_ranges};
+use crate::splat::gpu::chunks::{Chunk, SlotPlan, bind_ranges};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::frame::{Band, Frame};
 use crate::splat::gpu::params::RenderParams;

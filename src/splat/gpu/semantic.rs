@@ -211,12 +211,7 @@ impl GpuSemantic {
                 "semantic term: no model installed".into(),
             ));
         };
-        if splats.count != self.count || grads.count != self.count {
-            return Err(GpuError::Invalid(format!(
-                "semantic term for {} Gaussians, model {}",
-                self.count, splats.count
-            )));
-        }
+        self.check_counts("semantic term", &[splats.count, grads.count])?;
         // The reduction reads every Gaussian in one workgroup, so this pass binds the (12 bytes
         // per Gaussian) means and log-scales whole rather than in chunks.
         ctx.check_binding(
@@ -299,12 +294,7 @@ impl GpuSemantic {
                 "trunk binding: no model installed".into(),
             ));
         };
-        if splats.count != self.count {
-            return Err(GpuError::Invalid(format!(
-                "trunk binding for {} Gaussians, model {}",
-                self.count, splats.count
-            )));
-        }
+        self.check_counts("trunk binding", &[splats.count])?;
         ctx.check_binding(
             "rotations (bound whole by the trunk binding)",
             self.count as u64 * 16,
@@ -335,6 +325,18 @@ impl GpuSemantic {
             ],
             groups_for(self.count),
         );
+        Ok(())
+    }
+
+    /// Fails unless each of `counts` (the model's first) is the installed model's Gaussian
+    /// count; `what` names the pass in the error.
+    fn check_counts(&self, what: &str, counts: &[u32]) -> Result<(), GpuError> {
+        if counts.iter().any(|&c| c != self.count) {
+            return Err(GpuError::Invalid(format!(
+                "{what} for {} Gaussians, model {}",
+                self.count, counts[0]
+            )));
+        }
         Ok(())
     }
 

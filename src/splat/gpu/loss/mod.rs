@@ -19,16 +19,16 @@ mod kernel;
 
 pub use kernel::{LOSS_OUT_BYTES, LossKernel};
 
-/// Weight λ of the D-SSIM term (Kerbl et al. 2023).
-pub const SSIM_LAMBDA: f32 = 0.2;
-/// SSIM window edge, pixels.
-pub const SSIM_WINDOW: usize = 11;
-/// Standard deviation of the SSIM window, pixels.
-pub const SSIM_SIGMA: f64 = 1.5;
-/// SSIM stabiliser C1 = (0.01 · 1)².
-pub const SSIM_C1: f32 = 0.01 * 0.01;
-/// SSIM stabiliser C2 = (0.03 · 1)².
-pub const SSIM_C2: f32 = 0.03 * 0.03;
+use crate::splat::cpu::loss as reference;
+
+/// The window of the CPU reference ([`crate::splat::cpu::loss`]).
+pub use reference::{SSIM_SIGMA, SSIM_WINDOW};
+/// Weight λ of the D-SSIM term, the CPU reference's in f32.
+pub const SSIM_LAMBDA: f32 = reference::SSIM_LAMBDA as f32;
+/// SSIM stabiliser C1, the CPU reference's in f32.
+pub const SSIM_C1: f32 = reference::SSIM_C1 as f32;
+/// SSIM stabiliser C2, the CPU reference's in f32.
+pub const SSIM_C2: f32 = reference::SSIM_C2 as f32;
 
 /// Errors of [`LossKernel::encode`].
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -62,15 +62,10 @@ impl std::fmt::Display for LossError {
 
 impl std::error::Error for LossError {}
 
-/// The normalised 1-D Gaussian window (σ = 1.5, 11 taps), computed in f64 then rounded.
+/// The normalised 1-D Gaussian window (σ = 1.5, 11 taps): the CPU reference's, computed in f64,
+/// rounded.
 pub fn ssim_window() -> [f32; SSIM_WINDOW] {
-    let half = (SSIM_WINDOW / 2) as f64;
-    let raw: [f64; SSIM_WINDOW] = std::array::from_fn(|k| {
-        let x = k as f64 - half;
-        (-x * x / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
-    });
-    let sum: f64 = raw.iter().sum();
-    raw.map(|v| (v / sum) as f32)
+    reference::ssim_window().map(|v| v as f32)
 }
 
 /// WGSL constants prepended to every pass.
