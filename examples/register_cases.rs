@@ -7,25 +7,29 @@
 //! `-- gps,partial 1-2`. Cases: `stand` (the plain plot), `gps` (photos with GPS tags of 3 m
 //! noise and a LiDAR file that declares its CRS), `partial` (the LiDAR covers 60 % of the
 //! plot's x extent), `leaf_off` (the scan without leaves, the photos leafy), `slope` (a 40 %
-//! grade), `scale10` and `scale0.1` (the SfM frame 10× and 0.1× metric), `few_stems` (3
+//! grade; `slope_gps` with the GPS of `gps`), `scale10` and `scale0.1` (the SfM frame 10× and 0.1× metric), `few_stems` (3
 //! trees). Plots are cached under `$REG_CASES_DIR` (default `/tmp/sylva-register-cases`);
 //! `REG_CASES_LOG=1` prints the stage's log (every candidate and start) under each run.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
-use glam::{DMat3, DQuat, DVec3};
-use sylva::geom::Similarity;
+use sylva::pipeline::register::similarity_from_json;
 use sylva::pipeline::{self, PipelineParams, Stage, StageInputs};
 use sylva::progress::NoProgress;
 use sylva::synth::{Preset, SynthParams};
 
-const CASES: [&str; 8] = [
+#[path = "support/truth.rs"]
+mod truth;
+use truth::{errors, seeds, truth_of};
+
+const CASES: [&str; 9] = [
     "stand",
     "gps",
     "partial",
     "leaf_off",
     "slope",
+    "slope_gps",
     "scale10",
     "scale0.1",
     "few_stems",
@@ -40,34 +44,16 @@ fn case_params(case: &str, seed: u64) -> Result<SynthParams, String> {
         "partial" => p.lidar_coverage = Some(0.6),
         "leaf_off" => p.lidar_leaf_off = true,
         "slope" => p.slope_pct = Some(40.0),
+        "slope_gps" => {
+            p.slope_pct = Some(40.0);
+            p.gps_noise_m = Some(3.0);
+        }
         "scale10" => p.sfm_scale = Some(10.0),
         "scale0.1" => p.sfm_scale = Some(0.1),
         "few_stems" => p.trees = Some(3),
         other => return Err(format!("unknown case {other}; cases: {}", CASES.join(", "))),
     }
     Ok(p)
-}
-
-/// Rotation (degrees), scale (relative) and translation at the plot centre (metres) errors.
-fn errors(est: &Similarity, truth: &Similarity, centre: DVec3) -> (f64, f64, f64) {
-    let rot = DQuat::from_mat3(&(est.rotation.transpose() * truth.rotation))
-        .angle_between(DQuat::IDENTITY)
-        .to_degrees();
-    let p = truth.inverse().apply(centre);
-    (
-        rot,
-        est.scale / truth.scale - 1.0,
-        (est.apply(p) - centre).length(),
-    )
-}
-
-fn similarity(v: &serde_json::Value) -> Option<Similarity> {
-    let rows: [[f64; 3]; 3] = serde_json::from_value(v["rotation"].clone()).ok()?;
-    Some(Similarity {
-        scale: v["scale"].as_f64()?,
-        rotation: DMat3::from_cols_array_2d(&rows).transpose(),
-        translation: DVec3::from_array(serde_json::from_value(v["translation"].clone()).ok()?),
-    })
 }
 
 /// Prints the stage's log lines when `REG_CASES_LOG` is set.
@@ -97,15 +83,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         None | Some("all") => CASES.to_vec(),
         Some(list) => list.split(',').collect(),
     };
-    let seeds: Vec<u64> = match args
-        .get(1)
-        .map(String::as_str)
-        .unwrap_or("1-5")
-        .split_once('-')
-    {
-        Some((a, b)) => (a.parse()?..=b.parse()?).collect(),
-        None => vec![args[1].parse()?],
-    };
+    let seeds = seeds(args.get(1).map(String::as_str))?;
     let root = PathBuf::from(
         std::env::var("REG_CASES_DIR").unwrap_or_else(|_| "/tmp/sylva-register-cases".into()),
     );
@@ -136,13 +114,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &Printer);
             let secs = t0.elapsed().as_secs_f64();
             tally.seconds.push(secs);
-            let truth: serde_json::Value =
-                serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
-            let truth_sim = similarity(&truth["sfm_to_world"]).ok_or("truth")?;
-            let centre = DVec3::from_array(serde_json::from_value(truth["plot_center"].clone())?);
+            let (truth_sim, centre) = truth_of(&out)?;
             match result {
                 Ok(o) => {
-                    let est = similarity(&o.report["sfm_to_lidar"]).ok_or("report")?;
+                    let est = similarity_from_json(&o.report["sfm_to_lidar"]).ok_or("report")?;
                     let (rot, scale, t) = errors(&est, &truth_sim, centre);
                     let outcome = if rot > 1.0 || t > 0.25 || scale.abs() > 0.01 {
                         tally.wrong += 1;

@@ -18,15 +18,9 @@ use sylva::pipeline::{self, PipelineParams, Stage, StageInputs};
 use sylva::progress::NoProgress;
 use sylva::synth::{Preset, SynthParams};
 
-/// Rotation (degrees), scale (relative) and translation at the plot centre (metres) errors.
-fn errors(est: &Similarity, truth: &Similarity, centre: DVec3) -> (f64, f64, f64) {
-    let rot = DQuat::from_mat3(&(est.rotation.transpose() * truth.rotation))
-        .angle_between(DQuat::IDENTITY)
-        .to_degrees();
-    let scale = est.scale / truth.scale - 1.0;
-    let p = truth.inverse().apply(centre);
-    (rot, scale, (est.apply(p) - centre).length())
-}
+#[path = "support/truth.rs"]
+mod truth;
+use truth::{errors, seeds, truth_of};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -39,15 +33,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     } else {
         Preset::from_name(name).ok_or("preset")?
     };
-    let seeds: Vec<u64> = match args
-        .get(1)
-        .map(String::as_str)
-        .unwrap_or("1-5")
-        .split_once('-')
-    {
-        Some((a, b)) => (a.parse()?..=b.parse()?).collect(),
-        None => vec![args[1].parse()?],
-    };
+    let seeds = seeds(args.get(1).map(String::as_str))?;
     let automatic = args.get(2).is_some_and(|a| a == "auto");
     let analyse = args.get(2).is_some_and(|a| a == "analyse");
     let root = PathBuf::from(
@@ -250,19 +236,6 @@ impl sylva::progress::Progress for Printer {
             println!("    {message}");
         }
     }
-}
-
-fn truth_of(out: &std::path::Path) -> Result<(Similarity, DVec3), Box<dyn std::error::Error>> {
-    let truth: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("truth.json"))?)?;
-    let t = &truth["sfm_to_world"];
-    let rows: [[f64; 3]; 3] = serde_json::from_value(t["rotation"].clone())?;
-    let sim = Similarity {
-        scale: t["scale"].as_f64().ok_or("scale")?,
-        rotation: DMat3::from_cols_array_2d(&rows).transpose(),
-        translation: DVec3::from_array(serde_json::from_value(t["translation"].clone())?),
-    };
-    let centre = DVec3::from_array(serde_json::from_value(truth["plot_center"].clone())?);
-    Ok((sim, centre))
 }
 
 /// Where the SfM points lie on the LiDAR's classes at the true pose, and where the

@@ -23,6 +23,10 @@ fn plot(dir: &Path, seed: u64) -> std::path::PathBuf {
 /// The light stand of the stand tests (seed 1): 30 photos of 320×180 and 800 k LiDAR points,
 /// with `points3d` SfM points.
 fn light_stand(dir: &Path, points3d: usize) -> std::path::PathBuf {
+    generate(dir, light_stand_params(points3d))
+}
+
+fn light_stand_params(points3d: usize) -> SynthParams {
     let mut p = SynthParams::new(Preset::Stand);
     p.seed = 1;
     p.images = Some(30);
@@ -30,7 +34,7 @@ fn light_stand(dir: &Path, points3d: usize) -> std::path::PathBuf {
     p.height = Some(180);
     p.lidar_points = Some(800_000);
     p.points3d = Some(points3d);
-    generate(dir, p)
+    p
 }
 
 fn generate(dir: &Path, p: SynthParams) -> std::path::PathBuf {
@@ -271,24 +275,16 @@ fn automatic_alignment_reaches_the_goals_on_a_stand() {
 #[test]
 fn gps_tagged_photos_start_the_alignment_and_a_wrong_crs_is_refused() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut p = SynthParams::new(Preset::Stand);
-    p.seed = 1;
-    p.images = Some(30);
-    p.width = Some(320);
-    p.height = Some(180);
-    p.lidar_points = Some(800_000);
-    p.points3d = Some(10_000);
-    p.gps_noise_m = Some(3.0);
+    let p = SynthParams {
+        gps_noise_m: Some(3.0),
+        ..light_stand_params(10_000)
+    };
     let out = generate(dir.path(), p);
-    let params = PipelineParams::default();
-    let report = register_with(
-        &dir.path().join("work"),
-        &out.join("lidar.laz"),
-        &out.join("colmap"),
-        None,
-        &params,
-    )
-    .expect("GPS-started registration");
+    let automatic = |work: &str, params: &PipelineParams| {
+        let (lidar, colmap) = (out.join("lidar.laz"), out.join("colmap"));
+        register_with(&dir.path().join(work), &lidar, &colmap, None, params)
+    };
+    let report = automatic("work", &PipelineParams::default()).expect("GPS-started registration");
     let (rot_err, scale_err, trans_err) = errors(&report, &out);
     println!(
         "stand, GPS start: rotation {rot_err:.4}°, scale {:.4}%, translation {:.2} cm; gps {}",
@@ -314,14 +310,8 @@ fn gps_tagged_photos_start_the_alignment_and_a_wrong_crs_is_refused() {
         crs: Some("EPSG:32633".into()),
         ..Default::default()
     };
-    let err = register_with(
-        &dir.path().join("work-wrong-crs"),
-        &out.join("lidar.laz"),
-        &out.join("colmap"),
-        None,
-        &wrong,
-    )
-    .expect_err("an alignment that contradicts the GPS must be refused");
+    let err = automatic("work-wrong-crs", &wrong)
+        .expect_err("an alignment that contradicts the GPS must be refused");
     let text = err.to_string();
     assert!(
         text.contains("GPS") && text.contains("control points"),

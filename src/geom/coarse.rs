@@ -1017,6 +1017,36 @@ mod tests {
     /// SfM frame = truth⁻¹ of the LiDAR frame; 49 nadir cameras at 40 m on a 7 × 7 grid over
     /// the plot; GPS with 3 m horizontal noise, a 35 m altitude bias (another vertical datum)
     /// and two fixes 60 m off.
+    /// 49 cameras 40 m over the plot on a 7 × 7 grid, turned by `tilt`, looking down (plus
+    /// `jitter`): centres and view directions in the LiDAR frame.
+    fn grid_cameras(tilt: DMat3, mut jitter: impl FnMut() -> DVec3) -> Vec<(DVec3, DVec3)> {
+        (0..49)
+            .map(|k| {
+                let (i, j) = ((k / 7) as f64, (k % 7) as f64);
+                let c = tilt * DVec3::new(i * 8.0 - 24.0, j * 8.0 - 24.0, 40.0);
+                (c, tilt * (DVec3::NEG_Z + jitter()))
+            })
+            .collect()
+    }
+
+    /// The plot's points (every 7th) and `cameras` moved into the SfM frame by `inv`.
+    fn in_sfm(
+        lidar: &[Vec3],
+        cameras: &[(DVec3, DVec3)],
+        inv: &Similarity,
+    ) -> (Vec<DVec3>, Vec<(DVec3, DVec3)>) {
+        let sfm = lidar
+            .iter()
+            .step_by(7)
+            .map(|p| inv.apply(p.as_dvec3()))
+            .collect();
+        let cams = cameras
+            .iter()
+            .map(|(c, d)| (inv.apply(*c), (inv.rotation * *d).normalize()))
+            .collect();
+        (sfm, cams)
+    }
+
     #[test]
     fn camera_positions_with_gps_noise_give_a_start_within_icp_reach() {
         let lidar = plot();
@@ -1026,26 +1056,23 @@ mod tests {
             translation: DVec3::new(5.0, -3.0, 1.5),
         };
         let inv = truth.inverse();
-        let sfm: Vec<DVec3> = lidar
-            .iter()
-            .step_by(7)
-            .map(|p| inv.apply(p.as_dvec3()))
-            .collect();
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let (mut cameras, mut pairs) = (Vec::new(), Vec::new());
-        for i in 0..7 {
-            for j in 0..7 {
-                let c = DVec3::new(i as f64 * 8.0 - 24.0, j as f64 * 8.0 - 24.0, 40.0);
-                let look = DVec3::new(0.02 * gauss(&mut rng), 0.02 * gauss(&mut rng), -1.0);
-                let (cs, ds) = (inv.apply(c), (inv.rotation * look).normalize());
-                cameras.push((cs, ds));
-                let mut gps = c + DVec3::new(3.0 * gauss(&mut rng), 3.0 * gauss(&mut rng), 35.0);
-                if i == 3 && j < 2 {
+        let flight = grid_cameras(DMat3::IDENTITY, || {
+            DVec3::new(0.02 * gauss(&mut rng), 0.02 * gauss(&mut rng), 0.0)
+        });
+        let (sfm, cameras) = in_sfm(&lidar, &flight, &inv);
+        let pairs: Vec<(DVec3, DVec3)> = flight
+            .iter()
+            .zip(&cameras)
+            .enumerate()
+            .map(|(k, ((c, _), (cs, _)))| {
+                let mut gps = *c + DVec3::new(3.0 * gauss(&mut rng), 3.0 * gauss(&mut rng), 35.0);
+                if k == 21 || k == 22 {
                     gps.x += 60.0;
                 }
-                pairs.push((cs, gps));
-            }
-        }
+                (*cs, gps)
+            })
+            .collect();
         let fit = from_positions(&sfm, &cameras, &pairs, &lidar).expect("a start");
         assert_eq!((fit.used, fit.given), (47, 49), "{fit:?}");
         assert!(fit.rms_m > 2.0 && fit.rms_m < 4.5, "{fit:?}");
@@ -1078,22 +1105,13 @@ mod tests {
             translation: DVec3::new(-4.0, 7.0, -2.0),
         };
         let inv = truth.inverse();
-        let sfm: Vec<DVec3> = lidar
+        let flight = grid_cameras(DMat3::from_rotation_x(4f64.to_radians()), || DVec3::ZERO);
+        let (sfm, cameras) = in_sfm(&lidar, &flight, &inv);
+        let pairs: Vec<(DVec3, DVec3)> = flight
             .iter()
-            .step_by(7)
-            .map(|p| inv.apply(p.as_dvec3()))
+            .zip(&cameras)
+            .map(|(c, s)| (s.0, c.0))
             .collect();
-        let tilt = DMat3::from_rotation_x(4f64.to_radians());
-        let (mut cameras, mut pairs) = (Vec::new(), Vec::new());
-        for i in 0..7 {
-            for j in 0..7 {
-                let c = tilt * DVec3::new(i as f64 * 8.0 - 24.0, j as f64 * 8.0 - 24.0, 40.0);
-                let look = tilt * DVec3::NEG_Z;
-                let cs = inv.apply(c);
-                cameras.push((cs, (inv.rotation * look).normalize()));
-                pairs.push((cs, c));
-            }
-        }
         let fit = from_positions(&sfm, &cameras, &pairs, &lidar).expect("a start");
         let rel = truth.inverse().then(&fit.alignment.transform);
         assert!(
