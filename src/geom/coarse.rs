@@ -33,9 +33,9 @@ pub struct CoarseParams {
     pub yaw_step_deg: f64,
     /// Ratio between consecutive candidate scales (default 1.04, i.e. 4 %).
     pub scale_step: f64,
-    /// How far the scale search reaches beyond the extent-based estimates (default 1.6×: on a
-    /// 40 % slope the photos' wider footprint puts both estimates 8-10 % under the truth, and
-    /// 1.35× left three of five `register_cases slope` plots outside the search).
+    /// How far the scale search reaches beyond the extent-based estimates (default 1.35×;
+    /// 1.6× let wrong hypotheses at far scales crowd the right one out of a partial scan's
+    /// candidates, `register_cases partial` seed 5).
     pub scale_margin: f64,
     /// Cells across the LiDAR cloud's larger side in the coarse raster (default 24).
     pub coarse_cells: usize,
@@ -43,8 +43,10 @@ pub struct CoarseParams {
     /// a hypothesis to count (default 0.6).
     pub min_overlap: f64,
     /// Distinct hypotheses kept from the coarse search, refined and returned by
-    /// [`align_candidates`] (default 4: each costs one ICP and one surface pass in stage
-    /// `register`; on `sylva synth` `stand` the right one was always the first).
+    /// [`align_candidates`] (default 6: each that stays distinct after refinement costs one ICP
+    /// and the surface passes in stage `register`, most collapse into others; with 4, a
+    /// partial scan's wrong hypotheses near one yaw took every place and left out the right
+    /// one, `register_cases partial` seed 5).
     pub candidates: usize,
 }
 
@@ -53,10 +55,10 @@ impl Default for CoarseParams {
         Self {
             yaw_step_deg: 4.0,
             scale_step: 1.04,
-            scale_margin: 1.6,
+            scale_margin: 1.35,
             coarse_cells: 24,
             min_overlap: 0.6,
-            candidates: 4,
+            candidates: 6,
         }
     }
 }
@@ -466,7 +468,26 @@ pub fn align_candidates(
             sxy += d.x * d.y;
         }
         let det = ((sxx * syy - sxy * sxy) / (n * n)).max(0.0);
-        let mut z: Vec<f64> = pts.iter().map(|p| p.z).collect();
+        // Heights above the least-squares plane through the points: on a slope the raw
+        // range is mostly the ramp under each cloud's own footprint (the photos reach
+        // further than the scan), which put both estimates 8-10 % under the truth on a 40 %
+        // grade (`register_cases slope`).
+        let (mut sxz, mut syz) = (0.0, 0.0);
+        for p in pts {
+            let d = *p - m;
+            sxz += d.x * d.z;
+            syz += d.y * d.z;
+        }
+        let dd = sxx * syy - sxy * sxy;
+        let (gx, gy) = if dd.abs() > 1e-12 {
+            ((syy * sxz - sxy * syz) / dd, (sxx * syz - sxy * sxz) / dd)
+        } else {
+            (0.0, 0.0)
+        };
+        let mut z: Vec<f64> = pts
+            .iter()
+            .map(|p| p.z - gx * (p.x - m.x) - gy * (p.y - m.y))
+            .collect();
         let lo = percentile(&mut z, 0.02);
         let hi = percentile(&mut z, 0.98);
         (det.powf(0.25), hi - lo)
