@@ -12,6 +12,51 @@
 //! and workers, `--database postgres://...`). [`JobStore`] hides which: callers hold one type,
 //! and both backends keep the same semantics, checked by the same tests.
 
+/// The SQL the two databases spell differently, side by side; `queries.rs` splices these into
+/// its `concat!`s through each backend's `sql!` (`sql!(for_update)` is
+/// `dialect!(sqlite for_update)` in `sqlite.rs`). Everything else is SQL both speak.
+///
+/// - `for_update`, `for_share`, `skip_locked`: row locks. PostgreSQL runs writers
+///   concurrently under READ COMMITTED, so a reader that writes next locks what it read, and
+///   claimers and sweepers skip rows another transaction holds; SQLite's `BEGIN IMMEDIATE`
+///   already makes each writing transaction the only writer, so they are empty there.
+/// - `any_of "$N"`: "is one of the ids bound to `$N`" (a PostgreSQL array; on SQLite a JSON
+///   array, see `SqliteJobs::id_list`).
+/// - `inputs_mention`: "job `j`'s inputs name upload `u`" (the inputs are JSONB on
+///   PostgreSQL, text on SQLite).
+macro_rules! dialect {
+    (sqlite for_update) => {
+        ""
+    };
+    (postgres for_update) => {
+        " FOR UPDATE"
+    };
+    (sqlite for_share) => {
+        ""
+    };
+    (postgres for_share) => {
+        " FOR SHARE"
+    };
+    (sqlite skip_locked) => {
+        ""
+    };
+    (postgres skip_locked) => {
+        " FOR UPDATE SKIP LOCKED"
+    };
+    (sqlite any_of $p:literal) => {
+        concat!("IN (SELECT value FROM json_each(", $p, "))")
+    };
+    (postgres any_of $p:literal) => {
+        concat!("= ANY(", $p, ")")
+    };
+    (sqlite inputs_mention) => {
+        "instr(j.inputs, u.id) > 0"
+    };
+    (postgres inputs_mention) => {
+        "strpos(CAST(j.inputs AS TEXT), u.id) > 0"
+    };
+}
+
 pub mod keys;
 pub mod postgres;
 pub mod sqlite;

@@ -23,10 +23,11 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use sqlx::postgres::{PgConnectOptions, PgConnection, PgListener, PgPool, PgPoolOptions, PgRow};
+use sqlx::postgres::{PgConnectOptions, PgConnection, PgListener, PgPool, PgPoolOptions};
 use sqlx::{Connection, Postgres, Row, Transaction};
 use tokio::sync::Notify;
 
+use super::store::SqlStore;
 use super::*;
 use crate::stage::{OutputFile, Stage};
 
@@ -45,14 +46,9 @@ const CREATE_LOCK: i64 = 0x5359_4c56_4a4f_4253;
 const LISTEN_RETRY: Duration = Duration::from_secs(2);
 
 /// The job queue, upload records and job log in a PostgreSQL database.
-#[derive(Clone)]
-pub struct PgJobs {
-    pub(super) pool: PgPool,
-}
+pub type PgJobs = SqlStore<Postgres>;
 
-type Store = PgJobs;
 type Db = Postgres;
-type DbRow = PgRow;
 
 impl PgJobs {
     /// Connects to the database at `url` (`postgres://user:password@host:port/database`) and
@@ -184,35 +180,9 @@ impl PgJobs {
     }
 }
 
-/// Row locks: a reader that writes next locks what it read.
-macro_rules! for_update {
-    () => {
-        " FOR UPDATE"
-    };
-}
-/// A job's input uploads stay as they are until the job row is written.
-macro_rules! for_share {
-    () => {
-        " FOR SHARE"
-    };
-}
-/// Concurrent claimers and sweepers take different rows and never wait for each other.
-macro_rules! skip_locked {
-    () => {
-        " FOR UPDATE SKIP LOCKED"
-    };
-}
-/// "is one of the ids bound to `$N`" ([`PgJobs::id_list`]).
-macro_rules! any_of {
-    ($p:literal) => {
-        concat!("= ANY(", $p, ")")
-    };
-}
-/// "job `j`'s inputs name upload `u`".
-macro_rules! inputs_mention {
-    () => {
-        "strpos(CAST(j.inputs AS TEXT), u.id) > 0"
-    };
+/// This database's column of [`dialect!`].
+macro_rules! sql {
+    ($($t:tt)*) => { dialect!(postgres $($t)*) };
 }
 
 include!("queries.rs");

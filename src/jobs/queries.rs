@@ -2,15 +2,13 @@
 // module: `sqlite.rs` and `postgres.rs` each `include!` it after naming their types and the
 // few SQL pieces the two databases spell differently:
 //
-// - `Store`, `Db`, `DbRow`: the backend, its sqlx database and row types;
+// - `Db`: the backend's sqlx database (the store is then `SqlStore<Db>`);
 // - `Store::begin`, `Store::clock`, `Store::lock_creation`, `Store::notify`, `Store::id_list`:
 //   how a writing transaction starts, whose clock leases are measured on, how job creation is
 //   serialised, how idle workers hear of new work, how a list of ids is bound to one parameter;
-// - `for_update!()`, `for_share!()`, `skip_locked!()`: row locks (PostgreSQL runs writers
-//   concurrently; SQLite's `BEGIN IMMEDIATE` already makes the transaction the only writer, so
-//   they expand to nothing there);
-// - `any_of!("$N")`: "is one of the ids bound to `$N`";
-// - `inputs_mention!()`: "job `j`'s inputs name upload `u`".
+// - `sql!(…)`: the SQL pieces the two spell differently, in one table (`dialect!` in
+//   `src/jobs/mod.rs`): row locks, "is one of the ids bound to `$N`", "job `j`'s inputs name
+//   upload `u`".
 //
 // Everything else is SQL both databases speak: `$N` placeholders (sqlx binds SQLite's `$N` by
 // number too), `CAST`, `CASE` for the greater or lesser of two values, `ON CONFLICT`,
@@ -19,6 +17,9 @@
 // not reach an included file.
 
 use super::keys::{ApiKey, KEY_COLUMNS, SecretGeneration};
+
+type Store = SqlStore<Db>;
+type DbRow = <Db as sqlx::Database>::Row;
 
 fn parse_webhook(text: Option<String>) -> Result<Option<WebhookSpec>, DbError> {
     text.map(|t| serde_json::from_str(&t))
@@ -125,7 +126,7 @@ impl Store {
         let mut tx = self.begin().await?;
         let state: Option<String> = sqlx::query_scalar(concat!(
             "SELECT state FROM uploads WHERE id = $1",
-            for_update!()
+            sql!(for_update)
         ))
         .bind(id)
         .fetch_optional(&mut *tx)
@@ -218,7 +219,7 @@ impl Store {
         for (kind, upload) in job.inputs.all() {
             let row = sqlx::query(concat!(
                 "SELECT kind, state FROM uploads WHERE id = $1 AND owner = $2",
-                for_share!()
+                sql!(for_share)
             ))
             .bind(upload)
             .bind(job.owner)
@@ -275,7 +276,7 @@ impl Store {
         let ids: Vec<String> = jobs.iter().map(|j| j.id.clone()).collect();
         let stage_rows = sqlx::query(concat!(
             "SELECT * FROM job_stages WHERE job_id ",
-            any_of!("$1"),
+            sql!(any_of "$1"),
             " ORDER BY job_id, idx"
         ))
         .bind(Self::id_list(&ids))
@@ -284,7 +285,7 @@ impl Store {
         let artifact_rows = sqlx::query(concat!(
             "SELECT a.* FROM artifacts a JOIN job_stages s ON s.job_id = a.job_id AND s.name = a.stage \
              WHERE a.job_id ",
-            any_of!("$1"),
+            sql!(any_of "$1"),
             " ORDER BY a.job_id, s.idx, a.name"
         ))
         .bind(Self::id_list(&ids))
@@ -435,7 +436,7 @@ impl Store {
     async fn lock_job(tx: &mut Transaction<'static, Db>, id: &str) -> Result<JobState, DbError> {
         let state: Option<String> = sqlx::query_scalar(concat!(
             "SELECT state FROM jobs WHERE id = $1",
-            for_update!()
+            sql!(for_update)
         ))
         .bind(id)
         .fetch_optional(&mut **tx)
@@ -586,9 +587,9 @@ impl Store {
             "SELECT id, filename FROM uploads u WHERE (state = 'open' AND expires_at < $1) \
              OR (state = 'complete' AND completed_at < $2 AND NOT EXISTS \
                  (SELECT 1 FROM jobs j WHERE j.purged_at IS NULL AND ",
-            inputs_mention!(),
+            sql!(inputs_mention),
             ")) ORDER BY created_at LIMIT $3",
-            skip_locked!()
+            sql!(skip_locked)
         ))
         .bind(now)
         .bind(unused_before)
@@ -604,7 +605,7 @@ impl Store {
         sqlx::query(concat!(
             "UPDATE uploads SET state = 'expired', \
              expires_at = CASE WHEN expires_at < $1 THEN expires_at ELSE $1 END WHERE id ",
-            any_of!("$2")
+            sql!(any_of "$2")
         ))
         .bind(now)
         .bind(&ids)
@@ -612,7 +613,7 @@ impl Store {
         .await?;
         sqlx::query(concat!(
             "DELETE FROM upload_parts WHERE upload_id ",
-            any_of!("$1")
+            sql!(any_of "$1")
         ))
         .bind(&ids)
         .execute(&mut *tx)
@@ -634,7 +635,7 @@ impl Store {
         let ids: Vec<String> = sqlx::query_scalar(concat!(
             "SELECT id FROM jobs WHERE purged_at IS NULL AND finished_at < $1 \
              AND state IN ('succeeded', 'failed', 'canceled') ORDER BY finished_at LIMIT $2",
-            skip_locked!()
+            sql!(skip_locked)
         ))
         .bind(finished_before)
         .bind(limit)
@@ -644,7 +645,7 @@ impl Store {
         let list = Self::id_list(&ids);
         sqlx::query(concat!(
             "UPDATE jobs SET purged_at = $1 WHERE id ",
-            any_of!("$2")
+            sql!(any_of "$2")
         ))
         .bind(now)
         .bind(&list)
@@ -652,7 +653,7 @@ impl Store {
         .await?;
         sqlx::query(concat!(
             "DELETE FROM artifacts WHERE job_id ",
-            any_of!("$1")
+            sql!(any_of "$1")
         ))
         .bind(&list)
         .execute(&mut *tx)
@@ -660,7 +661,7 @@ impl Store {
         // Finished webhook deliveries go with the files; pending ones are still owed.
         sqlx::query(concat!(
             "DELETE FROM webhook_deliveries WHERE state != 'pending' AND job_id ",
-            any_of!("$1")
+            sql!(any_of "$1")
         ))
         .bind(&list)
         .execute(&mut *tx)
@@ -676,13 +677,13 @@ impl Store {
             LiveTable::Uploads => {
                 concat!(
                     "SELECT id FROM uploads WHERE state != 'expired' AND id ",
-                    any_of!("$1")
+                    sql!(any_of "$1")
                 )
             }
             LiveTable::Jobs => {
                 concat!(
                     "SELECT id FROM jobs WHERE purged_at IS NULL AND id ",
-                    any_of!("$1")
+                    sql!(any_of "$1")
                 )
             }
         };
@@ -709,7 +710,7 @@ impl Store {
         let mut ended: Vec<String> = sqlx::query_scalar(concat!(
             "UPDATE jobs SET state = 'canceled', finished_at = $1, updated_at = $1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
              WHERE seq IN (SELECT seq FROM jobs WHERE state = 'canceling' AND lease_until < $1",
-            skip_locked!(),
+            sql!(skip_locked),
             ") RETURNING id"
         ))
         .bind(now)
@@ -718,7 +719,7 @@ impl Store {
         let failed: Vec<String> = sqlx::query_scalar(concat!(
             "UPDATE jobs SET state = 'failed', error = $2, finished_at = $1, updated_at = $1, worker_id = NULL, lease_until = NULL, lease_token = NULL \
              WHERE seq IN (SELECT seq FROM jobs WHERE state = 'running' AND lease_until < $1 AND attempt >= $3",
-            skip_locked!(),
+            sql!(skip_locked),
             ") RETURNING id"
         ))
         .bind(now)
@@ -736,7 +737,7 @@ impl Store {
              updated_at = $4, started_at = COALESCE(started_at, $4) \
              WHERE seq = (SELECT seq FROM jobs WHERE state = 'queued' OR (state = 'running' AND lease_until < $4) \
                           ORDER BY seq LIMIT 1",
-            skip_locked!(),
+            sql!(skip_locked),
             ") RETURNING id, attempt, inputs, params, progress"
         ))
         .bind(worker_id)
@@ -822,7 +823,7 @@ impl Store {
     ) -> Result<(), DbError> {
         let held = sqlx::query(concat!(
             "SELECT 1 FROM jobs WHERE id = $1 AND lease_token = $2",
-            for_update!()
+            sql!(for_update)
         ))
         .bind(job_id)
         .bind(token)
@@ -1050,7 +1051,7 @@ impl Store {
             "UPDATE webhook_deliveries SET lease_until = $1, lease_token = $2, attempts = attempts + 1, updated_at = $3 \
              WHERE seq IN (SELECT seq FROM webhook_deliveries WHERE state = 'pending' AND next_attempt_at <= $3 \
                            AND (lease_until IS NULL OR lease_until < $3) ORDER BY next_attempt_at, seq LIMIT $4",
-            skip_locked!(),
+            sql!(skip_locked),
             ") RETURNING id, job_id, owner, url, event, body, attempts, created_at"
         ))
         .bind(now + lease_ms(lease))

@@ -9,12 +9,10 @@
 use std::path::Path;
 use std::time::Duration;
 
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
-    SqliteSynchronous,
-};
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
 use sqlx::{Row, Sqlite, Transaction};
 
+use super::store::SqlStore;
 use super::*;
 use crate::stage::{OutputFile, Stage};
 
@@ -22,14 +20,9 @@ use crate::stage::{OutputFile, Stage};
 const BUSY_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// The job queue, upload records and job log in one SQLite file.
-#[derive(Clone)]
-pub struct SqliteJobs {
-    pub(super) pool: SqlitePool,
-}
+pub type SqliteJobs = SqlStore<Sqlite>;
 
-type Store = SqliteJobs;
 type Db = Sqlite;
-type DbRow = SqliteRow;
 
 impl SqliteJobs {
     /// Opens (creating if needed) the database file and applies migrations.
@@ -100,33 +93,9 @@ impl SqliteJobs {
     }
 }
 
-// `BEGIN IMMEDIATE` makes each writing transaction the only writer, so no row locks.
-macro_rules! for_update {
-    () => {
-        ""
-    };
-}
-macro_rules! for_share {
-    () => {
-        ""
-    };
-}
-macro_rules! skip_locked {
-    () => {
-        ""
-    };
-}
-/// "is one of the ids bound to `$N`" ([`SqliteJobs::id_list`]).
-macro_rules! any_of {
-    ($p:literal) => {
-        concat!("IN (SELECT value FROM json_each(", $p, "))")
-    };
-}
-/// "job `j`'s inputs name upload `u`".
-macro_rules! inputs_mention {
-    () => {
-        "instr(j.inputs, u.id) > 0"
-    };
+/// This database's column of [`dialect!`].
+macro_rules! sql {
+    ($($t:tt)*) => { dialect!(sqlite $($t)*) };
 }
 
 include!("queries.rs");

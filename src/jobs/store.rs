@@ -82,6 +82,22 @@ fn redact_password(url: &str) -> String {
     }
 }
 
+/// One database's store: its connection pool. The methods are `src/jobs/queries.rs`, included
+/// once per database by `sqlite.rs` ([`SqliteJobs`]) and `postgres.rs` ([`PgJobs`]) beside the
+/// few pieces each spells its own way.
+pub struct SqlStore<DB: sqlx::Database> {
+    pub(super) pool: sqlx::Pool<DB>,
+}
+
+// By hand: a derive would ask `DB: Clone`, which the database marker types are not.
+impl<DB: sqlx::Database> Clone for SqlStore<DB> {
+    fn clone(&self) -> Self {
+        Self {
+            pool: self.pool.clone(),
+        }
+    }
+}
+
 #[derive(Clone)]
 enum Backend {
     Sqlite(SqliteJobs),
