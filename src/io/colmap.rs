@@ -135,6 +135,51 @@ pub struct ColmapModel {
     pub points: Vec<Point3D>,
 }
 
+impl ColmapModel {
+    /// Refuses cameras Sylva cannot undistort, naming each (at most five, then how many more)
+    /// and the models it can: the one check the upload's inspection and stage `ingest` share.
+    pub fn check_cameras(&self) -> Result<(), String> {
+        let unsupported: Vec<String> = self
+            .cameras
+            .values()
+            .filter(|c| !c.model.is_supported())
+            .map(|c| format!("camera {} uses {}", c.id, c.model.name()))
+            .collect();
+        if unsupported.is_empty() {
+            return Ok(());
+        }
+        let mut named = unsupported[..unsupported.len().min(5)].join(", ");
+        if unsupported.len() > 5 {
+            named.push_str(&format!(" and {} more", unsupported.len() - 5));
+        }
+        let supported: Vec<&str> = MODELS
+            .iter()
+            .filter(|m| m.0.is_supported())
+            .map(|m| m.1)
+            .collect();
+        Err(format!(
+            "unsupported camera model ({named}); supported: {}",
+            supported.join(", ")
+        ))
+    }
+}
+
+/// What a report says of a project's model: its format, camera count and models (sorted,
+/// once each), registered images and 3-D points. The upload's inspection gives it as is,
+/// stage `ingest` adds what it checked beside it.
+pub fn summary(project: &ColmapProject, model: &ColmapModel) -> serde_json::Value {
+    let mut models: Vec<&str> = model.cameras.values().map(|c| c.model.name()).collect();
+    models.sort_unstable();
+    models.dedup();
+    serde_json::json!({
+        "format": if project.binary { "binary" } else { "text" },
+        "cameras": model.cameras.len(),
+        "camera_models": models,
+        "images_registered": model.images.len(),
+        "points3d": model.points.len(),
+    })
+}
+
 /// Where a COLMAP project lies inside an unpacked upload.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct ColmapProject {

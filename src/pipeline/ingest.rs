@@ -16,7 +16,7 @@ use rayon::prelude::*;
 use serde_json::json;
 
 use super::{StageContext, StageError};
-use crate::io::colmap::{self, CameraModel};
+use crate::io::colmap;
 use crate::io::gps::{self, GpsFix};
 use crate::io::{ply, pointcloud, tables};
 use crate::progress::SubProgress;
@@ -110,19 +110,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "COLMAP model: no registered images".into(),
         ));
     }
-    let unsupported: Vec<String> = model
-        .cameras
-        .values()
-        .filter(|c| !c.model.is_supported())
-        .map(|c| format!("camera {} uses {}", c.id, c.model.name()))
-        .collect();
-    if !unsupported.is_empty() {
-        return Err(StageError::Input(format!(
-            "COLMAP cameras: unsupported camera model ({}); supported: {}",
-            list(&unsupported),
-            supported_models()
-        )));
-    }
+    model
+        .check_cameras()
+        .map_err(|e| StageError::Input(format!("COLMAP cameras: {e}")))?;
     let Some(images_dir) = project.images_dir.as_ref() else {
         return Err(StageError::Input(
             "COLMAP project: no images/ folder beside the sparse model".into(),
@@ -200,9 +190,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }
     ctx.progress.set(1.0);
 
-    let mut models: Vec<&str> = model.cameras.values().map(|c| c.model.name()).collect();
-    models.sort_unstable();
-    models.dedup();
+    let mut colmap_report = colmap::summary(&project, &model);
+    colmap_report["images_checked"] = json!(check.as_ref().map(|c| c.images_found));
+    colmap_report["images_with_gps"] = json!(gps.len());
     Ok(json!({
         "lidar": {
             "format": cloud.format,
@@ -216,15 +206,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "crs": crs.label,
             "crs_source": crs.source,
         },
-        "colmap": {
-            "format": if project.binary { "binary" } else { "text" },
-            "cameras": model.cameras.len(),
-            "camera_models": models,
-            "images_registered": model.images.len(),
-            "points3d": model.points.len(),
-            "images_checked": check.as_ref().map(|c| c.images_found),
-            "images_with_gps": gps.len(),
-        },
+        "colmap": colmap_report,
         "control_points": control_points,
         "field_trees": field_trees,
         "warnings": warnings,
@@ -269,18 +251,4 @@ fn read_gps(
         ));
     }
     out
-}
-
-fn supported_models() -> String {
-    [
-        CameraModel::SimplePinhole,
-        CameraModel::Pinhole,
-        CameraModel::SimpleRadial,
-        CameraModel::Radial,
-        CameraModel::Opencv,
-    ]
-    .iter()
-    .map(|m| m.name())
-    .collect::<Vec<_>>()
-    .join(", ")
 }

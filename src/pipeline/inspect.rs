@@ -167,29 +167,9 @@ fn inspect_colmap(
             if missing.len() > 5 { ", …" } else { "" }
         )));
     }
-    let unsupported: Vec<String> = model
-        .cameras
-        .values()
-        .filter(|c| !c.model.is_supported())
-        .map(|c| format!("camera {} ({})", c.id, c.model.name()))
-        .collect();
-    if !unsupported.is_empty() {
-        return Err(InspectError::Unusable(format!(
-            "unsupported camera model: {}",
-            unsupported.join(", ")
-        )));
-    }
-    let mut models: Vec<&str> = model.cameras.values().map(|c| c.model.name()).collect();
-    models.sort_unstable();
-    models.dedup();
+    model.check_cameras().map_err(InspectError::Unusable)?;
     Ok(json!({
         "archive": summary,
-        "colmap": {
-            "format": if project.binary { "binary" } else { "text" },
-            "cameras": model.cameras.len(),
-            "camera_models": models,
-            "images_registered": model.images.len(),
-            "points3d": model.points.len(),
-        }
+        "colmap": colmap::summary(&project, &model),
     }))
 }

@@ -91,6 +91,52 @@ fn camera_model_table_matches_colmap() {
 }
 
 #[test]
+fn unsupported_cameras_are_named_with_the_models_sylva_can_use() {
+    let mut m = model();
+    assert_eq!(m.check_cameras(), Ok(()));
+    let template = m.cameras[&7].clone();
+    for id in 20..27 {
+        let model = if id == 20 {
+            CameraModel::OpencvFisheye
+        } else {
+            CameraModel::Fov
+        };
+        m.cameras.insert(
+            id,
+            Camera {
+                id,
+                model,
+                ..template.clone()
+            },
+        );
+    }
+    let e = m.check_cameras().expect_err("fisheye and FOV cameras");
+    assert!(
+        e.starts_with(
+            "unsupported camera model (camera 20 uses OPENCV_FISHEYE, camera 21 uses FOV"
+        ),
+        "{e}"
+    );
+    assert!(e.contains("and 2 more)"), "{e}");
+    assert!(
+        e.ends_with("supported: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV"),
+        "{e}"
+    );
+    let project = ColmapProject {
+        sparse_dir: PathBuf::new(),
+        images_dir: None,
+        binary: true,
+    };
+    let s = summary(&project, &m);
+    assert_eq!(s["format"], "binary");
+    assert_eq!(s["cameras"], 9);
+    assert_eq!(
+        s["camera_models"],
+        serde_json::json!(["FOV", "OPENCV", "OPENCV_FISHEYE", "PINHOLE"])
+    );
+}
+
+#[test]
 fn text_and_binary_round_trips_are_exact() {
     let dir = tempfile::tempdir().unwrap();
     let m = model();
