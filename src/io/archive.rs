@@ -14,7 +14,7 @@ use std::rc::Rc;
 
 use serde::Serialize;
 
-use super::safe_relative_path;
+use super::{IoError, safe_relative_path};
 use crate::progress::Progress;
 
 /// Limits of one extraction.
@@ -75,21 +75,14 @@ pub enum ArchiveError {
     RatioExceeded { ratio: f64, limit: f64 },
     #[error("corrupt archive: {fault}")]
     Corrupt { fault: String },
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("cancelled")]
-    Cancelled,
+    /// A file could not be read or written (`IoError::Io`, so a full disk stays visible), or
+    /// the progress sink cancelled (`IoError::Cancelled`).
+    #[error(transparent)]
+    File(#[from] IoError),
 }
 
 fn io_err(path: &Path) -> impl Fn(std::io::Error) -> ArchiveError + '_ {
-    move |source| ArchiveError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
+    move |source| IoError::io(path, source).into()
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -127,7 +120,7 @@ struct Sink<'a> {
 impl Sink<'_> {
     fn entry(&mut self, name: &str) -> Result<Option<PathBuf>, ArchiveError> {
         if self.progress.is_cancelled() {
-            return Err(ArchiveError::Cancelled);
+            return Err(ArchiveError::File(IoError::Cancelled));
         }
         self.summary.entries += 1;
         if self.summary.entries > self.limits.max_entries {
@@ -198,7 +191,7 @@ impl Sink<'_> {
                 });
             }
             if self.progress.is_cancelled() {
-                return Err(ArchiveError::Cancelled);
+                return Err(ArchiveError::File(IoError::Cancelled));
             }
             out.write_all(&buf[..n]).map_err(io_err(path))?;
             self.summary.unpacked_bytes = total;

@@ -132,19 +132,13 @@ fn inspect_colmap(
     progress: &dyn Progress,
 ) -> Result<serde_json::Value, InspectError> {
     if unpack_dir.exists() {
-        std::fs::remove_dir_all(unpack_dir).map_err(|e| {
-            InspectError::Io(IoError::Io {
-                path: unpack_dir.to_path_buf(),
-                source: e,
-            })
-        })?;
+        std::fs::remove_dir_all(unpack_dir)
+            .map_err(|e| InspectError::Io(IoError::io(unpack_dir, e)))?;
     }
     let summary =
         archive::extract_archive(blob, unpack_dir, limits, progress).map_err(|e| match e {
-            archive::ArchiveError::Io { path, source } => {
-                InspectError::Io(IoError::Io { path, source })
-            }
-            archive::ArchiveError::Cancelled => InspectError::Cancelled,
+            archive::ArchiveError::File(IoError::Cancelled) => InspectError::Cancelled,
+            archive::ArchiveError::File(e) => InspectError::Io(e),
             other => InspectError::Unusable(format!("archive: {other}")),
         })?;
     let project = colmap::find_project(unpack_dir)?;
