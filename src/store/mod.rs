@@ -57,6 +57,21 @@ pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ 
     }
 }
 
+/// A request body as it arrives: pieces of bytes, or the error that cut it short (reported as
+/// [`StoreError::Body`]). Every stream of `Result<Bytes, E: Display>` is one.
+pub trait Body: Stream<Item = Result<bytes::Bytes, Self::Fault>> + Unpin {
+    /// What a failed read of the body says.
+    type Fault: std::fmt::Display;
+}
+
+impl<S, E> Body for S
+where
+    S: Stream<Item = Result<bytes::Bytes, E>> + Unpin,
+    E: std::fmt::Display,
+{
+    type Fault = E;
+}
+
 /// The size and SHA-256 of bytes as they stream past.
 #[derive(Default)]
 struct Tally {
@@ -180,17 +195,13 @@ impl BlobStore {
     /// Stores part `n` of upload `id`, hashing as it goes: on disk (temp file, sync, rename)
     /// or as one object. Fails without leaving anything behind when the body exceeds `limit`
     /// bytes. Returns size and SHA-256 (hex).
-    pub async fn write_part<S, E>(
+    pub async fn write_part(
         &self,
         id: &str,
         n: i64,
-        body: S,
+        body: impl Body,
         limit: u64,
-    ) -> Result<(u64, String), StoreError>
-    where
-        S: Stream<Item = Result<bytes::Bytes, E>> + Unpin,
-        E: std::fmt::Display,
-    {
+    ) -> Result<(u64, String), StoreError> {
         match &self.remote {
             Some(r) => {
                 r.put_stream(&format!("uploads/{id}/parts/{n}"), body, limit)
@@ -200,17 +211,13 @@ impl BlobStore {
         }
     }
 
-    async fn write_part_local<S, E>(
+    async fn write_part_local(
         &self,
         id: &str,
         n: i64,
-        mut body: S,
+        mut body: impl Body,
         limit: u64,
-    ) -> Result<(u64, String), StoreError>
-    where
-        S: Stream<Item = Result<bytes::Bytes, E>> + Unpin,
-        E: std::fmt::Display,
-    {
+    ) -> Result<(u64, String), StoreError> {
         let dir = self.upload_dir(id).join("parts");
         tokio::fs::create_dir_all(&dir).await.map_err(io(&dir))?;
         let tmp = dir.join(format!(".{n}.{}.tmp", uuid::Uuid::new_v4().simple()));

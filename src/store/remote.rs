@@ -22,7 +22,7 @@ use object_store::signer::Signer;
 use object_store::{ObjectStore, ObjectStoreExt, WriteMultipart};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-use super::{StoreError, Tally};
+use super::{Body, StoreError, Tally};
 
 /// Bytes per multipart piece (S3's smallest part, except the last, is 5 MiB).
 const PIECE: usize = 5 << 20;
@@ -115,16 +115,12 @@ impl Remote {
 
     /// Streams `body` into the object `rel`, hashing as it goes; nothing is left behind when
     /// it fails or exceeds `limit` bytes.
-    pub async fn put_stream<S, E>(
+    pub async fn put_stream(
         &self,
         rel: &str,
-        mut body: S,
+        mut body: impl Body,
         limit: u64,
-    ) -> Result<(u64, String), StoreError>
-    where
-        S: Stream<Item = Result<bytes::Bytes, E>> + Unpin,
-        E: std::fmt::Display,
-    {
+    ) -> Result<(u64, String), StoreError> {
         let upload = self.store.put_multipart(&self.key(rel)).await.map_err(os)?;
         let mut w = WriteMultipart::new_with_chunk_size(upload, PIECE);
         let mut tally = Tally::default();
