@@ -207,8 +207,9 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let mut surface: Option<SurfaceTarget> = None;
     let mut refine_start: Option<Similarity> = None;
     let mut start_used = "control_points";
+    let rays = camera_rays(&model);
     let gps = if ctx.inputs.control_points.is_none() && p.start != RegisterStart::Search {
-        gps_pairs(ctx, &model, &sfm, &cloud.positions, offset)?
+        gps_pairs(ctx, &model, &sfm, &rays, &cloud.positions, offset)?
     } else {
         None
     };
@@ -252,7 +253,6 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             ));
         }
         None => {
-            let rays = camera_rays(&model);
             let st = SurfaceTarget::new(
                 &cloud.positions,
                 p.refine_voxel_m,
@@ -680,6 +680,7 @@ fn gps_pairs(
     ctx: &StageContext<'_>,
     model: &ColmapModel,
     sfm: &[DVec3],
+    rays: &[(DVec3, DVec3)],
     lidar: &[Vec3],
     offset: DVec3,
 ) -> Result<Option<GpsPairs>, StageError> {
@@ -730,8 +731,7 @@ fn gps_pairs(
     if pairs.is_empty() {
         return Ok(None);
     }
-    let rays = camera_rays(model);
-    let (fit, fit_error) = match geom::coarse::from_positions(sfm, &rays, &pairs, lidar) {
+    let (fit, fit_error) = match geom::coarse::from_positions(sfm, rays, &pairs, lidar) {
         Ok(f) => (Some(f), None),
         Err(e) if forced => {
             return Err(StageError::Input(format!(
@@ -751,13 +751,11 @@ fn gps_pairs(
 /// LiDAR cloud's extent widened by 20 m (100 m vertically): then its frame is probably the
 /// LiDAR's CRS already.
 fn model_in_lidar_frame(sfm: &[DVec3], cloud: &PointCloud) -> bool {
-    let (mut lo, mut hi) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
-    for q in &cloud.positions {
-        lo = lo.min(q.as_dvec3());
-        hi = hi.max(q.as_dvec3());
-    }
+    let Some((lo, hi)) = cloud.bounds() else {
+        return false;
+    };
     let margin = DVec3::new(20.0, 20.0, 100.0);
-    let (lo, hi) = (lo - margin + cloud.offset, hi + margin + cloud.offset);
+    let (lo, hi) = (lo - margin, hi + margin);
     let inside = sfm
         .iter()
         .filter(|q| q.cmpge(lo).all() && q.cmple(hi).all())

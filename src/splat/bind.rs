@@ -207,6 +207,18 @@ pub fn project_one(
     log_scale[2] = log_scale[2].min(cfg.normal_scale_m.ln());
 }
 
+/// [`project_one`] on Gaussian `i` of `model`.
+fn project_gaussian(model: &mut Gaussians, i: usize, a: Vec3, n: Vec3, cfg: &BindConfig) {
+    project_one(
+        &mut model.means[i],
+        &mut model.log_scales[i],
+        &mut model.rotations[i],
+        a,
+        n,
+        cfg,
+    );
+}
+
 /// The Hamilton product a ⊗ b of quaternions (w, x, y, z).
 fn hamilton(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
     [
@@ -228,14 +240,7 @@ pub fn project(model: &mut Gaussians, index: &AnchorIndex, cfg: &BindConfig) -> 
         let Some((a, n)) = index.nearest_trunk(Vec3::from_array(model.means[i])) else {
             continue;
         };
-        project_one(
-            &mut model.means[i],
-            &mut model.log_scales[i],
-            &mut model.rotations[i],
-            a,
-            n,
-            cfg,
-        );
+        project_gaussian(model, i, a, n, cfg);
         bound += 1;
     }
     bound
@@ -271,14 +276,7 @@ pub fn surfel_init(model: &mut Gaussians, index: &AnchorIndex, cfg: &BindConfig)
         let q = Quat::from_rotation_arc(Vec3::Z, n);
         model.rotations[i] = [q.w, q.x, q.y, q.z];
         model.log_scales[i] = [tangential.max(thin), tangential.max(thin), thin];
-        project_one(
-            &mut model.means[i],
-            &mut model.log_scales[i],
-            &mut model.rotations[i],
-            a,
-            n,
-            cfg,
-        );
+        project_gaussian(model, i, a, n, cfg);
         made += 1;
     }
     made
