@@ -31,7 +31,7 @@ use crate::geom::register::{
     AUTOMATIC_MAX_STD_ROTATION_DEG, AUTOMATIC_MAX_STD_SCALE, AUTOMATIC_REFINE_PASSES, CandidateRun,
     SurfaceTarget, icp_from, refine_on_surface, verify_candidates,
 };
-use crate::geom::{self, IcpMethod, IcpParams, RobustKernel, Similarity, VoxelParams};
+use crate::geom::{self, IcpMethod, IcpParams, IcpResult, RobustKernel, Similarity, VoxelParams};
 use crate::io::colmap::{self, ColmapModel};
 use crate::io::gps::GpsFix;
 use crate::io::pointcloud::PointCloud;
@@ -162,6 +162,60 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }
 }
 
+/// What one registration works on, in the LiDAR cloud's local frame: the stage's context and
+/// parameters, the SfM points and cameras, the cloud, the ICP target thinned from it and the
+/// ICP parameters.
+struct Aligner<'a, 'c> {
+    ctx: &'a StageContext<'c>,
+    p: &'a RegisterParams,
+    sfm: Vec<DVec3>,
+    rays: Vec<(DVec3, DVec3)>,
+    cloud: PointCloud,
+    target: Vec<Vec3>,
+    icp: IcpParams,
+}
+
+/// Where the fine stage starts: the coarse similarity, how it was found, and ICP from it.
+struct Start {
+    coarse: Similarity,
+    /// The report's `method`: `control_points` or `automatic`.
+    method: &'static str,
+    /// The report's `start`: `control_points`, `search`, `gps` or `model_frame`.
+    label: &'static str,
+    /// Each control pair's residual under the coarse fit (none without control points).
+    pairs: Vec<serde_json::Value>,
+    confidence: f64,
+    fine: IcpResult,
+    /// The report's `candidates` (null with control points).
+    candidates: serde_json::Value,
+    /// The automatic path's surface and the pose its verification refined to, which the
+    /// refinement goes on from.
+    verified: Option<(SurfaceTarget, Similarity)>,
+}
+
+/// The final pose (local frame) and its figures.
+struct Refined {
+    transform: Similarity,
+    fitness: f64,
+    rmse: f64,
+    iterations: usize,
+    converged: bool,
+    /// The report's `uncertainty` (null without the surface refinement).
+    uncertainty: serde_json::Value,
+}
+
+/// What the georeferenced starts gave when each was verified alone.
+struct StartsWeighed {
+    /// The best start that passed the gates, with its label.
+    chosen: Option<(geom::register::Verified, &'static str)>,
+    /// The starts that reached the cloud, passing or not (they compete again in a search).
+    competing: Vec<(&'static str, CoarseAlignment)>,
+    /// Why each start that did not pass failed.
+    failures: Vec<String>,
+    /// Every candidate run they made, for a refusal.
+    runs: Vec<CandidateRun>,
+}
+
 fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let p = &ctx.params.register;
     let (cloud, model) = load_inputs(ctx)?;
@@ -171,10 +225,7 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             model.points.len()
         )));
     }
-    let offset = cloud.offset;
-    let sfm: Vec<DVec3> = model.points.iter().map(|p| p.xyz).collect();
     ctx.progress.set(0.1);
-
     // ICP target: the LiDAR cloud thinned to `target_voxel_m`.
     let target = geom::voxel_downsample(
         &cloud.positions,
@@ -185,7 +236,110 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         &SubProgress::new(ctx.progress, 0.1, 0.05),
     )?
     .positions;
-    let params = IcpParams {
+    let a = Aligner {
+        ctx,
+        p,
+        sfm: model.points.iter().map(|p| p.xyz).collect(),
+        rays: camera_rays(&model),
+        cloud,
+        target,
+        icp: icp_params(p),
+    };
+    let offset = a.cloud.offset;
+
+    let gps = if ctx.inputs.control_points.is_none() && p.start != RegisterStart::Search {
+        gps_pairs(ctx, &model, &a.sfm, &a.rays, &a.cloud.positions, offset)?
+    } else {
+        None
+    };
+    let start = match &ctx.inputs.control_points {
+        Some(path) => a.control_points(path)?,
+        None if !p.automatic => {
+            return Err(StageError::Input(
+                "control points are required: supply at least 4 pairs (CSV \
+                 sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), or leave \
+                 params.register.automatic on (its default) to align automatically"
+                    .into(),
+            ));
+        }
+        None => a.automatic(gps.as_ref())?,
+    };
+    if ctx.progress.is_cancelled() {
+        return Err(StageError::Cancelled);
+    }
+    let fine = &start.fine;
+    ctx.progress.log(&format!(
+        "ICP: fitness {:.2}, inlier RMSE {:.3} m, scale correction {:.4}, {} iterations",
+        fine.fitness, fine.inlier_rmse, fine.scale, fine.iterations
+    ));
+    let icp_fitness = fine.fitness;
+    let icp_rmse = fine.inlier_rmse;
+    let (coarse, method, label, confidence) =
+        (start.coarse, start.method, start.label, start.confidence);
+    let candidates = start.candidates.clone();
+    let mut pairs = start.pairs.clone();
+    let refined = if p.refine {
+        a.refine(start)?
+    } else {
+        Refined {
+            transform: coarse.then(&start.fine.transform()),
+            fitness: start.fine.fitness,
+            rmse: start.fine.inlier_rmse,
+            iterations: start.fine.iterations,
+            converged: start.fine.converged,
+            uncertainty: serde_json::Value::Null,
+        }
+    };
+    let local = refined.transform;
+    let gps_report = match &gps {
+        Some(g) => a.check_gps(g, &local, method)?,
+        None => serde_json::Value::Null,
+    };
+    // Each control pair's residual under the final transform too (metres, LiDAR frame).
+    if let Some(path) = &ctx.inputs.control_points {
+        let cps = tables::read_control_points(path)?;
+        for (v, c) in pairs.iter_mut().zip(&cps) {
+            v["residual_final_m"] = json!((local.apply(c.sfm) - (c.lidar - offset)).length());
+        }
+    }
+    let to_file = Similarity {
+        translation: local.translation + offset,
+        ..local
+    };
+
+    // Outputs: the model in the LiDAR frame (local coordinates), and the report.
+    let registered = transform_model(&model, &local);
+    let sparse = ctx.out_dir.join("sparse");
+    std::fs::create_dir_all(&sparse).map_err(|e| IoError::io(&sparse, e))?;
+    colmap::write_text(&registered, &sparse)?;
+    ctx.progress.set(1.0);
+    Ok(json!({
+        "sfm_to_lidar": similarity_json(&to_file),
+        "sfm_to_lidar_local": similarity_json(&local),
+        "lidar_offset": [offset.x, offset.y, offset.z],
+        "method": method,
+        "start": label,
+        "gps": gps_report,
+        "coarse": similarity_json(&coarse),
+        "pairs": pairs,
+        "fitness": refined.fitness,
+        "rmse_m": refined.rmse,
+        "icp_fitness": icp_fitness,
+        "icp_rmse_m": icp_rmse,
+        "icp_iterations": refined.iterations,
+        "icp_converged": refined.converged,
+        "uncertainty": refined.uncertainty,
+        "confidence": confidence,
+        "candidates": candidates,
+        "sfm_points": a.sfm.len(),
+        "lidar_points_target": a.target.len(),
+        "registered_model_frame": "lidar_local",
+    }))
+}
+
+/// [`RegisterParams`] as the geometry's ICP parameters.
+fn icp_params(p: &RegisterParams) -> IcpParams {
+    IcpParams {
         method: if p.point_to_plane {
             IcpMethod::PointToPlane
         } else {
@@ -200,244 +354,263 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         },
         relative_rmse_tolerance: p.icp_relative_rmse,
         ..Default::default()
-    };
+    }
+}
 
-    // Coarse, and ICP from it. The automatic path verifies its candidates with one pass of
-    // the surface refinement, whose surface and result the refinement below goes on from.
-    let mut surface: Option<SurfaceTarget> = None;
-    let mut refine_start: Option<Similarity> = None;
-    let mut start_used = "control_points";
-    let rays = camera_rays(&model);
-    let gps = if ctx.inputs.control_points.is_none() && p.start != RegisterStart::Search {
-        gps_pairs(ctx, &model, &sfm, &rays, &cloud.positions, offset)?
-    } else {
-        None
-    };
-    let (coarse, method, pairs, confidence, fine, candidates) = match &ctx.inputs.control_points {
-        Some(path) => {
-            let cps = tables::read_control_points(path)?;
-            let src: Vec<DVec3> = cps.iter().map(|c| c.sfm).collect();
-            let dst: Vec<DVec3> = cps.iter().map(|c| c.lidar - offset).collect();
-            let fit = geom::similarity_from_pairs(&src, &dst, true)
-                .map_err(|e| StageError::Input(format!("{}: {e}", file_name(path))))?;
-            let pairs: Vec<serde_json::Value> = cps
-                .iter()
-                .zip(&fit.residuals)
-                .map(|(c, r)| json!({ "name": c.name, "residual_m": r }))
-                .collect();
-            ctx.progress.log(&format!(
-                "control points: {} pairs, RMSE {:.3} m",
-                cps.len(),
-                fit.rmse
-            ));
-            if ctx.progress.is_cancelled() {
-                return Err(StageError::Cancelled);
-            }
-            let icp_progress = SubProgress::new(ctx.progress, 0.5, 0.4);
-            let fine = icp_from(&sfm, &fit.transform, &target, &params, &icp_progress)?;
-            (
-                fit.transform,
-                "control_points",
-                pairs,
-                1.0,
-                fine,
-                serde_json::Value::Null,
-            )
+impl Aligner<'_, '_> {
+    /// The coarse similarity from the control point pairs (Umeyama), and ICP from it.
+    fn control_points(&self, path: &Path) -> Result<Start, StageError> {
+        let offset = self.cloud.offset;
+        let cps = tables::read_control_points(path)?;
+        let src: Vec<DVec3> = cps.iter().map(|c| c.sfm).collect();
+        let dst: Vec<DVec3> = cps.iter().map(|c| c.lidar - offset).collect();
+        let fit = geom::similarity_from_pairs(&src, &dst, true)
+            .map_err(|e| StageError::Input(format!("{}: {e}", file_name(path))))?;
+        let pairs: Vec<serde_json::Value> = cps
+            .iter()
+            .zip(&fit.residuals)
+            .map(|(c, r)| json!({ "name": c.name, "residual_m": r }))
+            .collect();
+        self.ctx.progress.log(&format!(
+            "control points: {} pairs, RMSE {:.3} m",
+            cps.len(),
+            fit.rmse
+        ));
+        if self.ctx.progress.is_cancelled() {
+            return Err(StageError::Cancelled);
         }
-        None if !p.automatic => {
-            return Err(StageError::Input(
-                "control points are required: supply at least 4 pairs (CSV \
-                 sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), or leave \
-                 params.register.automatic on (its default) to align automatically"
-                    .into(),
-            ));
-        }
-        None => {
-            let st = SurfaceTarget::new(
-                &cloud.positions,
-                p.refine_voxel_m,
-                &SubProgress::new(ctx.progress, 0.12, 0.03),
-            )?;
-            let starts = georeferenced_starts(ctx, &sfm, &cloud, gps.as_ref())?;
-            let mut chosen: Option<(geom::register::Verified, &'static str)> = None;
-            // Each georeferenced start is verified on its own (one far off the cloud, as from
-            // a wrong CRS, fails ICP without taking the others down); the best that passes
-            // the gates is taken.
-            let mut competing: Vec<(&'static str, CoarseAlignment)> = Vec::new();
-            let mut failures: Vec<String> = Vec::new();
-            let mut weighed_runs: Vec<CandidateRun> = Vec::new();
-            for (k, (label, start)) in starts.iter().enumerate() {
-                let share = 0.15 / starts.len() as f64;
-                let verified = verify_candidates(
-                    &sfm,
-                    std::slice::from_ref(start),
-                    &target,
-                    &params,
-                    &st,
-                    &surface_params(p),
-                    &SubProgress::new(ctx.progress, 0.15 + share * k as f64, share),
-                );
-                let v = match verified {
-                    Ok(v) => v,
-                    Err(geom::GeomError::Cancelled) => return Err(StageError::Cancelled),
-                    Err(e) => {
-                        ctx.progress
-                            .log(&format!("the {label} start does not reach the cloud: {e}"));
-                        failures.push(format!("the {label} start does not reach the cloud ({e})"));
-                        continue;
-                    }
-                };
-                ctx.progress.log(&format!(
-                    "{label} start: on-cloud share {:.3} (elevated {:.3}); confidence {:.2}",
-                    v.best_fit, v.best_elevated, v.confidence
+        let icp_progress = SubProgress::new(self.ctx.progress, 0.5, 0.4);
+        let fine = icp_from(
+            &self.sfm,
+            &fit.transform,
+            &self.target,
+            &self.icp,
+            &icp_progress,
+        )?;
+        Ok(Start {
+            coarse: fit.transform,
+            method: "control_points",
+            label: "control_points",
+            pairs,
+            confidence: 1.0,
+            fine,
+            candidates: serde_json::Value::Null,
+            verified: None,
+        })
+    }
+
+    /// The automatic alignment: the georeferenced starts the data give, each verified alone;
+    /// when none passes (or there is none), the search over yaw, scale and offset, with the
+    /// starts that reached the cloud competing. Refuses when no candidate clearly puts the
+    /// SfM points on the cloud.
+    fn automatic(&self, gps: Option<&GpsPairs>) -> Result<Start, StageError> {
+        let (ctx, p) = (self.ctx, self.p);
+        let st = SurfaceTarget::new(
+            &self.cloud.positions,
+            p.refine_voxel_m,
+            &SubProgress::new(ctx.progress, 0.12, 0.03),
+        )?;
+        let starts = georeferenced_starts(ctx, &self.sfm, &self.cloud, gps)?;
+        let weighed_starts = self.verify_starts(&starts, &st)?;
+        if weighed_starts.chosen.is_none() && !starts.is_empty() {
+            if p.start != RegisterStart::Auto {
+                let labels: Vec<&str> = weighed_starts.competing.iter().map(|s| s.0).collect();
+                return Err(refused(
+                    &weighed_starts.runs,
+                    &labels,
+                    format!(
+                        "automatic registration rejected: {}. {}. Set \
+                         params.register.start = \"search\" to search without it, or \
+                         {SUPPLY_CONTROL_POINTS}",
+                        weighed_starts.failures.join("; "),
+                        weighed(&weighed_starts.runs)
+                    ),
                 ));
-                weighed_runs.extend(v.candidates.iter().copied());
-                competing.push((label, start.clone()));
-                let passes = v.best_fit >= p.min_fitness && v.confidence >= p.min_confidence;
-                if !passes {
-                    failures.push(format!(
-                        "from the {label} start ICP and the surface refinement put {:.0}% of the \
-                         SfM points on the LiDAR cloud (at least {:.0}% needed) with confidence \
-                         {:.2} (at least {:.2} needed)",
-                        v.best_fit * 100.0,
-                        p.min_fitness * 100.0,
-                        v.confidence,
-                        p.min_confidence
-                    ));
-                } else if chosen.as_ref().is_none_or(|(c, _)| {
-                    v.best_fit + v.best_elevated > c.best_fit + c.best_elevated
-                }) {
-                    chosen = Some((v, label));
-                }
             }
-            if chosen.is_none() && !starts.is_empty() {
-                if p.start != RegisterStart::Auto {
-                    let labels: Vec<&str> = competing.iter().map(|s| s.0).collect();
-                    return Err(refused(
-                        &weighed_runs,
-                        &labels,
-                        format!(
-                            "automatic registration rejected: {}. {}. Set \
-                             params.register.start = \"search\" to search without it, or \
-                             {SUPPLY_CONTROL_POINTS}",
-                            failures.join("; "),
-                            weighed(&weighed_runs)
-                        ),
-                    ));
-                }
-                ctx.progress.log(
-                    "no georeferenced start verified; searching over yaw, scale and offset \
-                     instead",
-                );
-            }
-            let (v, start) = match chosen {
-                Some(found) => found,
-                None => {
-                    let mut cands = geom::coarse::align_candidates(
-                        &sfm,
-                        &rays,
-                        &cloud.positions,
-                        &geom::coarse::CoarseParams::default(),
-                        &SubProgress::new(ctx.progress, 0.3, 0.2),
-                    )
-                    .map_err(|e| match e {
-                        geom::GeomError::Cancelled => StageError::Cancelled,
-                        other => StageError::Input(format!(
-                            "automatic registration failed ({other}); {SUPPLY_CONTROL_POINTS}"
-                        )),
-                    })?;
-                    if cands.is_empty() {
-                        return Err(StageError::Input(format!(
-                            "automatic registration found no candidate alignment; \
-                             {SUPPLY_CONTROL_POINTS}"
-                        )));
-                    }
-                    // A georeferenced start that reached the cloud but did not verify alone
-                    // still competes.
-                    let mut labels = vec!["search"; cands.len()];
-                    labels.extend(competing.iter().map(|s| s.0));
-                    cands.extend(competing.iter().map(|s| s.1.clone()));
-                    let v = verify_candidates(
-                        &sfm,
-                        &cands,
-                        &target,
-                        &params,
-                        &st,
-                        &surface_params(p),
-                        &SubProgress::new(ctx.progress, 0.55, 0.35),
-                    )?;
-                    ctx.progress.log(&format!(
-                        "automatic alignment: {} candidates verified by ICP; best on-cloud share \
-                         {:.3} (elevated {:.3}), best distinct other {:.3}; confidence {:.2}",
-                        cands.len(),
-                        v.best_fit,
-                        v.best_elevated,
-                        v.runner_up,
-                        v.confidence
-                    ));
-                    if v.best_fit < p.min_fitness {
-                        return Err(refused(
-                            &v.candidates,
-                            &labels,
-                            format!(
-                                "automatic registration rejected: after ICP and the surface \
-                             refinement only {:.0}% of the SfM points lie on the LiDAR cloud \
-                             (< {:.0}%); the photos and the scan may not overlap. {}; {SUPPLY_CONTROL_POINTS}",
-                                v.best_fit * 100.0,
-                                p.min_fitness * 100.0,
-                                weighed(&v.candidates)
-                            ),
-                        ));
-                    }
-                    if v.confidence < p.min_confidence {
-                        return Err(refused(
-                            &v.candidates,
-                            &labels,
-                            format!(
-                                "automatic registration is not confident enough ({:.2} < {:.2}): \
-                             no candidate alignment clearly puts the photos' points on the \
-                             LiDAR cloud (the best scores {:.2}, the best distinct other \
-                             {:.2}); the photos and the scan may not overlap. {}; {SUPPLY_CONTROL_POINTS}",
-                                v.confidence,
-                                p.min_confidence,
-                                v.best_fit + v.best_elevated,
-                                v.runner_up,
-                                weighed(&v.candidates)
-                            ),
-                        ));
-                    }
-                    let best = v
-                        .candidates
-                        .iter()
-                        .enumerate()
-                        .max_by(|a, b| a.1.score().total_cmp(&b.1.score()))
-                        .map_or(0, |(i, _)| i);
-                    let start = labels.get(best).copied().unwrap_or("search");
-                    (v, start)
+            ctx.progress.log(
+                "no georeferenced start verified; searching over yaw, scale and offset instead",
+            );
+        }
+        let (v, label) = match weighed_starts.chosen {
+            Some(found) => found,
+            None => self.search(&weighed_starts.competing, &st)?,
+        };
+        Ok(Start {
+            coarse: v.coarse,
+            method: "automatic",
+            label,
+            pairs: Vec::new(),
+            confidence: v.confidence,
+            candidates: candidates_json(&v.candidates),
+            fine: v.fine,
+            verified: Some((st, v.refined)),
+        })
+    }
+
+    /// Verifies each georeferenced start on its own (one far off the cloud, as from a wrong
+    /// CRS, fails ICP without taking the others down) and keeps the best that passes the
+    /// gates.
+    fn verify_starts(
+        &self,
+        starts: &[(&'static str, CoarseAlignment)],
+        st: &SurfaceTarget,
+    ) -> Result<StartsWeighed, StageError> {
+        let (ctx, p) = (self.ctx, self.p);
+        let mut out = StartsWeighed {
+            chosen: None,
+            competing: Vec::new(),
+            failures: Vec::new(),
+            runs: Vec::new(),
+        };
+        for (k, (label, start)) in starts.iter().enumerate() {
+            let share = 0.15 / starts.len() as f64;
+            let verified = verify_candidates(
+                &self.sfm,
+                std::slice::from_ref(start),
+                &self.target,
+                &self.icp,
+                st,
+                &surface_params(p),
+                &SubProgress::new(ctx.progress, 0.15 + share * k as f64, share),
+            );
+            let v = match verified {
+                Ok(v) => v,
+                Err(geom::GeomError::Cancelled) => return Err(StageError::Cancelled),
+                Err(e) => {
+                    ctx.progress
+                        .log(&format!("the {label} start does not reach the cloud: {e}"));
+                    out.failures
+                        .push(format!("the {label} start does not reach the cloud ({e})"));
+                    continue;
                 }
             };
-            surface = Some(st);
-            refine_start = Some(v.refined);
-            start_used = start;
-            (
-                v.coarse,
-                "automatic",
-                Vec::new(),
-                v.confidence,
-                v.fine,
-                candidates_json(&v.candidates),
-            )
+            ctx.progress.log(&format!(
+                "{label} start: on-cloud share {:.3} (elevated {:.3}); confidence {:.2}",
+                v.best_fit, v.best_elevated, v.confidence
+            ));
+            out.runs.extend(v.candidates.iter().copied());
+            out.competing.push((label, start.clone()));
+            let passes = v.best_fit >= p.min_fitness && v.confidence >= p.min_confidence;
+            if !passes {
+                out.failures.push(format!(
+                    "from the {label} start ICP and the surface refinement put {:.0}% of the \
+                     SfM points on the LiDAR cloud (at least {:.0}% needed) with confidence \
+                     {:.2} (at least {:.2} needed)",
+                    v.best_fit * 100.0,
+                    p.min_fitness * 100.0,
+                    v.confidence,
+                    p.min_confidence
+                ));
+            } else if out
+                .chosen
+                .as_ref()
+                .is_none_or(|(c, _)| v.best_fit + v.best_elevated > c.best_fit + c.best_elevated)
+            {
+                out.chosen = Some((v, label));
+            }
         }
-    };
-    if ctx.progress.is_cancelled() {
-        return Err(StageError::Cancelled);
+        Ok(out)
     }
-    ctx.progress.log(&format!(
-        "ICP: fitness {:.2}, inlier RMSE {:.3} m, scale correction {:.4}, {} iterations",
-        fine.fitness, fine.inlier_rmse, fine.scale, fine.iterations
-    ));
-    let icp_t = coarse.then(&fine.transform());
-    let (local, fitness, rmse, iterations, converged, uncertainty) = if p.refine {
+
+    /// The search over yaw, scale and offset ([`geom::coarse::align_candidates`]), its
+    /// candidates and the georeferenced starts in `competing` verified together; refuses
+    /// when the best is not on the cloud or not clearly better than the others.
+    fn search(
+        &self,
+        competing: &[(&'static str, CoarseAlignment)],
+        st: &SurfaceTarget,
+    ) -> Result<(geom::register::Verified, &'static str), StageError> {
+        let (ctx, p) = (self.ctx, self.p);
+        let mut cands = geom::coarse::align_candidates(
+            &self.sfm,
+            &self.rays,
+            &self.cloud.positions,
+            &geom::coarse::CoarseParams::default(),
+            &SubProgress::new(ctx.progress, 0.3, 0.2),
+        )
+        .map_err(|e| match e {
+            geom::GeomError::Cancelled => StageError::Cancelled,
+            other => StageError::Input(format!(
+                "automatic registration failed ({other}); {SUPPLY_CONTROL_POINTS}"
+            )),
+        })?;
+        if cands.is_empty() {
+            return Err(StageError::Input(format!(
+                "automatic registration found no candidate alignment; {SUPPLY_CONTROL_POINTS}"
+            )));
+        }
+        // A georeferenced start that reached the cloud but did not verify alone still
+        // competes.
+        let mut labels = vec!["search"; cands.len()];
+        labels.extend(competing.iter().map(|s| s.0));
+        cands.extend(competing.iter().map(|s| s.1.clone()));
+        let v = verify_candidates(
+            &self.sfm,
+            &cands,
+            &self.target,
+            &self.icp,
+            st,
+            &surface_params(p),
+            &SubProgress::new(ctx.progress, 0.55, 0.35),
+        )?;
+        ctx.progress.log(&format!(
+            "automatic alignment: {} candidates verified by ICP; best on-cloud share {:.3} \
+             (elevated {:.3}), best distinct other {:.3}; confidence {:.2}",
+            cands.len(),
+            v.best_fit,
+            v.best_elevated,
+            v.runner_up,
+            v.confidence
+        ));
+        if v.best_fit < p.min_fitness {
+            return Err(refused(
+                &v.candidates,
+                &labels,
+                format!(
+                    "automatic registration rejected: after ICP and the surface refinement only \
+                     {:.0}% of the SfM points lie on the LiDAR cloud (< {:.0}%); the photos and \
+                     the scan may not overlap. {}; {SUPPLY_CONTROL_POINTS}",
+                    v.best_fit * 100.0,
+                    p.min_fitness * 100.0,
+                    weighed(&v.candidates)
+                ),
+            ));
+        }
+        if v.confidence < p.min_confidence {
+            return Err(refused(
+                &v.candidates,
+                &labels,
+                format!(
+                    "automatic registration is not confident enough ({:.2} < {:.2}): no \
+                     candidate alignment clearly puts the photos' points on the LiDAR cloud \
+                     (the best scores {:.2}, the best distinct other {:.2}); the photos and the \
+                     scan may not overlap. {}; {SUPPLY_CONTROL_POINTS}",
+                    v.confidence,
+                    p.min_confidence,
+                    v.best_fit + v.best_elevated,
+                    v.runner_up,
+                    weighed(&v.candidates)
+                ),
+            ));
+        }
+        let best = v
+            .candidates
+            .iter()
+            .enumerate()
+            .max_by(|a, b| a.1.score().total_cmp(&b.1.score()))
+            .map_or(0, |(i, _)| i);
+        let label = labels.get(best).copied().unwrap_or("search");
+        Ok((v, label))
+    }
+
+    /// The surface refinement from `start` (the automatic path's verified pose, else ICP's),
+    /// with the control points as extra observations when there are any, and its standard
+    /// errors: per parameter the larger of the normal matrix's and the split halves' spread.
+    /// Refuses an automatic alignment that the SfM points do not pin down.
+    fn refine(&self, start: Start) -> Result<Refined, StageError> {
+        let (ctx, p) = (self.ctx, self.p);
+        let offset = self.cloud.offset;
+        let automatic = start.method == "automatic";
         let pairs_local = match &ctx.inputs.control_points {
             Some(path) => {
                 let cps = tables::read_control_points(path)?;
@@ -448,18 +621,21 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             }
             None => None,
         };
-        let surface = match surface.take() {
-            Some(s) => s,
-            None => SurfaceTarget::new(
-                &cloud.positions,
-                p.refine_voxel_m,
-                &SubProgress::new(ctx.progress, 0.9, 0.02),
-            )?,
+        let (surface, from) = match start.verified {
+            Some((surface, refined)) => (surface, refined),
+            None => (
+                SurfaceTarget::new(
+                    &self.cloud.positions,
+                    p.refine_voxel_m,
+                    &SubProgress::new(ctx.progress, 0.9, 0.02),
+                )?,
+                start.coarse.then(&start.fine.transform()),
+            ),
         };
         let r = refine_on_surface(
-            &sfm,
+            &self.sfm,
             &surface,
-            &refine_start.unwrap_or(icp_t),
+            &from,
             pairs_local.as_ref().map(|(a, b)| geom::surface::PairPrior {
                 sfm: a,
                 lidar: b,
@@ -467,9 +643,9 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             }),
             &surface_params(p),
             // Without control points the pose after ICP is often still tenths of a degree and
-            // about a percent off (docs/results/registration.md: stand 1 left ICP at 0.37° and 1.2 %); further
-            // passes carry the refinement on from where the last stopped.
-            if method == "automatic" {
+            // about a percent off (docs/results/registration.md: stand 1 left ICP at 0.37° and
+            // 1.2 %); further passes carry the refinement on from where the last stopped.
+            if automatic {
                 AUTOMATIC_REFINE_PASSES
             } else {
                 1
@@ -488,7 +664,7 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         ));
         let split = if p.uncertainty_splits > 0 {
             Some(geom::surface::split_half_spread(
-                &sfm,
+                &self.sfm,
                 &surface.thin,
                 &surface.index,
                 &r.transform,
@@ -523,7 +699,7 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             ));
         }
         let std_rot = std_rotation_deg.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if method == "automatic"
+        if automatic
             && (std_rot > AUTOMATIC_MAX_STD_ROTATION_DEG || std_scale > AUTOMATIC_MAX_STD_SCALE)
         {
             return Err(StageError::Input(format!(
@@ -536,118 +712,65 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                 AUTOMATIC_MAX_STD_SCALE * 100.0
             )));
         }
-        let u = json!({
-            "rotation_deg": std_rotation_deg,
-            "scale": std_scale,
-            "translation_m": std_translation_m,
-            "points_on_surfaces": r.used,
-            "normal_matrix": {
-                "rotation_deg": r.std_rotation_deg,
-                "scale": r.std_scale,
-                "translation_m": r.std_translation_m,
-            },
-            "split_half": split,
-        });
-        (
-            r.transform,
-            r.fitness,
-            r.rmse_m,
-            fine.iterations + r.iterations,
-            r.converged,
-            u,
-        )
-    } else {
-        (
-            icp_t,
-            fine.fitness,
-            fine.inlier_rmse,
-            fine.iterations,
-            fine.converged,
-            serde_json::Value::Null,
-        )
-    };
-    // The photos' GPS positions against where the alignment puts their cameras.
-    let gps_report = match &gps {
-        Some(g) => {
-            let fit = g.fit.as_ref();
-            let final_rms = g.rms_under(&local);
-            let bound = p
-                .max_gps_disagreement_m
-                .max(fit.map_or(0.0, |f| 3.0 * f.rms_m));
-            ctx.progress.log(&format!(
-                "GPS: {} photos with a position; the alignment puts their cameras {final_rms:.2} m \
-                 (RMS, horizontal) from them",
-                g.pairs.len()
-            ));
-            if method == "automatic" && final_rms > bound {
-                return Err(StageError::Input(format!(
-                    "automatic registration contradicts the photos' GPS positions: it puts the \
-                     cameras {final_rms:.1} m (RMS, horizontal) from where their GPS says they \
-                     were (at most {bound:.1} m accepted). Check the LiDAR's CRS (params.crs), \
-                     set params.register.start = \"search\" to ignore the GPS, or \
-                     {SUPPLY_CONTROL_POINTS}"
-                )));
-            }
-            json!({
-                "photos": g.pairs.len(),
-                "fit_used": fit.map(|f| f.used),
-                "fit_rms_m": fit.map(|f| f.rms_m),
-                "fit_yaw_std_deg": fit.map(|f| f.yaw_std_deg),
-                "fit_error": g.fit_error,
-                "final_rms_m": final_rms,
-            })
-        }
-        None => serde_json::Value::Null,
-    };
-    // Each control pair's residual under the final transform too (metres, LiDAR frame).
-    let pairs: Vec<serde_json::Value> = match &ctx.inputs.control_points {
-        Some(path) => {
-            let cps = tables::read_control_points(path)?;
-            pairs
-                .into_iter()
-                .zip(&cps)
-                .map(|(mut v, c)| {
-                    let r = (local.apply(c.sfm) - (c.lidar - offset)).length();
-                    v["residual_final_m"] = json!(r);
-                    v
-                })
-                .collect()
-        }
-        None => pairs,
-    };
-    let to_file = Similarity {
-        translation: local.translation + offset,
-        ..local
-    };
+        Ok(Refined {
+            transform: r.transform,
+            fitness: r.fitness,
+            rmse: r.rmse_m,
+            iterations: start.fine.iterations + r.iterations,
+            converged: r.converged,
+            uncertainty: json!({
+                "rotation_deg": std_rotation_deg,
+                "scale": std_scale,
+                "translation_m": std_translation_m,
+                "points_on_surfaces": r.used,
+                "normal_matrix": {
+                    "rotation_deg": r.std_rotation_deg,
+                    "scale": r.std_scale,
+                    "translation_m": r.std_translation_m,
+                },
+                "split_half": split,
+            }),
+        })
+    }
 
-    // Outputs: the model in the LiDAR frame (local coordinates), and the report.
-    let registered = transform_model(&model, &local);
-    let sparse = ctx.out_dir.join("sparse");
-    std::fs::create_dir_all(&sparse).map_err(|e| IoError::io(&sparse, e))?;
-    colmap::write_text(&registered, &sparse)?;
-    ctx.progress.set(1.0);
-    Ok(json!({
-        "sfm_to_lidar": similarity_json(&to_file),
-        "sfm_to_lidar_local": similarity_json(&local),
-        "lidar_offset": [offset.x, offset.y, offset.z],
-        "method": method,
-        "start": start_used,
-        "gps": gps_report,
-        "coarse": similarity_json(&coarse),
-        "pairs": pairs,
-        "fitness": fitness,
-        "rmse_m": rmse,
-        "icp_fitness": fine.fitness,
-        "icp_rmse_m": fine.inlier_rmse,
-        "icp_iterations": iterations,
-        "icp_converged": converged,
-        "uncertainty": uncertainty,
-        "confidence": confidence,
-        "candidates": candidates,
-        "sfm_points": sfm.len(),
-        "lidar_points_target": target.len(),
-        "registered_model_frame": "lidar_local",
-    }))
+    /// The photos' GPS positions against where the alignment `local` puts their cameras: the
+    /// report's `gps`. Refuses an automatic alignment that puts them more than
+    /// `max_gps_disagreement_m` (or 3× the GPS fit's RMS) away.
+    fn check_gps(
+        &self,
+        g: &GpsPairs,
+        local: &Similarity,
+        method: &str,
+    ) -> Result<serde_json::Value, StageError> {
+        let fit = g.fit.as_ref();
+        let final_rms = g.rms_under(local);
+        let bound = self
+            .p
+            .max_gps_disagreement_m
+            .max(fit.map_or(0.0, |f| 3.0 * f.rms_m));
+        self.ctx.progress.log(&format!(
+            "GPS: {} photos with a position; the alignment puts their cameras {final_rms:.2} m \
+             (RMS, horizontal) from them",
+            g.pairs.len()
+        ));
+        if method == "automatic" && final_rms > bound {
+            return Err(StageError::Input(format!(
+                "automatic registration contradicts the photos' GPS positions: it puts the \
+                 cameras {final_rms:.1} m (RMS, horizontal) from where their GPS says they \
+                 were (at most {bound:.1} m accepted). Check the LiDAR's CRS (params.crs), \
+                 set params.register.start = \"search\" to ignore the GPS, or \
+                 {SUPPLY_CONTROL_POINTS}"
+            )));
+        }
+        Ok(json!({
+            "photos": g.pairs.len(),
+            "fit_used": fit.map(|f| f.used),
+            "fit_rms_m": fit.map(|f| f.rms_m),
+            "fit_yaw_std_deg": fit.map(|f| f.yaw_std_deg),
+            "fit_error": g.fit_error,
+            "final_rms_m": final_rms,
+        }))
+    }
 }
 
 /// The photos' GPS positions (stage `ingest`'s gps.json) paired with their cameras, in the
