@@ -445,58 +445,14 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         }
         None => None,
     };
-    let mut trunk_note = json!({ "term": params.semantic.as_str() });
-    match (params.semantic, set.as_ref()) {
-        (TrunkTerm::Paper, Some(set)) => {
-            backend.set_semantic(set, &cfg.semantic)?;
-            trunk_note = json!({
-                "term": "paper",
-                "trunk_anchors": set.trunk.len(),
-                "leaf_anchors": set.leaf.len(),
-                "n_pos_m": set.n_pos,
-                "gamma_max": cfg.semantic.gamma_max,
-                "gamma_start": cfg.semantic.gamma_start,
-                "gamma_end": cfg.semantic.gamma_end,
-                "temperature_m": cfg.semantic.temperature_m,
-                "k": cfg.semantic.k,
-                "beta": cfg.semantic.beta,
-            });
-        }
-        (TrunkTerm::Bind, Some(set)) => {
-            if set.trunk_normals.is_empty() {
-                return Err(StageError::Input(
-                    "Sylva's binding needs the anchors' normals (segment/anchors.ply has no nx, ny, nz); rerun from stage anchors, or set params.train.semantic to \"paper\" or \"off\"".into(),
-                ));
-            }
-            let surface = bind::surface_anchors(set, &cfg.bind);
-            let index = AnchorIndex::new(&surface).ok_or_else(|| {
-                StageError::Input("Sylva's binding: the trunk anchors cannot be indexed".into())
-            })?;
-            let surfels = bind::surfel_init(&mut init, &index, &cfg.bind);
-            backend.set_bind(&surface, &cfg.bind)?;
-            ctx.progress.log(&format!(
-                "trunk binding: {surfels} trunk surfels held within {} m of the LiDAR surface",
-                cfg.bind.band_m
-            ));
-            trunk_note = json!({
-                "term": "bind",
-                "trunk_anchors": set.trunk.len(),
-                "leaf_anchors": set.leaf.len(),
-                "surfels": surfels,
-                "band_m": cfg.bind.band_m,
-                "surface_radius_m": cfg.bind.surface_radius_m,
-                "normal_scale_m": cfg.bind.normal_scale_m,
-            });
-        }
-        _ => {
-            cfg.semantic.enabled = false;
-            cfg.bind.enabled = false;
-        }
-    }
-    if set.is_none() {
-        cfg.semantic.enabled = false;
-        cfg.bind.enabled = false;
-    }
+    let trunk_note = trunk_term(
+        ctx,
+        params,
+        &mut cfg,
+        set.as_ref(),
+        &mut init,
+        backend.as_mut(),
+    )?;
     let semantic_applied = (cfg.semantic.enabled && cfg.steps > cfg.semantic.gamma_start)
         || (cfg.bind.enabled && params.semantic == TrunkTerm::Bind);
     let monitor = match set.as_ref() {
@@ -505,23 +461,10 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     };
     // LiDAR depth maps of every view (the anchors splatted at their voxel size): the targets of
     // the depth loss on the training views and the held-out depth error on the others.
-    let footprint = ctx.params.anchors.voxel_size_m as f32;
-    let lidar_points: Option<Vec<[f32; 3]>> = anchors
-        .as_ref()
-        .map(|a| a.iter().map(|x| x.position).collect());
-    let depth_maps = |views: &[crate::splat::cameras::View]| -> HashMap<String, Vec<f32>> {
-        lidar_points.as_ref().map_or_else(HashMap::new, |pts| {
-            views
-                .iter()
-                .map(|v| {
-                    (
-                        v.name.clone(),
-                        crate::splat::depth::lidar_depth(pts, &v.camera, footprint),
-                    )
-                })
-                .collect()
-        })
-    };
+    let lidar = anchors.as_ref().map(|a| LidarDepth {
+        points: a.iter().map(|x| x.position).collect(),
+        footprint_m: ctx.params.anchors.voxel_size_m as f32,
+    });
     if !(params.depth_weight.is_finite() && params.depth_weight >= 0.0) {
         return Err(StageError::Input(format!(
             "params.train.depth_weight must be finite and ≥ 0, got {}",
@@ -529,14 +472,14 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         )));
     }
     if params.depth_weight > 0.0 {
-        if lidar_points.is_none() {
+        let Some(lidar) = &lidar else {
             return Err(StageError::Input(
                 "params.train.depth_weight needs the LiDAR anchors of stage segment".into(),
             ));
-        }
+        };
         backend.set_depth_targets(crate::splat::depth::DepthTargets {
             weight: params.depth_weight as f32,
-            maps: depth_maps(&data.train),
+            maps: lidar.maps(&data.train),
         })?;
     }
     let mut strategy = trainer::strategy_for(&cfg)?;
@@ -554,33 +497,15 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         .map_err(|e| super::io_err(ctx.out_dir, e))?;
     // Held-out depth error against the LiDAR (also without the depth loss, to compare).
     let mut depth_note = json!({ "weight": params.depth_weight });
-    if lidar_points.is_some() && !data.test.is_empty() {
-        let maps = depth_maps(&data.test);
-        let (mut mae, mut rel, mut n) = (0.0, 0.0, 0usize);
-        for v in &data.test {
-            let rendered = backend.render_depth(&v.camera)?;
-            if let Some((a, r)) = maps
-                .get(&v.name)
-                .and_then(|m| crate::splat::depth::depth_error(&rendered, m))
-            {
-                mae += a;
-                rel += r;
-                n += 1;
-            }
-        }
-        if n > 0 {
-            let (mae, rel) = (mae / n as f64, rel / n as f64);
-            ctx.progress.log(&format!(
-                "held-out depth against the LiDAR: mean absolute error {mae:.3} m, relative {:.1} % over {n} views",
-                rel * 100.0
-            ));
-            depth_note = json!({
-                "weight": params.depth_weight,
-                "heldout_mae_m": mae,
-                "heldout_rel": rel,
-                "views": n,
-            });
-        }
+    if let Some(lidar) = &lidar
+        && let Some((mae, rel, views)) = lidar.heldout_error(ctx, backend.as_mut(), &data.test)?
+    {
+        depth_note = json!({
+            "weight": params.depth_weight,
+            "heldout_mae_m": mae,
+            "heldout_rel": rel,
+            "views": views,
+        });
     }
     ctx.progress.set(1.0);
     ctx.progress.log(&format!(
@@ -624,6 +549,125 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "refinements": outcome.refinements.len(),
         "offset": offset,
     }))
+}
+
+/// Sets up the trunk term `params.semantic` asks for on `backend` when the anchors give one
+/// (`set`): the paper's L_geo, or Sylva's binding (whose surfels it starts in `init`); turns
+/// both off in `cfg` otherwise. Returns the report's `semantic`.
+fn trunk_term(
+    ctx: &StageContext<'_>,
+    params: &TrainParams,
+    cfg: &mut crate::splat::config::TrainConfig,
+    set: Option<&SemanticAnchors>,
+    init: &mut Gaussians,
+    backend: &mut dyn Backend,
+) -> Result<serde_json::Value, StageError> {
+    match (params.semantic, set) {
+        (TrunkTerm::Paper, Some(set)) => {
+            backend.set_semantic(set, &cfg.semantic)?;
+            Ok(json!({
+                "term": "paper",
+                "trunk_anchors": set.trunk.len(),
+                "leaf_anchors": set.leaf.len(),
+                "n_pos_m": set.n_pos,
+                "gamma_max": cfg.semantic.gamma_max,
+                "gamma_start": cfg.semantic.gamma_start,
+                "gamma_end": cfg.semantic.gamma_end,
+                "temperature_m": cfg.semantic.temperature_m,
+                "k": cfg.semantic.k,
+                "beta": cfg.semantic.beta,
+            }))
+        }
+        (TrunkTerm::Bind, Some(set)) => {
+            if set.trunk_normals.is_empty() {
+                return Err(StageError::Input(
+                    "Sylva's binding needs the anchors' normals (segment/anchors.ply has no nx, ny, nz); rerun from stage anchors, or set params.train.semantic to \"paper\" or \"off\"".into(),
+                ));
+            }
+            let surface = bind::surface_anchors(set, &cfg.bind);
+            let index = AnchorIndex::new(&surface).ok_or_else(|| {
+                StageError::Input("Sylva's binding: the trunk anchors cannot be indexed".into())
+            })?;
+            let surfels = bind::surfel_init(init, &index, &cfg.bind);
+            backend.set_bind(&surface, &cfg.bind)?;
+            ctx.progress.log(&format!(
+                "trunk binding: {surfels} trunk surfels held within {} m of the LiDAR surface",
+                cfg.bind.band_m
+            ));
+            Ok(json!({
+                "term": "bind",
+                "trunk_anchors": set.trunk.len(),
+                "leaf_anchors": set.leaf.len(),
+                "surfels": surfels,
+                "band_m": cfg.bind.band_m,
+                "surface_radius_m": cfg.bind.surface_radius_m,
+                "normal_scale_m": cfg.bind.normal_scale_m,
+            }))
+        }
+        _ => {
+            cfg.semantic.enabled = false;
+            cfg.bind.enabled = false;
+            Ok(json!({ "term": params.semantic.as_str() }))
+        }
+    }
+}
+
+/// The LiDAR anchors as depth maps: points (training frame, metres) splatted at their voxel
+/// size, `footprint_m`.
+struct LidarDepth {
+    points: Vec<[f32; 3]>,
+    footprint_m: f32,
+}
+
+impl LidarDepth {
+    /// The depth map of each of `views`, by view name.
+    fn maps(&self, views: &[crate::splat::cameras::View]) -> HashMap<String, Vec<f32>> {
+        views
+            .iter()
+            .map(|v| {
+                (
+                    v.name.clone(),
+                    crate::splat::depth::lidar_depth(&self.points, &v.camera, self.footprint_m),
+                )
+            })
+            .collect()
+    }
+
+    /// The trained model's depth on the held-out `views` against the LiDAR's: mean absolute
+    /// error (metres), mean relative error and the views compared, or `None` when no view
+    /// has LiDAR depth to compare.
+    fn heldout_error(
+        &self,
+        ctx: &StageContext<'_>,
+        backend: &mut dyn Backend,
+        views: &[crate::splat::cameras::View],
+    ) -> Result<Option<(f64, f64, usize)>, StageError> {
+        if views.is_empty() {
+            return Ok(None);
+        }
+        let maps = self.maps(views);
+        let (mut mae, mut rel, mut n) = (0.0, 0.0, 0usize);
+        for v in views {
+            let rendered = backend.render_depth(&v.camera)?;
+            if let Some((a, r)) = maps
+                .get(&v.name)
+                .and_then(|m| crate::splat::depth::depth_error(&rendered, m))
+            {
+                mae += a;
+                rel += r;
+                n += 1;
+            }
+        }
+        if n == 0 {
+            return Ok(None);
+        }
+        let (mae, rel) = (mae / n as f64, rel / n as f64);
+        ctx.progress.log(&format!(
+            "held-out depth against the LiDAR: mean absolute error {mae:.3} m, relative {:.1} % over {n} views",
+            rel * 100.0
+        ));
+        Ok(Some((mae, rel, n)))
+    }
 }
 
 /// Measurements per run of the trunk monitor (about 20, at least every 10 steps).
