@@ -400,81 +400,15 @@ impl WorkerPool {
             crash_at: crash_point(&self.args, stage),
         });
 
-        // Heartbeat: lease, progress, log lines, cancellation.
-        let (stop_tx, mut stop_rx) = watch::channel(false);
-        let lost = Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let hb = {
-            let db = self.db.clone();
-            let progress = progress.clone();
-            let lost = lost.clone();
-            let (job, token) = (job.clone(), claim.token.clone());
-            let lease = self.args.lease();
-            let stages = stages.to_vec();
-            tokio::spawn(async move {
-                loop {
-                    let stop = tokio::select! {
-                        _ = tokio::time::sleep(tick(lease)) => false,
-                        _ = stop_rx.changed() => true,
-                    };
-                    let lines: Vec<String> = progress
-                        .lines
-                        .lock()
-                        .map(|mut l| std::mem::take(&mut *l))
-                        .unwrap_or_default();
-                    for line in lines {
-                        let level = if line.starts_with("warning") {
-                            "warn"
-                        } else {
-                            "info"
-                        };
-                        let _ = db.append_log(&job, level, Some(stage.name()), &line).await;
-                    }
-                    let f = progress.fraction();
-                    let jp = job_progress(&stages, stage, f);
-                    match db
-                        .heartbeat(&job, &token, lease, jp, Some((stage.name(), f)))
-                        .await
-                    {
-                        Ok(Heartbeat::Ok) => {}
-                        Ok(Heartbeat::CancelRequested) => progress.cancel.cancel(),
-                        Ok(Heartbeat::Lost) => {
-                            lost.store(true, Ordering::SeqCst);
-                            progress.cancel.cancel();
-                        }
-                        Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
-                    }
-                    if stop {
-                        break;
-                    }
-                }
-            })
-        };
-
-        let _gpu = if stage.uses_gpu() {
-            match self.gpu.clone().try_acquire_owned() {
-                Ok(p) => Some(p),
-                Err(_) => {
-                    self.log(
-                        job,
-                        "info",
-                        Some(stage),
-                        "waiting for a GPU slot (every slot of this worker is busy)",
-                    )
-                    .await;
-                    let p = tokio::select! {
-                        p = self.gpu.clone().acquire_owned() => p.ok(),
-                        _ = wait_cancel(&progress.cancel) => None,
-                    };
-                    if p.is_some() {
-                        self.log(job, "info", Some(stage), "GPU slot acquired")
-                            .await;
-                    }
-                    p
-                }
-            }
-        } else {
-            None
-        };
+        let heartbeat = StageHeartbeat::start(
+            &self.db,
+            claim,
+            self.args.lease(),
+            stage,
+            stages,
+            progress.clone(),
+        );
+        let gpu_slot = self.gpu_slot(job, stage, &progress.cancel).await;
 
         // The runtime limit: a watchdog cancels the stage once it has run too long.
         let limit = self
@@ -517,14 +451,72 @@ impl WorkerPool {
             })
         };
         watchdog.abort();
-        let _ = stop_tx.send(true);
-        let _ = hb.await;
-        drop(_gpu);
+        let lost = heartbeat.stop().await;
+        drop(gpu_slot);
 
-        if lost.load(Ordering::SeqCst) {
+        if lost {
             tracing::warn!("lease lost during stage {stage}; another worker owns the job");
             return Outcome::Stop;
         }
+        let timed_out = timed_out.load(Ordering::SeqCst).then_some(limit);
+        self.settle(
+            claim,
+            stage,
+            stages,
+            work_dir,
+            result,
+            timed_out,
+            &progress.cancel,
+        )
+        .await
+    }
+
+    /// A GPU slot for `stage` when it uses the GPU, waiting (and saying so in the job's log)
+    /// while every slot of this worker is busy; `None` for a CPU stage or on cancel.
+    async fn gpu_slot(
+        &self,
+        job: &str,
+        stage: Stage,
+        cancel: &CancelFlag,
+    ) -> Option<tokio::sync::OwnedSemaphorePermit> {
+        if !stage.uses_gpu() {
+            return None;
+        }
+        if let Ok(p) = self.gpu.clone().try_acquire_owned() {
+            return Some(p);
+        }
+        self.log(
+            job,
+            "info",
+            Some(stage),
+            "waiting for a GPU slot (every slot of this worker is busy)",
+        )
+        .await;
+        let p = tokio::select! {
+            p = self.gpu.clone().acquire_owned() => p.ok(),
+            _ = wait_cancel(cancel) => None,
+        };
+        if p.is_some() {
+            self.log(job, "info", Some(stage), "GPU slot acquired")
+                .await;
+        }
+        p
+    }
+
+    /// Records how `stage` ended: its checkpoint once its outputs are in the object store, or
+    /// the job's end: timed out (`timed_out` holds the limit it passed), canceled or failed.
+    #[allow(clippy::too_many_arguments)]
+    async fn settle(
+        &self,
+        claim: &Claim,
+        stage: Stage,
+        stages: &[Stage],
+        work_dir: &std::path::Path,
+        result: Result<pipeline::StageOutcome, StageError>,
+        timed_out: Option<Duration>,
+        cancel: &CancelFlag,
+    ) -> Outcome {
+        let job = &claim.job_id;
         let token = &claim.token;
         // With an object store the outputs go there before the stage counts as done.
         let result = match result {
@@ -558,7 +550,7 @@ impl WorkerPool {
                     }
                 }
             }
-            Err(_) if timed_out.load(Ordering::SeqCst) => {
+            Err(_) if let Some(limit) = timed_out => {
                 let detail = format!(
                     "stage {stage} ran longer than its limit of {} s and was stopped \
                      (--max-stage-secs)",
@@ -578,7 +570,7 @@ impl WorkerPool {
                 self.end_in_stage(job, token, stage, "error", &detail, &end)
                     .await
             }
-            Err(StageError::Cancelled) | Err(_) if progress.cancel.is_cancelled() => {
+            Err(StageError::Cancelled) | Err(_) if cancel.is_cancelled() => {
                 let end = RunEnd::Canceled {
                     stage: Some(stage.name().into()),
                 };
@@ -616,6 +608,80 @@ impl WorkerPool {
 }
 
 /// Resolves once `flag` is set (checked every 20 ms).
+/// The heartbeat of one running stage: every tick it renews the lease, reports progress,
+/// copies the stage's log lines to the job's log and picks up a cancel request; it cancels
+/// the stage when the lease is lost.
+struct StageHeartbeat {
+    stop: watch::Sender<bool>,
+    task: tokio::task::JoinHandle<()>,
+    lost: Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl StageHeartbeat {
+    fn start(
+        db: &JobStore,
+        claim: &Claim,
+        lease: Duration,
+        stage: Stage,
+        stages: &[Stage],
+        progress: Arc<StageProgress>,
+    ) -> Self {
+        let (stop, mut stop_rx) = watch::channel(false);
+        let lost = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let db = db.clone();
+        let lost_flag = lost.clone();
+        let (job, token) = (claim.job_id.clone(), claim.token.clone());
+        let stages = stages.to_vec();
+        let task = tokio::spawn(async move {
+            loop {
+                let stop = tokio::select! {
+                    _ = tokio::time::sleep(tick(lease)) => false,
+                    _ = stop_rx.changed() => true,
+                };
+                let lines: Vec<String> = progress
+                    .lines
+                    .lock()
+                    .map(|mut l| std::mem::take(&mut *l))
+                    .unwrap_or_default();
+                for line in lines {
+                    let level = if line.starts_with("warning") {
+                        "warn"
+                    } else {
+                        "info"
+                    };
+                    let _ = db.append_log(&job, level, Some(stage.name()), &line).await;
+                }
+                let f = progress.fraction();
+                let jp = job_progress(&stages, stage, f);
+                match db
+                    .heartbeat(&job, &token, lease, jp, Some((stage.name(), f)))
+                    .await
+                {
+                    Ok(Heartbeat::Ok) => {}
+                    Ok(Heartbeat::CancelRequested) => progress.cancel.cancel(),
+                    Ok(Heartbeat::Lost) => {
+                        lost_flag.store(true, Ordering::SeqCst);
+                        progress.cancel.cancel();
+                    }
+                    Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
+                }
+                if stop {
+                    break;
+                }
+            }
+        });
+        StageHeartbeat { stop, task, lost }
+    }
+
+    /// Stops it after one last beat (the stage's last log lines and progress); true when the
+    /// lease was lost meanwhile.
+    async fn stop(self) -> bool {
+        let _ = self.stop.send(true);
+        let _ = self.task.await;
+        self.lost.load(Ordering::SeqCst)
+    }
+}
+
 async fn wait_cancel(flag: &CancelFlag) {
     while !flag.is_cancelled() {
         tokio::time::sleep(Duration::from_millis(20)).await;
