@@ -198,24 +198,21 @@ fn rasterise(
 /// `nx` wide), as a function of the cell's column and row; the mean where the cells are too
 /// few or in a line.
 fn terrain_plane(v: &[f64], nx: usize) -> impl Fn(f64, f64) -> f64 {
-    let (mut m, mut r, mut n, mut sum) = (DMat3::ZERO, DVec3::ZERO, 0usize, 0.0);
-    for (k, z) in v.iter().enumerate() {
-        if z.is_nan() {
-            continue;
-        }
-        let a = DVec3::new(1.0, (k % nx) as f64, (k / nx) as f64);
-        m += DMat3::from_cols(a * a.x, a * a.y, a * a.z);
-        r += a * *z;
-        n += 1;
-        sum += z;
-    }
+    let cells = v
+        .iter()
+        .enumerate()
+        .filter(|(_, z)| !z.is_nan())
+        .map(|(k, z)| ((k % nx) as f64, (k / nx) as f64, *z));
+    let (n, sum) = cells
+        .clone()
+        .fold((0usize, 0.0), |(n, s), c| (n + 1, s + c.2));
     let mean = sum / n.max(1) as f64;
-    let coef = if n >= 3 && m.determinant().abs() > 1e-9 {
-        m.inverse() * r
+    let (gi, gj, c) = if n >= 3 {
+        plane_fit(cells, (0.0, 0.0)).unwrap_or((0.0, 0.0, mean))
     } else {
-        DVec3::new(mean, 0.0, 0.0)
+        (0.0, 0.0, mean)
     };
-    move |i, j| coef.x + coef.y * i + coef.z * j
+    move |i, j| c + gi * i + gj * j
 }
 
 /// Lowest non-NaN value within `half` cells in x and y of each cell (NaN where none).
@@ -312,6 +309,16 @@ struct Hypothesis {
     score: f64,
 }
 
+impl Hypothesis {
+    /// Whether `self` and `other` are different hypotheses: yaws more than 20° apart, or
+    /// offsets more than three coarse cells.
+    fn distinct_from(&self, other: &Hypothesis, coarse_cell: f64) -> bool {
+        let dyaw = ((self.yaw - other.yaw + 540.0) % 360.0 - 180.0).abs();
+        let dt = ((self.t[0] - other.t[0]).powi(2) + (self.t[1] - other.t[1]).powi(2)).sqrt();
+        dyaw > 20.0 || dt > 3.0 * coarse_cell
+    }
+}
+
 struct Scene<'a> {
     level: &'a [DVec3],
     lidar: Rasters,
@@ -326,6 +333,22 @@ struct Scene<'a> {
 }
 
 impl Scene<'_> {
+    /// The best hypothesis around `seed` on this raster: yaws ±4 `ystep` (degrees), scales
+    /// ×`sstep`^±2, offsets within `radius` cells of the seed's.
+    fn refine(&self, seed: &Hypothesis, ystep: f64, sstep: f64, radius: i64) -> Option<Hypothesis> {
+        use rayon::prelude::*;
+        let mut cands = Vec::new();
+        for dy in -4..=4 {
+            for ds in -2..=2 {
+                cands.push((seed.yaw + dy as f64 * ystep, seed.scale * sstep.powi(ds)));
+            }
+        }
+        cands
+            .par_iter()
+            .filter_map(|&(y, s)| self.evaluate(y, s, Some((seed.t, radius))))
+            .max_by(|a, b| a.score.total_cmp(&b.score))
+    }
+
     /// Best offset of the SfM rasters for one yaw and scale, searching offsets within
     /// `around` (metres, cells) or everywhere.
     fn evaluate(
@@ -450,66 +473,10 @@ pub fn align_candidates(
             "too few points for automatic registration",
         ));
     }
-    let up = up_from_cameras(cameras)?;
-    let r_up = level(up);
-    let level: Vec<DVec3> = sfm.iter().map(|p| r_up * *p).collect();
+    let r_up = level(up_from_cameras(cameras)?);
+    let levelled: Vec<DVec3> = sfm.iter().map(|p| r_up * *p).collect();
     let lid: Vec<DVec3> = lidar.iter().map(|p| p.as_dvec3()).collect();
-
-    // Scale candidates from robust extents: horizontal spread (rotation-invariant) and
-    // vertical range.
-    let spread = |pts: &[DVec3]| -> (f64, f64) {
-        let n = pts.len() as f64;
-        let m = pts.iter().copied().sum::<DVec3>() / n;
-        let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
-        for p in pts {
-            let d = *p - m;
-            sxx += d.x * d.x;
-            syy += d.y * d.y;
-            sxy += d.x * d.y;
-        }
-        let det = ((sxx * syy - sxy * sxy) / (n * n)).max(0.0);
-        // Heights above the least-squares plane through the points: on a slope the raw
-        // range is mostly the ramp under each cloud's own footprint (the photos reach
-        // further than the scan), which put both estimates 8-10 % under the truth on a 40 %
-        // grade (`register_cases slope`).
-        let (mut sxz, mut syz) = (0.0, 0.0);
-        for p in pts {
-            let d = *p - m;
-            sxz += d.x * d.z;
-            syz += d.y * d.z;
-        }
-        let dd = sxx * syy - sxy * sxy;
-        let (gx, gy) = if dd.abs() > 1e-12 {
-            ((syy * sxz - sxy * syz) / dd, (sxx * syz - sxy * sxz) / dd)
-        } else {
-            (0.0, 0.0)
-        };
-        let mut z: Vec<f64> = pts
-            .iter()
-            .map(|p| p.z - gx * (p.x - m.x) - gy * (p.y - m.y))
-            .collect();
-        let lo = percentile(&mut z, 0.02);
-        let hi = percentile(&mut z, 0.98);
-        (det.powf(0.25), hi - lo)
-    };
-    let (hs, vs) = spread(&level);
-    let (hl, vl) = spread(&lid);
-    if hs <= 0.0 || vs <= 0.0 || hl <= 0.0 || vl <= 0.0 {
-        return Err(GeomError::Degenerate("a cloud is flat or a single line"));
-    }
-    let (r1, r2) = (hl / hs, vl / vs);
-    let (smin, smax) = (
-        r1.min(r2) / params.scale_margin,
-        r1.max(r2) * params.scale_margin,
-    );
-    // Log-spaced candidates; at most 64 (a wider disagreement gets coarser steps).
-    let steps = ((smax / smin).ln() / params.scale_step.ln())
-        .ceil()
-        .clamp(1.0, 63.0);
-    let ratio = (smax / smin).powf(1.0 / steps);
-    let scales: Vec<f64> = (0..=steps as usize)
-        .map(|k| smin * ratio.powi(k as i32))
-        .collect();
+    let scales = scale_candidates(&levelled, &lid, params)?;
 
     // LiDAR rasters.
     let (mut lo, mut hi) = (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN));
@@ -529,7 +496,7 @@ pub fn align_candidates(
         let r = rasterise(lid.iter().copied(), lo.x, lo.y, cell, nx, ny, half);
         let valid = r.chm.iter().filter(|v| !v.is_nan()).count();
         Scene {
-            level: &level,
+            level: &levelled,
             lidar: r,
             x0: lo.x,
             y0: lo.y,
@@ -540,49 +507,7 @@ pub fn align_candidates(
         }
     };
 
-    // Coarse search over every yaw and scale.
-    let scene = make(coarse_cell);
-    let yaws: Vec<f64> = (0..)
-        .map(|k| k as f64 * params.yaw_step_deg)
-        .take_while(|y| *y < 360.0)
-        .collect();
-    let total = (yaws.len() * scales.len()).max(1);
-    let mut hyps: Vec<Hypothesis> = Vec::new();
-    for (k, &yaw) in yaws.iter().enumerate() {
-        if progress.is_cancelled() {
-            return Err(GeomError::Cancelled);
-        }
-        progress.set(0.5 * (k * scales.len()) as f64 / total as f64);
-        let found: Vec<Hypothesis> = {
-            use rayon::prelude::*;
-            scales
-                .par_iter()
-                .filter_map(|&s| scene.evaluate(yaw, s, None))
-                .collect()
-        };
-        hyps.extend(found);
-    }
-    hyps.sort_by(|a, b| b.score.total_cmp(&a.score));
-    if hyps.is_empty() {
-        return Err(GeomError::Degenerate(
-            "the clouds never overlap enough to compare",
-        ));
-    }
-    let distinct = |h: &Hypothesis, b: &Hypothesis| {
-        let dyaw = ((h.yaw - b.yaw + 540.0) % 360.0 - 180.0).abs();
-        let dt = ((h.t[0] - b.t[0]).powi(2) + (h.t[1] - b.t[1]).powi(2)).sqrt();
-        dyaw > 20.0 || dt > 3.0 * coarse_cell
-    };
-    let mut seeds: Vec<Hypothesis> = Vec::new();
-    for h in &hyps {
-        if seeds.len() >= params.candidates.max(1) {
-            break;
-        }
-        if seeds.iter().all(|s| distinct(h, s)) {
-            seeds.push(*h);
-        }
-    }
-
+    let mut seeds = coarse_seeds(&make(coarse_cell), &scales, coarse_cell, params, progress)?;
     // Refine every seed on two finer rasters: yaw ±1 coarse step, scale ±1 coarse step,
     // offsets ±2 coarse cells; then yaw ±1/4 step, scale ±1/4 step, offsets ±4/9 cell.
     let levels = [
@@ -610,18 +535,7 @@ pub fn align_candidates(
                 0.5 + 0.5 * (li * params.candidates.max(1) + k) as f64
                     / (levels.len() * params.candidates.max(1)) as f64,
             );
-            let mut cands = Vec::new();
-            for dy in -4..=4 {
-                for ds in -2..=2 {
-                    cands.push((seed.yaw + dy as f64 * ystep, seed.scale * sstep.powi(ds)));
-                }
-            }
-            use rayon::prelude::*;
-            let best = cands
-                .par_iter()
-                .filter_map(|&(y, s)| fine.evaluate(y, s, Some((seed.t, radius))))
-                .max_by(|a, b| a.score.total_cmp(&b.score));
-            if let Some(b) = best {
+            if let Some(b) = fine.refine(seed, ystep, sstep, radius) {
                 *seed = b;
             }
         }
@@ -633,55 +547,180 @@ pub fn align_candidates(
     seeds.sort_by(|a, b| b.score.total_cmp(&a.score));
     let mut kept: Vec<Hypothesis> = Vec::new();
     for h in seeds {
-        if kept.iter().all(|s| distinct(&h, s)) {
+        if kept.iter().all(|s| h.distinct_from(s, coarse_cell)) {
             kept.push(h);
         }
     }
-
-    let ground_b = rasterise_ground(
-        &lid,
-        fine.x0,
-        fine.y0,
-        fine.cell,
-        fine.lidar.nx,
-        fine.lidar.ny,
-    );
-    let mut out = Vec::with_capacity(kept.len());
-    for (k, h) in kept.iter().enumerate() {
-        // Compose, then the tilt and the vertical offset from the terrain.
-        let (sn, cs) = h.yaw.to_radians().sin_cos();
-        let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
-        let partial = Similarity {
-            scale: h.scale,
-            rotation: rz * r_up,
-            translation: DVec3::new(h.t[0], h.t[1], 0.0),
-        };
-        let grid = Grid {
-            x0: fine.x0,
-            y0: fine.y0,
-            cell: fine.cell,
-            nx: fine.lidar.nx,
-            ny: fine.lidar.ny,
-        };
-        let transform = settle_on_terrain(&partial, sfm, &lid, &grid, &ground_b);
-        let runner_up = kept
-            .iter()
-            .enumerate()
-            .filter(|(j, _)| *j != k)
-            .map(|(_, o)| o.score)
-            .fold(0.0, f64::max);
-        let margin = ((h.score - runner_up) / 0.15).clamp(0.0, 1.0);
-        out.push(CoarseAlignment {
-            transform,
-            confidence: margin.min(h.score.clamp(0.0, 1.0)),
-            score: h.score,
-            runner_up,
-            yaw_deg: h.yaw,
-            scale: h.scale,
-        });
-    }
+    let out = alignments(&kept, r_up, sfm, &lid, &fine);
     progress.set(1.0);
     Ok(out)
+}
+
+/// The least-squares plane z = c + gx·(x − x̄) + gy·(y − ȳ) through `points` (x, y, z), about
+/// the given centre (x̄, ȳ): `(gx, gy, c)`, or `None` when the points are too few or lie on a
+/// line.
+fn plane_fit(
+    points: impl IntoIterator<Item = (f64, f64, f64)>,
+    centre: (f64, f64),
+) -> Option<(f64, f64, f64)> {
+    let (mut m, mut v) = (DMat3::ZERO, DVec3::ZERO);
+    for (x, y, z) in points {
+        let a = DVec3::new(x - centre.0, y - centre.1, 1.0);
+        m += DMat3::from_cols(a * a.x, a * a.y, a * a.z);
+        v += a * z;
+    }
+    if m.determinant().abs() < 1e-9 {
+        return None;
+    }
+    let sol = m.inverse() * v;
+    Some((sol.x, sol.y, sol.z))
+}
+
+/// Robust extents of a cloud: its horizontal spread (the fourth root of the determinant of
+/// the horizontal covariance, rotation-invariant) and the 2–98 % range of its heights above
+/// its least-squares plane. On a slope the raw height range is mostly the ramp under each
+/// cloud's own footprint (the photos reach further than the scan), which put both scale
+/// estimates 8-10 % under the truth on a 40 % grade (`register_cases slope`).
+fn robust_extents(pts: &[DVec3]) -> (f64, f64) {
+    let n = pts.len() as f64;
+    let m = pts.iter().copied().sum::<DVec3>() / n;
+    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
+    for p in pts {
+        let d = *p - m;
+        sxx += d.x * d.x;
+        syy += d.y * d.y;
+        sxy += d.x * d.y;
+    }
+    let det = ((sxx * syy - sxy * sxy) / (n * n)).max(0.0);
+    let (gx, gy, _) =
+        plane_fit(pts.iter().map(|p| (p.x, p.y, p.z)), (m.x, m.y)).unwrap_or((0.0, 0.0, 0.0));
+    let mut z: Vec<f64> = pts
+        .iter()
+        .map(|p| p.z - gx * (p.x - m.x) - gy * (p.y - m.y))
+        .collect();
+    let lo = percentile(&mut z, 0.02);
+    let hi = percentile(&mut z, 0.98);
+    (det.powf(0.25), hi - lo)
+}
+
+/// The scales the coarse search tries: log-spaced by `params.scale_step` between the two
+/// robust estimates (horizontal spread and height range, LiDAR over SfM), widened by
+/// `params.scale_margin`; at most 64 (a wider disagreement gets coarser steps).
+fn scale_candidates(
+    levelled: &[DVec3],
+    lidar: &[DVec3],
+    params: &CoarseParams,
+) -> Result<Vec<f64>, GeomError> {
+    let (hs, vs) = robust_extents(levelled);
+    let (hl, vl) = robust_extents(lidar);
+    if hs <= 0.0 || vs <= 0.0 || hl <= 0.0 || vl <= 0.0 {
+        return Err(GeomError::Degenerate("a cloud is flat or a single line"));
+    }
+    let (r1, r2) = (hl / hs, vl / vs);
+    let (smin, smax) = (
+        r1.min(r2) / params.scale_margin,
+        r1.max(r2) * params.scale_margin,
+    );
+    let steps = ((smax / smin).ln() / params.scale_step.ln())
+        .ceil()
+        .clamp(1.0, 63.0);
+    let ratio = (smax / smin).powf(1.0 / steps);
+    Ok((0..=steps as usize)
+        .map(|k| smin * ratio.powi(k as i32))
+        .collect())
+}
+
+/// The coarse search over every yaw (`params.yaw_step_deg`) and scale on `scene`: the best
+/// `params.candidates` distinct hypotheses by raster score (progress 0 to 0.5).
+fn coarse_seeds(
+    scene: &Scene<'_>,
+    scales: &[f64],
+    coarse_cell: f64,
+    params: &CoarseParams,
+    progress: &dyn Progress,
+) -> Result<Vec<Hypothesis>, GeomError> {
+    use rayon::prelude::*;
+    let yaws: Vec<f64> = (0..)
+        .map(|k| k as f64 * params.yaw_step_deg)
+        .take_while(|y| *y < 360.0)
+        .collect();
+    let total = (yaws.len() * scales.len()).max(1);
+    let mut hyps: Vec<Hypothesis> = Vec::new();
+    for (k, &yaw) in yaws.iter().enumerate() {
+        if progress.is_cancelled() {
+            return Err(GeomError::Cancelled);
+        }
+        progress.set(0.5 * (k * scales.len()) as f64 / total as f64);
+        hyps.par_extend(
+            scales
+                .par_iter()
+                .filter_map(|&s| scene.evaluate(yaw, s, None)),
+        );
+    }
+    hyps.sort_by(|a, b| b.score.total_cmp(&a.score));
+    if hyps.is_empty() {
+        return Err(GeomError::Degenerate(
+            "the clouds never overlap enough to compare",
+        ));
+    }
+    let mut seeds: Vec<Hypothesis> = Vec::new();
+    for h in &hyps {
+        if seeds.len() >= params.candidates.max(1) {
+            break;
+        }
+        if seeds.iter().all(|s| h.distinct_from(s, coarse_cell)) {
+            seeds.push(*h);
+        }
+    }
+    Ok(seeds)
+}
+
+/// Each kept hypothesis as a similarity (levelling, yaw, scale and horizontal offset, then
+/// tilted and moved vertically onto the LiDAR's terrain), with its confidence: its margin
+/// over the best other (a 0.15 lead counts as sure), capped by its own score.
+fn alignments(
+    kept: &[Hypothesis],
+    r_up: DMat3,
+    sfm: &[DVec3],
+    lid: &[DVec3],
+    fine: &Scene<'_>,
+) -> Vec<CoarseAlignment> {
+    let grid = Grid {
+        x0: fine.x0,
+        y0: fine.y0,
+        cell: fine.cell,
+        nx: fine.lidar.nx,
+        ny: fine.lidar.ny,
+    };
+    let ground_b = rasterise_ground(lid, grid.x0, grid.y0, grid.cell, grid.nx, grid.ny);
+    kept.iter()
+        .enumerate()
+        .map(|(k, h)| {
+            let (sn, cs) = h.yaw.to_radians().sin_cos();
+            let rz = DMat3::from_cols(DVec3::new(cs, sn, 0.0), DVec3::new(-sn, cs, 0.0), DVec3::Z);
+            let partial = Similarity {
+                scale: h.scale,
+                rotation: rz * r_up,
+                translation: DVec3::new(h.t[0], h.t[1], 0.0),
+            };
+            let transform = settle_on_terrain(&partial, sfm, lid, &grid, &ground_b);
+            let runner_up = kept
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != k)
+                .map(|(_, o)| o.score)
+                .fold(0.0, f64::max);
+            let margin = ((h.score - runner_up) / 0.15).clamp(0.0, 1.0);
+            CoarseAlignment {
+                transform,
+                confidence: margin.min(h.score.clamp(0.0, 1.0)),
+                score: h.score,
+                runner_up,
+                yaw_deg: h.yaw,
+                scale: h.scale,
+            }
+        })
+        .collect()
 }
 
 /// A raster grid: corner (`x0`, `y0`), `cell` metres, `nx` × `ny` cells.
@@ -758,23 +797,16 @@ fn terrain_tilt(moved: &[DVec3], grid: &Grid, ground_lidar: &[f64]) -> Option<(f
             .collect();
         let mut abs: Vec<f64> = r.iter().map(|v| v.abs()).collect();
         let limit = (3.0 * 1.4826 * percentile(&mut abs, 0.5)).max(0.15);
-        let mut m = DMat3::ZERO;
-        let mut v = DVec3::ZERO;
-        let mut kept = 0;
-        for (c, ri) in cells.iter().zip(&r) {
-            if ri.abs() > limit {
-                continue;
-            }
-            let a = DVec3::new(c.0 - xm, c.1 - ym, 1.0);
-            m += DMat3::from_cols(a * a.x, a * a.y, a * a.z);
-            v += a * c.2;
-            kept += 1;
-        }
-        if kept < 30 || m.determinant().abs() < 1e-9 {
+        let kept: Vec<(f64, f64, f64)> = cells
+            .iter()
+            .zip(&r)
+            .filter(|(_, ri)| ri.abs() <= limit)
+            .map(|(c, _)| *c)
+            .collect();
+        if kept.len() < 30 {
             return None;
         }
-        let sol = m.inverse() * v;
-        plane = (sol.x, sol.y, sol.z);
+        plane = plane_fit(kept, (xm, ym))?;
     }
     Some((plane.0, plane.1))
 }
