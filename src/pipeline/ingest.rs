@@ -17,7 +17,9 @@ use serde_json::json;
 
 use super::{StageContext, StageError};
 use crate::io::colmap;
+use crate::io::crs::CrsRecord;
 use crate::io::gps::{self, GpsFix};
+use crate::io::pointcloud::PointCloud;
 use crate::io::{ply, pointcloud, tables};
 use crate::progress::SubProgress;
 
@@ -38,16 +40,67 @@ fn list(names: &[String]) -> String {
 }
 
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
-    let p = &ctx.params.ingest;
     let mut warnings: Vec<String> = Vec::new();
+    // 1. The point cloud (0 .. 0.5 of the stage).
+    let (cloud, crs) = ingest_cloud(ctx, &mut warnings)?;
+    if ctx.progress.is_cancelled() {
+        return Err(StageError::Cancelled);
+    }
+    ctx.progress.set(0.5);
+
+    // 2. The COLMAP project (0.5 .. 0.95).
+    let colmap_report = ingest_colmap(ctx, &mut warnings)?;
+
+    // 3. Optional tables.
+    let control_points = match &ctx.inputs.control_points {
+        Some(path) => Some(tables::read_control_points(path)?.len()),
+        None => None,
+    };
+    let field_trees = match &ctx.inputs.field_dbh {
+        Some(path) => Some(tables::read_field_dbh(path)?.len()),
+        None => None,
+    };
+    for w in &warnings {
+        ctx.progress.log(&format!("warning: {w}"));
+    }
+    ctx.progress.set(1.0);
+
+    let (lo, hi) = cloud.bounds().unwrap_or_default();
+    let extent = hi - lo;
+    Ok(json!({
+        "lidar": {
+            "format": cloud.format,
+            "points": cloud.len(),
+            "offset": [cloud.offset.x, cloud.offset.y, cloud.offset.z],
+            "bounds_min": [lo.x, lo.y, lo.z],
+            "bounds_max": [hi.x, hi.y, hi.z],
+            "extent_m": [extent.x, extent.y, extent.z],
+            "has_color": cloud.colors.is_some(),
+            "has_intensity": cloud.intensity.is_some(),
+            "crs": crs.label,
+            "crs_source": crs.source,
+        },
+        "colmap": colmap_report,
+        "control_points": control_points,
+        "field_trees": field_trees,
+        "warnings": warnings,
+    }))
+}
+
+/// Reads the LiDAR file, warns when its extent does not look like metres, settles its CRS
+/// (the job's `crs` over the file's declaration, [`crate::io::crs::resolve`]) and writes
+/// `cloud.ply` and `crs.json`.
+fn ingest_cloud(
+    ctx: &StageContext<'_>,
+    warnings: &mut Vec<String>,
+) -> Result<(PointCloud, CrsRecord), StageError> {
+    let p = &ctx.params.ingest;
     let lidar_name = ctx
         .inputs
         .lidar
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "lidar".into());
-
-    // 1. The point cloud (0 .. 0.5 of the stage).
     ctx.progress
         .log(&format!("reading point cloud {lidar_name}"));
     let cloud =
@@ -80,7 +133,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         extent.y,
         extent.z
     ));
-    // Its CRS: the job's `crs` over the file's declaration (io::crs::resolve).
     let declared = pointcloud::declared_crs(&ctx.inputs.lidar)?;
     let crs = crate::io::crs::resolve(ctx.params.crs.as_deref(), declared)
         .map_err(|e| StageError::Input(format!("{lidar_name}: {e}")))?;
@@ -94,12 +146,17 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     crate::forest::write_crs(ctx.out_dir, &crs)?;
     let cloud_path = ctx.out_dir.join(super::INGEST_CLOUD);
     ply::write_ply(&cloud_path, &cloud, &[])?;
-    if ctx.progress.is_cancelled() {
-        return Err(StageError::Cancelled);
-    }
-    ctx.progress.set(0.5);
+    Ok((cloud, crs))
+}
 
-    // 2. The COLMAP project (0.5 .. 0.95).
+/// Reads the COLMAP project, refuses what later stages cannot use (no registered image, an
+/// unsupported camera, with `decode_images` a missing, broken or mis-sized photo), reads the
+/// photos' GPS positions into `gps.json` and copies the model as text to `sparse/`. Returns
+/// the report's `colmap`.
+fn ingest_colmap(
+    ctx: &StageContext<'_>,
+    warnings: &mut Vec<String>,
+) -> Result<serde_json::Value, StageError> {
     let project = colmap::find_project(&ctx.inputs.colmap)?;
     let model = colmap::read_model(
         &project.sparse_dir,
@@ -118,56 +175,25 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "COLMAP project: no images/ folder beside the sparse model".into(),
         ));
     };
-    let check = if p.decode_images {
-        Some(colmap::validate_images(
-            &project,
-            &model,
-            &SubProgress::new(ctx.progress, 0.6, 0.35),
-        )?)
+    let check = if ctx.params.ingest.decode_images {
+        let check =
+            colmap::validate_images(&project, &model, &SubProgress::new(ctx.progress, 0.6, 0.35))?;
+        refuse_unusable_photos(&check)?;
+        Some(check)
     } else {
         None
     };
-    if let Some(check) = &check {
-        if !check.missing.is_empty() {
-            return Err(StageError::Input(format!(
-                "COLMAP images: {} registered image(s) missing from images/: {}",
-                check.missing.len(),
-                list(&check.missing)
-            )));
-        }
-        let broken: Vec<String> = check
-            .undecodable
-            .iter()
-            .map(|u| format!("{} ({})", u.name, u.fault))
-            .chain(check.size_mismatch.iter().map(|m| {
-                format!(
-                    "{} is {}×{} px but its camera says {}×{}",
-                    m.name, m.found[0], m.found[1], m.expected[0], m.expected[1]
-                )
-            }))
-            .collect();
-        if !broken.is_empty() {
-            return Err(StageError::Input(format!(
-                "COLMAP images: {} image(s) unusable: {}",
-                broken.len(),
-                list(&broken)
-            )));
-        }
-    }
     if ctx.progress.is_cancelled() {
         return Err(StageError::Cancelled);
     }
-    let gps = read_gps(images_dir, &model, &mut warnings);
+    let gps = read_gps(images_dir, &model, warnings);
     if !gps.is_empty() {
         let path = ctx.out_dir.join(GPS_FILE);
         let text = serde_json::to_vec_pretty(&gps).map_err(|e| StageError::Input(e.to_string()))?;
         std::fs::write(&path, text).map_err(|e| crate::io::IoError::io(&path, e))?;
     }
     let sparse_out = ctx.out_dir.join("sparse");
-    std::fs::create_dir_all(&sparse_out).map_err(|e| crate::io::IoError::Io {
-        path: sparse_out.clone(),
-        source: e,
-    })?;
+    std::fs::create_dir_all(&sparse_out).map_err(|e| crate::io::IoError::io(&sparse_out, e))?;
     colmap::write_text(&model, &sparse_out)?;
     if model.points.len() < 100 {
         warnings.push(format!(
@@ -175,42 +201,41 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             model.points.len()
         ));
     }
+    let mut report = colmap::summary(&project, &model);
+    report["images_checked"] = json!(check.as_ref().map(|c| c.images_found));
+    report["images_with_gps"] = json!(gps.len());
+    Ok(report)
+}
 
-    // 3. Optional tables.
-    let control_points = match &ctx.inputs.control_points {
-        Some(path) => Some(tables::read_control_points(path)?.len()),
-        None => None,
-    };
-    let field_trees = match &ctx.inputs.field_dbh {
-        Some(path) => Some(tables::read_field_dbh(path)?.len()),
-        None => None,
-    };
-    for w in &warnings {
-        ctx.progress.log(&format!("warning: {w}"));
+/// Refuses photos the check found missing, undecodable or not at their camera's size,
+/// naming the first few of them.
+fn refuse_unusable_photos(check: &colmap::ImageCheck) -> Result<(), StageError> {
+    if !check.missing.is_empty() {
+        return Err(StageError::Input(format!(
+            "COLMAP images: {} registered image(s) missing from images/: {}",
+            check.missing.len(),
+            list(&check.missing)
+        )));
     }
-    ctx.progress.set(1.0);
-
-    let mut colmap_report = colmap::summary(&project, &model);
-    colmap_report["images_checked"] = json!(check.as_ref().map(|c| c.images_found));
-    colmap_report["images_with_gps"] = json!(gps.len());
-    Ok(json!({
-        "lidar": {
-            "format": cloud.format,
-            "points": cloud.len(),
-            "offset": [cloud.offset.x, cloud.offset.y, cloud.offset.z],
-            "bounds_min": [lo.x, lo.y, lo.z],
-            "bounds_max": [hi.x, hi.y, hi.z],
-            "extent_m": [extent.x, extent.y, extent.z],
-            "has_color": cloud.colors.is_some(),
-            "has_intensity": cloud.intensity.is_some(),
-            "crs": crs.label,
-            "crs_source": crs.source,
-        },
-        "colmap": colmap_report,
-        "control_points": control_points,
-        "field_trees": field_trees,
-        "warnings": warnings,
-    }))
+    let broken: Vec<String> = check
+        .undecodable
+        .iter()
+        .map(|u| format!("{} ({})", u.name, u.fault))
+        .chain(check.size_mismatch.iter().map(|m| {
+            format!(
+                "{} is {}×{} px but its camera says {}×{}",
+                m.name, m.found[0], m.found[1], m.expected[0], m.expected[1]
+            )
+        }))
+        .collect();
+    if !broken.is_empty() {
+        return Err(StageError::Input(format!(
+            "COLMAP images: {} image(s) unusable: {}",
+            broken.len(),
+            list(&broken)
+        )));
+    }
+    Ok(())
 }
 
 /// Stage `ingest`'s record of the photos' GPS positions (EXIF): image name → WGS84 fix.
