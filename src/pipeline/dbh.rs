@@ -307,17 +307,17 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, StageErro
         .map_err(|e| StageError::Input(format!("{}: {e}", path.display())))
 }
 
-pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
-    let segment = ctx.output_of(Stage::Segment, Stage::Dbh)?;
-    let train = ctx.output_of(Stage::Train, Stage::Dbh)?;
-    let stems: StemsFile = read_json(&segment.join("stems.json"))?;
-    let mut rows = stems.trees.clone();
+/// The trained Gaussians (`splats.ply` of stage `train`), moved from the frame of the
+/// registered model (the LiDAR local frame of stage `ingest`, `offset` in train's report) to
+/// the stems' local frame (`stems_offset`) when the two differ.
+fn gaussians_in_stem_frame(
+    train: &Path,
+    stems_offset: [f64; 3],
+) -> Result<crate::splat::model::Gaussians, StageError> {
     let splats_path = train.join("splats.ply");
     let file = std::fs::File::open(&splats_path).map_err(|e| super::io_err(&splats_path, e))?;
     let mut g = crate::splat::export::read_ply(std::io::BufReader::new(file))
         .map_err(|e| StageError::Input(format!("{}: {e}", splats_path.display())))?;
-    // The Gaussians live in the frame of the registered model (the LiDAR local frame of
-    // stage `ingest`); bring them to the stems' local frame if the offsets differ.
     let train_report: serde_json::Value = read_json(&train.join(super::REPORT_FILE))?;
     let offset = train_report["offset"]
         .as_array()
@@ -328,17 +328,79 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                 a.get(2)?.as_f64()?,
             ])
         })
-        .unwrap_or(stems.offset);
+        .unwrap_or(stems_offset);
     let shift = Vec3::new(
-        (offset[0] - stems.offset[0]) as f32,
-        (offset[1] - stems.offset[1]) as f32,
-        (offset[2] - stems.offset[2]) as f32,
+        (offset[0] - stems_offset[0]) as f32,
+        (offset[1] - stems_offset[1]) as f32,
+        (offset[2] - stems_offset[2]) as f32,
     );
     if shift != Vec3::ZERO {
         for m in &mut g.means {
             *m = (Vec3::from_array(*m) + shift).to_array();
         }
     }
+    Ok(g)
+}
+
+/// Writes the inventory with both diameters (`trees.csv`, `.geojson`, `.gpkg`, `crs.json`)
+/// and the stand figures again (the LiDAR DBH unless the job asks for the Gaussians'), on the
+/// plot stage `segment` measured; a segment stage that predates plot summaries left none,
+/// and the job still finishes. Returns the CRS and the stand figures.
+fn write_inventory(
+    ctx: &StageContext<'_>,
+    segment: &Path,
+    rows: &[TreeRow],
+    stems: &StemsFile,
+) -> Result<(crate::io::crs::CrsRecord, Option<forest::PlotSummary>), StageError> {
+    forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), rows)?;
+    let crs = ctx.crs(Stage::Dbh)?;
+    forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), rows, &crs)?;
+    forest::write_crs(ctx.out_dir, &crs)?;
+    forest::write_trees_gpkg(
+        &ctx.out_dir.join("trees.gpkg"),
+        rows,
+        &stems.crowns,
+        glam::DVec3::from_array(stems.offset),
+        &crs,
+    )?;
+    let plot = match forest::PlotFile::read(segment)? {
+        Some(previous) => {
+            let footprint = previous.footprint();
+            let seg = &ctx.params.segment;
+            let summary = forest::summarise(rows, &footprint, &seg.summary, &seg.allometry)?;
+            forest::PlotFile::new(summary.clone(), &footprint).write(ctx.out_dir)?;
+            Some(summary)
+        }
+        None => None,
+    };
+    Ok((crs, plot))
+}
+
+/// The two diameters of the same stems against each other (cm): RMSE, mean, mean absolute
+/// and how many trees; the twin measures as well as the LiDAR when these are small. `None`
+/// when no tree has both.
+fn gs_against_lidar(rows: &[TreeRow]) -> Option<serde_json::Value> {
+    let diffs: Vec<f64> = rows
+        .iter()
+        .filter_map(|r| Some(r.dbh_gs_cm? - r.dbh_lidar_cm))
+        .collect();
+    let n_diff = diffs.len().max(1) as f64;
+    (!diffs.is_empty()).then(|| {
+        json!({
+            "rmse_cm": (diffs.iter().map(|d| d * d).sum::<f64>() / n_diff).sqrt(),
+            "mean_cm": diffs.iter().sum::<f64>() / n_diff,
+            "mean_abs_cm": diffs.iter().map(|d| d.abs()).sum::<f64>() / n_diff,
+            "trees": diffs.len(),
+        })
+    })
+}
+
+pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
+    let segment = ctx.output_of(Stage::Segment, Stage::Dbh)?;
+    let train = ctx.output_of(Stage::Train, Stage::Dbh)?;
+    let stems: StemsFile = read_json(&segment.join("stems.json"))?;
+    let mut rows = stems.trees.clone();
+    let g = gaussians_in_stem_frame(&train, stems.offset)?;
     let p = &ctx.params;
     let params = gaussian_dbh_params(&p.segment.dbh, p.dbh.ransac_threshold_m);
     let trunk = TrunkGaussians::select(&g, p.dbh.min_opacity as f32, MIN_TRUNK_PROB);
@@ -382,52 +444,14 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         ctx.progress
             .set(0.9 * (k + 1) as f64 / stems.stems.len().max(1) as f64);
     }
-    forest::write_trees_csv(&ctx.out_dir.join("trees.csv"), &rows)?;
-    let crs = ctx.crs(Stage::Dbh)?;
-    forest::write_trees_geojson(&ctx.out_dir.join("trees.geojson"), &rows, &crs)?;
-    forest::write_crs(ctx.out_dir, &crs)?;
-    let offset = glam::DVec3::from_array(stems.offset);
-    forest::write_trees_gpkg(
-        &ctx.out_dir.join("trees.gpkg"),
-        &rows,
-        &stems.crowns,
-        offset,
-        &crs,
-    )?;
-    // The stand figures again, now that the rows carry both diameters (the LiDAR one unless
-    // the job asks for the Gaussians'), on the plot stage `segment` measured.
-    // A segment stage that predates plot summaries left none: the job still finishes.
-    let plot = match forest::PlotFile::read(&segment)? {
-        Some(previous) => {
-            let footprint = previous.footprint();
-            let seg = &ctx.params.segment;
-            let summary = forest::summarise(&rows, &footprint, &seg.summary, &seg.allometry)?;
-            forest::PlotFile::new(summary.clone(), &footprint).write(ctx.out_dir)?;
-            Some(summary)
-        }
-        None => None,
-    };
+    let (crs, plot) = write_inventory(ctx, &segment, &rows, &stems)?;
     ctx.progress.set(1.0);
     let field = match &ctx.inputs.field_dbh {
         Some(path) => Some(field_accuracy(&rows, path)?),
         None => None,
     };
     let measured = rows.iter().filter(|r| r.dbh_gs_cm.is_some()).count();
-    // The two diameters of the same stems against each other (cm): the twin measures as well
-    // as the LiDAR when these are small.
-    let diffs: Vec<f64> = rows
-        .iter()
-        .filter_map(|r| Some(r.dbh_gs_cm? - r.dbh_lidar_cm))
-        .collect();
-    let n_diff = diffs.len().max(1) as f64;
-    let gs_vs_lidar = (!diffs.is_empty()).then(|| {
-        json!({
-            "rmse_cm": (diffs.iter().map(|d| d * d).sum::<f64>() / n_diff).sqrt(),
-            "mean_cm": diffs.iter().sum::<f64>() / n_diff,
-            "mean_abs_cm": diffs.iter().map(|d| d.abs()).sum::<f64>() / n_diff,
-            "trees": diffs.len(),
-        })
-    });
+    let gs_vs_lidar = gs_against_lidar(&rows);
     ctx.progress.log(&format!(
         "DBH from the Gaussians for {measured} of {} trees",
         rows.len()
