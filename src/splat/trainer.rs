@@ -14,7 +14,7 @@ use super::exposure::EXPOSURE_FLOATS;
 use super::mcmc::McmcStrategy;
 use super::model::Gaussians;
 use super::strategy::{DefaultStrategy, RefineReport, Strategy};
-use super::trunk_diag::TrunkMonitor;
+use super::trunk_diag::{TrunkDiag, TrunkMonitor};
 use crate::progress::Progress;
 use crate::rng::SplitMix64;
 
@@ -149,21 +149,7 @@ pub fn train_monitored(
         let measure = monitor.filter(|m| step % m.every == 0 || step == cfg.steps);
         if step % LOSS_EVERY == 0 || step == cfg.steps || measure.is_some() {
             let trunk = match measure {
-                Some(m) => {
-                    let grads = backend.position_grads()?;
-                    let (now, _) = backend.model()?;
-                    let d = m.observe(&now, Some(&grads), cfg.semantic.gamma_at(step));
-                    progress.log(&format!(
-                        "step {step}: trunk Gaussians {:.1} mm from the LiDAR surface (signed {:+.1} mm, {} in the DBH slices, {:.0} % of them in L_geo's S of {}); L_geo/photometric position gradient {}",
-                        d.surface_abs_mm.unwrap_or(f64::NAN),
-                        d.surface_offset_mm.unwrap_or(f64::NAN),
-                        d.slice_count,
-                        d.slice_in_s.unwrap_or(0.0) * 100.0,
-                        d.s_count,
-                        d.geo_photo_grad_ratio.map_or("n/a".into(), |r| format!("{r:.2e}"))
-                    ));
-                    Some(d)
-                }
+                Some(m) => Some(observe_trunk(backend, m, cfg, step, progress)?),
                 None => None,
             };
             let StepLoss {
@@ -201,8 +187,68 @@ pub fn train_monitored(
     }
     let seconds = start.elapsed().as_secs_f64();
     let (model, _) = backend.model()?;
-    // Held-out evaluation: with exposure compensation, each view's learned exposure applied
-    // and only its right half measured (the left half trained it).
+    let heldout = evaluate_heldout(backend, data, cfg)?;
+    let exposures = if cfg.exposure {
+        let names = data.all_views().map(|v| v.name.clone());
+        names.zip(backend.exposures()?).collect()
+    } else {
+        Vec::new()
+    };
+    progress.set(1.0);
+    Ok(TrainOutcome {
+        model,
+        eval: heldout.eval,
+        baseline_psnr: heldout.baseline_psnr,
+        losses,
+        refinements,
+        device: backend.device_name(),
+        seconds,
+        steps_per_second: f64::from(cfg.steps) / seconds.max(1e-9),
+        phase_times: backend.phase_times(),
+        renders: heldout.renders,
+        exposures,
+    })
+}
+
+/// One measurement of the trunk monitor at `step`: the model and the latest position
+/// gradients read back, measured and logged.
+fn observe_trunk(
+    backend: &mut dyn Backend,
+    monitor: &TrunkMonitor,
+    cfg: &TrainConfig,
+    step: u32,
+    progress: &dyn Progress,
+) -> Result<TrunkDiag, TrainError> {
+    let grads = backend.position_grads()?;
+    let (now, _) = backend.model()?;
+    let d = monitor.observe(&now, Some(&grads), cfg.semantic.gamma_at(step));
+    progress.log(&format!(
+        "step {step}: trunk Gaussians {:.1} mm from the LiDAR surface (signed {:+.1} mm, {} in the DBH slices, {:.0} % of them in L_geo's S of {}); L_geo/photometric position gradient {}",
+        d.surface_abs_mm.unwrap_or(f64::NAN),
+        d.surface_offset_mm.unwrap_or(f64::NAN),
+        d.slice_count,
+        d.slice_in_s.unwrap_or(0.0) * 100.0,
+        d.s_count,
+        d.geo_photo_grad_ratio.map_or("n/a".into(), |r| format!("{r:.2e}"))
+    ));
+    Ok(d)
+}
+
+/// The held-out views rendered and measured, beside a flat mean-colour image.
+struct Heldout {
+    eval: EvalReport,
+    /// Mean PSNR of the mean colour over the same views and region, dB.
+    baseline_psnr: f32,
+    renders: Vec<(String, Vec<[f32; 3]>, u32, u32)>,
+}
+
+/// Renders and measures every held-out view: with exposure compensation each view's learned
+/// exposure is applied and only its right half measured (the left half trained it).
+fn evaluate_heldout(
+    backend: &mut dyn Backend,
+    data: &Dataset,
+    cfg: &TrainConfig,
+) -> Result<Heldout, TrainError> {
     let region = if cfg.exposure {
         EvalRegion::RightHalf
     } else {
@@ -227,26 +273,10 @@ pub fn train_monitored(
         baseline.push(measure(&v.name, &flat, &v.image)?.psnr);
         renders.push((v.name.clone(), img, v.camera.width, v.camera.height));
     }
-    let exposures = if cfg.exposure {
-        let names = data.all_views().map(|v| v.name.clone());
-        names.zip(backend.exposures()?).collect()
-    } else {
-        Vec::new()
-    };
-    progress.set(1.0);
-    let baseline_psnr = baseline.iter().sum::<f32>() / baseline.len().max(1) as f32;
-    Ok(TrainOutcome {
-        model,
+    Ok(Heldout {
         eval: EvalReport::from_views_in(views, region),
-        baseline_psnr,
-        losses,
-        refinements,
-        device: backend.device_name(),
-        seconds,
-        steps_per_second: f64::from(cfg.steps) / seconds.max(1e-9),
-        phase_times: backend.phase_times(),
+        baseline_psnr: baseline.iter().sum::<f32>() / baseline.len().max(1) as f32,
         renders,
-        exposures,
     })
 }
 
