@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 use super::ForestError;
 use super::components::{GRAPH_K, KnnGraph, relabel_small_components};
 use super::grid::{map_radius_covariance, voxel_centroids};
-use super::kmeans::{distance2_to_centre, kmeans, standardise};
+use super::kmeans::{KMeans, distance2_to_centre, kmeans, standardise};
 use crate::geom::{EigenFeatures, PointIndex, covariance, symmetric_eigen3};
 use crate::progress::{Progress, SubProgress};
 
@@ -257,35 +257,7 @@ pub fn segment_wood_leaf(
 
     seconds.coarse = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
-    // Feature rows [L, P, S, (coarse L, P, S, verticality), (w r, w g, w b)], standardised
-    // column-wise, then the colour weighted.
-    let geo = 3 + 4 * coarse.len();
-    let dim = geo + if colors.is_some() { 3 } else { 0 };
-    let mut rows = Vec::with_capacity(sub.len() * dim);
-    for (j, f) in features.iter().enumerate() {
-        rows.extend([f.linearity, f.planarity, f.sphericity]);
-        for c in &coarse {
-            let c = c[j];
-            rows.extend([
-                c.eigen.linearity,
-                c.eigen.planarity,
-                c.eigen.sphericity,
-                c.verticality,
-            ]);
-        }
-        if let Some(c) = colors {
-            let c = c[selected[j] as usize];
-            rows.extend(c.map(|v| v as f32 / 255.0));
-        }
-    }
-    standardise(&mut rows, dim);
-    if dim > geo {
-        for row in rows.chunks_mut(dim) {
-            row[geo..]
-                .iter_mut()
-                .for_each(|v| *v *= params.colour_weight);
-        }
-    }
+    let (rows, dim) = feature_rows(&features, &coarse, colors, &selected, params.colour_weight);
     let km = kmeans(
         &rows,
         dim,
@@ -294,34 +266,7 @@ pub fn segment_wood_leaf(
         params.seed,
         &SubProgress::new(progress, 0.7, 0.2),
     )?;
-    // Trunk = the cluster with the higher mean linearity.
-    let (mut lin, mut cnt) = ([0.0f64; 2], [0usize; 2]);
-    for (j, (f, &a)) in features.iter().zip(&km.assignment).enumerate() {
-        let coarse_lin: f32 = coarse.iter().map(|c| c[j].eigen.linearity).sum();
-        lin[a as usize] += (f.linearity + coarse_lin) as f64;
-        cnt[a as usize] += 1;
-    }
-    let mean = |c: usize| lin[c] / cnt[c].max(1) as f64;
-    let trunk_cluster = usize::from(mean(1) > mean(0));
-    let mut labels: Vec<u8> = km
-        .assignment
-        .iter()
-        .map(|&a| {
-            if a as usize == trunk_cluster {
-                TRUNK
-            } else {
-                LEAF
-            }
-        })
-        .collect();
-    let mut prob: Vec<f32> = rows
-        .chunks(dim)
-        .map(|row| {
-            let dt = distance2_to_centre(&km, dim, row, trunk_cluster).sqrt();
-            let dl = distance2_to_centre(&km, dim, row, 1 - trunk_cluster).sqrt();
-            if dt + dl > 0.0 { dl / (dt + dl) } else { 0.5 }
-        })
-        .collect();
+    let (mut labels, mut prob) = trunk_cluster(&km, &rows, dim, &features, &coarse);
     if progress.is_cancelled() {
         return Err(ForestError::Cancelled);
     }
@@ -390,6 +335,84 @@ pub fn segment_wood_leaf(
         }
     }
     Ok(out)
+}
+
+/// Feature rows [L, P, S, (coarse L, P, S, verticality), (w r, w g, w b)], one per selected
+/// point, standardised column-wise, then the colour weighted by `colour_weight`. Returns the
+/// rows (row-major) and their width.
+fn feature_rows(
+    features: &[EigenFeatures],
+    coarse: &[Vec<CoarseFeatures>],
+    colors: Option<&[[u8; 3]]>,
+    selected: &[u32],
+    colour_weight: f32,
+) -> (Vec<f32>, usize) {
+    let geo = 3 + 4 * coarse.len();
+    let dim = geo + if colors.is_some() { 3 } else { 0 };
+    let mut rows = Vec::with_capacity(features.len() * dim);
+    for (j, f) in features.iter().enumerate() {
+        rows.extend([f.linearity, f.planarity, f.sphericity]);
+        for c in coarse {
+            let c = c[j];
+            rows.extend([
+                c.eigen.linearity,
+                c.eigen.planarity,
+                c.eigen.sphericity,
+                c.verticality,
+            ]);
+        }
+        if let Some(c) = colors {
+            let c = c[selected[j] as usize];
+            rows.extend(c.map(|v| v as f32 / 255.0));
+        }
+    }
+    standardise(&mut rows, dim);
+    if dim > geo {
+        for row in rows.chunks_mut(dim) {
+            row[geo..].iter_mut().for_each(|v| *v *= colour_weight);
+        }
+    }
+    (rows, dim)
+}
+
+/// Labels from the 2-means: trunk is the cluster with the higher mean linearity (fine plus
+/// coarse scales). The trunk probability of a row is its distance to the leaf centre over
+/// the sum of its distances to both (0.5 when it sits on both).
+fn trunk_cluster(
+    km: &KMeans,
+    rows: &[f32],
+    dim: usize,
+    features: &[EigenFeatures],
+    coarse: &[Vec<CoarseFeatures>],
+) -> (Vec<u8>, Vec<f32>) {
+    let (mut lin, mut cnt) = ([0.0f64; 2], [0usize; 2]);
+    for (j, (f, &a)) in features.iter().zip(&km.assignment).enumerate() {
+        let coarse_lin: f32 = coarse.iter().map(|c| c[j].eigen.linearity).sum();
+        lin[a as usize] += (f.linearity + coarse_lin) as f64;
+        cnt[a as usize] += 1;
+    }
+    let mean = |c: usize| lin[c] / cnt[c].max(1) as f64;
+    let trunk_cluster = usize::from(mean(1) > mean(0));
+    let labels: Vec<u8> = km
+        .assignment
+        .iter()
+        .map(|&a| {
+            if a as usize == trunk_cluster {
+                TRUNK
+            } else {
+                LEAF
+            }
+        })
+        .collect();
+    let prob: Vec<f32> = rows
+        .chunks(dim)
+        .map(|row| {
+            let dt = distance2_to_centre(km, dim, row, trunk_cluster).sqrt();
+            let dl = distance2_to_centre(km, dim, row, 1 - trunk_cluster).sqrt();
+            if dt + dl > 0.0 { dl / (dt + dl) } else { 0.5 }
+        })
+        .collect();
+    (labels, prob)
 }
 
 /// Shape of a point's surroundings at the coarse scale: eigen features of the voxel centroids
