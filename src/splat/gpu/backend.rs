@@ -170,6 +170,47 @@ fn to_moments(stride: usize, p: &MomentPair) -> Moments {
     }
 }
 
+impl GpuBackend {
+    /// The buffers a step on `view` needs, made or uploaded once: dL/dimage at the view's
+    /// size, the exposure and its scratch when the view trains one, the photo, and the
+    /// view's LiDAR depth map when the depth loss has one.
+    fn step_buffers(
+        &mut self,
+        view: &View,
+        exposure: Option<ExposureSlot>,
+    ) -> Result<(), TrainError> {
+        let pixels = view.camera.width as usize * view.camera.height as usize;
+        if self.dl_dimage.as_ref().is_none_or(|(n, _)| *n != pixels) {
+            let buf = storage_zeroed(&self.ctx, "dL/dimage", pixels as u64 * 12)?;
+            self.dl_dimage = Some((pixels, buf));
+        }
+        if let Some(slot) = exposure {
+            self.exposure_for(slot.index)?;
+            self.exposure_scratch_for(pixels)?;
+        }
+        self.target(view)?;
+        if !self.depth_maps.contains_key(&view.name)
+            && let Some(map) = self.depth.for_view(&view.name)
+        {
+            let buf = storage_from(&self.ctx, "LiDAR depth", map)?;
+            let valid = crate::splat::depth::valid_count(map);
+            self.depth_maps.insert(view.name.clone(), (buf, valid));
+        }
+        Ok(())
+    }
+}
+
+/// Submits what `enc` recorded and waits for it (a timed step's phase boundary); returns a
+/// fresh encoder.
+fn submit_and_wait(
+    ctx: &GpuContext,
+    enc: wgpu::CommandEncoder,
+) -> Result<wgpu::CommandEncoder, TrainError> {
+    ctx.queue.submit([enc.finish()]);
+    ctx.wait()?;
+    Ok(ctx.device.create_command_encoder(&Default::default()))
+}
+
 impl Backend for GpuBackend {
     fn device_name(&self) -> String {
         self.ctx.description.to_string()
@@ -223,24 +264,7 @@ impl Backend for GpuBackend {
         _stats: bool,
     ) -> Result<(), TrainError> {
         let (w, h) = (view.camera.width, view.camera.height);
-        let pixels = w as usize * h as usize;
-        if self.dl_dimage.as_ref().is_none_or(|(n, _)| *n != pixels) {
-            let buf = storage_zeroed(&self.ctx, "dL/dimage", pixels as u64 * 12)?;
-            self.dl_dimage = Some((pixels, buf));
-        }
-        if let Some(slot) = exposure {
-            self.exposure_for(slot.index)?;
-            self.exposure_scratch_for(pixels)?;
-        }
-        // Upload the target first (once per view) so the borrows below stay simple.
-        self.target(view)?;
-        if !self.depth_maps.contains_key(&view.name)
-            && let Some(map) = self.depth.for_view(&view.name)
-        {
-            let buf = storage_from(&self.ctx, "LiDAR depth", map)?;
-            let valid = crate::splat::depth::valid_count(map);
-            self.depth_maps.insert(view.name.clone(), (buf, valid));
-        }
+        self.step_buffers(view, exposure)?;
         let t = Instant::now();
         let state = self
             .state
@@ -317,9 +341,7 @@ impl Backend for GpuBackend {
                 .encode(&self.ctx, &mut enc, &frame, map, self.depth.weight, *valid)?;
         }
         if self.timed {
-            self.ctx.queue.submit([enc.finish()]);
-            self.ctx.wait()?;
-            enc = self.ctx.device.create_command_encoder(&Default::default());
+            enc = submit_and_wait(&self.ctx, enc)?;
         }
         let loss_ms = t.elapsed().as_secs_f64() * 1000.0;
         let t = Instant::now();
@@ -335,9 +357,7 @@ impl Backend for GpuBackend {
             &state.grads,
         )?;
         if self.timed {
-            self.ctx.queue.submit([enc.finish()]);
-            self.ctx.wait()?;
-            enc = self.ctx.device.create_command_encoder(&Default::default());
+            enc = submit_and_wait(&self.ctx, enc)?;
         }
         if let Some(sem) = self.semantic.as_ref().filter(|_| self.gamma > 0.0) {
             sem.encode(
