@@ -12,6 +12,7 @@
 
 use std::collections::BTreeMap;
 
+use glam::DVec3;
 use rayon::prelude::*;
 use serde_json::json;
 
@@ -42,7 +43,7 @@ fn list(names: &[String]) -> String {
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let mut warnings: Vec<String> = Vec::new();
     // 1. The point cloud (0 .. 0.5 of the stage).
-    let (cloud, crs) = ingest_cloud(ctx, &mut warnings)?;
+    let (cloud, crs, (lo, hi)) = ingest_cloud(ctx, &mut warnings)?;
     if ctx.progress.is_cancelled() {
         return Err(StageError::Cancelled);
     }
@@ -65,7 +66,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }
     ctx.progress.set(1.0);
 
-    let (lo, hi) = cloud.bounds().unwrap_or_default();
     let extent = hi - lo;
     Ok(json!({
         "lidar": {
@@ -89,11 +89,12 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
 
 /// Reads the LiDAR file, warns when its extent does not look like metres, settles its CRS
 /// (the job's `crs` over the file's declaration, [`crate::io::crs::resolve`]) and writes
-/// `cloud.ply` and `crs.json`.
+/// `cloud.ply` and `crs.json`. Returns the cloud, its CRS and its bounds (file coordinates,
+/// metres).
 fn ingest_cloud(
     ctx: &StageContext<'_>,
     warnings: &mut Vec<String>,
-) -> Result<(PointCloud, CrsRecord), StageError> {
+) -> Result<(PointCloud, CrsRecord, (DVec3, DVec3)), StageError> {
     let p = &ctx.params.ingest;
     let lidar_name = ctx
         .inputs
@@ -146,7 +147,7 @@ fn ingest_cloud(
     crate::forest::write_crs(ctx.out_dir, &crs)?;
     let cloud_path = ctx.out_dir.join(super::INGEST_CLOUD);
     ply::write_ply(&cloud_path, &cloud, &[])?;
-    Ok((cloud, crs))
+    Ok((cloud, crs, (lo, hi)))
 }
 
 /// Reads the COLMAP project, refuses what later stages cannot use (no registered image, an

@@ -173,6 +173,15 @@ struct Aligner<'a, 'c> {
     cloud: PointCloud,
     target: Vec<Vec3>,
     icp: IcpParams,
+    /// The control point pairs, when given: as read, and SfM and LiDAR (local frame) sides.
+    control: Option<ControlPairs>,
+}
+
+/// The job's control point pairs, read once.
+struct ControlPairs {
+    points: Vec<tables::ControlPoint>,
+    sfm: Vec<DVec3>,
+    lidar_local: Vec<DVec3>,
 }
 
 /// Where the fine stage starts: the coarse similarity, how it was found, and ICP from it.
@@ -236,6 +245,18 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         &SubProgress::new(ctx.progress, 0.1, 0.05),
     )?
     .positions;
+    let offset = cloud.offset;
+    let control = match &ctx.inputs.control_points {
+        Some(path) => {
+            let points = tables::read_control_points(path)?;
+            Some(ControlPairs {
+                sfm: points.iter().map(|c| c.sfm).collect(),
+                lidar_local: points.iter().map(|c| c.lidar - offset).collect(),
+                points,
+            })
+        }
+        None => None,
+    };
     let a = Aligner {
         ctx,
         p,
@@ -244,17 +265,17 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         cloud,
         target,
         icp: icp_params(p),
+        control,
     };
-    let offset = a.cloud.offset;
 
     let gps = if ctx.inputs.control_points.is_none() && p.start != RegisterStart::Search {
         gps_pairs(ctx, &model, &a.sfm, &a.rays, &a.cloud.positions, offset)?
     } else {
         None
     };
-    let start = match &ctx.inputs.control_points {
-        Some(path) => a.control_points(path)?,
-        None if !p.automatic => {
+    let start = match (&ctx.inputs.control_points, &a.control) {
+        (Some(path), Some(c)) => a.control_points(path, c)?,
+        _ if !p.automatic => {
             return Err(StageError::Input(
                 "control points are required: supply at least 4 pairs (CSV \
                  sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), or leave \
@@ -262,7 +283,7 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
                     .into(),
             ));
         }
-        None => a.automatic(gps.as_ref())?,
+        _ => a.automatic(gps.as_ref())?,
     };
     if ctx.progress.is_cancelled() {
         return Err(StageError::Cancelled);
@@ -296,10 +317,9 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         None => serde_json::Value::Null,
     };
     // Each control pair's residual under the final transform too (metres, LiDAR frame).
-    if let Some(path) = &ctx.inputs.control_points {
-        let cps = tables::read_control_points(path)?;
-        for (v, c) in pairs.iter_mut().zip(&cps) {
-            v["residual_final_m"] = json!((local.apply(c.sfm) - (c.lidar - offset)).length());
+    if let Some(c) = &a.control {
+        for ((v, sfm), lidar) in pairs.iter_mut().zip(&c.sfm).zip(&c.lidar_local) {
+            v["residual_final_m"] = json!((local.apply(*sfm) - *lidar).length());
         }
     }
     let to_file = Similarity {
@@ -359,13 +379,10 @@ fn icp_params(p: &RegisterParams) -> IcpParams {
 
 impl Aligner<'_, '_> {
     /// The coarse similarity from the control point pairs (Umeyama), and ICP from it.
-    fn control_points(&self, path: &Path) -> Result<Start, StageError> {
-        let offset = self.cloud.offset;
-        let cps = tables::read_control_points(path)?;
-        let src: Vec<DVec3> = cps.iter().map(|c| c.sfm).collect();
-        let dst: Vec<DVec3> = cps.iter().map(|c| c.lidar - offset).collect();
-        let fit = geom::similarity_from_pairs(&src, &dst, true)
+    fn control_points(&self, path: &Path, c: &ControlPairs) -> Result<Start, StageError> {
+        let fit = geom::similarity_from_pairs(&c.sfm, &c.lidar_local, true)
             .map_err(|e| StageError::Input(format!("{}: {e}", file_name(path))))?;
+        let cps = &c.points;
         let pairs: Vec<serde_json::Value> = cps
             .iter()
             .zip(&fit.residuals)
@@ -609,18 +626,7 @@ impl Aligner<'_, '_> {
     /// Refuses an automatic alignment that the SfM points do not pin down.
     fn refine(&self, start: Start) -> Result<Refined, StageError> {
         let (ctx, p) = (self.ctx, self.p);
-        let offset = self.cloud.offset;
         let automatic = start.method == "automatic";
-        let pairs_local = match &ctx.inputs.control_points {
-            Some(path) => {
-                let cps = tables::read_control_points(path)?;
-                Some((
-                    cps.iter().map(|c| c.sfm).collect::<Vec<_>>(),
-                    cps.iter().map(|c| c.lidar - offset).collect::<Vec<_>>(),
-                ))
-            }
-            None => None,
-        };
         let (surface, from) = match start.verified {
             Some((surface, refined)) => (surface, refined),
             None => (
@@ -636,9 +642,9 @@ impl Aligner<'_, '_> {
             &self.sfm,
             &surface,
             &from,
-            pairs_local.as_ref().map(|(a, b)| geom::surface::PairPrior {
-                sfm: a,
-                lidar: b,
+            self.control.as_ref().map(|c| geom::surface::PairPrior {
+                sfm: &c.sfm,
+                lidar: &c.lidar_local,
                 sigma_m: p.control_point_sigma_m,
             }),
             &surface_params(p),
