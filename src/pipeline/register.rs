@@ -273,7 +273,7 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     } else {
         None
     };
-    let start = match (&ctx.inputs.control_points, &a.control) {
+    let mut start = match (&ctx.inputs.control_points, &a.control) {
         (Some(path), Some(c)) => a.control_points(path, c)?,
         _ if !p.automatic => {
             return Err(StageError::Input(
@@ -297,10 +297,8 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let icp_rmse = fine.inlier_rmse;
     let (coarse, method, label, confidence) =
         (start.coarse, start.method, start.label, start.confidence);
-    let candidates = start.candidates.clone();
-    let mut pairs = start.pairs.clone();
     let refined = if p.refine {
-        a.refine(start)?
+        a.refine(&mut start)?
     } else {
         Refined {
             transform: coarse.then(&start.fine.transform()),
@@ -311,6 +309,7 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             uncertainty: serde_json::Value::Null,
         }
     };
+    let (candidates, mut pairs) = (start.candidates, start.pairs);
     let local = refined.transform;
     let gps_report = match &gps {
         Some(g) => a.check_gps(g, &local, method)?,
@@ -624,10 +623,10 @@ impl Aligner<'_, '_> {
     /// with the control points as extra observations when there are any, and its standard
     /// errors: per parameter the larger of the normal matrix's and the split halves' spread.
     /// Refuses an automatic alignment that the SfM points do not pin down.
-    fn refine(&self, start: Start) -> Result<Refined, StageError> {
+    fn refine(&self, start: &mut Start) -> Result<Refined, StageError> {
         let (ctx, p) = (self.ctx, self.p);
         let automatic = start.method == "automatic";
-        let (surface, from) = match start.verified {
+        let (surface, from) = match start.verified.take() {
             Some((surface, refined)) => (surface, refined),
             None => (
                 SurfaceTarget::new(
