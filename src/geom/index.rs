@@ -199,38 +199,16 @@ impl PointIndex {
 
     /// k-NN of every query, on all cores: `f(query_index, neighbours)` maps each query's
     /// neighbours (closest first) to a result. Reports progress and stops on cancel.
-    pub fn map_knn<R, F>(
+    pub fn map_knn<R: Send>(
         &self,
         queries: &[Vec3],
         k: usize,
         progress: &dyn Progress,
-        f: F,
-    ) -> Result<Vec<R>, GeomError>
-    where
-        R: Send + Sync + Clone + Default,
-        F: Fn(usize, &[Neighbour]) -> R + Sync,
-    {
+        f: impl Fn(usize, &[Neighbour]) -> R + Sync,
+    ) -> Result<Vec<R>, GeomError> {
         par_map_chunked(queries.len(), progress, |i, scratch| {
             self.knn_hinted(queries[i], k, &mut scratch.hint, &mut scratch.neighbours);
             f(i, &scratch.neighbours)
-        })
-    }
-
-    /// Radius search of every query on all cores, as [`PointIndex::map_knn`].
-    pub fn map_within<R, F>(
-        &self,
-        queries: &[Vec3],
-        radius: f32,
-        progress: &dyn Progress,
-        f: F,
-    ) -> Result<Vec<R>, GeomError>
-    where
-        R: Send + Sync + Clone + Default,
-        F: Fn(usize, &[Neighbour]) -> R + Sync,
-    {
-        par_map_chunked(queries.len(), progress, |i, _| {
-            let nb = self.within(queries[i], radius);
-            f(i, &nb)
         })
     }
 
@@ -265,33 +243,28 @@ pub(crate) struct Scratch {
 
 /// Runs `f(i, scratch)` for `i in 0..n` on all cores in chunks of [`CHUNK`], with one reused
 /// scratch per chunk, progress after each chunk and a cancellation check before it.
-pub(crate) fn par_map_chunked<R, F>(
+pub(crate) fn par_map_chunked<R: Send>(
     n: usize,
     progress: &dyn Progress,
-    f: F,
-) -> Result<Vec<R>, GeomError>
-where
-    R: Send + Sync + Clone + Default,
-    F: Fn(usize, &mut Scratch) -> R + Sync,
-{
-    let mut out = vec![R::default(); n];
+    f: impl Fn(usize, &mut Scratch) -> R + Sync,
+) -> Result<Vec<R>, GeomError> {
     let done = AtomicUsize::new(0);
-    out.par_chunks_mut(CHUNK)
-        .enumerate()
-        .try_for_each(|(c, chunk)| {
+    let chunks: Vec<Vec<R>> = (0..n.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|c| {
             if progress.is_cancelled() {
                 return Err(GeomError::Cancelled);
             }
             let mut scratch = Scratch::default();
-            let base = c * CHUNK;
-            for (j, slot) in chunk.iter_mut().enumerate() {
-                *slot = f(base + j, &mut scratch);
-            }
-            let d = done.fetch_add(chunk.len(), Ordering::Relaxed) + chunk.len();
+            let range = c * CHUNK..((c + 1) * CHUNK).min(n);
+            let len = range.len();
+            let out: Vec<R> = range.map(|i| f(i, &mut scratch)).collect();
+            let d = done.fetch_add(len, Ordering::Relaxed) + len;
             progress.set(d as f64 / n as f64);
-            Ok(())
-        })?;
-    Ok(out)
+            Ok(out)
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(chunks.into_iter().flatten().collect())
 }
 
 #[cfg(test)]

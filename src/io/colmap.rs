@@ -95,6 +95,34 @@ pub struct Camera {
     pub params: Vec<f64>,
 }
 
+impl Camera {
+    /// A camera of `model` with its parameters in COLMAP's order; refused (with the reason, for
+    /// the reader's error) when their number is not the model's.
+    pub fn new(
+        id: u32,
+        model: CameraModel,
+        width: u64,
+        height: u64,
+        params: Vec<f64>,
+    ) -> Result<Camera, String> {
+        if params.len() != model.num_params() {
+            return Err(format!(
+                "{} takes {} parameters, found {}",
+                model.name(),
+                model.num_params(),
+                params.len()
+            ));
+        }
+        Ok(Camera {
+            id,
+            model,
+            width,
+            height,
+            params,
+        })
+    }
+}
+
 /// One registered photo and its pose.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {

@@ -17,7 +17,7 @@ use glam::DVec3;
 use serde::Serialize;
 
 use super::pointcloud::{CloudBuilder, CloudFormat, PointCloud, colors_to_u8};
-use super::{IoError, PROGRESS_STEP, check_cancel, file_len};
+use super::{IoError, PROGRESS_STEP, check_cancel, file_len, open_buffered};
 use crate::progress::Progress;
 
 /// Header facts of a LAS/LAZ file.
@@ -66,7 +66,7 @@ pub fn las_crs(header: &::las::Header) -> Result<Option<super::crs::Crs>, super:
 pub fn read_crs(
     path: &Path,
 ) -> Result<Result<Option<super::crs::Crs>, super::crs::CrsError>, IoError> {
-    let mut read = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let mut read = open_buffered(path)?;
     let header = ::las::Header::new(&mut read).map_err(|e| las_err(path, e))?;
     Ok(las_crs(&header))
 }
@@ -92,7 +92,7 @@ pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
     if len == 0 {
         return Err(IoError::format(path, "file is empty"));
     }
-    let mut read = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let mut read = open_buffered(path)?;
     let raw = ::las::raw::Header::read_from(&mut read).map_err(|e| las_err(path, e))?;
     read.seek(SeekFrom::Start(0))
         .map_err(|e| IoError::io(path, e))?;

@@ -124,6 +124,13 @@ pub(crate) fn file_len(path: &Path) -> Result<u64, IoError> {
         .map_err(|e| IoError::io(path, e))
 }
 
+/// `path` opened for buffered reading, as an `Io` error naming it when it cannot be.
+pub(crate) fn open_buffered(path: &Path) -> Result<std::io::BufReader<std::fs::File>, IoError> {
+    std::fs::File::open(path)
+        .map(std::io::BufReader::new)
+        .map_err(|e| IoError::io(path, e))
+}
+
 /// The real public point cloud `rel` (a path such as `TreeLS_extdata/pine.laz`) for the
 /// real-data tests: the first of `$SYLVA_REAL_DATA`, `$CARGO_MANIFEST_DIR/../shared/data/real`
 /// and the small set committed in `tests/data/real` that holds it. `None`, after printing why

@@ -11,14 +11,14 @@
 mod header;
 
 use std::fs::File;
-use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::io::{BufRead, BufWriter, Read, Write};
 use std::path::Path;
 
 use glam::DVec3;
 use serde::Serialize;
 
 use super::pointcloud::{CloudBuilder, CloudFormat, PointCloud, colors_to_u8};
-use super::{IoError, PROGRESS_STEP, check_cancel, file_len};
+use super::{IoError, PROGRESS_STEP, check_cancel, file_len, open_buffered};
 use crate::progress::Progress;
 use header::{Element, Header, Scalar, check_size, parse_header};
 
@@ -56,7 +56,7 @@ pub struct PlyInfo {
 /// Reads only the PLY header and checks it against the file size.
 pub fn inspect_ply(path: &Path) -> Result<PlyInfo, IoError> {
     let len = file_len(path)?;
-    let mut r = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let mut r = open_buffered(path)?;
     let h = parse_header(path, &mut r)?;
     check_size(path, &h, len)?;
     if h.encoding == PlyEncoding::Ascii {
@@ -142,7 +142,7 @@ fn read_ply_impl(
     progress: &dyn Progress,
 ) -> Result<(PointCloud, Vec<ScalarField>), IoError> {
     let len = file_len(path)?;
-    let mut r = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let mut r = open_buffered(path)?;
     let h = parse_header(path, &mut r)?;
     check_size(path, &h, len)?;
     let big = h.encoding == PlyEncoding::BinaryBigEndian;

@@ -16,15 +16,14 @@
 //! that is not numeric (a column header) or holds a single number (the PTS point count).
 //! Any other malformed line is a `Format` error naming its line number.
 
-use std::fs::File;
-use std::io::{BufRead, BufReader};
+use std::io::BufRead;
 use std::path::Path;
 
 use glam::DVec3;
 use serde::Serialize;
 
 use super::pointcloud::{CloudBuilder, CloudFormat, PointCloud, colors_to_u8};
-use super::{IoError, PROGRESS_STEP, check_cancel, file_len};
+use super::{IoError, PROGRESS_STEP, check_cancel, file_len, open_buffered};
 use crate::progress::Progress;
 
 /// What the first lines of an XYZ file hold.
@@ -122,7 +121,7 @@ pub fn inspect_xyz(path: &Path) -> Result<XyzInfo, IoError> {
     if file_len(path)? == 0 {
         return Err(IoError::format(path, "file is empty"));
     }
-    let r = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let r = open_buffered(path)?;
     let mut parser = Parser::new(path);
     let mut first_lines = Vec::new();
     for line in r.lines().take(1000) {
@@ -149,7 +148,7 @@ pub fn inspect_xyz(path: &Path) -> Result<XyzInfo, IoError> {
 /// Reads a whole XYZ text file (see the module documentation for the columns).
 pub fn read_xyz(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoError> {
     let total = file_len(path)?;
-    let mut r = BufReader::new(File::open(path).map_err(|e| IoError::io(path, e))?);
+    let mut r = open_buffered(path)?;
     let mut parser = Parser::new(path);
     let mut cloud = CloudBuilder::new(path, None, total / 30);
     let (mut intensity, mut colors) = (Vec::new(), Vec::new());

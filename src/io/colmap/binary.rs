@@ -10,7 +10,7 @@ use std::path::Path;
 use glam::DVec3;
 
 use super::{Camera, CameraModel, ColmapModel, Image, Point2D, Point3D};
-use crate::io::{IoError, check_cancel};
+use crate::io::{IoError, check_cancel, open_buffered};
 use crate::progress::Progress;
 
 /// Largest preallocation taken from a count found in a file.
@@ -28,10 +28,9 @@ struct Bin<'a> {
 
 impl<'a> Bin<'a> {
     fn open(path: &'a Path, what: &'static str) -> Result<Self, IoError> {
-        let f = File::open(path).map_err(|e| IoError::io(path, e))?;
         Ok(Bin {
             path,
-            r: BufReader::new(f),
+            r: open_buffered(path)?,
             what,
             record: 0,
         })
@@ -119,19 +118,8 @@ pub(super) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, Camera>, IoError
         let params = (0..model.num_params())
             .map(|_| b.f64())
             .collect::<Result<Vec<_>, _>>()?;
-        if out
-            .insert(
-                id,
-                Camera {
-                    id,
-                    model,
-                    width,
-                    height,
-                    params,
-                },
-            )
-            .is_some()
-        {
+        let camera = Camera::new(id, model, width, height, params).map_err(|m| b.bad(m))?;
+        if out.insert(id, camera).is_some() {
             return Err(b.bad(format!("duplicate camera {id}")));
         }
     }

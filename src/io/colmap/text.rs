@@ -11,7 +11,7 @@ use std::str::FromStr;
 use glam::DVec3;
 
 use super::{Camera, CameraModel, ColmapModel, Image, Point2D, Point3D};
-use crate::io::{IoError, PROGRESS_STEP, check_cancel, file_len};
+use crate::io::{IoError, PROGRESS_STEP, check_cancel, file_len, open_buffered};
 use crate::progress::Progress;
 
 /// Numbered lines of a text file.
@@ -25,10 +25,9 @@ struct Lines<'a> {
 
 impl<'a> Lines<'a> {
     fn open(path: &'a Path) -> Result<Self, IoError> {
-        let f = File::open(path).map_err(|e| IoError::io(path, e))?;
         Ok(Lines {
             path,
-            r: BufReader::new(f),
+            r: open_buffered(path)?,
             no: 0,
             buf: String::new(),
             done: 0,
@@ -90,27 +89,8 @@ pub(super) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, Camera>, IoError
             .iter()
             .map(|p| lines.num(Some(p), "parameter"))
             .collect::<Result<Vec<f64>, _>>()?;
-        if params.len() != model.num_params() {
-            return Err(lines.bad(format!(
-                "{} takes {} parameters, found {}",
-                model.name(),
-                model.num_params(),
-                params.len()
-            )));
-        }
-        if out
-            .insert(
-                id,
-                Camera {
-                    id,
-                    model,
-                    width,
-                    height,
-                    params,
-                },
-            )
-            .is_some()
-        {
+        let camera = Camera::new(id, model, width, height, params).map_err(|m| lines.bad(m))?;
+        if out.insert(id, camera).is_some() {
             return Err(lines.bad(format!("duplicate camera {id}")));
         }
     }
