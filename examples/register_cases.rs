@@ -21,7 +21,7 @@ use sylva::synth::{Preset, SynthParams};
 
 #[path = "support/truth.rs"]
 mod truth;
-use truth::{errors, seeds, truth_of};
+use truth::{errors, seeds, stage_log, truth_of};
 
 const CASES: [&str; 9] = [
     "stand",
@@ -56,18 +56,6 @@ fn case_params(case: &str, seed: u64) -> Result<SynthParams, String> {
     Ok(p)
 }
 
-/// Prints the stage's log lines when `REG_CASES_LOG` is set.
-struct Printer;
-
-impl sylva::progress::Progress for Printer {
-    fn set(&self, _fraction: f64) {}
-    fn log(&self, message: &str) {
-        if std::env::var_os("REG_CASES_LOG").is_some() {
-            println!("    {message}");
-        }
-    }
-}
-
 #[derive(Default)]
 struct Tally {
     good: usize,
@@ -79,6 +67,7 @@ struct Tally {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    let log = stage_log("REG_CASES_LOG");
     let cases: Vec<&str> = match args.first().map(String::as_str) {
         None | Some("all") => CASES.to_vec(),
         Some(list) => list.split(',').collect(),
@@ -110,8 +99,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 pipeline::execute_stage(Stage::Ingest, &inputs, &work, &params, &NoProgress)?;
             }
             let t0 = Instant::now();
-            let result =
-                pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &Printer);
+            let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, log);
             let secs = t0.elapsed().as_secs_f64();
             tally.seconds.push(secs);
             let (truth_sim, centre) = truth_of(&out)?;

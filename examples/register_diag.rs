@@ -20,10 +20,11 @@ use sylva::synth::{Preset, SynthParams};
 
 #[path = "support/truth.rs"]
 mod truth;
-use truth::{errors, seeds, truth_of};
+use truth::{errors, seeds, stage_log, truth_of};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    let log = stage_log("REG_DIAG_LOG");
     // "light-stand": the lighter stand of tests/register.rs (30 photos of 320×180, 800 k LiDAR
     // points, 5000 SfM points).
     let name = args.first().map_or("tiny", String::as_str);
@@ -109,7 +110,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             coarse_only(&out)?;
         }
         let t0 = Instant::now();
-        let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, &Printer);
+        let result = pipeline::execute_stage(Stage::Register, &inputs, &work, &params, log);
         let secs = t0.elapsed().as_secs_f64();
         let (truth_sim, centre) = truth_of(&out)?;
         let report = match result {
@@ -226,18 +227,6 @@ fn coarse_only(out: &std::path::Path) -> Result<(), Box<dyn std::error::Error>> 
     Ok(())
 }
 
-/// Prints log lines when `REG_DIAG_LOG` is set.
-struct Printer;
-
-impl sylva::progress::Progress for Printer {
-    fn set(&self, _fraction: f64) {}
-    fn log(&self, message: &str) {
-        if std::env::var_os("REG_DIAG_LOG").is_some() {
-            println!("    {message}");
-        }
-    }
-}
-
 /// Where the SfM points lie on the LiDAR's classes at the true pose, and where the
 /// refinement drifts from the true pose with each subset of them.
 fn analyse_seed(
@@ -331,7 +320,7 @@ fn analyse_seed(
                 sigma_m: p.control_point_sigma_m,
             }),
             &sp,
-            &Printer,
+            stage_log("REG_DIAG_LOG"),
         ) {
             Ok(r) => {
                 let t = local.inverse().then(&r.transform);

@@ -43,6 +43,22 @@ impl Progress for Cancelled {
     }
 }
 
+/// A progress sink that ignores fractions and prints each log line to stderr, indented and
+/// named by its label (the stage's name, or nothing): for benchmarks and examples, whose own
+/// output is a table that a bar would garble. Never cancelled.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct LogLines(pub &'static str);
+
+impl Progress for LogLines {
+    fn set(&self, _fraction: f64) {}
+    fn log(&self, message: &str) {
+        match self.0 {
+            "" => eprintln!("    {message}"),
+            label => eprintln!("    {label}: {message}"),
+        }
+    }
+}
+
 /// A shared cancellation flag: cheap to clone, set once, read from any thread.
 #[derive(Debug, Default, Clone)]
 pub struct CancelFlag(Arc<AtomicBool>);

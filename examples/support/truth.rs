@@ -34,3 +34,13 @@ pub fn seeds(arg: Option<&str>) -> Result<Vec<u64>, Error> {
         None => vec![arg.parse()?],
     })
 }
+
+/// The registration stage's log lines on stderr when the environment variable `var` is set,
+/// else nothing.
+pub fn stage_log(var: &str) -> &'static dyn sylva::progress::Progress {
+    if std::env::var_os(var).is_some() {
+        &sylva::progress::LogLines("")
+    } else {
+        &sylva::progress::NoProgress
+    }
+}

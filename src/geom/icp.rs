@@ -200,7 +200,7 @@ pub fn icp(
             &np,
             &SubProgress::new(progress, 0.0, 0.3),
         )?;
-        return run(
+        return icp_weighted(
             source,
             target,
             Some(&index),
@@ -212,66 +212,12 @@ pub fn icp(
         );
     }
     // The k-d tree is built only if the column grid hands a query back (a far outlier).
-    run(
+    icp_weighted(
         source,
         target,
         None,
         target_normals,
         IcpWeights::default(),
-        initial,
-        params,
-        progress,
-    )
-}
-
-/// As [`icp`], with a prebuilt index over exactly `target`. Point-to-plane needs
-/// `target_normals`.
-pub fn icp_with_index(
-    source: &[Vec3],
-    target: &[Vec3],
-    index: &PointIndex,
-    target_normals: Option<&[Vec3]>,
-    initial: &Similarity,
-    params: &IcpParams,
-    progress: &dyn Progress,
-) -> Result<IcpResult, GeomError> {
-    icp_weighted(
-        source,
-        target,
-        index,
-        target_normals,
-        IcpWeights::default(),
-        initial,
-        params,
-        progress,
-    )
-}
-
-/// As [`icp_with_index`], with prior weights per source and per target point.
-#[allow(clippy::too_many_arguments)]
-pub fn icp_weighted(
-    source: &[Vec3],
-    target: &[Vec3],
-    index: &PointIndex,
-    target_normals: Option<&[Vec3]>,
-    weights: IcpWeights<'_>,
-    initial: &Similarity,
-    params: &IcpParams,
-    progress: &dyn Progress,
-) -> Result<IcpResult, GeomError> {
-    if index.len() != target.len() {
-        return Err(GeomError::LengthMismatch {
-            what: "index vs target",
-            left: index.len(),
-            right: target.len(),
-        });
-    }
-    run(
-        source,
-        target,
-        Some(index),
-        target_normals,
-        weights,
         initial,
         params,
         progress,
@@ -299,10 +245,12 @@ const COARSE_STRIDE: usize = 16;
 /// only near the full one, which the iterations on all points then settle.
 const COARSE_TOLERANCE: f64 = 1e-4;
 
-/// The ICP loop over finite target points (checked by the callers: `PointIndex::new` or
-/// [`icp`]); `index`, when given, indexes exactly `target`, else it is built on first need.
+/// As [`icp`], with prior weights per source and per target point and, when given, a prebuilt
+/// `index` over exactly `target` (else one is built on first need). Point-to-plane needs
+/// `target_normals`. The target points must be finite (checked by `PointIndex::new` or
+/// [`icp`]).
 #[allow(clippy::too_many_arguments)]
-fn run(
+pub fn icp_weighted(
     source: &[Vec3],
     target: &[Vec3],
     index: Option<&PointIndex>,
@@ -312,6 +260,13 @@ fn run(
     params: &IcpParams,
     progress: &dyn Progress,
 ) -> Result<IcpResult, GeomError> {
+    if let Some(index) = index.filter(|i| i.len() != target.len()) {
+        return Err(GeomError::LengthMismatch {
+            what: "index vs target",
+            left: index.len(),
+            right: target.len(),
+        });
+    }
     validate(source, target, target_normals, initial, params)?;
     validate_weights(weights.source, source.len(), "source weights")?;
     validate_weights(weights.target, target.len(), "target weights")?;

@@ -28,9 +28,7 @@ pub mod surface;
 mod voxel;
 
 pub use error::GeomError;
-pub use icp::{
-    IcpMethod, IcpParams, IcpResult, IcpWeights, RobustKernel, icp, icp_weighted, icp_with_index,
-};
+pub use icp::{IcpMethod, IcpParams, IcpResult, IcpWeights, RobustKernel, icp, icp_weighted};
 pub use index::{Neighbour, PointIndex};
 pub(crate) use linalg::solve3;
 pub use normals::{

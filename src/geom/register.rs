@@ -22,8 +22,8 @@ use rayon::prelude::*;
 
 use super::surface::{PairPrior, SurfaceParams, SurfaceResult};
 use super::{
-    GeomError, IcpMethod, IcpParams, IcpResult, NormalOrientation, NormalParams, PointIndex,
-    Similarity, VoxelParams, coarse::CoarseAlignment,
+    GeomError, IcpMethod, IcpParams, IcpResult, IcpWeights, NormalOrientation, NormalParams,
+    PointIndex, Similarity, VoxelParams, coarse::CoarseAlignment,
 };
 use crate::progress::{Progress, SubProgress};
 
@@ -123,11 +123,12 @@ pub fn icp_two_phase(
         estimate_scale: false,
         ..*params
     };
-    let first = super::icp_with_index(
+    let first = super::icp_weighted(
         source,
         target,
-        &index,
+        Some(&index),
         normals.as_deref(),
+        IcpWeights::default(),
         &Similarity::IDENTITY,
         &rigid,
         &SubProgress::new(progress, 0.3, 0.35),
@@ -139,11 +140,12 @@ pub fn icp_two_phase(
         start_distance: first.max_distance.max(params.min_distance) * 2.0,
         ..*params
     };
-    super::icp_with_index(
+    super::icp_weighted(
         source,
         target,
-        &index,
+        Some(&index),
         normals.as_deref(),
+        IcpWeights::default(),
         &first.transform(),
         &second,
         &SubProgress::new(progress, 0.65, 0.35),

@@ -39,6 +39,7 @@ use serde_json::Value;
 use sylva::forest::{TreeRow, compare_with_field};
 use sylva::pipeline::params::{DensifyStrategy, InitSource, PipelineParams, TrunkTerm};
 use sylva::pipeline::{self, Stage, StageInputs};
+use sylva::progress::LogLines;
 use sylva::rng::SplitMix64;
 use sylva::splat::model::sigmoid;
 
@@ -185,16 +186,6 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
     })
 }
 
-/// A progress sink that prints the stage's log lines.
-struct Log(&'static str);
-
-impl sylva::progress::Progress for Log {
-    fn set(&self, _fraction: f64) {}
-    fn log(&self, message: &str) {
-        eprintln!("    {}: {message}", self.0);
-    }
-}
-
 fn read_json(path: &Path) -> anyhow::Result<Value> {
     let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
     serde_json::from_slice(&bytes).with_context(|| format!("{}: invalid JSON", path.display()))
@@ -228,7 +219,7 @@ fn prepare_plot(
             .is_file()
         {
             eprintln!("  {stage} on seed {seed}");
-            pipeline::execute_stage(stage, &inputs, &shared, &params, &Log(stage.name()))
+            pipeline::execute_stage(stage, &inputs, &shared, &params, &LogLines(stage.name()))
                 .map_err(|e| anyhow::anyhow!("stage {stage} on seed {seed}: {e}"))?;
         }
     }
@@ -304,7 +295,7 @@ fn run_arm(
     let start = Instant::now();
     for stage in [Stage::Train, Stage::Dbh] {
         if !out.join(stage.name()).join(pipeline::REPORT_FILE).is_file() {
-            pipeline::execute_stage(stage, inputs, &out, &params, &Log(stage.name()))
+            pipeline::execute_stage(stage, inputs, &out, &params, &LogLines(stage.name()))
                 .map_err(|e| anyhow::anyhow!("arm {name}, stage {stage}: {e}"))?;
         }
     }

@@ -79,6 +79,23 @@ impl DeviceKind {
     }
 }
 
+/// What one optimisation step ([`Backend::step`]) trains on, and how.
+#[derive(Clone, Copy)]
+pub struct Step<'a> {
+    /// The photo and its camera.
+    pub view: &'a View,
+    /// The image's learned exposure, applied to the render before the loss and trained with it
+    /// (rate `lr.exposure`; docs/splatting.md "Exposure"); its index must be below the count
+    /// given to [`Backend::set_exposures`].
+    pub exposure: Option<ExposureSlot>,
+    /// The learning rates of this step.
+    pub lr: &'a LearningRates,
+    /// The spherical-harmonics degree in use.
+    pub sh_degree: u32,
+    /// Accumulate the view-space statistics for densification.
+    pub stats: bool,
+}
+
 /// One place the training steps can run.
 pub trait Backend {
     /// Human-readable device name (e.g. the GPU adapter).
@@ -87,19 +104,8 @@ pub trait Backend {
     fn device_kind(&self) -> DeviceKind;
     /// Installs `model` and its optimiser state (at start and after every refinement).
     fn set_model(&mut self, model: &Gaussians, adam: &AdamState) -> Result<(), TrainError>;
-    /// One optimisation step on `view`: render, loss, backward, Adam with `lr`; when `stats`
-    /// is true the view-space statistics are accumulated for densification. With `exposure`,
-    /// the slot's learned transform is applied to the render before the loss and trained with
-    /// it (rate `lr.exposure`; docs/splatting.md "Exposure"); it must be below the count given
-    /// to [`Backend::set_exposures`].
-    fn step(
-        &mut self,
-        view: &View,
-        exposure: Option<ExposureSlot>,
-        lr: &LearningRates,
-        sh_degree: u32,
-        stats: bool,
-    ) -> Result<(), TrainError>;
+    /// One optimisation step (see [`Step`]): render, loss, backward, Adam.
+    fn step(&mut self, step: &Step<'_>) -> Result<(), TrainError>;
     /// Installs `n` per-image exposure transforms (docs/splatting.md "Exposure"), each the
     /// identity with zero Adam moments; 0 removes them. They live apart from the model:
     /// [`Backend::set_model`] leaves them as they are.
@@ -244,18 +250,12 @@ impl Backend for CpuBackend {
         Ok(())
     }
 
-    fn step(
-        &mut self,
-        view: &View,
-        exposure: Option<ExposureSlot>,
-        lr: &LearningRates,
-        sh_degree: u32,
-        stats: bool,
-    ) -> Result<(), TrainError> {
-        if let Some(slot) = exposure {
+    fn step(&mut self, step: &Step<'_>) -> Result<(), TrainError> {
+        let view = step.view;
+        if let Some(slot) = step.exposure {
             check_slot(slot.index, self.exposure.len())?;
         }
-        self.model.sh_degree = sh_degree;
+        self.model.sh_degree = step.sh_degree;
         let t = std::time::Instant::now();
         let render = cpu::render_with(&self.model, &view.camera, self.background, self.options)
             .map_err(invalid)?;
@@ -265,7 +265,7 @@ impl Backend for CpuBackend {
         let (w, h) = (view.camera.width, view.camera.height);
         // With an exposure: loss of the exposed render, then back through the transform.
         let mut exposure_grad = None;
-        let (loss, grad) = match exposure {
+        let (loss, grad) = match step.exposure {
             None => cpu::loss_and_grad(&render.image, &target, w, h).map_err(invalid)?,
             Some(slot) => {
                 let e = self.exposure.params[slot.index].map(f64::from);
@@ -324,7 +324,7 @@ impl Backend for CpuBackend {
             );
         }
         self.times.backward_ms += ms(t);
-        if stats {
+        if step.stats {
             let radii: Vec<f32> = render
                 .projected
                 .iter()
@@ -334,19 +334,19 @@ impl Backend for CpuBackend {
         }
         let t = std::time::Instant::now();
         self.adam
-            .step(&mut self.model, &grads, lr)
+            .step(&mut self.model, &grads, step.lr)
             .map_err(invalid)?;
         if let Some(terms) = self.terms.as_ref() {
             mcmc::add_noise(
                 &mut self.model,
                 &self.mcmc_flags,
                 terms,
-                lr.position,
+                step.lr.position,
                 self.adam.step,
             );
         }
         if let Some((index, de)) = exposure_grad {
-            self.exposure.adam_step(index, &de, lr.exposure);
+            self.exposure.adam_step(index, &de, step.lr.exposure);
         }
         if let Some((index, cfg)) = self.bind.as_ref() {
             bind::project(&mut self.model, index, cfg);

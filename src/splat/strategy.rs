@@ -158,12 +158,15 @@ impl DefaultStrategy {
         }
     }
 
+    /// Clones, splits and prunes in a scene of `extent` metres; once `after_first_reset` (the
+    /// first opacity reset has passed), also prunes Gaussians too large in the world or on
+    /// screen.
     fn densify_and_prune(
         &mut self,
-        step: u32,
         g: &mut Gaussians,
         adam: &mut AdamState,
         extent: f32,
+        after_first_reset: bool,
     ) -> RefineReport {
         let n = g.len();
         if self.grad_sum.len() != n {
@@ -208,7 +211,6 @@ impl DefaultStrategy {
             .collect();
         entries.extend(clones.iter().chain(&children).map(|c| (None, *c)));
 
-        let after_first_reset = step > self.cfg.opacity_reset_interval;
         let max_world = self.cfg.prune_world_size * extent;
         let keep: Vec<bool> = entries
             .iter()
@@ -333,7 +335,8 @@ impl Strategy for DefaultStrategy {
             return report;
         }
         if step > c.densify_from && step.is_multiple_of(c.densify_interval.max(1)) {
-            report = self.densify_and_prune(step, g, adam, extent);
+            let after_first_reset = step > c.opacity_reset_interval;
+            report = self.densify_and_prune(g, adam, extent, after_first_reset);
         }
         if step.is_multiple_of(self.cfg.opacity_reset_interval.max(1)) {
             self.reset_opacity(g, adam);

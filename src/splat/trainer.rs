@@ -6,7 +6,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use super::adam::{AdamState, LearningRates};
-use super::backend::{Backend, PhaseTimes, StepLoss, TrainError};
+use super::backend::{Backend, PhaseTimes, Step, StepLoss, TrainError};
 use super::config::{StrategyKind, TrainConfig};
 use super::dataset::Dataset;
 use super::eval::{EvalRegion, EvalReport, LossRecord, ViewMetrics, save_side_by_side};
@@ -126,13 +126,13 @@ pub fn train_monitored(
         if cfg.semantic.enabled {
             backend.set_geo_weight(cfg.semantic.gamma_at(step));
         }
-        backend.step(
+        backend.step(&Step {
             view,
-            slot,
-            &lr,
-            cfg.sh_degree_at(step),
-            step < cfg.densify_until,
-        )?;
+            exposure: slot,
+            lr: &lr,
+            sh_degree: cfg.sh_degree_at(step),
+            stats: step < cfg.densify_until,
+        })?;
         if strategy.wants_refine(step) {
             let stats = backend.take_stats()?;
             strategy.absorb_stats(&stats);

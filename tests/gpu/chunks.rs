@@ -6,7 +6,7 @@
 use crate::common;
 
 use sylva::splat::adam::{AdamState, LearningRates};
-use sylva::splat::backend::Backend;
+use sylva::splat::backend::{Backend, Step};
 use sylva::splat::cameras::View;
 use sylva::splat::gpu::chunks::{ChunkPlan, SlotPlan};
 use sylva::splat::gpu::renderer::{BandSpan, plan_bands};
@@ -230,7 +230,14 @@ fn train(ctx: &GpuContext, model: &Gaussians, view: &View, steps: u32) -> (Gauss
         exposure: 0.0,
     };
     for _ in 0..steps {
-        be.step(view, None, &lr, 3, true).expect("step");
+        let step = Step {
+            view,
+            exposure: None,
+            lr: &lr,
+            sh_degree: 3,
+            stats: true,
+        };
+        be.step(&step).expect("step");
     }
     let loss = be.last_loss().expect("loss").loss;
     (be.model().expect("model").0, loss)

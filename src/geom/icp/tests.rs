@@ -220,7 +220,7 @@ fn target_weights_keep_a_surface_seen_differently_from_biasing_the_fit() {
         icp_weighted(
             &source,
             &target,
-            &index,
+            Some(&index),
             Some(&normals.normals),
             w,
             &Similarity::IDENTITY,

@@ -13,8 +13,8 @@ use super::buffers::{read_buffer, storage_from, storage_zeroed};
 use super::exposure::{ExposureScratch, GpuExposure};
 use super::loss::{LOSS_OUT_BYTES, LossKernel};
 use super::{GpuContext, GpuError, GpuGrads, GpuSplats, Renderer};
-use crate::splat::adam::{AdamState, LearningRates, Moments};
-use crate::splat::backend::{Backend, DeviceKind, PhaseTimes, StepLoss, TrainError};
+use crate::splat::adam::{AdamState, Moments};
+use crate::splat::backend::{Backend, DeviceKind, PhaseTimes, Step, StepLoss, TrainError};
 use crate::splat::bind::BindConfig;
 use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cameras::View;
@@ -255,14 +255,14 @@ impl Backend for GpuBackend {
         Ok(())
     }
 
-    fn step(
-        &mut self,
-        view: &View,
-        exposure: Option<ExposureSlot>,
-        lr: &LearningRates,
-        sh_degree: u32,
-        _stats: bool,
-    ) -> Result<(), TrainError> {
+    fn step(&mut self, step: &Step<'_>) -> Result<(), TrainError> {
+        let Step {
+            view,
+            exposure,
+            lr,
+            sh_degree,
+            ..
+        } = *step;
         let (w, h) = (view.camera.width, view.camera.height);
         self.step_buffers(view, exposure)?;
         let t = Instant::now();
