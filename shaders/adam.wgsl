@@ -10,9 +10,8 @@
 @group(0) @binding(4) var<storage, read_write> m2: array<f32>;
 
 @compute @workgroup_size(256)
-fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let i = (wg.y * nwg.x + wg.x) * 256u + lid;
+fn main(inv: Invocation) {
+    let i = flat_index(inv);
     if i >= ap.n_floats {
         return;
     }

@@ -28,11 +28,6 @@ fn compensation(c00: f32, c01: f32, c11: f32, det_blurred: f32) -> f32 {
     return sqrt(max(0.0, (c00 * c11 - c01 * c01) / det_blurred));
 }
 
-// Linear invocation index of a 1-D dispatch folded onto (x, y) workgroups of 256 threads.
-fn linear_id(wg: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
-    return (wg.y * nwg.x + wg.x) * 256u + lid;
-}
-
 // Rotation matrix of the normalised quaternion q = (w, x, y, z); WGSL matrices are column-major.
 fn quat_to_mat(q: vec4<f32>) -> mat3x3<f32> {
     let w = q.x;

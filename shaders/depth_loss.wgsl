@@ -9,9 +9,8 @@
 @group(0) @binding(3) var<storage, read_write> depth_grad: array<f32>;
 
 @compute @workgroup_size(256)
-fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let o = (wg.y * nwg.x + wg.x) * 256u + lid;
+fn main(inv: Invocation) {
+    let o = flat_index(inv);
     if o >= dp.pixels {
         return;
     }

@@ -29,10 +29,6 @@
 // Three rows of (dL/da_r0, dL/da_r1, dL/da_r2, dL/db_r) per thread: 12 KiB.
 var<workgroup> red: array<vec4<f32>, 768>;
 
-fn linear_id(wg: vec3<u32>, nwg: vec3<u32>) -> u32 {
-    return wg.y * nwg.x + wg.x;
-}
-
 fn masked(i: u32) -> bool {
     return params.left_half != 0u && (i % params.width) >= params.width / 2u;
 }
@@ -61,12 +57,8 @@ fn tree_sum(lid: u32) {
 }
 
 @compute @workgroup_size(256)
-fn apply(
-    @builtin(workgroup_id) wg: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = linear_id(wg, nwg) * 256u + lid;
+fn apply(inv: Invocation) {
+    let i = flat_index(inv);
     if (i >= params.width * params.height) {
         return;
     }
@@ -83,13 +75,10 @@ fn apply(
 }
 
 @compute @workgroup_size(256)
-fn backward(
-    @builtin(workgroup_id) wg: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let g_id = linear_id(wg, nwg);
-    let i = g_id * 256u + lid;
+fn backward(inv: Invocation) {
+    let g_id = flat_group(inv);
+    let i = flat_index(inv);
+    let lid = inv.lid;
     var rows = array<vec4<f32>, 3>(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
     if (i < params.width * params.height) {
         var d = vec3<f32>(0.0);

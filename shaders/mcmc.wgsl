@@ -19,10 +19,6 @@
 const FLAG_BOUND: u32 = 1u;
 const FLAG_BACKGROUND: u32 = 2u;
 
-fn gid(wg: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
-    return (wg.y * nwg.x + wg.x) * 256u + lid;
-}
-
 fn sigmoid1(x: f32) -> f32 {
     return 1.0 / (1.0 + exp(-x));
 }
@@ -41,9 +37,8 @@ fn unit_of(h: u32) -> f32 {
 // Regularisers: dL/dlogit += lambda_o / N * o (1 - o); dL/dlog_s += lambda_s / (3 N) * exp(log_s)
 // (not for the background dome). Runs after the backward passes, before Adam.
 @compute @workgroup_size(256)
-fn regularise(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-              @builtin(local_invocation_index) lid: u32) {
-    let c = gid(wg, nwg, lid);
+fn regularise(inv: Invocation) {
+    let c = flat_index(inv);
     if c >= chunk.y {
         return;
     }
@@ -60,9 +55,8 @@ fn regularise(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg
 // Sigma = R S^2 R^T, gate(o) = sigmoid(100 (1 - o - 0.995)) and eps ~ N(0, I) hashed from
 // (seed, step, index). Bound trunk surfels get none.
 @compute @workgroup_size(256)
-fn noise(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-         @builtin(local_invocation_index) lid: u32) {
-    let c = gid(wg, nwg, lid);
+fn noise(inv: Invocation) {
+    let c = flat_index(inv);
     if c >= chunk.y {
         return;
     }

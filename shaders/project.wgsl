@@ -23,9 +23,8 @@ fn cull(c: u32) {
 }
 
 @compute @workgroup_size(256)
-fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let c = linear_id(wg, nwg, lid);
+fn main(inv: Invocation) {
+    let c = flat_index(inv);
     if c >= chunk.y {
         return;
     }

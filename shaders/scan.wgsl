@@ -16,9 +16,9 @@ struct ScanParams {
 var<workgroup> partial: array<u32, 256>;
 
 @compute @workgroup_size(256)
-fn scan_blocks(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-               @builtin(local_invocation_index) lid: u32) {
-    let block = wg.y * nwg.x + wg.x;
+fn scan_blocks(inv: Invocation) {
+    let block = flat_group(inv);
+    let lid = inv.lid;
     if block * 1024u >= sp.n {
         return;
     }
@@ -59,9 +59,9 @@ fn scan_blocks(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw
 }
 
 @compute @workgroup_size(256)
-fn add_offsets(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-               @builtin(local_invocation_index) lid: u32) {
-    let block = wg.y * nwg.x + wg.x;
+fn add_offsets(inv: Invocation) {
+    let block = flat_group(inv);
+    let lid = inv.lid;
     if block * 1024u >= sp.n {
         return;
     }

@@ -21,10 +21,6 @@ const MAX_K: u32 = 16u;
 
 @group(0) @binding(0) var<uniform> gp: GeoParams;
 
-fn gid(wg: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
-    return (wg.y * nwg.x + wg.x) * 256u + lid;
-}
-
 #ifdef GRID
 // Cell starts of the trunk grid, then of the leaf grid (each with its closing entry).
 @group(0) @binding(4) var<storage, read> starts: array<u32>;
@@ -111,9 +107,8 @@ fn sigmoid(x: f32) -> f32 {
 @group(0) @binding(6) var<storage, read_write> geo: array<vec4<f32>>;
 
 @compute @workgroup_size(256)
-fn query(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-         @builtin(local_invocation_index) lid: u32) {
-    let i = gid(wg, nwg, lid);
+fn query(inv: Invocation) {
+    let i = flat_index(inv);
     if i >= gp.n {
         return;
     }
@@ -243,9 +238,8 @@ fn reduce(@builtin(local_invocation_index) lid: u32) {
 @group(0) @binding(6) var<storage, read_write> grad_log_scales: array<f32>;
 
 @compute @workgroup_size(256)
-fn apply(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-         @builtin(local_invocation_index) lid: u32) {
-    let i = gid(wg, nwg, lid);
+fn apply(inv: Invocation) {
+    let i = flat_index(inv);
     if i >= gp.n {
         return;
     }
@@ -280,9 +274,8 @@ fn hamilton(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
 }
 
 @compute @workgroup_size(256)
-fn bind(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let i = gid(wg, nwg, lid);
+fn bind(inv: Invocation) {
+    let i = flat_index(inv);
     if i >= gp.n || trunk_prob[i] < gp.bind_min_prob {
         return;
     }

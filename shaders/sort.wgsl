@@ -37,9 +37,9 @@ fn digit_of(i: u32) -> u32 {
 }
 
 @compute @workgroup_size(128)
-fn count(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-         @builtin(local_invocation_index) lid: u32) {
-    let block = wg.y * nwg.x + wg.x;
+fn count(inv: Invocation) {
+    let block = flat_group(inv);
+    let lid = inv.lid;
     if block >= sp.num_blocks {
         return;
     }
@@ -60,9 +60,9 @@ fn count(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec
 }
 
 @compute @workgroup_size(128)
-fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-           @builtin(local_invocation_index) lid: u32) {
-    let block = wg.y * nwg.x + wg.x;
+fn scatter(inv: Invocation) {
+    let block = flat_group(inv);
+    let lid = inv.lid;
     if block >= sp.num_blocks {
         return;
     }

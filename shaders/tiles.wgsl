@@ -41,9 +41,8 @@ fn rect_of(c: u32) -> Rect {
 }
 
 @compute @workgroup_size(256)
-fn emit(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let c = linear_id(wg, nwg, lid);
+fn emit(inv: Invocation) {
+    let c = flat_index(inv);
     if c >= chunk.y {
         return;
     }
@@ -68,9 +67,8 @@ fn emit(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3
 }
 
 @compute @workgroup_size(256)
-fn ranges_main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-               @builtin(local_invocation_index) lid: u32) {
-    let k = linear_id(wg, nwg, lid);
+fn ranges_main(inv: Invocation) {
+    let k = flat_index(inv);
     let n = band.w;
     if k >= n {
         return;
@@ -86,9 +84,8 @@ fn ranges_main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw
 }
 
 @compute @workgroup_size(256)
-fn row_counts(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-              @builtin(local_invocation_index) lid: u32) {
-    let c = linear_id(wg, nwg, lid);
+fn row_counts(inv: Invocation) {
+    let c = flat_index(inv);
     if c >= chunk.y {
         return;
     }
@@ -103,9 +100,8 @@ fn row_counts(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg
 }
 
 @compute @workgroup_size(256)
-fn band_counts(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-               @builtin(local_invocation_index) lid: u32) {
-    let c = linear_id(wg, nwg, lid);
+fn band_counts(inv: Invocation) {
+    let c = flat_index(inv);
     if c >= chunk.y {
         return;
     }

@@ -140,7 +140,8 @@ pub fn read_buffer_at<T: bytemuck::Pod>(
 }
 
 /// Number of workgroups along x and y covering `groups` workgroups (x ≤ 65535, the WebGPU
-/// default `max_compute_workgroups_per_dimension`); kernels linearise `wg.y * nwg.x + wg.x`.
+/// default `max_compute_workgroups_per_dimension`); kernels count them back with `flat_group`
+/// of `shaders/grid.wgsl`.
 pub fn grid(groups: u32) -> (u32, u32) {
     let x = groups.clamp(1, 65535);
     (x, groups.div_ceil(x).max(1))
@@ -194,13 +195,18 @@ pub fn bind_entries(
     })
 }
 
-/// A compute pipeline with an automatic layout from WGSL `source`, entry point `entry`.
+/// The WGSL side of [`grid`]: the `Invocation` an entry point takes and its `flat_group` and
+/// `flat_index`, prepended to every kernel by [`pipeline`].
+const GRID_WGSL: &str = include_str!("../../shaders/grid.wgsl");
+
+/// A compute pipeline with an automatic layout from WGSL `source` (after [`GRID_WGSL`]), entry
+/// point `entry`.
 pub fn pipeline(ctx: &GpuContext, label: &str, source: &str, entry: &str) -> wgpu::ComputePipeline {
     let module = ctx
         .device
         .create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some(label),
-            source: wgpu::ShaderSource::Wgsl(source.into()),
+            source: wgpu::ShaderSource::Wgsl(format!("{GRID_WGSL}{source}").into()),
         });
     ctx.device
         .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
