@@ -267,9 +267,7 @@ fn analyse_seed(
     let thin = sylva::geom::voxel_downsample(
         &cloud.positions,
         None,
-        &sylva::geom::VoxelParams {
-            voxel_size: p.refine_voxel_m as f32,
-        },
+        p.refine_voxel_m as f32,
         &NoProgress,
     )?
     .positions;

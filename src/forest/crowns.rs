@@ -31,7 +31,7 @@ use serde::{Deserialize, Serialize};
 
 use super::ForestError;
 use super::stems::Stem;
-use crate::geom::{PointIndex, VoxelParams, voxel_members};
+use crate::geom::{PointIndex, voxel_members};
 use crate::progress::{Progress, SubProgress};
 
 /// Parameters of [`segment_trees`]; defaults are documented per field.
@@ -171,9 +171,7 @@ pub fn segment_trees(
     let kept_positions: Vec<Vec3> = kept.iter().map(|&i| points[i as usize]).collect();
     let (voxels, voxel_of) = voxel_members(
         &kept_positions,
-        &VoxelParams {
-            voxel_size: params.voxel_m,
-        },
+        params.voxel_m,
         &SubProgress::new(progress, 0.0, 0.15),
     )?;
     let centres = &voxels.positions;

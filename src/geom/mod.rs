@@ -40,4 +40,4 @@ pub use outliers::{
 };
 pub use pca::{SymmetricEigen3, covariance, symmetric_eigen3};
 pub use similarity::{Similarity, SimilarityFit, similarity_from_pairs, weighted_similarity};
-pub use voxel::{VoxelDownsample, VoxelParams, voxel_downsample, voxel_members};
+pub use voxel::{VoxelDownsample, voxel_downsample, voxel_members};

@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use super::surface::{PairPrior, SurfaceParams, SurfaceResult};
 use super::{
     GeomError, IcpMethod, IcpParams, IcpResult, IcpWeights, NormalOrientation, NormalParams,
-    PointIndex, Similarity, VoxelParams, coarse::CoarseAlignment,
+    PointIndex, Similarity, coarse::CoarseAlignment,
 };
 use crate::progress::{Progress, SubProgress};
 
@@ -167,15 +167,7 @@ impl SurfaceTarget {
         voxel_m: f64,
         progress: &dyn Progress,
     ) -> Result<SurfaceTarget, GeomError> {
-        let thin = super::voxel_downsample(
-            lidar,
-            None,
-            &VoxelParams {
-                voxel_size: voxel_m as f32,
-            },
-            progress,
-        )?
-        .positions;
+        let thin = super::voxel_downsample(lidar, None, voxel_m as f32, progress)?.positions;
         let index = PointIndex::new(&thin)?;
         Ok(SurfaceTarget { thin, index })
     }

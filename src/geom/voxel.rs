@@ -8,28 +8,12 @@
 
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use super::GeomError;
 use crate::progress::Progress;
 
 /// Bits per axis in the voxel key (3 × 21 = 63 bits).
 const AXIS_BITS: u32 = 21;
-
-/// Parameters of [`voxel_downsample`].
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct VoxelParams {
-    /// Voxel edge in metres. Default 0.02 m: the paper gives no value; docs/method.md Stage 2.1
-    /// fixes 2 cm (about the spacing of handheld SLAM LiDAR on stems).
-    pub voxel_size: f32,
-}
-
-impl Default for VoxelParams {
-    fn default() -> Self {
-        Self { voxel_size: 0.02 }
-    }
-}
 
 /// Result of [`voxel_downsample`]: one entry per non-empty voxel, in Morton order of voxels.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -42,16 +26,16 @@ pub struct VoxelDownsample {
     pub counts: Vec<u32>,
 }
 
-/// Replaces every non-empty voxel of edge `params.voxel_size` by the centroid (and mean
+/// Replaces every non-empty voxel of edge `voxel_m` metres by the centroid (and mean
 /// colour) of its points. The grid is aligned to multiples of the voxel size in the input
 /// frame, so the result does not depend on the cloud's bounding box.
 pub fn voxel_downsample(
     points: &[Vec3],
     colours: Option<&[[u8; 3]]>,
-    params: &VoxelParams,
+    voxel_m: f32,
     progress: &dyn Progress,
 ) -> Result<VoxelDownsample, GeomError> {
-    voxelise(points, colours, params, false, progress).map(|(v, _)| v)
+    voxelise(points, colours, voxel_m, false, progress).map(|(v, _)| v)
 }
 
 /// [`voxel_downsample`] that also says which voxel every input point fell in (an index into
@@ -59,20 +43,20 @@ pub fn voxel_downsample(
 /// points (the tree segmentation of `forest::crowns`).
 pub fn voxel_members(
     points: &[Vec3],
-    params: &VoxelParams,
+    voxel_m: f32,
     progress: &dyn Progress,
 ) -> Result<(VoxelDownsample, Vec<u32>), GeomError> {
-    voxelise(points, None, params, true, progress)
+    voxelise(points, None, voxel_m, true, progress)
 }
 
 fn voxelise(
     points: &[Vec3],
     colours: Option<&[[u8; 3]]>,
-    params: &VoxelParams,
+    voxel_m: f32,
     members: bool,
     progress: &dyn Progress,
 ) -> Result<(VoxelDownsample, Vec<u32>), GeomError> {
-    let v = params.voxel_size;
+    let v = voxel_m;
     if !(v.is_finite() && v > 0.0) {
         return Err(GeomError::InvalidParameter(format!(
             "voxel_size must be a positive number of metres, got {v}"
@@ -245,13 +229,7 @@ mod tests {
             [1, 2, 3],
             [2, 2, 4],
         ];
-        let out = voxel_downsample(
-            &pts,
-            Some(&cols),
-            &VoxelParams { voxel_size: 1.0 },
-            &NoProgress,
-        )
-        .unwrap();
+        let out = voxel_downsample(&pts, Some(&cols), 1.0, &NoProgress).unwrap();
         assert_eq!(out.positions.len(), 3);
         let c = out.colours.as_ref().unwrap();
         let mut seen = 0;
@@ -282,7 +260,7 @@ mod tests {
     #[test]
     fn grid_is_aligned_to_the_frame_not_the_bounding_box() {
         let pts = vec![Vec3::new(0.019, 0.0, 0.0), Vec3::new(0.021, 0.0, 0.0)];
-        let out = voxel_downsample(&pts, None, &VoxelParams::default(), &NoProgress).unwrap();
+        let out = voxel_downsample(&pts, None, 0.02, &NoProgress).unwrap();
         assert_eq!(out.counts, vec![1, 1]);
         assert!(out.colours.is_none());
     }
@@ -291,20 +269,20 @@ mod tests {
     fn rejects_bad_input() {
         let p = [Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0)];
         assert!(matches!(
-            voxel_downsample(&p, None, &VoxelParams::default(), &NoProgress),
+            voxel_downsample(&p, None, 0.02, &NoProgress),
             Err(GeomError::NonFinite(_))
         ));
         assert!(matches!(
-            voxel_downsample(&p[..1], None, &VoxelParams { voxel_size: 0.0 }, &NoProgress),
+            voxel_downsample(&p[..1], None, 0.0, &NoProgress),
             Err(GeomError::InvalidParameter(_))
         ));
         assert!(matches!(
-            voxel_downsample(&p[..1], Some(&[]), &VoxelParams::default(), &NoProgress),
+            voxel_downsample(&p[..1], Some(&[]), 0.02, &NoProgress),
             Err(GeomError::LengthMismatch { .. })
         ));
         let far = [Vec3::ZERO, Vec3::new(1.0e5, 0.0, 0.0)];
         assert!(matches!(
-            voxel_downsample(&far, None, &VoxelParams::default(), &NoProgress),
+            voxel_downsample(&far, None, 0.02, &NoProgress),
             Err(GeomError::GridOverflow { .. })
         ));
     }

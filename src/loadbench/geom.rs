@@ -37,7 +37,7 @@ use serde::Serialize;
 use super::peak_rss_mib;
 use sylva::geom::{
     IcpMethod, IcpParams, NormalOrientation, NormalParams, OutlierParams, RobustKernel, Similarity,
-    VoxelParams, estimate_normals, icp, statistical_outlier_filter, voxel_downsample,
+    estimate_normals, icp, statistical_outlier_filter, voxel_downsample,
 };
 use sylva::progress::NoProgress;
 
@@ -226,7 +226,9 @@ pub fn run(a: &GeomBenchArgs) -> anyhow::Result<Vec<GeomRow>> {
     }
     let n_raw = cloud.len();
     let t = Clock::start();
-    let vox = voxel_downsample(&cloud.positions, None, &VoxelParams::default(), &NoProgress)?;
+    // The anchors stage's voxel (docs/method.md Stage 2.1).
+    let voxel_m = sylva::pipeline::params::AnchorParams::default().voxel_size_m as f32;
+    let vox = voxel_downsample(&cloud.positions, None, voxel_m, &NoProgress)?;
     let (secs, cpu) = t.read();
     drop(cloud);
     push(

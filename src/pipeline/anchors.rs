@@ -9,7 +9,7 @@ use glam::Vec3;
 use serde_json::json;
 
 use super::{Stage, StageContext, StageError};
-use crate::geom::{self, NormalOrientation, NormalParams, OutlierParams, VoxelParams};
+use crate::geom::{self, NormalOrientation, NormalParams, OutlierParams};
 use crate::io::colmap;
 use crate::io::ply::{self, ScalarField};
 use crate::io::pointcloud::PointCloud;
@@ -59,9 +59,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let voxels = geom::voxel_downsample(
         &fused.positions,
         colours,
-        &VoxelParams {
-            voxel_size: p.voxel_size_m as f32,
-        },
+        p.voxel_size_m as f32,
         &SubProgress::new(ctx.progress, 0.2, 0.2),
     )?;
     let n_voxels = voxels.positions.len();

@@ -31,7 +31,7 @@ use crate::geom::register::{
     AUTOMATIC_MAX_STD_ROTATION_DEG, AUTOMATIC_MAX_STD_SCALE, AUTOMATIC_REFINE_PASSES, CandidateRun,
     SurfaceTarget, icp_from, refine_on_surface, verify_candidates,
 };
-use crate::geom::{self, IcpMethod, IcpParams, IcpResult, RobustKernel, Similarity, VoxelParams};
+use crate::geom::{self, IcpMethod, IcpParams, IcpResult, RobustKernel, Similarity};
 use crate::io::colmap::{self, ColmapModel};
 use crate::io::gps::GpsFix;
 use crate::io::pointcloud::PointCloud;
@@ -239,9 +239,7 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let target = geom::voxel_downsample(
         &cloud.positions,
         None,
-        &VoxelParams {
-            voxel_size: p.target_voxel_m as f32,
-        },
+        p.target_voxel_m as f32,
         &SubProgress::new(ctx.progress, 0.1, 0.05),
     )?
     .positions;
