@@ -43,3 +43,15 @@ pub enum GeomError {
     #[error("spatial index: {0}")]
     Index(String),
 }
+
+impl GeomError {
+    /// `Ok` when two inputs that must have the same length do: `left` items of one against
+    /// `right` of the other; else [`GeomError::LengthMismatch`] naming them (`what`).
+    pub fn check_len(what: &'static str, left: usize, right: usize) -> Result<(), GeomError> {
+        if left == right {
+            Ok(())
+        } else {
+            Err(GeomError::LengthMismatch { what, left, right })
+        }
+    }
+}

@@ -260,12 +260,8 @@ pub fn icp_weighted(
     params: &IcpParams,
     progress: &dyn Progress,
 ) -> Result<IcpResult, GeomError> {
-    if let Some(index) = index.filter(|i| i.len() != target.len()) {
-        return Err(GeomError::LengthMismatch {
-            what: "index vs target",
-            left: index.len(),
-            right: target.len(),
-        });
+    if let Some(index) = index {
+        GeomError::check_len("index vs target", index.len(), target.len())?;
     }
     validate(source, target, target_normals, initial, params)?;
     validate_weights(weights.source, source.len(), "source weights")?;
@@ -492,23 +488,14 @@ fn validate(
         ));
     }
     if p.method == IcpMethod::PointToPlane {
-        match target_normals {
-            None => {
-                return Err(GeomError::InvalidParameter(
-                    "point-to-plane ICP needs target normals".into(),
-                ));
-            }
-            Some(n) if n.len() != target.len() => {
-                return Err(GeomError::LengthMismatch {
-                    what: "target normals vs target",
-                    left: n.len(),
-                    right: target.len(),
-                });
-            }
-            Some(n) if !n.iter().all(|v| v.is_finite()) => {
-                return Err(GeomError::NonFinite("target normals"));
-            }
-            _ => {}
+        let Some(n) = target_normals else {
+            return Err(GeomError::InvalidParameter(
+                "point-to-plane ICP needs target normals".into(),
+            ));
+        };
+        GeomError::check_len("target normals vs target", n.len(), target.len())?;
+        if !n.iter().all(|v| v.is_finite()) {
+            return Err(GeomError::NonFinite("target normals"));
         }
     }
     if !source.iter().all(|v| v.is_finite()) {
@@ -551,17 +538,16 @@ fn validate(
 
 /// Each prior weight must be finite and in [0, 1].
 fn validate_weights(w: Option<&[f32]>, n: usize, what: &'static str) -> Result<(), GeomError> {
-    match w {
-        Some(w) if w.len() != n => Err(GeomError::LengthMismatch {
-            what,
-            left: w.len(),
-            right: n,
-        }),
-        Some(w) if !w.iter().all(|v| (0.0..=1.0).contains(v)) => Err(GeomError::InvalidParameter(
-            format!("{what} must lie in [0, 1]"),
-        )),
-        _ => Ok(()),
+    let Some(w) = w else {
+        return Ok(());
+    };
+    GeomError::check_len(what, w.len(), n)?;
+    if !w.iter().all(|v| (0.0..=1.0).contains(v)) {
+        return Err(GeomError::InvalidParameter(format!(
+            "{what} must lie in [0, 1]"
+        )));
     }
+    Ok(())
 }
 
 /// Relative and absolute (metres) margins of the cache certificate, above the f32 rounding

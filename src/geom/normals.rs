@@ -136,13 +136,7 @@ pub fn estimate_normals_with_index(
     progress: &dyn Progress,
 ) -> Result<Normals, GeomError> {
     check_k(params.k)?;
-    if index.len() != points.len() {
-        return Err(GeomError::LengthMismatch {
-            what: "index vs points",
-            left: index.len(),
-            right: points.len(),
-        });
-    }
+    GeomError::check_len("index vs points", index.len(), points.len())?;
     let k = params.k;
     match params.orientation {
         NormalOrientation::Propagate { up } => {

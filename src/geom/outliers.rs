@@ -67,13 +67,7 @@ pub fn statistical_outlier_filter_with_index(
             params.k, params.alpha
         )));
     }
-    if index.len() != points.len() {
-        return Err(GeomError::LengthMismatch {
-            what: "index vs points",
-            left: index.len(),
-            right: points.len(),
-        });
-    }
+    GeomError::check_len("index vs points", index.len(), points.len())?;
     let n = points.len();
     if n < 2 {
         return Ok(OutlierFilter {

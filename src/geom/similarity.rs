@@ -118,21 +118,9 @@ pub fn weighted_similarity(
     weights: Option<&[f64]>,
     with_scale: bool,
 ) -> Result<Similarity, GeomError> {
-    if src.len() != dst.len() {
-        return Err(GeomError::LengthMismatch {
-            what: "source vs destination points",
-            left: src.len(),
-            right: dst.len(),
-        });
-    }
-    if let Some(w) = weights
-        && w.len() != src.len()
-    {
-        return Err(GeomError::LengthMismatch {
-            what: "weights vs pairs",
-            left: w.len(),
-            right: src.len(),
-        });
+    GeomError::check_len("source vs destination points", src.len(), dst.len())?;
+    if let Some(w) = weights {
+        GeomError::check_len("weights vs pairs", w.len(), src.len())?;
     }
     fit_similarity(
         src.len(),

@@ -579,21 +579,9 @@ fn validate(
             "surface refinement needs source points and a LiDAR cloud",
         ));
     }
-    if index.len() != cloud.len() {
-        return Err(GeomError::LengthMismatch {
-            what: "index vs cloud",
-            left: index.len(),
-            right: cloud.len(),
-        });
-    }
+    GeomError::check_len("index vs cloud", index.len(), cloud.len())?;
     if let Some(w) = source_weights {
-        if w.len() != source.len() {
-            return Err(GeomError::LengthMismatch {
-                what: "source weights vs source",
-                left: w.len(),
-                right: source.len(),
-            });
-        }
+        GeomError::check_len("source weights vs source", w.len(), source.len())?;
         if !w.iter().all(|v| (0.0..=1.0).contains(v)) {
             return Err(GeomError::InvalidParameter(
                 "source weights must lie in [0, 1]".into(),

@@ -62,14 +62,8 @@ fn voxelise(
             "voxel_size must be a positive number of metres, got {v}"
         )));
     }
-    if let Some(c) = colours
-        && c.len() != points.len()
-    {
-        return Err(GeomError::LengthMismatch {
-            what: "colours vs points",
-            left: c.len(),
-            right: points.len(),
-        });
+    if let Some(c) = colours {
+        GeomError::check_len("colours vs points", c.len(), points.len())?;
     }
     if points.is_empty() {
         let empty = VoxelDownsample {

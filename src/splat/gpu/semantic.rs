@@ -89,12 +89,18 @@ pub struct GpuSemantic {
     /// Unit normals of the trunk anchors in the trunk grid's order (zero where unknown).
     normals: wgpu::Buffer,
     params: GeoParams,
-    /// Trunk probabilities and the 2 vec4 per Gaussian of the query, for `count` Gaussians.
-    trunk_prob: Option<wgpu::Buffer>,
-    geo: Option<wgpu::Buffer>,
+    /// The installed model's buffers, for `count` Gaussians.
+    model: Option<ModelBuffers>,
     count: u32,
     /// (W, Σ w·term, L_geo, 0) of the latest step.
     sums: wgpu::Buffer,
+}
+
+/// The buffers of an installed model: trunk probabilities and the 2 vec4 per Gaussian of the
+/// query.
+struct ModelBuffers {
+    trunk_prob: wgpu::Buffer,
+    geo: wgpu::Buffer,
 }
 
 impl GpuSemantic {
@@ -179,8 +185,7 @@ impl GpuSemantic {
             anchors: storage_from(ctx, "semantic anchors", &points)?,
             normals: storage_from(ctx, "trunk anchor normals", &normals)?,
             params,
-            trunk_prob: None,
-            geo: None,
+            model: None,
             count: 0,
             sums: storage_zeroed(ctx, "semantic sums", 16)?,
         })
@@ -189,8 +194,10 @@ impl GpuSemantic {
     /// Installs the trunk probabilities of a (new or refined) model.
     pub fn set_model(&mut self, ctx: &GpuContext, trunk_prob: &[f32]) -> Result<(), GpuError> {
         let n = trunk_prob.len() as u32;
-        self.trunk_prob = Some(storage_from(ctx, "trunk prob", trunk_prob)?);
-        self.geo = Some(storage_zeroed(ctx, "semantic targets", n as u64 * 32)?);
+        self.model = Some(ModelBuffers {
+            trunk_prob: storage_from(ctx, "trunk prob", trunk_prob)?,
+            geo: storage_zeroed(ctx, "semantic targets", n as u64 * 32)?,
+        });
         self.count = n;
         Ok(())
     }
@@ -206,18 +213,8 @@ impl GpuSemantic {
         loss_out: &wgpu::Buffer,
         gamma: f32,
     ) -> Result<(), GpuError> {
-        let (Some(prob), Some(geo)) = (&self.trunk_prob, &self.geo) else {
-            return Err(GpuError::Invalid(
-                "semantic term: no model installed".into(),
-            ));
-        };
-        self.check_counts("semantic term", &[splats.count, grads.count])?;
-        // The reduction reads every Gaussian in one workgroup, so this pass binds the (12 bytes
-        // per Gaussian) means and log-scales whole rather than in chunks.
-        ctx.check_binding(
-            "means and log-scales (bound whole by the semantic term)",
-            self.count as u64 * 12,
-        )?;
+        let model = self.installed(ctx, "semantic term", &[splats.count, grads.count])?;
+        let (prob, geo) = (&model.trunk_prob, &model.geo);
         let params = GeoParams {
             n: self.count,
             gamma,
@@ -289,19 +286,12 @@ impl GpuSemantic {
         enc: &mut wgpu::CommandEncoder,
         splats: &GpuSplats,
     ) -> Result<(), GpuError> {
-        let Some(prob) = &self.trunk_prob else {
-            return Err(GpuError::Invalid(
-                "trunk binding: no model installed".into(),
-            ));
-        };
-        self.check_counts("trunk binding", &[splats.count])?;
+        let prob = &self
+            .installed(ctx, "trunk binding", &[splats.count])?
+            .trunk_prob;
         ctx.check_binding(
             "rotations (bound whole by the trunk binding)",
             self.count as u64 * 16,
-        )?;
-        ctx.check_binding(
-            "means and log-scales (bound whole by the trunk binding)",
-            self.count as u64 * 12,
         )?;
         let params = GeoParams {
             n: self.count,
@@ -328,26 +318,37 @@ impl GpuSemantic {
         Ok(())
     }
 
-    /// Fails unless each of `counts` (the model's first) is the installed model's Gaussian
-    /// count; `what` names the pass in the error.
-    fn check_counts(&self, what: &str, counts: &[u32]) -> Result<(), GpuError> {
+    /// The installed model's buffers, once checked for the pass `what` (named in the errors):
+    /// a model is installed, each of `counts` (the model's first) is its Gaussian count, and
+    /// its means and log-scales (12 bytes per Gaussian) fit one binding: the reduction reads
+    /// every Gaussian in one workgroup, so the passes bind them whole rather than in chunks.
+    fn installed(
+        &self,
+        ctx: &GpuContext,
+        what: &str,
+        counts: &[u32],
+    ) -> Result<&ModelBuffers, GpuError> {
+        let Some(model) = &self.model else {
+            return Err(GpuError::Invalid(format!("{what}: no model installed")));
+        };
         if counts.iter().any(|&c| c != self.count) {
             return Err(GpuError::Invalid(format!(
                 "{what} for {} Gaussians, model {}",
                 self.count, counts[0]
             )));
         }
-        Ok(())
+        ctx.check_binding(
+            "means and log-scales (bound whole by the semantic passes)",
+            self.count as u64 * 12,
+        )?;
+        Ok(model)
     }
 
     /// Reads the latest query back (blocking; for tests): per Gaussian (a_nn xyz, s_target,
     /// w, 0, 0, 0), and (W, Σ w·term, L_geo, 0).
     pub fn read_back(&self, ctx: &GpuContext) -> Result<(Vec<[f32; 8]>, [f32; 4]), GpuError> {
-        let geo = self
-            .geo
-            .as_ref()
-            .ok_or_else(|| GpuError::Invalid("semantic term: no model installed".into()))?;
-        let flat: Vec<f32> = read_buffer(ctx, geo, self.count as usize * 8)?;
+        let model = self.installed(ctx, "semantic read-back", &[])?;
+        let flat: Vec<f32> = read_buffer(ctx, &model.geo, self.count as usize * 8)?;
         let rows = flat
             .chunks_exact(8)
             .map(|c| std::array::from_fn(|j| c[j]))
