@@ -292,15 +292,9 @@ impl Backend for CpuBackend {
             .depth
             .for_view(&view.name)
             .map(|map| depth::loss_and_grad(&render.depth, map, self.depth.weight).1);
-        let (mut grads, grad_stat) = cpu::render_backward_depth(
-            &self.model,
-            &view.camera,
-            self.background,
-            &render,
-            &grad,
-            depth_grad.as_deref(),
-        )
-        .map_err(invalid)?;
+        let (mut grads, grad_stat) =
+            cpu::render_backward(&self.model, &render, &grad, depth_grad.as_deref())
+                .map_err(invalid)?;
         let mut geo = 0.0;
         if let Some((index, n_pos, cfg)) = self.semantic.as_ref().filter(|_| self.gamma > 0.0) {
             let targets = semantic::geo_targets_indexed(&self.model, index, cfg);

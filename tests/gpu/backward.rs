@@ -76,7 +76,7 @@ fn cpu_backward(
     let cpu = sylva::splat::cpu::render_with(&model, &cam, bg, opts).expect("cpu render");
     let dl = common::random_dl((w * h) as usize, seed + 100);
     let (want, want_stat) =
-        sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+        sylva::splat::cpu::render_backward(&model, &cpu, &dl, None).expect("cpu backward");
     (cpu, want, want_stat)
 }
 
@@ -211,10 +211,9 @@ fn depth_backward_matches_cpu_reference() {
             .map(|p| 0.05 * (p as f32 * 0.37).sin())
             .collect();
         let (want, _) =
-            sylva::splat::cpu::render_backward_depth(&model, &cam, bg, &cpu, &dl, Some(&dd))
-                .expect("cpu backward");
+            sylva::splat::cpu::render_backward(&model, &cpu, &dl, Some(&dd)).expect("cpu backward");
         let (without, _) =
-            sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+            sylva::splat::cpu::render_backward(&model, &cpu, &dl, None).expect("cpu backward");
         let moved = want
             .means
             .iter()

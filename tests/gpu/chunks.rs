@@ -167,7 +167,7 @@ fn slotted_and_banded_frame_equals_single_binding() {
     );
     let dl = common::random_dl((w * h) as usize, 77);
     let (want, want_stat) =
-        sylva::splat::cpu::render_backward(&model, &cam, bg, &cpu, &dl).expect("cpu backward");
+        sylva::splat::cpu::render_backward(&model, &cpu, &dl, None).expect("cpu backward");
     let want = [
         flat(&want.means),
         flat(&want.log_scales),

@@ -93,7 +93,10 @@ pub struct Render {
     pub depth_order: Vec<u32>,
     /// Expected depth per pixel, Σ T α z, metres (`raster::RasterOutput::depth`).
     pub depth: Vec<f32>,
-    /// The options it was rendered with (its backward uses the same).
+    /// The camera, background (RGB in [0, 1]) and options it was rendered with: its backward
+    /// uses the same.
+    pub camera: Camera,
+    pub background: [f32; 3],
     pub options: RenderOptions,
     image_f64: Vec<[f64; 3]>,
     final_t_f64: Vec<f64>,
@@ -148,6 +151,8 @@ pub fn render_with(
     Ok(Render {
         width: cam.width,
         height: cam.height,
+        camera: *cam,
+        background,
         image: out.image.iter().map(|p| p.map(|v| v as f32)).collect(),
         final_t: out.final_t.iter().map(|&t| t as f32).collect(),
         n_contrib: out.n_contrib,
@@ -164,19 +169,6 @@ pub fn render_with(
 /// Backward of [`render`] in f64; see [`render_backward`].
 pub fn render_backward_f64(
     model: &Gaussians,
-    cam: &Camera,
-    background: [f32; 3],
-    render: &Render,
-    dl_dimage: &[[f64; 3]],
-) -> Result<(Vec<ParamGrad>, Vec<f64>), CpuError> {
-    render_backward_depth_f64(model, cam, background, render, dl_dimage, None)
-}
-
-/// [`render_backward_f64`] with, when given, dL/d(expected depth) per pixel as well.
-pub fn render_backward_depth_f64(
-    model: &Gaussians,
-    cam: &Camera,
-    background: [f32; 3],
     render: &Render,
     dl_dimage: &[[f64; 3]],
     dl_ddepth: Option<&[f64]>,
@@ -193,7 +185,7 @@ pub fn render_backward_depth_f64(
         &render.depth_order,
         render.width,
         render.height,
-        background.map(f64::from),
+        render.background.map(f64::from),
         &render.final_t_f64,
         &render.n_contrib,
         dl_dimage,
@@ -206,7 +198,13 @@ pub fn render_backward_depth_f64(
     let mut grads = Vec::with_capacity(model.len());
     let mut stat = Vec::with_capacity(model.len());
     for (i, g) in pgrads.iter().enumerate() {
-        grads.push(project::project_backward(model, i, cam, render.options, g));
+        grads.push(project::project_backward(
+            model,
+            i,
+            &render.camera,
+            render.options,
+            g,
+        ));
         stat.push(if render.projected[i].visible {
             (g.mean2d[0] * half_w).hypot(g.mean2d[1] * half_h)
         } else {
@@ -217,33 +215,19 @@ pub fn render_backward_depth_f64(
 }
 
 /// Gradients of a loss with respect to every parameter, given `dl_dimage` = dL/d`render.image`
-/// (per pixel RGB), for the same `model`, `cam` and `background` that produced `render` (and
-/// with the [`RenderOptions`] it was rendered with, `render.options`).
+/// (per pixel RGB), for the `model` that produced `render` (with the camera, background and options
+/// it holds), and, when given, `dl_ddepth` = dL/d`render.depth`.
 /// Also returns the densification statistic per Gaussian: `|dL/dmean2d|` with the pixel
 /// gradient scaled by `(0.5 · width, 0.5 · height)` (the reference's NDC gradient), 0 when culled.
 pub fn render_backward(
     model: &Gaussians,
-    cam: &Camera,
-    background: [f32; 3],
-    render: &Render,
-    dl_dimage: &[[f32; 3]],
-) -> Result<(GaussianGrads, Vec<f32>), CpuError> {
-    render_backward_depth(model, cam, background, render, dl_dimage, None)
-}
-
-/// [`render_backward`] with, when given, dL/d(expected depth) per pixel as well.
-pub fn render_backward_depth(
-    model: &Gaussians,
-    cam: &Camera,
-    background: [f32; 3],
     render: &Render,
     dl_dimage: &[[f32; 3]],
     dl_ddepth: Option<&[f32]>,
 ) -> Result<(GaussianGrads, Vec<f32>), CpuError> {
     let g64: Vec<[f64; 3]> = dl_dimage.iter().map(|p| p.map(f64::from)).collect();
     let d64: Option<Vec<f64>> = dl_ddepth.map(|d| d.iter().map(|&v| f64::from(v)).collect());
-    let (grads, stat) =
-        render_backward_depth_f64(model, cam, background, render, &g64, d64.as_deref())?;
+    let (grads, stat) = render_backward_f64(model, render, &g64, d64.as_deref())?;
     let mut out = GaussianGrads::zeros(model.len());
     for (i, g) in grads.iter().enumerate() {
         out.means[i] = g.mean.map(|v| v as f32);

@@ -3,10 +3,7 @@
 use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cpu::project::{ProjectedGrad, project, project_backward};
 use crate::splat::cpu::test_scenes::{offset_target, random_scene, small_camera};
-use crate::splat::cpu::{
-    ParamGrad, loss_and_grad_f64, render, render_backward_depth_f64, render_backward_f64,
-    render_with,
-};
+use crate::splat::cpu::{ParamGrad, loss_and_grad_f64, render, render_backward_f64, render_with};
 use crate::splat::model::Gaussians;
 
 const BG: [f32; 3] = [0.1, 0.3, 0.2];
@@ -91,7 +88,7 @@ fn check_group_with(
     let (_, dl_dimg) = loss_and_grad_f64(r.image_f64(), &target, cam.width, cam.height).unwrap();
     let weights = depth_weights(r.image.len());
     let depth = with_depth.then_some(&weights[..]);
-    let (grads, _) = render_backward_depth_f64(model, &cam, BG, &r, &dl_dimg, depth).unwrap();
+    let (grads, _) = render_backward_f64(model, &r, &dl_dimg, depth).unwrap();
     let mut m = model.clone();
     let mut rows = Vec::new();
     for (i, grad) in grads.iter().enumerate().take(max_gaussians) {
@@ -295,7 +292,7 @@ fn sh_above_active_degree_gets_zero_gradient() {
     let cam = small_camera();
     let r = render(&model, &cam, BG).unwrap();
     let dl: Vec<[f64; 3]> = vec![[1.0, -0.5, 0.25]; r.image.len()];
-    let (grads, _) = render_backward_f64(&model, &cam, BG, &r, &dl).unwrap();
+    let (grads, _) = render_backward_f64(&model, &r, &dl, None).unwrap();
     assert!(
         grads
             .iter()
@@ -322,8 +319,8 @@ fn a_depth_loss_changes_the_gradients() {
     let r = render(&model, &cam, BG).unwrap();
     let dl: Vec<[f64; 3]> = vec![[0.0; 3]; r.image.len()];
     let w = depth_weights(r.image.len());
-    let (g0, _) = render_backward_f64(&model, &cam, BG, &r, &dl).unwrap();
-    let (g1, _) = render_backward_depth_f64(&model, &cam, BG, &r, &dl, Some(&w)).unwrap();
+    let (g0, _) = render_backward_f64(&model, &r, &dl, None).unwrap();
+    let (g1, _) = render_backward_f64(&model, &r, &dl, Some(&w)).unwrap();
     assert!(g0.iter().all(|g| g.mean == [0.0; 3]));
     assert!(g1.iter().filter(|g| g.mean[1].abs() > 1e-6).count() > 10);
 }
