@@ -123,6 +123,23 @@ impl Camera {
     }
 }
 
+/// Adds record `id` of a model file's `what` (camera, image), refusing an id the file gave
+/// before (the refusal, for the reader's error).
+fn insert_new<T>(
+    records: &mut BTreeMap<u32, T>,
+    what: &str,
+    id: u32,
+    record: T,
+) -> Result<(), String> {
+    match records.entry(id) {
+        std::collections::btree_map::Entry::Vacant(e) => {
+            e.insert(record);
+            Ok(())
+        }
+        std::collections::btree_map::Entry::Occupied(_) => Err(format!("duplicate {what} {id}")),
+    }
+}
+
 /// One registered photo and its pose.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {

@@ -6,6 +6,7 @@
 //! `ssim()`), averaged over pixels and the three channels. Images are RGB f32 in [0, 1],
 //! row-major.
 
+use std::borrow::Cow;
 use std::io::{self, Write};
 use std::path::Path;
 
@@ -133,42 +134,30 @@ pub struct ViewMetrics {
 }
 
 impl ViewMetrics {
-    /// Metrics of a render against its 8-bit ground truth (converted to [0, 1]).
+    /// Metrics of a render against its 8-bit ground truth (converted to [0, 1]) over `region`
+    /// of the images (SSIM of the right half as an image of its own, as the reference crops
+    /// before measuring).
     pub fn measure(
-        name: &str,
-        render: &[[f32; 3]],
-        truth: &PackedImage,
-    ) -> Result<Self, EvalError> {
-        let t = truth.to_rgb_f32();
-        Ok(ViewMetrics {
-            name: name.to_string(),
-            psnr: psnr(render, &t, truth.width, truth.height)?,
-            ssim: ssim(render, &t, truth.width, truth.height)?,
-        })
-    }
-
-    /// [`ViewMetrics::measure`] over `region` of the images (SSIM of the right half as an
-    /// image of its own, as the reference crops before measuring).
-    pub fn measure_region(
         name: &str,
         render: &[[f32; 3]],
         truth: &PackedImage,
         region: EvalRegion,
     ) -> Result<Self, EvalError> {
-        match region {
-            EvalRegion::Full => Self::measure(name, render, truth),
+        let (w, h) = (truth.width, truth.height);
+        let t = truth.to_rgb_f32();
+        check(render, &t, w, h)?;
+        let (r, t, w) = match region {
+            EvalRegion::Full => (Cow::Borrowed(render), t, w),
             EvalRegion::RightHalf => {
-                let (w, h) = (truth.width, truth.height);
-                check(render, render, w, h)?;
                 let (r, rw) = right_half(render, w, h);
-                let (t, _) = right_half(&truth.to_rgb_f32(), w, h);
-                Ok(ViewMetrics {
-                    name: name.to_string(),
-                    psnr: psnr(&r, &t, rw, h)?,
-                    ssim: ssim(&r, &t, rw, h)?,
-                })
+                (Cow::Owned(r), right_half(&t, w, h).0, rw)
             }
-        }
+        };
+        Ok(ViewMetrics {
+            name: name.to_string(),
+            psnr: psnr(&r, &t, w, h)?,
+            ssim: ssim(&r, &t, w, h)?,
+        })
     }
 }
 

@@ -82,7 +82,7 @@ fn ssim_matches_a_direct_two_dimensional_window_with_zero_padding() {
 fn report_averages_views_and_serialises() {
     let truth = crate::splat::packed_image::PackedImage::filled(4, 4, [128, 128, 128, 255]);
     let render = vec![[128.0 / 255.0 + 0.01; 3]; 16];
-    let v = ViewMetrics::measure("a.jpg", &render, &truth).expect("sizes match");
+    let v = ViewMetrics::measure("a.jpg", &render, &truth, EvalRegion::Full).expect("sizes match");
     assert!((v.psnr - 40.0).abs() < 0.01);
     let r = EvalReport::from_views(vec![
         v.clone(),
@@ -161,15 +161,13 @@ fn right_half_metrics_see_only_columns_from_half_the_width() {
             render[y * 5 + x] = [1.0, 0.0, 0.0];
         }
     }
-    let full = ViewMetrics::measure_region("a", &render, &truth, EvalRegion::Full).expect("ok");
-    let right =
-        ViewMetrics::measure_region("a", &render, &truth, EvalRegion::RightHalf).expect("ok");
+    let full = ViewMetrics::measure("a", &render, &truth, EvalRegion::Full).expect("ok");
+    let right = ViewMetrics::measure("a", &render, &truth, EvalRegion::RightHalf).expect("ok");
     assert!(full.psnr < 20.0, "full {}", full.psnr);
     assert_eq!(right.psnr, PSNR_IDENTICAL);
     // One wrong pixel in column 2 (the first right-half column) is seen.
     render[2] = [1.0, 0.0, 0.0];
-    let right =
-        ViewMetrics::measure_region("a", &render, &truth, EvalRegion::RightHalf).expect("ok");
+    let right = ViewMetrics::measure("a", &render, &truth, EvalRegion::RightHalf).expect("ok");
     assert!(right.psnr < 20.0, "right {}", right.psnr);
     let (half, w) = right_half(&[0, 1, 2, 3, 4, 5, 6, 7, 8, 9], 5, 2);
     assert_eq!((half, w), (vec![2, 3, 4, 7, 8, 9], 3));

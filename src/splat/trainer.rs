@@ -259,7 +259,7 @@ fn evaluate_heldout(
     let mean = mean_colour(data);
     let mut baseline = Vec::new();
     let measure = |name: &str, img: &[[f32; 3]], truth: &super::packed_image::PackedImage| {
-        ViewMetrics::measure_region(name, img, truth, region)
+        ViewMetrics::measure(name, img, truth, region)
             .map_err(|e| TrainError::Invalid(e.to_string()))
     };
     for (j, v) in data.test.iter().enumerate() {

@@ -9,7 +9,7 @@ use std::path::Path;
 
 use glam::DVec3;
 
-use super::{Camera, CameraModel, ColmapModel, Image, Point2D, Point3D};
+use super::{Camera, CameraModel, ColmapModel, Image, Point2D, Point3D, insert_new};
 use crate::io::{IoError, check_cancel, open_buffered};
 use crate::progress::Progress;
 
@@ -119,9 +119,7 @@ pub(super) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, Camera>, IoError
             .map(|_| b.f64())
             .collect::<Result<Vec<_>, _>>()?;
         let camera = Camera::new(id, model, width, height, params).map_err(|m| b.bad(m))?;
-        if out.insert(id, camera).is_some() {
-            return Err(b.bad(format!("duplicate camera {id}")));
-        }
+        insert_new(&mut out, "camera", id, camera).map_err(|m| b.bad(m))?;
     }
     b.finish()?;
     Ok(out)
@@ -168,9 +166,7 @@ pub(super) fn read_images(
             name,
             points2d,
         };
-        if out.insert(id, img).is_some() {
-            return Err(b.bad(format!("duplicate image {id}")));
-        }
+        insert_new(&mut out, "image", id, img).map_err(|m| b.bad(m))?;
     }
     b.finish()?;
     Ok(out)

@@ -10,7 +10,7 @@ use std::str::FromStr;
 
 use glam::DVec3;
 
-use super::{Camera, CameraModel, ColmapModel, Image, Point2D, Point3D};
+use super::{Camera, CameraModel, ColmapModel, Image, Point2D, Point3D, insert_new};
 use crate::io::{IoError, PROGRESS_STEP, check_cancel, file_len, open_buffered};
 use crate::progress::Progress;
 
@@ -90,9 +90,7 @@ pub(super) fn read_cameras(path: &Path) -> Result<BTreeMap<u32, Camera>, IoError
             .map(|p| lines.num(Some(p), "parameter"))
             .collect::<Result<Vec<f64>, _>>()?;
         let camera = Camera::new(id, model, width, height, params).map_err(|m| lines.bad(m))?;
-        if out.insert(id, camera).is_some() {
-            return Err(lines.bad(format!("duplicate camera {id}")));
-        }
+        insert_new(&mut out, "camera", id, camera).map_err(|m| lines.bad(m))?;
     }
     Ok(out)
 }
@@ -146,9 +144,7 @@ pub(super) fn read_images(
             name,
             points2d,
         };
-        if out.insert(id, img).is_some() {
-            return Err(lines.bad(format!("duplicate image {id}")));
-        }
+        insert_new(&mut out, "image", id, img).map_err(|m| lines.bad(m))?;
     }
     Ok(out)
 }

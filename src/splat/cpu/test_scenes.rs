@@ -202,7 +202,7 @@ pub fn check_learned_exposures(
         .iter()
         .zip(&data.test)
         .map(|((name, img, _, _), v)| {
-            ViewMetrics::measure_region(name, img, &v.image, EvalRegion::RightHalf)
+            ViewMetrics::measure(name, img, &v.image, EvalRegion::RightHalf)
                 .expect("sizes")
                 .psnr
         })
