@@ -74,7 +74,7 @@ pub fn voxel_centroids(points: &[Vec3], voxel: f32) -> (Vec<u32>, Vec<Vec3>) {
 /// For every point of `points`: `f(n, covariance)` of the points within `radius` metres of
 /// it (itself included; the covariance is the population one, about their mean). Cells of
 /// the grid are processed in parallel; reports progress and stops on cancel.
-pub fn map_radius_covariance<R: Send>(
+pub fn map_radius_covariance<R: Clone + Default + Send>(
     points: &[Vec3],
     radius: f32,
     progress: &dyn Progress,
@@ -170,10 +170,11 @@ pub fn map_radius_covariance<R: Send>(
     if progress.is_cancelled() {
         return Err(ForestError::Cancelled);
     }
-    // `order` is a permutation of the points: back in their order, each once.
-    let mut result: Vec<(u32, R)> = per_cell.into_iter().flatten().collect();
-    result.sort_unstable_by_key(|&(q, _)| q);
-    Ok(result.into_iter().map(|(_, r)| r).collect())
+    let mut result = vec![R::default(); points.len()];
+    for (q, r) in per_cell.into_iter().flatten() {
+        result[q as usize] = r;
+    }
+    Ok(result)
 }
 
 #[cfg(test)]

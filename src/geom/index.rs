@@ -199,7 +199,7 @@ impl PointIndex {
 
     /// k-NN of every query, on all cores: `f(query_index, neighbours)` maps each query's
     /// neighbours (closest first) to a result. Reports progress and stops on cancel.
-    pub fn map_knn<R: Send>(
+    pub fn map_knn<R: Clone + Default + Send>(
         &self,
         queries: &[Vec3],
         k: usize,
@@ -243,28 +243,30 @@ pub(crate) struct Scratch {
 
 /// Runs `f(i, scratch)` for `i in 0..n` on all cores in chunks of [`CHUNK`], with one reused
 /// scratch per chunk, progress after each chunk and a cancellation check before it.
-pub(crate) fn par_map_chunked<R: Send>(
+pub(crate) fn par_map_chunked<R: Clone + Default + Send>(
     n: usize,
     progress: &dyn Progress,
     f: impl Fn(usize, &mut Scratch) -> R + Sync,
 ) -> Result<Vec<R>, GeomError> {
+    // Written in place: a cloud of tens of millions of points keeps one result buffer.
+    let mut out = vec![R::default(); n];
     let done = AtomicUsize::new(0);
-    let chunks: Vec<Vec<R>> = (0..n.div_ceil(CHUNK))
-        .into_par_iter()
-        .map(|c| {
+    out.par_chunks_mut(CHUNK)
+        .enumerate()
+        .try_for_each(|(c, chunk)| {
             if progress.is_cancelled() {
                 return Err(GeomError::Cancelled);
             }
             let mut scratch = Scratch::default();
-            let range = c * CHUNK..((c + 1) * CHUNK).min(n);
-            let len = range.len();
-            let out: Vec<R> = range.map(|i| f(i, &mut scratch)).collect();
-            let d = done.fetch_add(len, Ordering::Relaxed) + len;
+            let base = c * CHUNK;
+            for (j, slot) in chunk.iter_mut().enumerate() {
+                *slot = f(base + j, &mut scratch);
+            }
+            let d = done.fetch_add(chunk.len(), Ordering::Relaxed) + chunk.len();
             progress.set(d as f64 / n as f64);
-            Ok(out)
-        })
-        .collect::<Result<_, _>>()?;
-    Ok(chunks.into_iter().flatten().collect())
+            Ok(())
+        })?;
+    Ok(out)
 }
 
 #[cfg(test)]
