@@ -59,7 +59,7 @@ fn voxelise(
     let v = voxel_m;
     if !(v.is_finite() && v > 0.0) {
         return Err(GeomError::InvalidParameter(format!(
-            "voxel_size must be a positive number of metres, got {v}"
+            "the voxel edge must be a positive number of metres, got {v}"
         )));
     }
     if let Some(c) = colours {

@@ -318,23 +318,28 @@ impl GpuSemantic {
         Ok(())
     }
 
-    /// The installed model's buffers, once checked for the pass `what` (named in the errors):
-    /// a model is installed, each of `counts` (the model's first) is its Gaussian count, and
-    /// its means and log-scales (12 bytes per Gaussian) fit one binding: the reduction reads
-    /// every Gaussian in one workgroup, so the passes bind them whole rather than in chunks.
+    /// The installed model's buffers; `what` names the caller in the error.
+    fn model(&self, what: &str) -> Result<&ModelBuffers, GpuError> {
+        self.model
+            .as_ref()
+            .ok_or_else(|| GpuError::Invalid(format!("{what}: no model installed")))
+    }
+
+    /// [`GpuSemantic::model`], once checked for the pass `what` (named in the errors): each of
+    /// `counts` (the model's, the gradients') is the installed model's Gaussian count, and its
+    /// means and log-scales (12 bytes per Gaussian) fit one binding: the reduction reads every
+    /// Gaussian in one workgroup, so the passes bind them whole rather than in chunks.
     fn installed(
         &self,
         ctx: &GpuContext,
         what: &str,
         counts: &[u32],
     ) -> Result<&ModelBuffers, GpuError> {
-        let Some(model) = &self.model else {
-            return Err(GpuError::Invalid(format!("{what}: no model installed")));
-        };
-        if counts.iter().any(|&c| c != self.count) {
+        let model = self.model(what)?;
+        if let Some(c) = counts.iter().find(|&&c| c != self.count) {
             return Err(GpuError::Invalid(format!(
-                "{what} for {} Gaussians, model {}",
-                self.count, counts[0]
+                "{what} for {} Gaussians, given a buffer of {c}",
+                self.count
             )));
         }
         ctx.check_binding(
@@ -347,7 +352,7 @@ impl GpuSemantic {
     /// Reads the latest query back (blocking; for tests): per Gaussian (a_nn xyz, s_target,
     /// w, 0, 0, 0), and (W, Σ w·term, L_geo, 0).
     pub fn read_back(&self, ctx: &GpuContext) -> Result<(Vec<[f32; 8]>, [f32; 4]), GpuError> {
-        let model = self.installed(ctx, "semantic read-back", &[])?;
+        let model = self.model("semantic read-back")?;
         let flat: Vec<f32> = read_buffer(ctx, &model.geo, self.count as usize * 8)?;
         let rows = flat
             .chunks_exact(8)
