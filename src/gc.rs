@@ -67,38 +67,48 @@ pub async fn sweep(
     let mut report = SweepReport::default();
 
     // Jobs first: the uploads their purge leaves unread expire in the same sweep.
-    if keep.is_some() {
+    for table in [LiveTable::Jobs, LiveTable::Uploads] {
         loop {
-            let purged = db.purge_jobs(before, BATCH).await?;
-            for id in &purged {
-                report.bytes_freed += dir_size(&blobs.job_dir(id));
-                if let Err(e) = blobs.remove_job(id).await {
-                    tracing::warn!(job = %id, error = %e, "could not remove a purged job's files");
-                }
-                tracing::info!(job = %id, "finished job past retention; files removed");
+            let ids = match table {
+                LiveTable::Jobs => db.purge_jobs(before, BATCH).await?,
+                LiveTable::Uploads => db.expire_uploads(now, before, BATCH).await?,
+            };
+            for id in &ids {
+                report.bytes_freed += remove_files(blobs, table, id).await;
             }
-            report.jobs_purged += purged.len() as u64;
-            if (purged.len() as i64) < BATCH {
+            let n = ids.len() as u64;
+            match table {
+                LiveTable::Jobs => report.jobs_purged += n,
+                LiveTable::Uploads => report.uploads_expired += n,
+            }
+            if (ids.len() as i64) < BATCH {
                 break;
             }
         }
     }
-    loop {
-        let expired = db.expire_uploads(now, before, BATCH).await?;
-        for (id, _filename) in &expired {
-            report.bytes_freed += dir_size(&blobs.upload_dir(id));
-            if let Err(e) = blobs.remove_upload(id).await {
-                tracing::warn!(upload = %id, error = %e, "could not remove an expired upload's files");
-            }
-            tracing::info!(upload = %id, "upload expired and removed");
-        }
-        report.uploads_expired += expired.len() as u64;
-        if (expired.len() as i64) < BATCH {
-            break;
-        }
-    }
     remove_orphans(db, blobs, &mut report).await?;
     Ok(report)
+}
+
+/// Removes the files of the job or upload `id` that the database has just marked purged or
+/// expired; returns the bytes its local folder held. A failure is logged, not returned: the
+/// record is marked already, so the next sweep finds the folder as an orphan.
+async fn remove_files(blobs: &BlobStore, table: LiveTable, id: &str) -> u64 {
+    let bytes = dir_size(&match table {
+        LiveTable::Jobs => blobs.job_dir(id),
+        LiveTable::Uploads => blobs.upload_dir(id),
+    });
+    let removed = match table {
+        LiveTable::Jobs => blobs.remove_job(id).await,
+        LiveTable::Uploads => blobs.remove_upload(id).await,
+    };
+    match removed {
+        Ok(()) => tracing::info!(?table, id, "past retention; files removed"),
+        Err(e) => {
+            tracing::warn!(?table, id, error = %e, "could not remove the files of a record past retention")
+        }
+    }
+    bytes
 }
 
 /// Removes local folders under `uploads/` and `jobs/` that no live record owns.
@@ -107,7 +117,11 @@ async fn remove_orphans(
     blobs: &BlobStore,
     report: &mut SweepReport,
 ) -> Result<(), DbError> {
-    for (sub, is_upload) in [("uploads", true), ("jobs", false)] {
+    for table in [LiveTable::Uploads, LiveTable::Jobs] {
+        let sub = match table {
+            LiveTable::Uploads => "uploads",
+            LiveTable::Jobs => "jobs",
+        };
         let Ok(entries) = std::fs::read_dir(blobs.root().join(sub)) else {
             continue;
         };
@@ -118,11 +132,6 @@ async fn remove_orphans(
             .filter_map(|e| Some((e.file_name().to_str()?.to_string(), e.path())))
             .collect();
         old.sort();
-        let table = if is_upload {
-            LiveTable::Uploads
-        } else {
-            LiveTable::Jobs
-        };
         for batch in old.chunks(ORPHAN_BATCH) {
             let ids: Vec<String> = batch.iter().map(|(id, _)| id.clone()).collect();
             let live: std::collections::HashSet<String> =

@@ -574,17 +574,16 @@ impl Store {
 
     /// Marks as expired (at most `limit`) the open uploads whose `expires_at` is before `now`
     /// and the complete ones finished before `unused_before` that no job with files still
-    /// reads; their parts' rows go. Returns (id, filename) of each, whose bytes the caller
-    /// removes.
+    /// reads; their parts' rows go. Returns their ids, whose files the caller removes.
     pub async fn expire_uploads(
         &self,
         now: i64,
         unused_before: i64,
         limit: i64,
-    ) -> Result<Vec<(String, String)>, DbError> {
+    ) -> Result<Vec<String>, DbError> {
         let mut tx = self.begin().await?;
-        let rows = sqlx::query(concat!(
-            "SELECT id, filename FROM uploads u WHERE (state = 'open' AND expires_at < $1) \
+        let ids: Vec<String> = sqlx::query_scalar(concat!(
+            "SELECT id FROM uploads u WHERE (state = 'open' AND expires_at < $1) \
              OR (state = 'complete' AND completed_at < $2 AND NOT EXISTS \
                  (SELECT 1 FROM jobs j WHERE j.purged_at IS NULL AND ",
             sql!(inputs_mention),
@@ -596,30 +595,26 @@ impl Store {
         .bind(limit)
         .fetch_all(&mut *tx)
         .await?;
-        let mut out: Vec<(String, String)> = Vec::with_capacity(rows.len());
-        for r in &rows {
-            out.push((r.try_get("id")?, r.try_get("filename")?));
-        }
         // One statement per table for the whole batch.
-        let ids = Self::id_list(out.iter().map(|(id, _)| id));
+        let list = Self::id_list(&ids);
         sqlx::query(concat!(
             "UPDATE uploads SET state = 'expired', \
              expires_at = CASE WHEN expires_at < $1 THEN expires_at ELSE $1 END WHERE id ",
             sql!(any_of "$2")
         ))
         .bind(now)
-        .bind(&ids)
+        .bind(&list)
         .execute(&mut *tx)
         .await?;
         sqlx::query(concat!(
             "DELETE FROM upload_parts WHERE upload_id ",
             sql!(any_of "$1")
         ))
-        .bind(&ids)
+        .bind(&list)
         .execute(&mut *tx)
         .await?;
         tx.commit().await?;
-        Ok(out)
+        Ok(ids)
     }
 
     /// Marks as purged (at most `limit`) the finished jobs that ended before `finished_before`

@@ -317,13 +317,13 @@ forward! {
     pub async fn stored_bytes(&self, owner: &str) -> Result<i64, DbError>;
 
     /// Expires open uploads past `expires_at` and complete ones, finished before
-    /// `unused_before`, that no job with files reads; returns (id, filename) of each.
+    /// `unused_before`, that no job with files reads; returns their ids.
     pub async fn expire_uploads(
         &self,
         now: i64,
         unused_before: i64,
         limit: i64,
-    ) -> Result<Vec<(String, String)>, DbError>;
+    ) -> Result<Vec<String>, DbError>;
 
     /// Marks finished jobs that ended before `finished_before` as purged and forgets their
     /// artifacts; returns their ids.
