@@ -80,7 +80,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let dl_buf = storage_from(&ctx, "dL/dimage", &dl)?;
     let grads = GpuGrads::new(&ctx, splats.count)?;
     let t1 = Instant::now();
-    renderer.backward(&ctx, &splats, &frame, &dl_buf, &grads)?;
+    renderer.backward(&ctx, &splats, &frame, &dl_buf, &grads, false)?;
     ctx.wait()?;
     let backward_s = t1.elapsed().as_secs_f64();
 

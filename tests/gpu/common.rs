@@ -89,7 +89,7 @@ pub fn gpu_grads(
     let dl_buf = storage_from(ctx, "dl", dl).expect("buffer");
     let grads = GpuGrads::new(ctx, splats.count).expect("grads");
     renderer
-        .backward(ctx, splats, frame, &dl_buf, &grads)
+        .backward(ctx, splats, frame, &dl_buf, &grads, false)
         .expect("backward");
     grads
 }

@@ -18,10 +18,10 @@ fn per_pass_timings_10k_at_128px() {
     let mut best: Option<PassTimings> = None;
     for _ in 0..3 {
         let (frame, mut t) = renderer
-            .render_timed(&ctx, &splats, &cam, [0.0; 3], Default::default())
+            .render_passes(&ctx, &splats, &cam, [0.0; 3], Default::default(), true)
             .expect("render");
         let b = renderer
-            .backward_timed(&ctx, &splats, &frame, &dl, &grads)
+            .backward(&ctx, &splats, &frame, &dl, &grads, true)
             .expect("backward");
         t.raster_bwd_ms = b.raster_bwd_ms;
         t.project_bwd_ms = b.project_bwd_ms;

@@ -102,20 +102,8 @@ impl Renderer {
             .map(|(f, _)| f)
     }
 
-    /// As [`Renderer::render_with`], waiting after each pass to time it.
-    pub fn render_timed(
-        &self,
-        ctx: &GpuContext,
-        splats: &GpuSplats,
-        cam: &Camera,
-        background: [f32; 3],
-        options: RenderOptions,
-    ) -> Result<(Frame, PassTimings), GpuError> {
-        self.render_passes(ctx, splats, cam, background, options, true)
-    }
-
-    /// [`Renderer::render_timed`] when `timed`, else [`Renderer::render_with`] (with zero
-    /// timings).
+    /// [`Renderer::render_with`], and when `timed` waits after each pass to time it (the
+    /// timings are zero otherwise).
     pub fn render_passes(
         &self,
         ctx: &GpuContext,
@@ -145,27 +133,7 @@ impl Renderer {
         let proj = chunked_zeroed(ctx, "projected", n as u64 * 48)?;
         let offsets = storage_zeroed(ctx, "tile offsets", (n as u64 + 1) * 4)?;
         let mut enc = ctx.device.create_command_encoder(&Default::default());
-        let p = &self.project;
-        let s = splats;
-        for chunk in s.plan.chunks() {
-            let cu = chunk.uniform(ctx);
-            let bg = bind_ranges(
-                ctx,
-                &p.project,
-                &[
-                    params_buf.as_entire_buffer_binding(),
-                    chunk.range(&s.means, 3),
-                    chunk.range(&s.log_scales, 3),
-                    chunk.range(&s.rotations, 4),
-                    chunk.range(&s.opacity_logits, 1),
-                    chunk.range(&s.sh, SH_FLOATS as u32),
-                    chunk.range(&proj, 12),
-                    chunk.range(&offsets, 1),
-                    cu.as_entire_buffer_binding(),
-                ],
-            );
-            dispatch_group(&mut enc, &p.project, &bg, groups_for(chunk.len));
-        }
+        self.encode_project(ctx, &mut enc, splats, &params_buf, &proj, &offsets);
         self.scanner.encode(ctx, &mut enc, &offsets, n + 1)?;
         ctx.queue.submit([enc.finish()]);
         // The one read-back of the forward pass: the total number of intersections.
@@ -212,74 +180,15 @@ impl Renderer {
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         let mut bands = Vec::with_capacity(spans.len());
         for span in spans {
-            let uniform = uniform_from(
-                ctx,
-                "band",
-                &[span.row0, span.row0 + span.rows, slots.per_slot, span.count],
-            );
-            let m = span.count as u64 * 4;
-            let keys_hi = storage_zeroed(ctx, "keys hi (tile)", m)?;
-            let keys_lo = storage_zeroed(ctx, "keys lo (depth)", m)?;
-            let values = storage_zeroed(ctx, "sorted ids", m)?;
-            let offs = match &band_offsets {
-                Some(b) => {
-                    dispatch_projected(
-                        ctx,
-                        &mut enc,
-                        s,
-                        &p.band_counts,
-                        &params_buf,
-                        &proj,
-                        |chunk| {
-                            vec![
-                                (8, uniform.as_entire_buffer_binding()),
-                                (10, chunk.range(b, 1)),
-                            ]
-                        },
-                    );
-                    self.scanner.encode(ctx, &mut enc, b, n + 1)?;
-                    b
-                }
-                None => &offsets,
-            };
-            dispatch_projected(ctx, &mut enc, s, &p.emit, &params_buf, &proj, |chunk| {
-                vec![
-                    (2, chunk.range(offs, 1)),
-                    (3, keys_hi.as_entire_buffer_binding()),
-                    (4, keys_lo.as_entire_buffer_binding()),
-                    (5, values.as_entire_buffer_binding()),
-                    (8, uniform.as_entire_buffer_binding()),
-                ]
-            });
-            self.sorter.encode(
+            bands.push(self.encode_band(
                 ctx,
                 &mut enc,
-                &keys_hi,
-                &keys_lo,
-                &values,
-                span.count,
-                bits_for((span.rows * tx).max(1) - 1),
-            )?;
-            let rbg = bind_entries(
-                ctx,
-                &p.ranges,
-                &[
-                    (0, params_buf.as_entire_buffer_binding()),
-                    (3, keys_hi.as_entire_buffer_binding()),
-                    (6, ranges.as_entire_buffer_binding()),
-                    (8, uniform.as_entire_buffer_binding()),
-                ],
-            );
-            dispatch_group(&mut enc, &p.ranges, &rbg, groups_for(span.count));
-            bands.push(Band {
-                row0: span.row0,
-                rows: span.rows,
-                count: span.count,
-                keys_hi,
-                keys_lo,
-                values,
-                uniform,
-            });
+                splats,
+                (&params_buf, &proj, &offsets),
+                (span, tx, slots.per_slot),
+                band_offsets.as_ref(),
+                &ranges,
+            )?);
         }
         times.sort_ms = clock.submit(ctx, enc)?;
 
@@ -305,6 +214,118 @@ impl Renderer {
         self.raster_fwd.encode(ctx, &mut enc, &frame);
         times.raster_ms = clock.submit(ctx, enc)?;
         Ok((frame, times))
+    }
+
+    /// Records the projection of every chunk of `splats` into `proj`, with each Gaussian's
+    /// tile count in `offsets` (scanned into offsets after).
+    fn encode_project(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        s: &GpuSplats,
+        params_buf: &wgpu::Buffer,
+        proj: &wgpu::Buffer,
+        offsets: &wgpu::Buffer,
+    ) {
+        let p = &self.project;
+        for chunk in s.plan.chunks() {
+            let cu = chunk.uniform(ctx);
+            let bg = bind_ranges(
+                ctx,
+                &p.project,
+                &[
+                    params_buf.as_entire_buffer_binding(),
+                    chunk.range(&s.means, 3),
+                    chunk.range(&s.log_scales, 3),
+                    chunk.range(&s.rotations, 4),
+                    chunk.range(&s.opacity_logits, 1),
+                    chunk.range(&s.sh, SH_FLOATS as u32),
+                    chunk.range(proj, 12),
+                    chunk.range(offsets, 1),
+                    cu.as_entire_buffer_binding(),
+                ],
+            );
+            dispatch_group(enc, &p.project, &bg, groups_for(chunk.len));
+        }
+    }
+
+    /// Records one band's intersection keys (tile, depth), their sort and the tile ranges of
+    /// its rows. `projected` is (render parameters, projected records, scanned tile offsets
+    /// of the whole frame); `layout` is (the band, tiles per row, Gaussians per chunk slot).
+    /// With several bands, `band_offsets` receives this band's own counts and offsets.
+    #[allow(clippy::too_many_arguments)]
+    fn encode_band(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        s: &GpuSplats,
+        (params_buf, proj, offsets): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+        (span, tx, per_slot): (BandSpan, u32, u32),
+        band_offsets: Option<&wgpu::Buffer>,
+        ranges: &wgpu::Buffer,
+    ) -> Result<Band, GpuError> {
+        let p = &self.project;
+        let n = s.count;
+        let uniform = uniform_from(
+            ctx,
+            "band",
+            &[span.row0, span.row0 + span.rows, per_slot, span.count],
+        );
+        let m = span.count as u64 * 4;
+        let keys_hi = storage_zeroed(ctx, "keys hi (tile)", m)?;
+        let keys_lo = storage_zeroed(ctx, "keys lo (depth)", m)?;
+        let values = storage_zeroed(ctx, "sorted ids", m)?;
+        let offs = match band_offsets {
+            Some(b) => {
+                dispatch_projected(ctx, enc, s, &p.band_counts, params_buf, proj, |chunk| {
+                    vec![
+                        (8, uniform.as_entire_buffer_binding()),
+                        (10, chunk.range(b, 1)),
+                    ]
+                });
+                self.scanner.encode(ctx, enc, b, n + 1)?;
+                b
+            }
+            None => offsets,
+        };
+        dispatch_projected(ctx, enc, s, &p.emit, params_buf, proj, |chunk| {
+            vec![
+                (2, chunk.range(offs, 1)),
+                (3, keys_hi.as_entire_buffer_binding()),
+                (4, keys_lo.as_entire_buffer_binding()),
+                (5, values.as_entire_buffer_binding()),
+                (8, uniform.as_entire_buffer_binding()),
+            ]
+        });
+        self.sorter.encode(
+            ctx,
+            enc,
+            &keys_hi,
+            &keys_lo,
+            &values,
+            span.count,
+            bits_for((span.rows * tx).max(1) - 1),
+        )?;
+        let rbg = bind_entries(
+            ctx,
+            &p.ranges,
+            &[
+                (0, params_buf.as_entire_buffer_binding()),
+                (3, keys_hi.as_entire_buffer_binding()),
+                (6, ranges.as_entire_buffer_binding()),
+                (8, uniform.as_entire_buffer_binding()),
+            ],
+        );
+        dispatch_group(enc, &p.ranges, &rbg, groups_for(span.count));
+        Ok(Band {
+            row0: span.row0,
+            rows: span.rows,
+            count: span.count,
+            keys_hi,
+            keys_lo,
+            values,
+            uniform,
+        })
     }
 
     /// Intersections per tile row (`ty` rows), read back: the plan of the bands.
@@ -348,7 +369,8 @@ impl Renderer {
             .map(|_| ())
     }
 
-    /// Runs the backward pass of `frame` (see [`Renderer::encode_backward`]) and submits it.
+    /// Runs the backward pass of `frame` (see [`Renderer::encode_backward`]) and submits it;
+    /// when `timed` waits after each pass to time it (the timings are zero otherwise).
     pub fn backward(
         &self,
         ctx: &GpuContext,
@@ -356,21 +378,9 @@ impl Renderer {
         frame: &Frame,
         dl_dimage: &wgpu::Buffer,
         grads: &GpuGrads,
-    ) -> Result<(), GpuError> {
-        self.backward_impl(ctx, None, splats, frame, dl_dimage, grads, false)
-            .map(|_| ())
-    }
-
-    /// As [`Renderer::backward`], waiting after each pass; fills the backward timings.
-    pub fn backward_timed(
-        &self,
-        ctx: &GpuContext,
-        splats: &GpuSplats,
-        frame: &Frame,
-        dl_dimage: &wgpu::Buffer,
-        grads: &GpuGrads,
+        timed: bool,
     ) -> Result<PassTimings, GpuError> {
-        self.backward_impl(ctx, None, splats, frame, dl_dimage, grads, true)
+        self.backward_impl(ctx, None, splats, frame, dl_dimage, grads, timed)
     }
 
     #[allow(clippy::too_many_arguments)]
