@@ -576,6 +576,211 @@ async fn audit(api: &Api, ids: &[String], uploads: &[String]) -> Tally {
     t
 }
 
+/// Generates the tiny synthetic plot every job reads into `dir`, with its COLMAP folder packed
+/// as `colmap.tar` for upload.
+async fn make_plot(dir: &Path, seed: u64) -> anyhow::Result<()> {
+    eprintln!("generating a tiny synthetic plot (seed {seed})…");
+    let dir = dir.to_path_buf();
+    tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+        let mut p = sylva::synth::SynthParams::new(sylva::synth::Preset::Tiny);
+        p.seed = seed;
+        sylva::synth::generate(&p, &dir, &sylva::progress::NoProgress)?;
+        let file = std::fs::File::create(dir.join("colmap.tar"))?;
+        let mut tar = tar::Builder::new(file);
+        tar.append_dir_all(".", dir.join("colmap"))?;
+        tar.finish()?;
+        Ok(())
+    })
+    .await?
+}
+
+/// The `sylva` processes of the run: serve, and a worker when it has slots.
+struct Procs {
+    serve: Proc,
+    worker: Option<Proc>,
+}
+
+impl Procs {
+    /// Starts serve on `api`'s port with `serve_slots` worker slots and, when `worker_slots`
+    /// is not 0, a worker process with those; waits until both are up.
+    async fn start(
+        api: &Api,
+        port: u16,
+        (serve_slots, worker_slots): (u32, u32),
+        data: &Path,
+    ) -> anyhow::Result<Self> {
+        let mut serve = Proc::start(
+            "serve",
+            vec![
+                "serve".into(),
+                "--listen".into(),
+                format!("127.0.0.1:{port}"),
+                "--workers".into(),
+                serve_slots.to_string(),
+                "--poll-ms".into(),
+                "100".into(),
+            ],
+            data,
+        )?;
+        wait_ready(api, &mut serve).await?;
+        let mut worker = None;
+        if worker_slots > 0 {
+            let mut w = Proc::start(
+                "worker",
+                vec![
+                    "worker".into(),
+                    "--workers".into(),
+                    worker_slots.to_string(),
+                    "--poll-ms".into(),
+                    "100".into(),
+                ],
+                data,
+            )?;
+            wait_worker(&mut w).await?;
+            worker = Some(w);
+        }
+        Ok(Self { serve, worker })
+    }
+
+    fn check_alive(&mut self) -> anyhow::Result<()> {
+        self.serve.check_alive()?;
+        self.worker.as_mut().map_or(Ok(()), Proc::check_alive)
+    }
+
+    /// The pid of the process `victim` names (serve when there is no worker).
+    fn pid(&self, victim: Victim) -> u32 {
+        match (victim, &self.worker) {
+            (Victim::Worker, Some(w)) => w.child.id(),
+            _ => self.serve.child.id(),
+        }
+    }
+
+    /// SIGKILLs the process `victim` names, starts it again and waits until it is up.
+    async fn kill_and_restart(
+        &mut self,
+        api: &Api,
+        victim: Victim,
+        held: usize,
+    ) -> anyhow::Result<()> {
+        match (victim, self.worker.as_mut()) {
+            (Victim::Worker, Some(w)) => {
+                eprintln!("SIGKILL of sylva worker ({held} job(s) running there)…");
+                w.kill();
+                w.restart()?;
+                wait_worker(w).await
+            }
+            _ => {
+                eprintln!("SIGKILL of sylva serve ({held} job(s) running there)…");
+                self.serve.kill();
+                self.serve.restart()?;
+                wait_ready(api, &mut self.serve).await
+            }
+        }
+    }
+
+    fn stop(&mut self) {
+        self.serve.stop();
+        if let Some(w) = self.worker.as_mut() {
+            w.stop();
+        }
+    }
+}
+
+/// Uploads the plot's three inputs; returns their upload ids and the body of every job.
+async fn upload_inputs(api: &Api, plot: &Path) -> anyhow::Result<(Vec<String>, Value)> {
+    let mut uploads = Vec::new();
+    let mut inputs = serde_json::Map::new();
+    for (kind, file) in [
+        ("lidar", "lidar.laz"),
+        ("colmap", "colmap.tar"),
+        ("control_points", "control_points.csv"),
+    ] {
+        let id = upload(api, kind, &plot.join(file)).await?;
+        inputs.insert(kind.to_string(), json!(id));
+        uploads.push(id);
+    }
+    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
+    Ok((uploads, body))
+}
+
+impl Shared {
+    /// The ids of the jobs accepted so far.
+    fn accepted_ids(&self) -> Vec<String> {
+        self.accepted.lock().map(|l| l.clone()).unwrap_or_default()
+    }
+}
+
+/// Watches the run: counts finished jobs, kills and restarts the `victim` once half of the
+/// `jobs` have finished (while it runs a job, when it can), and returns once every accepted
+/// job is finished or none has finished for [`STALL_SECS`]. Returns the restart as it
+/// happened and when the last job finished. `started`: when the first job was submitted.
+async fn monitor(
+    api: &Api,
+    shared: &Shared,
+    procs: &mut Procs,
+    (victim, jobs): (Victim, u32),
+    started: Instant,
+) -> anyhow::Result<(Option<Restart>, Instant)> {
+    let mut restart: Option<Restart> = None;
+    let mut restart_due: Option<Instant> = None;
+    let mut last_finished = (0usize, Instant::now());
+    let mut last_job_done = started;
+    loop {
+        // Closer watch while waiting for the process to be killed to hold a job.
+        let pause = if restart_due.is_some() && restart.is_none() {
+            50
+        } else {
+            500
+        };
+        tokio::time::sleep(Duration::from_millis(pause)).await;
+        procs.check_alive()?;
+        let Some(states) = all_states(api).await else {
+            continue;
+        };
+        let ids = shared.accepted_ids();
+        let finished = ids
+            .iter()
+            .filter(|id| states.get(*id).is_some_and(|s| is_terminal(s)))
+            .count();
+        shared.finished.store(finished, Ordering::Relaxed);
+        if finished > last_finished.0 {
+            last_finished = (finished, Instant::now());
+            last_job_done = Instant::now();
+        }
+        let all_done = !shared.submitting.load(Ordering::SeqCst) && finished >= ids.len();
+        if restart.is_none() && victim != Victim::Nobody && finished * 2 >= jobs as usize {
+            let due = *restart_due.get_or_insert_with(Instant::now);
+            // Kill the process while it runs a job, so that a job is taken over.
+            let pid = procs.pid(victim);
+            let mut held = 0;
+            for (id, state) in &states {
+                if state == "running" && held_by(api, id, pid).await {
+                    held += 1;
+                }
+            }
+            if held == 0 && !all_done && due.elapsed() < Duration::from_secs(RESTART_WAIT_SECS) {
+                continue;
+            }
+            let at_s = started.elapsed().as_secs_f64();
+            let t0 = Instant::now();
+            procs.kill_and_restart(api, victim, held).await?;
+            restart = Some(Restart {
+                victim,
+                at_s,
+                held,
+                down_s: t0.elapsed().as_secs_f64(),
+            });
+        }
+        if all_done {
+            return Ok((restart, last_job_done));
+        }
+        if last_finished.1.elapsed() > Duration::from_secs(STALL_SECS) {
+            eprintln!("no job finished for {STALL_SECS} s: stopping");
+            return Ok((restart, last_job_done));
+        }
+    }
+}
+
 /// Runs the soak and prints its table on stdout (progress on stderr). Returns whether nothing
 /// was lost.
 pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
@@ -594,24 +799,8 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
     let scratch = ScratchDir::new("soak")?;
     let data = scratch.0.join("data");
     std::fs::create_dir_all(&data)?;
-
-    // The plot every job reads.
     let plot = scratch.0.join("plot");
-    eprintln!("generating a tiny synthetic plot (seed {})…", a.seed);
-    {
-        let (dir, seed) = (plot.clone(), a.seed);
-        tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-            let mut p = sylva::synth::SynthParams::new(sylva::synth::Preset::Tiny);
-            p.seed = seed;
-            sylva::synth::generate(&p, &dir, &sylva::progress::NoProgress)?;
-            let file = std::fs::File::create(dir.join("colmap.tar"))?;
-            let mut tar = tar::Builder::new(file);
-            tar.append_dir_all(".", dir.join("colmap"))?;
-            tar.finish()?;
-            Ok(())
-        })
-        .await??;
-    }
+    make_plot(&plot, a.seed).await?;
 
     // The processes: serve with the larger half of the slots, a worker with the rest.
     let port = std::net::TcpListener::bind("127.0.0.1:0")?
@@ -627,56 +816,14 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
         latencies_us: Mutex::new(Vec::new()),
         unanswered: AtomicU64::new(0),
     });
-    let mut serve = Proc::start(
-        "serve",
-        vec![
-            "serve".into(),
-            "--listen".into(),
-            format!("127.0.0.1:{port}"),
-            "--workers".into(),
-            serve_slots.to_string(),
-            "--poll-ms".into(),
-            "100".into(),
-        ],
-        &data,
-    )?;
-    wait_ready(&api, &mut serve).await?;
-    let mut worker = if worker_slots > 0 {
-        let mut w = Proc::start(
-            "worker",
-            vec![
-                "worker".into(),
-                "--workers".into(),
-                worker_slots.to_string(),
-                "--poll-ms".into(),
-                "100".into(),
-            ],
-            &data,
-        )?;
-        wait_worker(&mut w).await?;
-        Some(w)
-    } else {
-        None
-    };
-    let victim = if victim == Victim::Worker && worker.is_none() {
+    let mut procs = Procs::start(&api, port, (serve_slots, worker_slots), &data).await?;
+    let victim = if victim == Victim::Worker && procs.worker.is_none() {
         eprintln!("--workers 1 runs no worker process: restarting serve instead");
         Victim::Serve
     } else {
         victim
     };
-
-    let mut uploads = Vec::new();
-    let mut inputs = serde_json::Map::new();
-    for (kind, file) in [
-        ("lidar", "lidar.laz"),
-        ("colmap", "colmap.tar"),
-        ("control_points", "control_points.csv"),
-    ] {
-        let id = upload(&api, kind, &plot.join(file)).await?;
-        inputs.insert(kind.to_string(), json!(id));
-        uploads.push(id);
-    }
-    let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
+    let (uploads, body) = upload_inputs(&api, &plot).await?;
 
     eprintln!(
         "soaking: {jobs} jobs, {} worker slot(s) ({serve_slots} in serve, {worker_slots} in worker), \
@@ -704,90 +851,8 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
             ))
         })
         .collect();
-
-    // Monitor: count finished jobs, restart once at half-way, stop when all are finished.
-    let mut restart: Option<Restart> = None;
-    let mut restart_due: Option<Instant> = None;
-    let mut last_finished = (0usize, Instant::now());
-    let mut last_job_done = started;
-    loop {
-        // Closer watch while waiting for the process to be killed to hold a job.
-        let pause = if restart_due.is_some() && restart.is_none() {
-            50
-        } else {
-            500
-        };
-        tokio::time::sleep(Duration::from_millis(pause)).await;
-        serve.check_alive()?;
-        if let Some(w) = worker.as_mut() {
-            w.check_alive()?;
-        }
-        let Some(states) = all_states(&api).await else {
-            continue;
-        };
-        let ids: Vec<String> = shared
-            .accepted
-            .lock()
-            .map(|l| l.clone())
-            .unwrap_or_default();
-        let finished = ids
-            .iter()
-            .filter(|id| states.get(*id).is_some_and(|s| is_terminal(s)))
-            .count();
-        shared.finished.store(finished, Ordering::Relaxed);
-        if finished > last_finished.0 {
-            last_finished = (finished, Instant::now());
-            last_job_done = Instant::now();
-        }
-        if restart.is_none() && victim != Victim::Nobody && finished * 2 >= jobs as usize {
-            let due = *restart_due.get_or_insert_with(Instant::now);
-            // Kill the process while it runs a job, so that a job is taken over.
-            let pid = match (victim, worker.as_ref()) {
-                (Victim::Worker, Some(w)) => w.child.id(),
-                _ => serve.child.id(),
-            };
-            let mut held = 0;
-            for (id, state) in &states {
-                if state == "running" && held_by(&api, id, pid).await {
-                    held += 1;
-                }
-            }
-            let all_done = !shared.submitting.load(Ordering::SeqCst) && finished >= ids.len();
-            if held == 0 && !all_done && due.elapsed() < Duration::from_secs(RESTART_WAIT_SECS) {
-                continue;
-            }
-            let at_s = started.elapsed().as_secs_f64();
-            let t0 = Instant::now();
-            match (victim, worker.as_mut()) {
-                (Victim::Worker, Some(w)) => {
-                    eprintln!("SIGKILL of sylva worker ({held} job(s) running there)…");
-                    w.kill();
-                    w.restart()?;
-                    wait_worker(w).await?;
-                }
-                _ => {
-                    eprintln!("SIGKILL of sylva serve ({held} job(s) running there)…");
-                    serve.kill();
-                    serve.restart()?;
-                    wait_ready(&api, &mut serve).await?;
-                }
-            }
-            restart = Some(Restart {
-                victim,
-                at_s,
-                held,
-                down_s: t0.elapsed().as_secs_f64(),
-            });
-        }
-        let submitting = shared.submitting.load(Ordering::SeqCst);
-        if !submitting && finished >= ids.len() {
-            break;
-        }
-        if last_finished.1.elapsed() > Duration::from_secs(STALL_SECS) {
-            eprintln!("no job finished for {STALL_SECS} s: stopping");
-            break;
-        }
-    }
+    let (restart, last_job_done) =
+        monitor(&api, &shared, &mut procs, (victim, jobs), started).await?;
     shared.done.store(true, Ordering::SeqCst);
     if !submit_task.is_finished() {
         submit_task.abort();
@@ -798,11 +863,7 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
     let wall_s = last_job_done.duration_since(started).as_secs_f64();
 
     // The audit, through the API, then through the database itself.
-    let ids: Vec<String> = shared
-        .accepted
-        .lock()
-        .map(|l| l.clone())
-        .unwrap_or_default();
+    let ids = shared.accepted_ids();
     let mut tally = audit(&api, &ids, &uploads).await;
     let all = all_states(&api).await.unwrap_or_default();
     let unique: HashSet<&String> = ids.iter().collect();
@@ -812,10 +873,7 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
             .lost
             .push(format!("{} job(s) more than accepted", tally.duplicates));
     }
-    serve.stop();
-    if let Some(w) = worker.as_mut() {
-        w.stop();
-    }
+    procs.stop();
     let db = JobStore::open_sqlite(&data.join("sylva.db"), 1)
         .await
         .context("cannot open the job database after the run")?;
@@ -828,7 +886,27 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
     for l in &tally.lost {
         eprintln!("LOST: {l}");
     }
+    let accepted = shared.cancels_accepted.load(Ordering::Relaxed);
+    eprintln!(
+        "cancels: {accepted} accepted ({} of those jobs finished their stage first), {} too \
+         late (job already finished); {} submission(s) refused; database integrity: {integrity}",
+        accepted.saturating_sub(tally.canceled),
+        shared.cancels_too_late.load(Ordering::Relaxed),
+        shared.refused.load(Ordering::Relaxed),
+    );
+    print_table(&api, ids.len(), a.workers, &tally, wall_s, restart.as_ref());
+    Ok(tally.lost.is_empty())
+}
 
+/// Prints the soak's one-row table on stdout.
+fn print_table(
+    api: &Api,
+    jobs: usize,
+    workers: u32,
+    tally: &Tally,
+    wall_s: f64,
+    restart: Option<&Restart>,
+) {
     let mut lat = api
         .latencies_us
         .lock()
@@ -837,7 +915,7 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
     lat.sort_unstable();
     let finished = tally.succeeded + tally.canceled + tally.failed;
     let per_hour = finished as f64 / wall_s.max(1e-9) * 3600.0;
-    let restart_text = match &restart {
+    let restart_text = match restart {
         None => "none".to_string(),
         Some(r) => format!(
             "{} SIGKILLed at {:.0} s running {} job(s), back in {:.1} s; {} job(s) resumed",
@@ -851,22 +929,14 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
             tally.resumed
         ),
     };
-    let accepted = shared.cancels_accepted.load(Ordering::Relaxed);
-    eprintln!(
-        "cancels: {accepted} accepted ({} of those jobs finished their stage first), {} too \
-         late (job already finished); {} submission(s) refused; database integrity: {integrity}",
-        accepted.saturating_sub(tally.canceled),
-        shared.cancels_too_late.load(Ordering::Relaxed),
-        shared.refused.load(Ordering::Relaxed),
-    );
     println!(
         "| jobs | workers | succeeded | canceled | failed | lost | jobs/hour | requests | p50 ms | p99 ms | unanswered | restart |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     println!(
         "| {} | {} | {} | {} | {} | {} | {:.0} | {} | {:.2} | {:.2} | {} | {} |",
-        ids.len(),
-        a.workers,
+        jobs,
+        workers,
         tally.succeeded,
         tally.canceled,
         tally.failed,
@@ -879,5 +949,4 @@ pub async fn run(jobs: u32, a: &SoakArgs) -> anyhow::Result<bool> {
         restart_text
     );
     let _ = std::io::stdout().flush();
-    Ok(tally.lost.is_empty())
 }
