@@ -121,20 +121,7 @@ pub(crate) fn run(
 
     // 2. LiDAR (of the plot without its leaves for a leaf-off scan).
     progress.log("synth: scanning");
-    let leafy = params.lidar_leaf_off.then(|| {
-        let bare = plot.scene.without_leaves();
-        std::mem::replace(&mut plot.scene, bare)
-    });
-    let scan = lidar::scan(
-        &plot,
-        &lidar_params(params),
-        params.seed,
-        &SubProgress::new(progress, 0.0, 0.4),
-    );
-    if let Some(scene) = leafy {
-        plot.scene = scene;
-    }
-    let scan = cover(scan?, params.lidar_coverage);
+    let scan = scan_plot(params, &mut plot, &SubProgress::new(progress, 0.0, 0.4))?;
     lap("lidar", &mut timings);
     let n_points = scan.positions.len();
     let mut label_counts = [0usize; 4];
@@ -372,13 +359,7 @@ pub fn lidar_plot(params: &SynthParams, progress: &dyn Progress) -> Result<Lidar
     if progress.is_cancelled() {
         return Err(SynthError::Cancelled);
     }
-    if params.lidar_leaf_off {
-        plot.scene = plot.scene.without_leaves();
-    }
-    let scan = cover(
-        lidar::scan(&plot, &lidar_params(params), params.seed, progress)?,
-        params.lidar_coverage,
-    );
+    let scan = scan_plot(params, &mut plot, progress)?;
     progress.set(1.0);
     Ok(LidarPlot {
         cloud: PointCloud {
@@ -392,6 +373,25 @@ pub fn lidar_plot(params: &SynthParams, progress: &dyn Progress) -> Result<Lidar
         trees: plot.trees,
         radius_m: plot.radius_m,
     })
+}
+
+/// Scans `plot` with the handheld LiDAR of `params`, of the plot without its leaves for a
+/// leaf-off scan (the leaves are back in `plot` after), and keeps the returns of the covered
+/// share ([`SynthParams::lidar_coverage`]).
+fn scan_plot(
+    params: &SynthParams,
+    plot: &mut layout::Plot,
+    progress: &dyn Progress,
+) -> Result<lidar::LidarScan, SynthError> {
+    let leafy = params.lidar_leaf_off.then(|| {
+        let bare = plot.scene.without_leaves();
+        std::mem::replace(&mut plot.scene, bare)
+    });
+    let scan = lidar::scan(plot, &lidar_params(params), params.seed, progress);
+    if let Some(scene) = leafy {
+        plot.scene = scene;
+    }
+    Ok(cover(scan?, params.lidar_coverage))
 }
 
 /// The CRS the LiDAR file declares when the photos carry GPS positions: UTM zone 32N, in
