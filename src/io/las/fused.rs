@@ -102,19 +102,31 @@ struct Shared<'a> {
     first_err: Mutex<Option<IoError>>,
 }
 
-/// Reads a LAZ file chunk-parallel; `Ok(None)` when the file needs the `las`-crate path.
-/// `info` is the already checked header ([`super::inspect_las`]).
-pub(super) fn read_laz_fused(
-    path: &Path,
-    info: &LasInfo,
-    progress: &dyn Progress,
-) -> Result<Option<PointCloud>, IoError> {
+/// What the header, the LASzip VLR and the chunk table say, checked: everything the
+/// parallel decode needs.
+struct Plan {
+    vlr: LazVlr,
+    /// Bytes of one point record.
+    record_len: usize,
+    /// Byte offset of RGB in a record, when the format has colour.
+    rgb_at: Option<usize>,
+    /// The chunk table, the last fixed-size chunk's count set from the header's total.
+    entries: Vec<ChunkTableEntry>,
+    /// File position of the first chunk's compressed bytes.
+    points_start: u64,
+    /// The header's bounding box (file coordinates).
+    header_box: (DVec3, DVec3),
+    transforms: ::las::Vector<Transform>,
+    /// The cloud's origin: the header's minimum corner floored to whole metres.
+    offset: DVec3,
+}
+
+/// Reads and checks the header, the LASzip VLR and the chunk table of `file`. `Ok(None)`
+/// when the file needs the `las`-crate path; an error only for a chunk table that lists more
+/// bytes than the file holds.
+fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoError> {
     let total = info.declared_points;
-    if total == 0 {
-        return Ok(None);
-    }
-    let file = File::open(path).map_err(|e| IoError::io(path, e))?;
-    let mut read = BufReader::new(&file);
+    let mut read = BufReader::new(file);
     let Ok(raw) = ::las::raw::Header::read_from(&mut read) else {
         return Ok(None);
     };
@@ -170,7 +182,7 @@ pub(super) fn read_laz_fused(
     // laz-rs reserves the table for its declared chunk count before reading it: leave counts
     // the file cannot hold (each chunk starts with one raw record) to the `las` crate.
     let file_len = file.metadata().map_err(|e| IoError::io(path, e))?.len();
-    match declared_chunks(&file, data_start) {
+    match declared_chunks(file, data_start) {
         Some(chunks) if chunks <= file_len / record_len as u64 => {}
         _ => return Ok(None),
     }
@@ -236,6 +248,43 @@ pub(super) fn read_laz_fused(
         return Ok(None);
     }
     let offset = hlo.floor();
+    Ok(Some(Plan {
+        vlr,
+        record_len,
+        rgb_at,
+        entries,
+        points_start,
+        header_box: (hlo, hhi),
+        transforms: t,
+        offset,
+    }))
+}
+
+/// Reads a LAZ file chunk-parallel; `Ok(None)` when the file needs the `las`-crate path.
+/// `info` is the already checked header ([`super::inspect_las`]).
+pub(super) fn read_laz_fused(
+    path: &Path,
+    info: &LasInfo,
+    progress: &dyn Progress,
+) -> Result<Option<PointCloud>, IoError> {
+    let total = info.declared_points;
+    if total == 0 {
+        return Ok(None);
+    }
+    let file = File::open(path).map_err(|e| IoError::io(path, e))?;
+    let Some(Plan {
+        vlr,
+        record_len,
+        rgb_at,
+        entries,
+        points_start,
+        header_box: (hlo, hhi),
+        transforms: t,
+        offset,
+    }) = plan(&file, path, info)?
+    else {
+        return Ok(None);
+    };
 
     // Output columns, split into one disjoint slice per chunk.
     let n = usize::try_from(total).map_err(|_| IoError::format(path, "too many points"))?;
