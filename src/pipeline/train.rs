@@ -379,6 +379,12 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let images = project.images_dir.ok_or_else(|| {
         StageError::Input("COLMAP project: no images/ folder beside the sparse model".into())
     })?;
+    let depth_weight = ctx.params.train.depth_weight;
+    if !(depth_weight.is_finite() && depth_weight >= 0.0) {
+        return Err(StageError::Input(format!(
+            "params.train.depth_weight must be finite and ≥ 0, got {depth_weight}"
+        )));
+    }
     let mut backend = backend_for(&ctx.params.train)?;
     let (budgeted, budget_source) = with_budget(&ctx.params.train, backend.device_kind());
     let params = &budgeted;
@@ -430,21 +436,9 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         .and_then(|_| cfg.bind.validate())
         .and_then(|_| cfg.validate_exposure())
         .map_err(|e| StageError::Input(format!("params.train: {e}")))?;
-    let set = match anchors.as_ref() {
-        Some(anchors) => {
-            let points: Vec<[f32; 3]> = anchors.iter().map(|a| a.position).collect();
-            match SemanticAnchors::new(&points, normals.as_deref(), &is_trunk) {
-                Ok(set) => Some(set),
-                Err(e) => {
-                    // No trunk anchors: nothing to hold the trunks to. Train without and say so.
-                    ctx.progress
-                        .log(&format!("trunk term {} off: {e}", params.semantic.as_str()));
-                    None
-                }
-            }
-        }
-        None => None,
-    };
+    let set = anchors
+        .as_deref()
+        .and_then(|a| trunk_anchors(ctx, params, a, normals.as_deref(), &is_trunk));
     let trunk_note = trunk_term(
         ctx,
         params,
@@ -465,12 +459,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         points: a.iter().map(|x| x.position).collect(),
         footprint_m: ctx.params.anchors.voxel_size_m as f32,
     });
-    if !(params.depth_weight.is_finite() && params.depth_weight >= 0.0) {
-        return Err(StageError::Input(format!(
-            "params.train.depth_weight must be finite and ≥ 0, got {}",
-            params.depth_weight
-        )));
-    }
     if params.depth_weight > 0.0 {
         let Some(lidar) = &lidar else {
             return Err(StageError::Input(
@@ -549,6 +537,24 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "refinements": outcome.refinements.len(),
         "offset": offset,
     }))
+}
+
+/// The anchors of the trunk term (L_geo's targets, the binding's surface), or `None`, said in
+/// the log, when there are no trunk anchors to hold the trunks to: training goes on without.
+fn trunk_anchors(
+    ctx: &StageContext<'_>,
+    params: &TrainParams,
+    anchors: &[Anchor],
+    normals: Option<&[[f32; 3]]>,
+    is_trunk: &[bool],
+) -> Option<SemanticAnchors> {
+    let points: Vec<[f32; 3]> = anchors.iter().map(|a| a.position).collect();
+    SemanticAnchors::new(&points, normals, is_trunk)
+        .map_err(|e| {
+            ctx.progress
+                .log(&format!("trunk term {} off: {e}", params.semantic.as_str()))
+        })
+        .ok()
 }
 
 /// Sets up the trunk term `params.semantic` asks for on `backend` when the anchors give one
