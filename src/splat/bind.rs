@@ -346,13 +346,8 @@ mod tests {
         let made = surfel_init(&mut g, &index, &c);
         let trunk = g.trunk_prob.iter().filter(|&&p| p >= 0.5).count();
         assert!(made > 100 && made == trunk, "{made} of {trunk}");
-        for i in (0..g.len()).filter(|&i| g.trunk_prob[i] >= 0.5) {
-            // Against the anchor nearest to where the Gaussian started.
-            let (a, n) = index
-                .nearest_trunk(Vec3::from_array(start[i]))
-                .expect("anchor");
-            let o = (Vec3::from_array(g.means[i]) - a).dot(n);
-            assert!(o.abs() <= c.band_m + 1e-5, "offset {o}");
+        // Against the anchor nearest to where each Gaussian started.
+        for (i, n) in bound_normals(&g, &index, &start, &c) {
             let (_, z) = z_axis(g.rotations[i]);
             assert!(z.dot(n).abs() > 0.999);
             assert!(g.log_scales[i][2] <= c.normal_scale_m.ln() + 1e-6);
@@ -366,13 +361,28 @@ mod tests {
         let thrown = g.means.clone();
         let n_bound = project(&mut g, &index, &c);
         assert_eq!(n_bound, trunk);
-        for i in (0..g.len()).filter(|&i| g.trunk_prob[i] >= 0.5) {
-            let (a, n) = index
-                .nearest_trunk(Vec3::from_array(thrown[i]))
-                .expect("anchor");
-            let o = (Vec3::from_array(g.means[i]) - a).dot(n);
-            assert!(o.abs() <= c.band_m + 1e-5, "offset {o} at {i}");
-        }
+        bound_normals(&g, &index, &thrown, &c);
+    }
+
+    /// Asserts that every trunk Gaussian of `g` lies within the band of the trunk anchor
+    /// nearest to its position in `from`; returns (index, that anchor's normal) of each.
+    fn bound_normals(
+        g: &Gaussians,
+        index: &AnchorIndex,
+        from: &[[f32; 3]],
+        c: &BindConfig,
+    ) -> Vec<(usize, Vec3)> {
+        let trunk = (0..g.len()).filter(|&i| g.trunk_prob[i] >= 0.5);
+        trunk
+            .map(|i| {
+                let (a, n) = index
+                    .nearest_trunk(Vec3::from_array(from[i]))
+                    .expect("anchor");
+                let o = (Vec3::from_array(g.means[i]) - a).dot(n);
+                assert!(o.abs() <= c.band_m + 1e-5, "offset {o} at {i}");
+                (i, n)
+            })
+            .collect()
     }
 
     #[test]
