@@ -40,23 +40,30 @@ fn rect_of(c: u32) -> Rect {
     return Rect(tile_rect(p0.xy, f32(radius), params.dims.zw), true);
 }
 
+// The tile rectangle of chunk Gaussian `c` clipped to the band's rows (inclusive, as
+// `rect_of`); `ok` false when culled or when it touches no row of the band.
+fn band_rect(c: u32) -> Rect {
+    let rc = rect_of(c);
+    let y0 = max(rc.r.y, band.x);
+    let y1 = min(rc.r.w + 1u, band.y);
+    return Rect(vec4<u32>(rc.r.x, y0, rc.r.z, y1 - 1u), rc.ok && y0 < y1);
+}
+
 @compute @workgroup_size(256)
 fn emit(inv: Invocation) {
     let c = flat_index(inv);
     if c >= chunk.y {
         return;
     }
-    let rc = rect_of(c);
-    let y0 = max(rc.r.y, band.x);
-    let y1 = min(rc.r.w + 1u, band.y);
-    if !rc.ok || y0 >= y1 {
+    let rc = band_rect(c);
+    if !rc.ok {
         return;
     }
     let i = chunk.x + c;
     // Depth > NEAR > 0, so its IEEE bits order like the value.
     let depth_bits = bitcast<u32>(proj[3u * c].z);
     var k = offsets[c];
-    for (var ty = y0; ty < y1; ty++) {
+    for (var ty = rc.r.y; ty <= rc.r.w; ty++) {
         for (var tx = rc.r.x; tx <= rc.r.z; tx++) {
             keys_hi[k] = (ty - band.x) * params.dims.z + tx;
             keys_lo[k] = depth_bits;
@@ -105,12 +112,10 @@ fn band_counts(inv: Invocation) {
     if c >= chunk.y {
         return;
     }
-    let rc = rect_of(c);
-    let y0 = max(rc.r.y, band.x);
-    let y1 = min(rc.r.w + 1u, band.y);
+    let rc = band_rect(c);
     var n = 0u;
-    if rc.ok && y0 < y1 {
-        n = (rc.r.z - rc.r.x + 1u) * (y1 - y0);
+    if rc.ok {
+        n = (rc.r.z - rc.r.x + 1u) * (rc.r.w - rc.r.y + 1u);
     }
     counts[c] = n;
 }
