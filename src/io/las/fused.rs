@@ -87,12 +87,8 @@ struct ChunkOut {
 struct Shared<'a> {
     path: &'a Path,
     file: &'a File,
-    vlr: &'a LazVlr,
+    plan: &'a Plan,
     selection: DecompressionSelection,
-    record_len: usize,
-    rgb_at: Option<usize>,
-    transforms: ::las::Vector<Transform>,
-    offset: DVec3,
     progress: &'a dyn Progress,
     done: AtomicU64,
     total: u64,
@@ -272,17 +268,7 @@ pub(super) fn read_laz_fused(
         return Ok(None);
     }
     let file = File::open(path).map_err(|e| IoError::io(path, e))?;
-    let Some(Plan {
-        vlr,
-        record_len,
-        rgb_at,
-        entries,
-        points_start,
-        header_box: (hlo, hhi),
-        transforms: t,
-        offset,
-    }) = plan(&file, path, info)?
-    else {
+    let Some(plan) = plan(&file, path, info)? else {
         return Ok(None);
     };
 
@@ -290,14 +276,14 @@ pub(super) fn read_laz_fused(
     let n = usize::try_from(total).map_err(|_| IoError::format(path, "too many points"))?;
     let mut positions: Vec<Vec3> = Vec::with_capacity(n);
     let mut intensity = vec![0u16; n];
-    let mut colors = rgb_at.map(|_| vec![[0u16; 3]; n]);
-    let mut jobs = Vec::with_capacity(entries.len());
+    let mut colors = plan.rgb_at.map(|_| vec![[0u16; 3]; n]);
+    let mut jobs = Vec::with_capacity(plan.entries.len());
     {
         let mut pos_rest = &mut positions.spare_capacity_mut()[..n];
         let mut int_rest = intensity.as_mut_slice();
         let mut col_rest = colors.as_deref_mut();
-        let (mut first, mut pos) = (0u64, points_start);
-        for e in &entries {
+        let (mut first, mut pos) = (0u64, plan.points_start);
+        for e in &plan.entries {
             if e.point_count == 0 {
                 // An empty chunk (laz-rs's writer ends variable-size files with one): skip it.
                 pos += e.byte_count;
@@ -331,18 +317,14 @@ pub(super) fn read_laz_fused(
     let mut selection = DecompressionSelection::base()
         .decompress_z()
         .decompress_intensity();
-    if rgb_at.is_some() {
+    if plan.rgb_at.is_some() {
         selection = selection.decompress_rgb();
     }
     let shared = Shared {
         path,
         file: &file,
-        vlr: &vlr,
+        plan: &plan,
         selection,
-        record_len,
-        rgb_at,
-        transforms: t,
-        offset,
         progress,
         done: AtomicU64::new(0),
         total,
@@ -382,7 +364,8 @@ pub(super) fn read_laz_fused(
         .reduce(|(a, b), (c, d)| (a.min(c), b.max(d)));
     match head {
         Some((lo, hi))
-            if (hlo - DVec3::ONE).cmple(lo).all() && hi.cmple(hhi + DVec3::ONE).all() => {}
+            if (plan.header_box.0 - DVec3::ONE).cmple(lo).all()
+                && hi.cmple(plan.header_box.1 + DVec3::ONE).all() => {}
         _ => return Ok(None),
     }
     // SAFETY: the jobs covered `spare_capacity_mut()[..n]` with disjoint slices, and every job
@@ -392,7 +375,7 @@ pub(super) fn read_laz_fused(
     unsafe { positions.set_len(n) };
     let any_intensity = outs.iter().any(|o| o.any_intensity);
     Ok(Some(PointCloud {
-        offset,
+        offset: plan.offset,
         positions,
         colors: colors.map(|c| colors_to_u8(&c)),
         intensity: any_intensity.then_some(intensity),
@@ -458,7 +441,7 @@ fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Buffers) -> Result<Chunk
     s.file
         .read_exact_at(&mut buf.compressed, pos)
         .map_err(|e| IoError::read(s.path, e, "LAZ chunk"))?;
-    buf.records.resize(positions.len() * s.record_len, 0);
+    buf.records.resize(positions.len() * s.plan.record_len, 0);
     let entry = ChunkTableEntry {
         point_count: n,
         byte_count: bytes as u64,
@@ -466,18 +449,18 @@ fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Buffers) -> Result<Chunk
     laz::par_decompress_selective(
         &buf.compressed,
         &mut buf.records,
-        s.vlr,
+        &s.plan.vlr,
         &[entry],
         s.selection,
     )
     .map_err(|e| chunk_err(s.path, first, e))?;
-    let t = &s.transforms;
+    let t = &s.plan.transforms;
     // Points of this chunk that fall among the cloud's first PROGRESS_STEP.
     let head = (PROGRESS_STEP as u64).saturating_sub(first) as usize;
     let mut lo = DVec3::splat(f64::INFINITY);
     let mut hi = DVec3::splat(f64::NEG_INFINITY);
     let mut any_intensity = false;
-    let records = buf.records.chunks_exact(s.record_len);
+    let records = buf.records.chunks_exact(s.plan.record_len);
     for (k, ((slot, inten), rec)) in positions
         .iter_mut()
         .zip(intensity.iter_mut())
@@ -504,11 +487,11 @@ fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Buffers) -> Result<Chunk
             lo = lo.min(p);
             hi = hi.max(p);
         }
-        slot.write((p - s.offset).as_vec3());
+        slot.write((p - s.plan.offset).as_vec3());
         let i = u16::from_le_bytes([i0, i1]);
         any_intensity |= i != 0;
         *inten = i;
-        if let (Some(c), Some(at)) = (colors.as_deref_mut(), s.rgb_at)
+        if let (Some(c), Some(at)) = (colors.as_deref_mut(), s.plan.rgb_at)
             && let Some(&[r0, r1, g0, g1, b0, b1]) =
                 rec.get(at..).and_then(|r| r.first_chunk::<6>())
         {
