@@ -50,12 +50,12 @@ pub const ICP_TILE_M: f64 = 10.0;
 #[derive(Debug, Clone, Args)]
 pub struct GeomBenchArgs {
     /// geom: the LAS/LAZ (or any supported) point cloud to measure on.
-    #[arg(long = "input", env = "SYLVA_BENCH_INPUT")]
+    #[arg(long, env = "SYLVA_BENCH_INPUT")]
     pub input: Option<PathBuf>,
     /// geom: phases to run, comma-separated, in order: read, voxel, outlier, normals, icp.
     /// `read,voxel,outlier` is the memory benchmark.
     #[arg(
-        long = "phases",
+        long,
         env = "SYLVA_BENCH_PHASES",
         default_value = "read,voxel,outlier,normals,icp"
     )]
@@ -63,10 +63,10 @@ pub struct GeomBenchArgs {
     /// geom: edge of the square ICP tile, metres, from the cloud's minimum corner (default
     /// [`ICP_TILE_M`]; `benches/open3d_compare.sh` uses 100 on its 1 M-point input, the whole
     /// input).
-    #[arg(long = "icp-tile-m", env = "SYLVA_BENCH_ICP_TILE_M", default_value_t = ICP_TILE_M)]
+    #[arg(long, env = "SYLVA_BENCH_ICP_TILE_M", default_value_t = ICP_TILE_M)]
     pub icp_tile_m: f64,
     /// geom: also write the rows as JSON to this file (for `benches/open3d_compare.sh`).
-    #[arg(long = "json", env = "SYLVA_BENCH_JSON")]
+    #[arg(long, env = "SYLVA_BENCH_JSON")]
     pub json: Option<PathBuf>,
 }
 

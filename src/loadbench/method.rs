@@ -47,72 +47,44 @@ use sylva::splat::model::sigmoid;
 #[derive(Debug, Clone, Args)]
 pub struct MethodBenchArgs {
     /// method: synthetic preset of the plots (tiny, plot, stand, object).
-    #[arg(
-        long = "method-preset",
-        env = "SYLVA_BENCH_METHOD_PRESET",
-        default_value = "stand"
-    )]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_PRESET", default_value = "stand")]
     pub method_preset: String,
     /// method: seeds of the plots, comma-separated (stand 1 and 2 hold 34 trees).
-    #[arg(
-        long = "method-seeds",
-        env = "SYLVA_BENCH_METHOD_SEEDS",
-        default_value = "1,2"
-    )]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_SEEDS", default_value = "1,2")]
     pub method_seeds: String,
     /// method: arms, comma-separated, among vanilla, lidar, paper, bind-lidar, bind-nosky,
     /// bind, bind-aa, bind-exposure, bind-mcmc, bind-depth.
     #[arg(
-        long = "method-arms",
+        long,
         env = "SYLVA_BENCH_METHOD_ARMS",
         default_value = "vanilla,lidar,paper,bind-lidar,bind"
     )]
     pub method_arms: String,
     /// method: training steps of every arm.
-    #[arg(
-        long = "method-steps",
-        env = "SYLVA_BENCH_METHOD_STEPS",
-        default_value_t = 500
-    )]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_STEPS", default_value_t = 500)]
     pub method_steps: u32,
     /// method: longest image side, pixels.
-    #[arg(
-        long = "method-resolution",
-        env = "SYLVA_BENCH_METHOD_RESOLUTION",
-        default_value_t = 80
-    )]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_RESOLUTION", default_value_t = 80)]
     pub method_resolution: u32,
     /// method: Gaussian cap (0 = the training device's default budget).
-    #[arg(
-        long = "method-cap",
-        env = "SYLVA_BENCH_METHOD_CAP",
-        default_value_t = 10_000
-    )]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_CAP", default_value_t = 10_000)]
     pub method_cap: u32,
     /// method: weight of the LiDAR depth loss in the `bind-depth` arm.
-    #[arg(
-        long = "method-depth-weight",
-        env = "SYLVA_BENCH_METHOD_DEPTH_WEIGHT",
-        default_value_t = 0.1
-    )]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_DEPTH_WEIGHT", default_value_t = 0.1)]
     pub method_depth_weight: f64,
     /// method: gpu or cpu.
-    #[arg(
-        long = "method-backend",
-        env = "SYLVA_BENCH_METHOD_BACKEND",
-        default_value = "gpu"
-    )]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_BACKEND", default_value = "gpu")]
     pub method_backend: String,
     /// method: the working folder (plots and runs are kept and reused).
     #[arg(
-        long = "method-work",
+        long,
         env = "SYLVA_BENCH_METHOD_WORK",
         default_value = "target/bench-method"
     )]
     pub method_work: PathBuf,
     /// method: instead of the table, train the bind arm this many steps on the first plot and
     /// print the surface distance every 1000 steps.
-    #[arg(long = "method-long", env = "SYLVA_BENCH_METHOD_LONG")]
+    #[arg(long, env = "SYLVA_BENCH_METHOD_LONG")]
     pub method_long: Option<u32>,
 }
 
