@@ -355,6 +355,13 @@ struct Shared {
     done: AtomicBool,
 }
 
+impl Shared {
+    /// The ids of the jobs accepted so far.
+    fn accepted_ids(&self) -> Vec<String> {
+        self.accepted.lock().map(|l| l.clone()).unwrap_or_default()
+    }
+}
+
 /// Submits job `k` until the API accepts it (the same Idempotency-Key on every try, so a try
 /// whose answer was lost cannot make a second job). `None` if it was refused.
 async fn submit(api: &Api, body: &Value, key: &str) -> Option<String> {
@@ -701,13 +708,6 @@ async fn upload_inputs(api: &Api, plot: &Path) -> anyhow::Result<(Vec<String>, V
     }
     let body = json!({ "inputs": inputs, "params": { "until": "ingest" } });
     Ok((uploads, body))
-}
-
-impl Shared {
-    /// The ids of the jobs accepted so far.
-    fn accepted_ids(&self) -> Vec<String> {
-        self.accepted.lock().map(|l| l.clone()).unwrap_or_default()
-    }
 }
 
 /// Watches the run: counts finished jobs, kills and restarts the `victim` once half of the
