@@ -79,6 +79,8 @@ def run_sylva(a, work, rnd):
         "trainer": "sylva",
         "psnr": float(m.group(1)),
         "ssim": float(m.group(2)),
+        "sylva_psnr": float(m.group(1)),
+        "sylva_ssim": float(m.group(2)),
         "views": int(m.group(3)),
         "gaussians": int(m.group(4)),
         "loop_s_per_step": 1.0 / float(m.group(5)),
@@ -104,16 +106,61 @@ def run_peer(a, work, rnd):
     if not evals:
         sys.exit(f"no 'Eval iter' line from the peer:\n{text[-3000:]}")
     _, psnr, ssim = evals[-1]
+    ply = newest_ply(out)
+    ours = sylva_eval(a, ply, os.path.join(work, f"peer-{rnd}-sylva-eval")) if ply else None
     return {
         "trainer": "peer",
         "psnr": float(psnr),
         "ssim": float(ssim),
+        "sylva_psnr": ours[0] if ours else None,
+        "sylva_ssim": ours[1] if ours else None,
         "views": None,
         "gaussians": ply_vertices(out),
-        "loop_s_per_step": None,
+        "loop_s_per_step": peer_loop_s_per_step(text),
         "wall": wall,
         "rss": rss,
     }
+
+
+def newest_ply(folder):
+    files = sorted(glob.glob(os.path.join(folder, "**", "*.ply"), recursive=True), key=os.path.getmtime)
+    return files[-1] if files else None
+
+
+def sylva_eval(a, ply, out):
+    """The peer's exported splats measured by Sylva's evaluator: `sylva train --steps 0 --init
+    PLY`, the same held-out photos at the same pixels, no cap on the Gaussians; (PSNR, SSIM)."""
+    cmd = [
+        a.sylva, "train", "--colmap", a.colmap, "--out", out, "--steps", "0",
+        "--resolution", str(a.resolution), "--init", ply, "--exposure", "off",
+        "--max-gaussians", str(2**31 - 1),
+    ]
+    _, _, text = timed(cmd)
+    m = SYLVA_LINE.search(text)
+    return (float(m.group(1)), float(m.group(2))) if m else None
+
+
+# env_logger's timestamped lines, e.g. "[2026-11-27T17:01:02Z INFO  brush_process...] ...".
+LOG_TIME = re.compile(r"^\[(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(?:\.\d+)?)Z? ", re.M)
+PEER_ITER = re.compile(r"^\[(\S+?)Z? .*?(?:[Ii]ter(?:ation)?|step)[ =:]+(\d+)", re.M)
+
+
+def peer_loop_s_per_step(text):
+    """The peer's training-loop seconds per step from its log: between the first and last
+    timestamped lines that name an iteration (None where the log has no such lines)."""
+    import datetime
+
+    hits = []
+    for stamp, it in PEER_ITER.findall(text):
+        try:
+            t = datetime.datetime.fromisoformat(stamp)
+        except ValueError:
+            continue
+        hits.append((int(it), t))
+    if len(hits) < 2:
+        return None
+    (i0, t0), (i1, t1) = min(hits), max(hits)
+    return (t1 - t0).total_seconds() / (i1 - i0) if i1 > i0 else None
 
 
 def fmt(v, spec):
@@ -137,8 +184,9 @@ def main():
         f"\n{a.colmap}: {a.steps} steps, longest side {a.resolution} px, every "
         f"{a.test_every}th image held out, {a.rounds} rounds, load {os.getloadavg()[0]:.2f}\n"
     )
-    print("| round | trainer | PSNR dB | SSIM | Gaussians | wall s | wall s/step | loop s/step | peak MiB |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("PSNR and SSIM: each trainer's own evaluator; Sylva-eval: the same exported splats measured by Sylva's")
+    print("| round | trainer | PSNR dB | SSIM | Sylva-eval PSNR dB | Sylva-eval SSIM | Gaussians | wall s | wall s/step | loop s/step | peak MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     for rnd in range(1, a.rounds + 1):
         runs = [run_sylva(a, a.work, rnd)]
@@ -148,38 +196,48 @@ def main():
             rows.append(r)
             print(
                 f"| {rnd} | {r['trainer']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+                f"{fmt(r['sylva_psnr'], '.2f')} | {fmt(r['sylva_ssim'], '.3f')} | "
                 f"{fmt(r['gaussians'], 'd')} | {r['wall']:.1f} | {r['wall'] / a.steps:.3f} | "
                 f"{fmt(r['loop_s_per_step'], '.3f')} | {r['rss']:.0f} |",
                 flush=True,
             )
-    print("\n| trainer | PSNR dB | SSIM | Gaussians | wall s/step | peak MiB |")
-    print("|---|---|---|---|---|---|")
+    print("\n| trainer | PSNR dB (own) | SSIM (own) | PSNR dB (Sylva-eval) | SSIM (Sylva-eval) | Gaussians | wall s/step | loop s/step | peak MiB |")
+    print("|---|---|---|---|---|---|---|---|---|")
     means = {}
+
+    def avg(rs, key):
+        v = [r[key] for r in rs if r[key] is not None]
+        return statistics.mean(v) if v else None
+
     for t in ["sylva", "peer"]:
         rs = [r for r in rows if r["trainer"] == t]
         if not rs:
             continue
-        g = [r["gaussians"] for r in rs if r["gaussians"] is not None]
-        means[t] = {
-            "psnr": statistics.mean(r["psnr"] for r in rs),
-            "ssim": statistics.mean(r["ssim"] for r in rs),
-            "gaussians": statistics.mean(g) if g else None,
-            "step": statistics.mean(r["wall"] / a.steps for r in rs),
-            "rss": statistics.mean(r["rss"] for r in rs),
-        }
+        for r in rs:
+            r["step"] = r["wall"] / a.steps
+        means[t] = {k: avg(rs, k) for k in
+                    ["psnr", "ssim", "sylva_psnr", "sylva_ssim", "gaussians", "step", "loop_s_per_step", "rss"]}
         m = means[t]
         print(
-            f"| {t} | {m['psnr']:.2f} | {m['ssim']:.3f} | {fmt(m['gaussians'], '.0f')} | "
-            f"{m['step']:.3f} | {m['rss']:.0f} |"
+            f"| {t} | {m['psnr']:.2f} | {m['ssim']:.3f} | {fmt(m['sylva_psnr'], '.2f')} | "
+            f"{fmt(m['sylva_ssim'], '.3f')} | {fmt(m['gaussians'], '.0f')} | {m['step']:.3f} | "
+            f"{fmt(m['loop_s_per_step'], '.3f')} | {m['rss']:.0f} |"
         )
     if "peer" in means:
         s, q = means["sylva"], means["peer"]
+        same = (
+            f"{s['sylva_psnr'] - q['sylva_psnr']:+.2f} dB PSNR, {s['sylva_ssim'] - q['sylva_ssim']:+.3f} SSIM by Sylva's evaluator for both"
+            if q["sylva_psnr"] is not None else "the peer's splats could not be measured by Sylva's evaluator"
+        )
+        loop = (
+            f", {s['loop_s_per_step'] / q['loop_s_per_step']:.2f}× training-loop time per step"
+            if q["loop_s_per_step"] else ""
+        )
         print(
-            f"\nsylva − peer: {s['psnr'] - q['psnr']:+.2f} dB PSNR, {s['ssim'] - q['ssim']:+.3f} SSIM; "
-            f"sylva / peer: {s['step'] / q['step']:.2f}× wall time per step, "
+            f"\nsylva − peer: {same} ({s['psnr'] - q['psnr']:+.2f} dB, each by its own); "
+            f"sylva / peer: {s['step'] / q['step']:.2f}× wall time per step{loop}, "
             f"{s['rss'] / q['rss']:.2f}× peak memory"
         )
-
 
 if __name__ == "__main__":
     main()

@@ -221,7 +221,8 @@ fn main(inv: Invocation) {
         let b = 48u * c + 3u * k;
         raw += y[k] * vec3<f32>(sh[b], sh[b + 1u], sh[b + 2u]);
     }
-    let v_rgb = select(vec3<f32>(0.0), v_rgb_in, raw > vec3<f32>(0.0));
+    // The gradient passes at the clamp itself (as the CPU twin): a colour at exactly 0 can rise.
+    let v_rgb = select(vec3<f32>(0.0), v_rgb_in, raw >= vec3<f32>(0.0));
     var v_dir = vec3<f32>(0.0);
     for (var k = 0u; k < nk; k++) {
         let b = 48u * c + 3u * k;

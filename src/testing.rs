@@ -50,6 +50,36 @@ pub fn skip_with(required: &str, capability: &str, why: &str) {
     eprintln!("skipping ({capability} missing): {why}");
 }
 
+/// The real photo set `rel` (a folder such as `nerfpl_tree/tree`) for the real-photo tests: the
+/// first of `$SYLVA_REAL_DATA/real_photos`, `$SYLVA_REAL_DATA/../real_photos` (the variable
+/// may name the data folder or its `real/` clouds) and `../shared/data/real_photos` beside the
+/// crate that holds it. `None`, after printing why ([`skip`], capability `real-data`), when
+/// none does.
+pub fn real_photos(rel: &str) -> Option<std::path::PathBuf> {
+    use std::path::{Path, PathBuf};
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let from_env = std::env::var_os("SYLVA_REAL_DATA")
+        .map(PathBuf::from)
+        .into_iter()
+        .flat_map(|d| [d.join("real_photos"), d.join("../real_photos")]);
+    let mut looked = Vec::new();
+    for dir in from_env.chain([manifest.join("../shared/data/real_photos")]) {
+        let path = dir.join(rel);
+        if path.is_dir() {
+            return Some(path);
+        }
+        looked.push(dir.display().to_string());
+    }
+    skip(
+        "real-data",
+        &format!(
+            "{rel} is in none of {} (set SYLVA_REAL_DATA)",
+            looked.join(", ")
+        ),
+    );
+    None
+}
+
 /// Peak resident memory of this process so far, MiB (Linux `VmHWM` from /proc/self/status; 0
 /// where unknown).
 pub fn peak_rss_mib() -> f64 {

@@ -39,6 +39,11 @@ pub struct TrainArgs {
     /// 3DGS dilation.
     #[arg(long, env = "SYLVA_TRAIN_ANTIALIAS", default_value = "off")]
     pub antialias: String,
+    /// With `--init sfm`, add Gaussians where the training photos see what no SfM point
+    /// covers (`splat::init::fill_uncovered`: dense canopy from above, sky, walls), on or off.
+    /// On by default (ours: Brighton's UAV photos lost their forest without it, issue 38).
+    #[arg(long, env = "SYLVA_TRAIN_FILL", default_value = "on")]
+    pub fill: String,
     /// Per-image exposure compensation, on or off (docs/splatting.md "Exposure"). On (the
     /// default) learns a colour transform per photo and measures the held-out photos on
     /// their right halves, their left halves training their exposure.
@@ -282,25 +287,38 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             cfg.test_every,
             &progress,
         )?;
-        let mut init = if a.init == "sfm" {
-            sylva::splat::init::from_sfm_points(&data.points, &data.colours)?
+        let init = if a.init == "sfm" {
+            let fill = on_off("--fill", &a.fill)?.then(sylva::splat::init::CoverageFill::default);
+            let g = sylva::pipeline::train::sfm_gaussians(
+                &data,
+                params.max_gaussians,
+                params.seed,
+                fill.as_ref(),
+            )?;
+            progress.log(&format!(
+                "{} Gaussians from the SfM points{}",
+                g.len(),
+                if fill.is_some() {
+                    " and the photos' uncovered cells"
+                } else {
+                    ""
+                }
+            ));
+            g
         } else {
             let file =
                 std::fs::File::open(&a.init).map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?;
-            sylva::splat::export::read_ply(std::io::BufReader::new(file))
-                .map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?
+            let mut g = sylva::splat::export::read_ply(std::io::BufReader::new(file))
+                .map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?;
+            sylva::pipeline::train::cap_gaussians(
+                &mut g,
+                params.max_gaussians,
+                params.seed,
+                None,
+                0,
+            );
+            g
         };
-        let before = init.len();
-        sylva::pipeline::train::cap_gaussians(
-            &mut init,
-            params.max_gaussians,
-            params.seed,
-            None,
-            0,
-        );
-        if a.init == "sfm" && init.len() < before {
-            sylva::splat::init::rescale_from_spacing(&mut init, 3, 0.0);
-        }
         let mut strategy = sylva::splat::trainer::strategy_for(&cfg)?;
         let outcome = sylva::splat::trainer::train(
             backend.as_mut(),

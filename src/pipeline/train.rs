@@ -106,6 +106,29 @@ pub const TRUNK_SHARE_OF_CAP: f64 = 0.5;
 /// only the photos see, render as well from a coarser draw.
 pub const DBH_BAND_SHARE_OF_TRUNKS: f64 = 0.5;
 
+/// The start of `sylva train` and the real-photo tests: one Gaussian per SfM point of `data`
+/// (coloured from the photos where the model has no colours, [`Dataset`]), plus, with `fill`,
+/// Gaussians where the training photos see what no SfM point covers
+/// ([`init::fill_uncovered`]); capped at `max` by a draw of `seed` (0 = no cap) with the
+/// scales taken again from what the cap kept.
+pub fn sfm_gaussians(
+    data: &Dataset,
+    max: u32,
+    seed: u64,
+    fill: Option<&init::CoverageFill>,
+) -> Result<Gaussians, init::InitError> {
+    let mut g = init::from_sfm_points(&data.points, &data.colours)?;
+    if let Some(fill) = fill {
+        init::fill_uncovered(&mut g, &data.train, fill);
+    }
+    let before = g.len();
+    cap_gaussians(&mut g, max, seed, None, 0);
+    if g.len() < before {
+        init::rescale_from_spacing(&mut g, 3, 0.0);
+    }
+    Ok(g)
+}
+
 /// Keeps at most `max` Gaussians (all when `max` is 0 or not exceeded): up to
 /// [`TRUNK_SHARE_OF_CAP`] of the cap from the trunk Gaussians (of that, up to
 /// [`DBH_BAND_SHARE_OF_TRUNKS`] from those `band` marks, when given), the rest from the

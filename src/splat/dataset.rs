@@ -2,6 +2,13 @@
 //! pinhole camera, downscaled, and split into training and held-out views (every 8th by name);
 //! plus the sparse points (for vanilla initialisation) and the scene extent that scales the
 //! position learning rate and the densification thresholds.
+//!
+//! A sparse model may carry no point colours: COLMAP's mapper with `extract_colors=false` writes
+//! every point as (0, 0, 0), as the real `nerfpl_tree` model does. Black points start every
+//! Gaussian at the clamp of the colour (`max(raw + 0.5, 0)` at exactly 0), a whole scene
+//! renders black and training cannot recover it. Such points are coloured from the photos
+//! instead, as the LiDAR anchors are: the median of their visible projections into the
+//! training views ([`crate::splat::init::photometric_colours`]).
 
 use std::path::Path;
 
@@ -33,9 +40,28 @@ pub struct Dataset {
     /// Sparse points (metres, the model's frame) and their colours.
     pub points: Vec<[f32; 3]>,
     pub colours: Vec<[u8; 3]>,
+    /// Where `colours` came from.
+    pub colour_source: PointColours,
     /// Radius of the camera centres around their mean × 1.1, metres (the reference's
     /// `cameras_extent`, which scales the position learning rate and densification).
     pub extent: f32,
+}
+
+/// Where the sparse points' colours come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PointColours {
+    /// The model's own colours (`points3D` RGB).
+    Model,
+    /// The model had none (every point (0, 0, 0)): the median of each point's visible
+    /// projections into the training photos.
+    Photos,
+}
+
+/// True when a sparse model carries no colours: it has points and every one is (0, 0, 0),
+/// which is what COLMAP writes with `extract_colors=false`.
+pub fn uncoloured(colours: &[[u8; 3]]) -> bool {
+    !colours.is_empty() && colours.iter().all(|c| *c == [0; 3])
 }
 
 impl Dataset {
@@ -113,18 +139,45 @@ pub fn load(
             ((c[0] - mean[0]).powi(2) + (c[1] - mean[1]).powi(2) + (c[2] - mean[2]).powi(2)).sqrt()
         })
         .fold(0.0f32, f32::max);
+    let points: Vec<[f32; 3]> = model
+        .points
+        .iter()
+        .map(|p| p.xyz.as_vec3().to_array())
+        .collect();
+    let mut colours: Vec<[u8; 3]> = model.points.iter().map(|p| p.rgb).collect();
+    let colour_source = if uncoloured(&colours) {
+        progress.log(&format!(
+            "the sparse model's {} points carry no colour (all black): colouring them from the photos",
+            points.len()
+        ));
+        colours = colours_from_photos(&points, &train);
+        PointColours::Photos
+    } else {
+        PointColours::Model
+    };
     Ok(Dataset {
         train,
         test,
-        points: model
-            .points
-            .iter()
-            .map(|p| p.xyz.as_vec3().to_array())
-            .collect(),
-        colours: model.points.iter().map(|p| p.rgb).collect(),
+        points,
+        colours,
+        colour_source,
         // A single camera has no spread; fall back to 1 m rather than a zero learning rate.
         extent: if radius > 0.0 { radius * 1.1 } else { 1.0 },
     })
+}
+
+/// Each point's median colour over the training views where it is visible; mid-grey where it
+/// is seen in none (grey, not black, keeps the colour off the clamp).
+pub fn colours_from_photos(points: &[[f32; 3]], views: &[View]) -> Vec<[u8; 3]> {
+    let anchors: Vec<crate::splat::init::Anchor> = points
+        .iter()
+        .map(|&position| crate::splat::init::Anchor {
+            position,
+            colour: [128; 3],
+            trunk_prob: 0.0,
+        })
+        .collect();
+    crate::splat::init::photometric_colours(&anchors, views, &Default::default())
 }
 
 fn load_one(
@@ -161,4 +214,30 @@ fn load_one(
         long_side,
     )
     .map_err(|e| DatasetError::Invalid(format!("{}: {e}", img.name)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::splat::camera::Camera;
+
+    #[test]
+    fn a_model_without_colours_is_recognised() {
+        assert!(uncoloured(&[[0; 3]; 5]));
+        assert!(!uncoloured(&[[0, 0, 0], [0, 0, 1]]));
+        assert!(!uncoloured(&[]));
+    }
+
+    #[test]
+    fn uncoloured_points_take_the_colour_of_the_photos_that_see_them() {
+        let camera = Camera::look_at([0.0; 3], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0], 64, 64, 64.0);
+        let view = View {
+            name: "v".into(),
+            camera,
+            image: PackedImage::filled(64, 64, [200, 40, 10, 255]),
+        };
+        // One point in view, one behind the camera (seen by no photo: mid-grey).
+        let c = colours_from_photos(&[[0.1, 0.0, 3.0], [0.0, 0.0, -3.0]], &[view]);
+        assert_eq!(c, vec![[200, 40, 10], [128, 128, 128]]);
+    }
 }

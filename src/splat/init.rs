@@ -157,6 +157,129 @@ pub fn add_sky(g: &mut Gaussians, views: &[View], n: usize) {
     }
 }
 
+/// Parameters of [`fill_uncovered`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CoverageFill {
+    /// Cells along each photo's long side; a cell is the unit of coverage. Default 32 (ours:
+    /// about 10 px at 320 px and 50 px at 1600 px, so a photo adds at most 32 × 32 Gaussians).
+    pub cells_long_side: u32,
+    /// Percentile of the depths of the points a photo sees at which its uncovered cells are
+    /// placed, [0, 1]. Default 0.9 (ours: what SfM misses is mostly far or textureless — sky,
+    /// walls, dense canopy seen from above — so it goes to the back of what the photo sees).
+    pub depth_percentile: f64,
+}
+
+impl Default for CoverageFill {
+    fn default() -> Self {
+        CoverageFill {
+            cells_long_side: 32,
+            depth_percentile: 0.9,
+        }
+    }
+}
+
+/// Adds a Gaussian wherever a training photo sees something that no Gaussian of `g` projects
+/// to, and returns how many it added.
+///
+/// An SfM model has no points where matching fails: dense canopy from above, bark in shadow,
+/// sky and walls. Gaussians grow into such a hole only slowly by densification, so the
+/// photos' forest came out as a flat wash (Brighton's UAV photos: no SfM point in the left
+/// third of a held-out photo, issue 38). Each photo in turn is cut into a grid of cells
+/// (`cells_long_side` along its long side); every cell no Gaussian projects into — the
+/// Gaussians added for earlier photos included, so a hole seen by many photos is filled once
+/// — gets one Gaussian on the ray through its centre at the `depth_percentile` depth of the
+/// points the photo sees, coloured by the cell's mean pixel, isotropic with σ half the cell's
+/// footprint at that depth, at the initial opacity. Photos that see no point are skipped.
+pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) -> usize {
+    let before = g.len();
+    for view in views {
+        let cam = &view.camera;
+        let (w, h) = (
+            view.image.width.min(cam.width),
+            view.image.height.min(cam.height),
+        );
+        let cell = w.max(h).div_ceil(params.cells_long_side.max(1)).max(1);
+        let (gw, gh) = (w.div_ceil(cell) as usize, h.div_ceil(cell) as usize);
+        let projected: Vec<(usize, f32)> = g
+            .means
+            .par_iter()
+            .filter_map(|m| {
+                let p = cam.to_camera(*m);
+                if !(p[2] >= NEAR) {
+                    return None;
+                }
+                let x = cam.fx * p[0] / p[2] + cam.cx;
+                let y = cam.fy * p[1] / p[2] + cam.cy;
+                let inside = x >= 0.0 && y >= 0.0 && x < w as f32 && y < h as f32;
+                inside.then(|| {
+                    let c = (y as u32 / cell) as usize * gw + (x as u32 / cell) as usize;
+                    (c, p[2])
+                })
+            })
+            .collect();
+        if projected.is_empty() {
+            continue;
+        }
+        let mut covered = vec![false; gw * gh];
+        let mut depths: Vec<f32> = Vec::with_capacity(projected.len());
+        for &(c, z) in &projected {
+            covered[c] = true;
+            depths.push(z);
+        }
+        depths.sort_unstable_by(f32::total_cmp);
+        let q = params.depth_percentile.clamp(0.0, 1.0);
+        let depth = depths[((depths.len() - 1) as f64 * q).round() as usize];
+        let sigma = 0.5 * cell as f32 * depth / cam.fx.abs().max(f32::MIN_POSITIVE);
+        for c in (0..covered.len()).filter(|&c| !covered[c]) {
+            let (cx, cy) = ((c % gw) as u32 * cell, (c / gw) as u32 * cell);
+            let Some(colour) = cell_colour(view, cx, cy, cell) else {
+                continue;
+            };
+            let (px, py) = (
+                (cx as f32 + 0.5 * cell.min(w - cx) as f32),
+                (cy as f32 + 0.5 * cell.min(h - cy) as f32),
+            );
+            let pc = [
+                (px - cam.cx) / cam.fx * depth,
+                (py - cam.cy) / cam.fy * depth,
+                depth,
+            ];
+            g.push(seed_gaussian(
+                camera_to_world(cam, pc),
+                sigma.ln(),
+                colour,
+                0.0,
+            ));
+        }
+    }
+    g.len() - before
+}
+
+/// Camera coordinates back to the world: Rᵀ (p − t).
+fn camera_to_world(cam: &crate::splat::camera::Camera, p: [f32; 3]) -> [f32; 3] {
+    let d = [p[0] - cam.t[0], p[1] - cam.t[1], p[2] - cam.t[2]];
+    std::array::from_fn(|k| cam.r[0][k] * d[0] + cam.r[1][k] * d[1] + cam.r[2][k] * d[2])
+}
+
+/// Mean colour of the opaque pixels of the `cell`-px square at (`x0`, `y0`); `None` when it
+/// holds none (outside an undistorted photo).
+fn cell_colour(view: &View, x0: u32, y0: u32, cell: u32) -> Option<[u8; 3]> {
+    let img = &view.image;
+    let (mut sum, mut n) = ([0u64; 3], 0u64);
+    for y in y0..(y0 + cell).min(img.height) {
+        for x in x0..(x0 + cell).min(img.width) {
+            let p = unpack(img.pixels[(y * img.width + x) as usize]);
+            if p[3] > 0 {
+                for c in 0..3 {
+                    sum[c] += u64::from(p[c]);
+                }
+                n += 1;
+            }
+        }
+    }
+    (n > 0).then(|| sum.map(|s| (s / n) as u8))
+}
+
 /// A LiDAR anchor: position (metres), its own colour (fallback) and trunk probability P_i.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Anchor {

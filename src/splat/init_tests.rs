@@ -160,3 +160,32 @@ fn the_sky_dome_covers_the_sphere_evenly_and_takes_the_colour_seen_past_the_scen
             .all(|s| (s[0] - width.ln()).abs() < 1e-5)
     );
 }
+
+/// Every cell of a photo that no Gaussian projects into gets one, at the depth of what the
+/// photo sees, coloured by the cell; a second photo of the same hole adds nothing.
+#[test]
+fn uncovered_cells_are_filled_once_at_the_depth_of_the_scene() {
+    let mut g = from_sfm_points(&[[0.1, 0.1, 3.0]], &[[10, 20, 30]]).expect("one point");
+    let params = CoverageFill {
+        cells_long_side: 4,
+        depth_percentile: 0.9,
+    };
+    let added = fill_uncovered(&mut g, &[view(90), view(90)], &params);
+    // 4 × 4 cells of 16 px, one covered by the point.
+    assert_eq!(added, 15);
+    assert_eq!(g.len(), 16);
+    for i in 1..g.len() {
+        assert!(
+            (g.means[i][2] - 3.0).abs() < 1e-4,
+            "depth {}",
+            g.means[i][2]
+        );
+        let grey = 0.5 + SH_C0 * g.sh[i][0];
+        assert!((grey - 90.0 / 255.0).abs() < 1e-3);
+        // σ = half a 16 px cell at 3 m with f = 64 px.
+        assert!((g.log_scales[i][0] - (0.5f32 * 16.0 * 3.0 / 64.0).ln()).abs() < 1e-5);
+    }
+    // A photo that sees no Gaussian adds nothing (no depth to place a fill at).
+    let mut empty = from_sfm_points(&[[0.0, 0.0, -3.0]], &[[0; 3]]).expect("one point");
+    assert_eq!(fill_uncovered(&mut empty, &[view(90)], &params), 0);
+}

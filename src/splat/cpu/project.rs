@@ -248,9 +248,10 @@ pub fn project_backward(
         opacity_logit: g.opacity * f.rho * f.opacity * (1.0 - f.opacity),
         ..ParamGrad::default()
     };
-    // Colour: rgb = max(raw + 0.5, 0).
+    // Colour: rgb = max(raw + 0.5, 0). The gradient passes at the clamp itself (PyTorch's
+    // `clamp_min` backward, which the reference uses): a colour started at exactly 0 can rise.
     let d_raw = [0, 1, 2].map(|c| {
-        if f.raw_rgb[c] + 0.5 > 0.0 {
+        if f.raw_rgb[c] + 0.5 >= 0.0 {
             g.rgb[c]
         } else {
             0.0

@@ -155,6 +155,7 @@ pub fn ring_dataset(truth: &Gaussians, n_views: usize) -> Dataset {
         test,
         points: Vec::new(),
         colours: Vec::new(),
+        colour_source: crate::splat::dataset::PointColours::Model,
         extent: 4.4,
     }
 }
