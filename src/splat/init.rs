@@ -205,7 +205,7 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
             .par_iter()
             .filter_map(|m| {
                 let p = cam.to_camera(*m);
-                if !(p[2] >= NEAR) {
+                if p[2].is_nan() || p[2] < NEAR {
                     return None;
                 }
                 let x = cam.fx * p[0] / p[2] + cam.cx;
