@@ -27,10 +27,13 @@ SYLVA_LINE = re.compile(
 )
 PEER_EVAL = re.compile(r"Eval iter (\d+): PSNR ([0-9.]+), ssim ([0-9.]+)")
 MAX_RSS = re.compile(r"Maximum resident set size \(kbytes\): (\d+)")
+CPU_S = re.compile(r"(?:User|System) time \(seconds\): ([0-9.]+)")
 
 
 def timed(cmd, env=None):
-    """Runs cmd under GNU time -v; returns (wall s, peak RSS MiB, combined output)."""
+    """Runs cmd under GNU time -v; returns (wall s, peak RSS MiB, combined output). The
+    output ends with GNU time's report, whose user + system CPU seconds [`cpu_seconds`] read
+    the same whether or not other work shares the machine."""
     start = time.monotonic()
     p = subprocess.run(
         ["/usr/bin/time", "-v", *cmd],
@@ -45,6 +48,11 @@ def timed(cmd, env=None):
         sys.exit(f"failed ({p.returncode}): {' '.join(cmd)}\n{out[-3000:]}")
     rss = MAX_RSS.search(out)
     return wall, (int(rss.group(1)) / 1024.0 if rss else float("nan")), out
+
+
+def cpu_seconds(text):
+    """User + system CPU seconds from GNU time's report."""
+    return sum(float(v) for v in CPU_S.findall(text)[-2:])
 
 
 def ply_vertices(folder):
@@ -84,6 +92,7 @@ def run_sylva(a, work, rnd):
         "views": int(m.group(3)),
         "gaussians": int(m.group(4)),
         "loop_s_per_step": 1.0 / float(m.group(5)),
+        "cpu": cpu_seconds(text),
         "wall": wall,
         "rss": rss,
     }
@@ -117,6 +126,7 @@ def run_peer(a, work, rnd):
         "views": None,
         "gaussians": ply_vertices(out),
         "loop_s_per_step": peer_loop_s_per_step(text),
+        "cpu": cpu_seconds(text),
         "wall": wall,
         "rss": rss,
     }
@@ -185,8 +195,8 @@ def main():
         f"{a.test_every}th image held out, {a.rounds} rounds, load {os.getloadavg()[0]:.2f}\n"
     )
     print("PSNR and SSIM: each trainer's own evaluator; Sylva-eval: the same exported splats measured by Sylva's")
-    print("| round | trainer | PSNR dB | SSIM | Sylva-eval PSNR dB | Sylva-eval SSIM | Gaussians | wall s | wall s/step | loop s/step | peak MiB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| round | trainer | PSNR dB | SSIM | Sylva-eval PSNR dB | Sylva-eval SSIM | Gaussians | wall s | wall s/step | loop s/step | CPU s | peak MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     for rnd in range(1, a.rounds + 1):
         runs = [run_sylva(a, a.work, rnd)]
@@ -198,11 +208,11 @@ def main():
                 f"| {rnd} | {r['trainer']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
                 f"{fmt(r['sylva_psnr'], '.2f')} | {fmt(r['sylva_ssim'], '.3f')} | "
                 f"{fmt(r['gaussians'], 'd')} | {r['wall']:.1f} | {r['wall'] / a.steps:.3f} | "
-                f"{fmt(r['loop_s_per_step'], '.3f')} | {r['rss']:.0f} |",
+                f"{fmt(r['loop_s_per_step'], '.3f')} | {r['cpu']:.0f} | {r['rss']:.0f} |",
                 flush=True,
             )
-    print("\n| trainer | PSNR dB (own) | SSIM (own) | PSNR dB (Sylva-eval) | SSIM (Sylva-eval) | Gaussians | wall s/step | loop s/step | peak MiB |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("\n| trainer | PSNR dB (own) | SSIM (own) | PSNR dB (Sylva-eval) | SSIM (Sylva-eval) | Gaussians | wall s/step | loop s/step | CPU s | peak MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     means = {}
 
     def avg(rs, key):
@@ -216,12 +226,12 @@ def main():
         for r in rs:
             r["step"] = r["wall"] / a.steps
         means[t] = {k: avg(rs, k) for k in
-                    ["psnr", "ssim", "sylva_psnr", "sylva_ssim", "gaussians", "step", "loop_s_per_step", "rss"]}
+                    ["psnr", "ssim", "sylva_psnr", "sylva_ssim", "gaussians", "step", "loop_s_per_step", "cpu", "rss"]}
         m = means[t]
         print(
             f"| {t} | {m['psnr']:.2f} | {m['ssim']:.3f} | {fmt(m['sylva_psnr'], '.2f')} | "
             f"{fmt(m['sylva_ssim'], '.3f')} | {fmt(m['gaussians'], '.0f')} | {m['step']:.3f} | "
-            f"{fmt(m['loop_s_per_step'], '.3f')} | {m['rss']:.0f} |"
+            f"{fmt(m['loop_s_per_step'], '.3f')} | {m['cpu']:.0f} | {m['rss']:.0f} |"
         )
     if "peer" in means:
         s, q = means["sylva"], means["peer"]
@@ -236,6 +246,7 @@ def main():
         print(
             f"\nsylva − peer: {same} ({s['psnr'] - q['psnr']:+.2f} dB, each by its own); "
             f"sylva / peer: {s['step'] / q['step']:.2f}× wall time per step{loop}, "
+            f"{s['cpu'] / q['cpu']:.2f}× CPU seconds, "
             f"{s['rss'] / q['rss']:.2f}× peak memory"
         )
 
