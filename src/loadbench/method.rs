@@ -63,6 +63,11 @@ pub struct MethodBenchArgs {
     /// method: training steps of every arm.
     #[arg(long, env = "SYLVA_BENCH_METHOD_STEPS", default_value_t = 500)]
     pub method_steps: u32,
+    /// method: several step budgets, comma-separated (e.g. 500,2000,7000): the table at each,
+    /// then the default arm's held-out PSNR gain over `vanilla` at each budget (both arms are
+    /// added when missing). Empty: the one budget of --method-steps.
+    #[arg(long, env = "SYLVA_BENCH_METHOD_BUDGETS", default_value = "")]
+    pub method_budgets: String,
     /// method: longest image side, pixels.
     #[arg(long, env = "SYLVA_BENCH_METHOD_RESOLUTION", default_value_t = 80)]
     pub method_resolution: u32,
@@ -413,11 +418,27 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
         .map(|s| s.trim().parse())
         .collect::<Result<_, _>>()
         .context("--method-seeds: comma-separated integers")?;
-    let arms: Vec<String> = a
+    let mut arms: Vec<String> = a
         .method_arms
         .split(',')
         .map(|s| s.trim().to_string())
         .collect();
+    let budgets: Vec<u32> = if a.method_budgets.trim().is_empty() {
+        vec![a.method_steps]
+    } else {
+        a.method_budgets
+            .split(',')
+            .map(|s| s.trim().parse())
+            .collect::<Result<_, _>>()
+            .context("--method-budgets: comma-separated step counts")?
+    };
+    if budgets.len() > 1 {
+        for must in [GAIN_BASE, GAIN_ARM] {
+            if !arms.iter().any(|n| n == must) {
+                arms.push(must.to_string());
+            }
+        }
+    }
     for name in &arms {
         arm(name)?;
     }
@@ -431,11 +452,56 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
     if let Some(long) = a.method_long {
         return run_long(a, &plots, long);
     }
+    let mut gains = Vec::new();
+    for &steps in &budgets {
+        let psnr = print_table(a, &plots, &arms, steps)?;
+        let of = |name: &str| psnr.iter().find(|(n, _)| n == name).map(|(_, v)| v.clone());
+        if let (Some(base), Some(arm)) = (of(GAIN_BASE), of(GAIN_ARM)) {
+            gains.push((steps, base, arm));
+        }
+    }
+    if budgets.len() > 1 {
+        println!(
+            "\nthe default arm ({GAIN_ARM}) against {GAIN_BASE}, held-out PSNR per budget (each plot's difference, then their mean)\n"
+        );
+        println!("| steps | {GAIN_BASE} dB | {GAIN_ARM} dB | gain dB | gain per plot dB |");
+        println!("|---|---|---|---|---|");
+        for (steps, base, arm) in gains {
+            let d: Vec<f64> = arm.iter().zip(&base).map(|(x, y)| x - y).collect();
+            println!(
+                "| {steps} | {:.2} | {:.2} | {:+.2} | {} |",
+                mean(&base),
+                mean(&arm),
+                mean(&d),
+                d.iter()
+                    .map(|x| format!("{x:+.2}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The arm a budget sweep compares ([`run`] with `--method-budgets`): Sylva's default.
+const GAIN_ARM: &str = "bind";
+/// What [`GAIN_ARM`] is compared with: vanilla 3DGS from the SfM points.
+const GAIN_BASE: &str = "vanilla";
+
+/// Runs every arm on every plot at `steps` and prints the table; returns each arm's held-out
+/// PSNR per plot, dB.
+fn print_table(
+    a: &MethodBenchArgs,
+    plots: &[(PathBuf, StageInputs)],
+    arms: &[String],
+    steps: u32,
+) -> anyhow::Result<Vec<(String, Vec<f64>)>> {
+    let mut per_arm = Vec::new();
     println!(
         "\n{} seeds {} — {} steps at {} px, cap {} Gaussians, backend {}\n",
         a.method_preset,
         a.method_seeds,
-        a.method_steps,
+        steps,
         a.method_resolution,
         a.method_cap,
         a.method_backend
@@ -447,12 +513,13 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
         "| arm | PSNR dB | SSIM | depth MAE m | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-    for name in &arms {
+    for name in arms {
         let mut all = Vec::new();
-        for (dir, inputs) in &plots {
+        for (dir, inputs) in plots {
             eprintln!("arm {name} on {}", dir.display());
-            all.push(run_arm(dir, inputs, name, a, a.method_steps)?);
+            all.push(run_arm(dir, inputs, name, a, steps)?);
         }
+        per_arm.push((name.clone(), all.iter().map(|r| r.psnr).collect()));
         let trees: Vec<(f64, f64, Option<f64>)> =
             all.iter().flat_map(|r| r.trees.iter().copied()).collect();
         let gs: Vec<(f64, f64)> = trees.iter().filter_map(|t| Some((t.2?, t.0))).collect();
@@ -498,7 +565,7 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
             all.iter().map(|r| r.seconds).sum::<f64>(),
         );
     }
-    Ok(())
+    Ok(per_arm)
 }
 
 /// The long run of the bind arm: its loss.csv holds the trunk monitor's columns.
