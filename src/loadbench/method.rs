@@ -499,12 +499,7 @@ fn print_table(
     let mut per_arm = Vec::new();
     println!(
         "\n{} seeds {} — {} steps at {} px, cap {} Gaussians, backend {}\n",
-        a.method_preset,
-        a.method_seeds,
-        steps,
-        a.method_resolution,
-        a.method_cap,
-        a.method_backend
+        a.method_preset, a.method_seeds, steps, a.method_resolution, a.method_cap, a.method_backend
     );
     println!(
         "exposure compensation off in every arm but bind-exposure, whose PSNR and SSIM are of the held-out right halves; the others' are of the full held-out images\n"
