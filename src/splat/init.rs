@@ -204,17 +204,8 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
             .means
             .par_iter()
             .filter_map(|m| {
-                let p = cam.to_camera(*m);
-                if p[2].is_nan() || p[2] < NEAR {
-                    return None;
-                }
-                let x = cam.fx * p[0] / p[2] + cam.cx;
-                let y = cam.fy * p[1] / p[2] + cam.cy;
-                let inside = x >= 0.0 && y >= 0.0 && x < w as f32 && y < h as f32;
-                inside.then(|| {
-                    let c = (y as u32 / cell) as usize * gw + (x as u32 / cell) as usize;
-                    (c, p[2])
-                })
+                let (x, y, z) = project_pixel(cam, *m, w, h)?;
+                Some(((y / cell) as usize * gw + (x / cell) as usize, z))
             })
             .collect();
         if projected.is_empty() {
@@ -253,6 +244,24 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
         }
     }
     g.len() - before
+}
+
+/// The pixel (column, row) and depth (metres) of world point `p` in `cam`, when it lies at
+/// least [`NEAR`] in front of the camera and inside the `w` × `h` image.
+fn project_pixel(
+    cam: &crate::splat::camera::Camera,
+    p: [f32; 3],
+    w: u32,
+    h: u32,
+) -> Option<(u32, u32, f32)> {
+    let c = cam.to_camera(p);
+    if c[2].is_nan() || c[2] < NEAR {
+        return None;
+    }
+    let x = cam.fx * c[0] / c[2] + cam.cx;
+    let y = cam.fy * c[1] / c[2] + cam.cy;
+    let inside = x >= 0.0 && y >= 0.0 && x < w as f32 && y < h as f32;
+    inside.then_some((x as u32, y as u32, c[2]))
 }
 
 /// Camera coordinates back to the world: Rᵀ (p − t).
@@ -389,16 +398,7 @@ fn visible_colours(anchors: &[Anchor], view: &View, params: &AnchorInit) -> Vec<
     // (pixel x, pixel y, depth) of anchors in front of the camera and inside the image.
     let projected: Vec<Option<(u32, u32, f32)>> = anchors
         .par_iter()
-        .map(|a| {
-            let p = cam.to_camera(a.position);
-            if p[2] < NEAR {
-                return None;
-            }
-            let x = cam.fx * p[0] / p[2] + cam.cx;
-            let y = cam.fy * p[1] / p[2] + cam.cy;
-            let inside = x >= 0.0 && y >= 0.0 && x < w as f32 && y < h as f32;
-            inside.then_some((x as u32, y as u32, p[2]))
-        })
+        .map(|a| project_pixel(cam, a.position, w, h))
         .collect();
     let mut depth = vec![f32::INFINITY; gw * gh];
     for &(x, y, z) in projected.iter().flatten() {

@@ -248,8 +248,9 @@ pub fn project_backward(
         opacity_logit: g.opacity * f.rho * f.opacity * (1.0 - f.opacity),
         ..ParamGrad::default()
     };
-    // Colour: rgb = max(raw + 0.5, 0). The gradient passes at the clamp itself (PyTorch's
-    // `clamp_min` backward, which the reference uses): a colour started at exactly 0 can rise.
+    // Colour: rgb = max(raw + 0.5, 0). The gradient passes at the clamp itself, as PyTorch's
+    // `clamp_min` backward in the reference and the f32 GPU twin, where a black-seeded colour
+    // lands exactly on it (this f64 path does not).
     let d_raw = [0, 1, 2].map(|c| {
         if f.raw_rgb[c] + 0.5 >= 0.0 {
             g.rgb[c]
