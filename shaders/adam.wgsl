@@ -3,7 +3,7 @@
 // bc = 1 - b^t. The first `n_first` floats of each stride use `lr_first`, the rest `lr_rest`
 // (SH: DC vs higher bands). `AdamParams` is prepended by `adam.rs` (its `wgsl_struct!`).
 
-@group(0) @binding(0) var<uniform> ap: AdamParams;
+@group(0) @binding(0) var<storage, read> ap: AdamParams;
 @group(0) @binding(1) var<storage, read_write> param: array<f32>;
 @group(0) @binding(2) var<storage, read> grad: array<f32>;
 @group(0) @binding(3) var<storage, read_write> m1: array<f32>;

@@ -6,9 +6,9 @@
 // in workgroup memory in a fixed tree order, then one workgroup sums those partials, so the
 // result is the same on every adapter and every run.
 //
-// The uniform `Params` is prepended by `exposure.rs` (its `wgsl_struct!`).
+// The parameter buffer `Params` is prepended by `exposure.rs` (its `wgsl_struct!`).
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<storage, read> params: Params;
 // The render, RGB f32 interleaved, row-major.
 @group(0) @binding(1) var<storage, read> rendered: array<f32>;
 // The photo, one RGBA8 per pixel, R in the low byte.

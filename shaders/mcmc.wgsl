@@ -1,11 +1,11 @@
 // The MCMC strategy's per-step terms (src/splat/mcmc.rs; Kheradmand et al. 2024), one thread
 // per Gaussian of one chunk, two entry points over one set of bindings: `regularise` and
-// `noise`. The uniform `McmcParams` is prepended by src/splat/gpu/mcmc.rs (its `wgsl_struct!`).
+// `noise`. The parameter buffer `McmcParams` is prepended by src/splat/gpu/mcmc.rs (its `wgsl_struct!`).
 // CPU twins: mcmc::regularise_grads, mcmc::add_noise, mcmc::normal3.
 
-@group(0) @binding(0) var<uniform> mp: McmcParams;
+@group(0) @binding(0) var<storage, read> mp: McmcParams;
 // First Gaussian of the chunk, Gaussians in the chunk.
-@group(0) @binding(1) var<uniform> chunk: vec4<u32>;
+@group(0) @binding(1) var<storage, read> chunk: vec4<u32>;
 @group(0) @binding(2) var<storage, read> opacity_logits: array<f32>;
 @group(0) @binding(3) var<storage, read> log_scales: array<f32>;
 @group(0) @binding(4) var<storage, read> flags: array<u32>;

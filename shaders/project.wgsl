@@ -2,7 +2,7 @@
 // screen-space record (3 vec4 per Gaussian) and the number of touched tiles (0 when culled). Every
 // buffer but the uniforms is bound as the chunk's sub-range (index `c`; see `chunks.rs`).
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<storage, read> params: Params;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
 @group(0) @binding(2) var<storage, read> log_scales: array<f32>;
 @group(0) @binding(3) var<storage, read> rotations: array<f32>;
@@ -13,7 +13,7 @@
 @group(0) @binding(6) var<storage, read_write> proj: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read_write> tile_counts: array<u32>;
 // First Gaussian of the chunk, Gaussians in the chunk.
-@group(0) @binding(8) var<uniform> chunk: vec4<u32>;
+@group(0) @binding(8) var<storage, read> chunk: vec4<u32>;
 
 fn cull(c: u32) {
     proj[3u * c] = vec4<f32>(0.0);

@@ -5,7 +5,7 @@
 // view direction; opacity -> logit and, with the 2-D Mip filter (params.counts.w), through the
 // compensation rho to the 2-D covariance. Also accumulates the densification statistic.
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<storage, read> params: Params;
 @group(0) @binding(1) var<storage, read> means: array<f32>;
 @group(0) @binding(2) var<storage, read> log_scales: array<f32>;
 @group(0) @binding(3) var<storage, read> rotations: array<f32>;
@@ -22,7 +22,7 @@
 @group(0) @binding(12) var<storage, read_write> densify: array<f32>;
 // First Gaussian of the chunk, Gaussians in the chunk: every other buffer (parameters, proj,
 // grads2d, gradients, densify) is bound as the chunk's sub-range (index `c`).
-@group(0) @binding(13) var<uniform> chunk: vec4<u32>;
+@group(0) @binding(13) var<storage, read> chunk: vec4<u32>;
 @group(0) @binding(14) var<storage, read> opacity_logits: array<f32>;
 
 // d Y_k / d(x, y, z) for k = 1..15, treating the components as independent.

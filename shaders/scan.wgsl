@@ -9,7 +9,7 @@ struct ScanParams {
     _pad2: u32,
 }
 
-@group(0) @binding(0) var<uniform> sp: ScanParams;
+@group(0) @binding(0) var<storage, read> sp: ScanParams;
 @group(0) @binding(1) var<storage, read_write> data: array<u32>;
 @group(0) @binding(2) var<storage, read_write> block_sums: array<u32>;
 

@@ -14,12 +14,12 @@
 //            log-scale capped.
 // GRID holds the anchors and their ring search, shared by QUERY and BIND.
 // The CPU twins are src/splat/semantic.rs (geo_targets, geo_loss_and_grad) and
-// src/splat/bind.rs (project). The uniform `GeoParams` is prepended by semantic.rs (its
+// src/splat/bind.rs (project). The parameter buffer `GeoParams` is prepended by semantic.rs (its
 // `wgsl_struct!`).
 
 const MAX_K: u32 = 16u;
 
-@group(0) @binding(0) var<uniform> gp: GeoParams;
+@group(0) @binding(0) var<storage, read> gp: GeoParams;
 
 #ifdef GRID
 // Cell starts of the trunk grid, then of the leaf grid (each with its closing entry).

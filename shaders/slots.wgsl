@@ -5,13 +5,13 @@
 // run once per band of whole tile rows, each with its own sorted intersection arrays. And what
 // else both share: the staged batch of Gaussians and the pixels of a thread.
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<storage, read> params: Params;
 @group(0) @binding(1) var<storage, read> proj0: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> proj1: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> proj2: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read> proj3: array<vec4<f32>>;
 // First tile row of the band, one past its last, Gaussians per slot, intersections in the band.
-@group(0) @binding(5) var<uniform> band: vec4<u32>;
+@group(0) @binding(5) var<storage, read> band: vec4<u32>;
 // The band's sorted intersections (Gaussian ids) and, per tile, its run in them.
 @group(0) @binding(6) var<storage, read> values: array<u32>;
 @group(0) @binding(7) var<storage, read> ranges: array<u32>;

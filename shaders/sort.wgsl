@@ -15,7 +15,7 @@ const EPT: u32 = 8u;        // elements per thread
 const BLOCK: u32 = 1024u;   // WG * EPT
 const BINS: u32 = 16u;
 
-@group(0) @binding(0) var<uniform> sp: SortParams;
+@group(0) @binding(0) var<storage, read> sp: SortParams;
 @group(0) @binding(1) var<storage, read> hi_in: array<u32>;
 @group(0) @binding(2) var<storage, read> lo_in: array<u32>;
 @group(0) @binding(3) var<storage, read_write> hist: array<u32>;

@@ -7,7 +7,7 @@
 // plan the bands). `band_counts`: per Gaussian, the tiles it touches within the band.
 // Per-Gaussian buffers (proj, offsets, counts) are bound as the chunk's sub-range (index `c`).
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<storage, read> params: Params;
 @group(0) @binding(1) var<storage, read> proj: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> offsets: array<u32>;
 @group(0) @binding(3) var<storage, read_write> keys_hi: array<u32>;
@@ -17,10 +17,10 @@
 // its last.
 @group(0) @binding(6) var<storage, read_write> ranges: array<u32>;
 // First Gaussian of the chunk, Gaussians in the chunk.
-@group(0) @binding(7) var<uniform> chunk: vec4<u32>;
+@group(0) @binding(7) var<storage, read> chunk: vec4<u32>;
 // First tile row of the band, one past its last, Gaussians per proj slot (unused here),
 // intersections in the band.
-@group(0) @binding(8) var<uniform> band: vec4<u32>;
+@group(0) @binding(8) var<storage, read> band: vec4<u32>;
 @group(0) @binding(9) var<storage, read_write> rows: array<atomic<u32>>;
 @group(0) @binding(10) var<storage, read_write> counts: array<u32>;
 

@@ -1,9 +1,9 @@
 // Shared declarations of the fused loss kernels (Sylva gpuloss). The host prepends the
 // constants WIN (11-tap Gaussian window, sigma 1.5, sum 1), HALF = 5, LAMBDA, C1, C2, and the
-// uniform `Params` (its `wgsl_struct!` in kernel.rs).
+// parameter buffer `Params` (its `wgsl_struct!` in kernel.rs).
 // Each pass uses a subset of these bindings; unused ones are left out of its layout.
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<storage, read> params: Params;
 // Rendered image, RGB f32 interleaved, row-major.
 @group(0) @binding(1) var<storage, read> rendered: array<f32>;
 // Target image, one RGBA8 per pixel, R in the low byte.

@@ -1,5 +1,5 @@
 //! Small helpers for storage buffers: creation, upload, zeroing and blocking read-back; and
-//! [`wgsl_struct!`], one field list for a uniform struct in Rust and in WGSL.
+//! [`wgsl_struct!`], one field list for a parameter struct in Rust and in WGSL.
 
 use wgpu::util::DeviceExt;
 
@@ -71,17 +71,21 @@ pub fn chunked_zeroed(
     }))
 }
 
-/// A uniform buffer holding one `T`.
-pub fn uniform_from<T: bytemuck::Pod>(
-    ctx: &GpuContext,
-    label: &'static str,
-    v: &T,
-) -> wgpu::Buffer {
+/// A small parameter buffer holding one `T`, which kernels read as `var<storage, read>`.
+///
+/// Not a uniform buffer, for a measured reason: Mesa's lavapipe (22.3, Debian 12) inlines the
+/// values of a uniform buffer that steer a kernel's branches and loops into a freshly compiled
+/// shader variant, so every step whose counts changed (intersections, sort passes, Adam's step)
+/// recompiled several kernels with LLVM and kept every variant: the resident memory of a
+/// Brighton run grew by 0.73 MiB a step (700 MiB at 500 steps, 1.9 GiB at 2000), nearly all of
+/// it allocated on lavapipe's queue thread (heaptrack, 2026-11-27). A read-only storage buffer
+/// is never inlined, and costs nothing on real GPUs (docs/splatting.md "Parameter buffers").
+pub fn params_from<T: bytemuck::Pod>(ctx: &GpuContext, label: &'static str, v: &T) -> wgpu::Buffer {
     ctx.device
         .create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(label),
             contents: bytemuck::bytes_of(v),
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            usage: STORAGE,
         })
 }
 
@@ -219,7 +223,7 @@ pub fn pipeline(ctx: &GpuContext, label: &str, source: &str, entry: &str) -> wgp
         })
 }
 
-/// The WGSL spelling of a uniform field's Rust type ([`wgsl_struct!`]).
+/// The WGSL spelling of a parameter field's Rust type ([`wgsl_struct!`]).
 pub trait WgslType {
     const WGSL: &'static str;
 }
@@ -247,7 +251,7 @@ pub fn wgsl_struct_decl(name: &str, fields: &[(&str, &str)]) -> String {
     s
 }
 
-/// Declares a `#[repr(C)]`, `Pod` uniform struct and, from the same field list, its WGSL
+/// Declares a `#[repr(C)]`, `Pod` parameter struct and, from the same field list, its WGSL
 /// declaration `Name::wgsl()`, which the kernel's source is prefixed with: the shader's struct
 /// cannot drift from the Rust one. Every field's type must be a [`WgslType`]; the layout must
 /// follow WGSL's uniform rules by itself (a `[f32; 3]` is a `vec3`, 16-byte aligned: pad by hand).
@@ -277,3 +281,40 @@ macro_rules! wgsl_struct {
     };
 }
 pub(crate) use wgsl_struct;
+
+#[cfg(test)]
+mod tests {
+    /// Guard for [`params_from`]: no kernel declares a uniform buffer, which lavapipe would
+    /// recompile for every new value (docs/splatting.md "Parameter buffers").
+    #[test]
+    fn no_kernel_reads_a_uniform_buffer() {
+        fn walk(dir: &std::path::Path, found: &mut Vec<String>, files: &mut usize) {
+            let Ok(entries) = std::fs::read_dir(dir) else {
+                return;
+            };
+            for e in entries.flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    walk(&p, found, files);
+                } else if p.extension().is_some_and(|x| x == "wgsl") {
+                    *files += 1;
+                    let text = std::fs::read_to_string(&p).unwrap_or_default();
+                    for (i, line) in text.lines().enumerate() {
+                        if line.contains("var<uniform") {
+                            found.push(format!("{}:{}", p.display(), i + 1));
+                        }
+                    }
+                }
+            }
+        }
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
+        let (mut found, mut files) = (Vec::new(), 0);
+        walk(&root, &mut found, &mut files);
+        assert!(
+            files > 10,
+            "only {files} WGSL files under {}",
+            root.display()
+        );
+        assert!(found.is_empty(), "uniform buffers in kernels: {found:?}");
+    }
+}

@@ -1,6 +1,6 @@
 //! GPU exclusive prefix sum of `u32` (in place), hierarchical over blocks of 1024 elements.
 
-use crate::gpu::buffers::{bind, grid, pipeline, storage_zeroed, uniform_from};
+use crate::gpu::buffers::{bind, grid, params_from, pipeline, storage_zeroed};
 use crate::gpu::context::{GpuContext, GpuError};
 
 /// Elements scanned by one workgroup (256 threads × 4).
@@ -36,7 +36,7 @@ impl Scanner {
         }
         let blocks = n.div_ceil(SCAN_BLOCK);
         let sums = storage_zeroed(ctx, "scan block sums", blocks as u64 * 4)?;
-        let params = uniform_from(ctx, "scan params", &[n, 0, 0, 0]);
+        let params = params_from(ctx, "scan params", &[n, 0, 0, 0]);
         let (gx, gy) = grid(blocks);
         {
             let bg = bind(ctx, &self.scan_blocks, &[&params, data, &sums]);

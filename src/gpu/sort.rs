@@ -1,7 +1,7 @@
 //! Stable GPU radix sort of 64-bit keys held as two `u32` words (`hi`, `lo`) with a `u32` value,
 //! 4 bits per pass, least significant digit first (8 passes for `lo`, then as many as `hi` needs).
 
-use crate::gpu::buffers::{bind, grid, pipeline, storage_zeroed, uniform_from};
+use crate::gpu::buffers::{bind, grid, params_from, pipeline, storage_zeroed};
 use crate::gpu::context::{GpuContext, GpuError};
 use crate::gpu::scan::Scanner;
 
@@ -72,7 +72,7 @@ impl RadixSorter {
             } else {
                 ([&alt[0], &alt[1], &alt[2]], main)
             };
-            let params = uniform_from(ctx, "sort params", &[n, shift, use_hi, num_blocks]);
+            let params = params_from(ctx, "sort params", &[n, shift, use_hi, num_blocks]);
             let count_bg = bind(ctx, &self.count, &[&params, src[0], src[1], &hist]);
             {
                 let mut pass = enc.begin_compute_pass(&Default::default());

@@ -6,7 +6,7 @@
 use crate::splat::model::SH_FLOATS;
 
 use crate::splat::gpu::buffers::{
-    chunked_from, chunked_zeroed, read_buffer, uniform_from, wgsl_struct,
+    chunked_from, chunked_zeroed, params_from, read_buffer, wgsl_struct,
 };
 use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::{GpuContext, GpuError};
@@ -49,7 +49,7 @@ impl AdamRates {
 }
 
 wgsl_struct! {
-    /// The uniform of `adam.wgsl`.
+    /// The parameter buffer of `adam.wgsl`.
     struct AdamParams {
         n_floats: u32,
         stride: u32,
@@ -146,7 +146,7 @@ pub fn encode_adam_flat(
         eps,
         _pad2: 0.0,
     };
-    let u = uniform_from(ctx, "adam params", &ap);
+    let u = params_from(ctx, "adam params", &ap);
     let bg = crate::splat::gpu::buffers::bind(ctx, pipeline, &[&u, param, grad, m, v]);
     dispatch_group(enc, pipeline, &bg, groups_for(n_floats));
 }
@@ -273,7 +273,7 @@ impl GpuAdam {
                     eps: EPSILON,
                     _pad2: 0.0,
                 };
-                let u = uniform_from(ctx, "adam params", &ap);
+                let u = params_from(ctx, "adam params", &ap);
                 let bg = bind_ranges(
                     ctx,
                     &self.pipeline,

@@ -21,7 +21,7 @@
 
 use std::num::NonZeroU64;
 
-use crate::splat::gpu::buffers::{bind_entries, uniform_from};
+use crate::splat::gpu::buffers::{bind_entries, params_from};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::model::SH_FLOATS;
 
@@ -103,9 +103,9 @@ impl Chunk {
         }
     }
 
-    /// A uniform `vec4<u32>(base, len, 0, 0)` that chunked kernels read as `chunk`.
+    /// A parameter buffer `vec4<u32>(base, len, 0, 0)` that chunked kernels read as `chunk`.
     pub fn uniform(&self, ctx: &GpuContext) -> wgpu::Buffer {
-        uniform_from(ctx, "chunk", &[self.base, self.len, 0, 0])
+        params_from(ctx, "chunk", &[self.base, self.len, 0, 0])
     }
 }
 

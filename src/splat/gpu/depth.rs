@@ -2,13 +2,13 @@
 //! [`crate::splat::depth::loss_and_grad`] written into the frame's depth gradient before the
 //! backward pass. The LiDAR maps are uploaded once per view and stay on the GPU; no read-back.
 
-use crate::splat::gpu::buffers::{pipeline, uniform_from, wgsl_struct};
+use crate::splat::gpu::buffers::{params_from, pipeline, wgsl_struct};
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::frame::Frame;
 use crate::splat::gpu::project::{dispatch, groups_for};
 
 wgsl_struct! {
-    /// The uniform of `depth_loss.wgsl`.
+    /// The parameter buffer of `depth_loss.wgsl`.
     struct DepthParams {
         pixels: u32,
         _p0: u32,
@@ -64,7 +64,7 @@ impl DepthLoss {
         }
         let pixels = u32::try_from(pixels)
             .map_err(|_| GpuError::Invalid("too many pixels for the depth loss".into()))?;
-        let u = uniform_from(
+        let u = params_from(
             ctx,
             "depth params",
             &DepthParams {

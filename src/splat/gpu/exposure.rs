@@ -3,7 +3,7 @@
 //! records four dispatches into the step's encoder — apply the image's transform to the
 //! render, then (after the loss) the backward with its per-workgroup sums, one workgroup
 //! reducing those into the gradient of every image's 12 floats (zero but for the stepped
-//! image), and Adam (`adam.wgsl`) over all of them. The image index travels in a uniform
+//! image), and Adam (`adam.wgsl`) over all of them. The image index travels in a parameter buffer
 //! written with the dispatch: nothing is read back.
 //!
 //! CPU twins: [`crate::splat::cpu::exposure`] (apply, backward) and
@@ -12,7 +12,7 @@
 use crate::splat::exposure::{EXPOSURE_EPSILON, EXPOSURE_FLOATS, ExposureSlot, ExposureState};
 use crate::splat::gpu::adam::{adam_pipeline, encode_adam_flat};
 use crate::splat::gpu::buffers::{
-    bind_indexed, grid, pipeline, read_buffer, storage_from, storage_zeroed, uniform_from,
+    bind_indexed, grid, params_from, pipeline, read_buffer, storage_from, storage_zeroed,
     wgsl_struct,
 };
 use crate::splat::gpu::context::{GpuContext, GpuError};
@@ -22,7 +22,7 @@ use crate::splat::gpu::project::dispatch_group;
 const GROUP: u32 = 256;
 
 wgsl_struct! {
-    /// The uniform of `exposure.wgsl`.
+    /// The parameter buffer of `exposure.wgsl`.
     struct Params {
         width: u32,
         height: u32,
@@ -151,7 +151,7 @@ impl GpuExposure {
         slot: ExposureSlot,
     ) -> wgpu::Buffer {
         let pixels = u64::from(width) * u64::from(height);
-        uniform_from(
+        params_from(
             ctx,
             "exposure params",
             &Params {

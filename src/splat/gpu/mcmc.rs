@@ -4,7 +4,7 @@
 //! twins are `mcmc::regularise_grads` and `mcmc::add_noise`.
 
 use crate::splat::gpu::buffers::bind_entries;
-use crate::splat::gpu::buffers::{chunked_from, pipeline, uniform_from, wgsl_struct};
+use crate::splat::gpu::buffers::{chunked_from, params_from, pipeline, wgsl_struct};
 use crate::splat::gpu::chunks::Chunk;
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch_group, groups_for};
@@ -12,7 +12,7 @@ use crate::splat::gpu::splats::{GpuGrads, GpuSplats};
 use crate::splat::mcmc::{self, StepTerms};
 
 wgsl_struct! {
-    /// The uniform of both kernels.
+    /// The parameter buffer of both kernels.
     struct McmcParams {
         /// Gaussians in the whole model (the regularisers are means over all of them).
         n_total: u32,
@@ -151,7 +151,7 @@ impl GpuMcmc {
         extra: [(u32, &wgpu::Buffer, u32); 2],
     ) -> Result<(), GpuError> {
         self.check(splats)?;
-        let u = uniform_from(ctx, "mcmc params", &self.params(step, lr));
+        let u = params_from(ctx, "mcmc params", &self.params(step, lr));
         for chunk in splats.plan.chunks() {
             let cu = chunk.uniform(ctx);
             let mut b = self.shared_bindings(&u, &cu, &chunk, splats);

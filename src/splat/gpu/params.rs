@@ -1,4 +1,4 @@
-//! The per-render uniform shared by every kernel (`Params` in `shaders/common.wgsl`).
+//! The per-render parameter buffer shared by every kernel (`Params` in `shaders/common.wgsl`).
 
 use crate::splat::camera::{Camera, RenderOptions};
 

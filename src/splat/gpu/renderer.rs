@@ -11,7 +11,7 @@ use crate::splat::camera::{Camera, RenderOptions};
 
 use crate::splat::gpu::buffers::bind_entries;
 use crate::splat::gpu::buffers::{
-    chunked_zeroed, read_buffer, read_buffer_at, storage_zeroed, uniform_from,
+    chunked_zeroed, params_from, read_buffer, read_buffer_at, storage_zeroed,
 };
 use crate::splat::gpu::chunks::{Chunk, SlotPlan, bind_ranges};
 use crate::splat::gpu::context::{GpuContext, GpuError};
@@ -129,7 +129,7 @@ impl Renderer {
         let n = splats.count;
         let slots = SlotPlan::new(ctx, n)?;
         let mut params = RenderParams::new(cam, background, n, splats.sh_degree, options);
-        let params_buf = uniform_from(ctx, "render params", &params);
+        let params_buf = params_from(ctx, "render params", &params);
         let proj = chunked_zeroed(ctx, "projected", n as u64 * 48)?;
         let offsets = storage_zeroed(ctx, "tile offsets", (n as u64 + 1) * 4)?;
         let mut enc = ctx.device.create_command_encoder(&Default::default());
@@ -266,7 +266,7 @@ impl Renderer {
     ) -> Result<Band, GpuError> {
         let p = &self.project;
         let n = s.count;
-        let uniform = uniform_from(
+        let uniform = params_from(
             ctx,
             "band",
             &[span.row0, span.row0 + span.rows, per_slot, span.count],

@@ -9,7 +9,7 @@
 
 use crate::splat::bind::BindConfig;
 use crate::splat::gpu::buffers::{
-    pipeline, read_buffer, storage_from, storage_zeroed, uniform_from, wgsl_struct,
+    params_from, pipeline, read_buffer, storage_from, storage_zeroed, wgsl_struct,
 };
 use crate::splat::gpu::context::{GpuContext, GpuError};
 use crate::splat::gpu::project::{dispatch, groups_for};
@@ -44,7 +44,7 @@ pub fn pass_source(names: &[&str]) -> Result<String, GpuError> {
 }
 
 wgsl_struct! {
-    /// The uniform of every pass of `semantic.wgsl`.
+    /// The parameter buffer of every pass of `semantic.wgsl`.
     struct GeoParams {
         n: u32,
         k: u32,
@@ -220,7 +220,7 @@ impl GpuSemantic {
             gamma,
             ..self.params
         };
-        let u = uniform_from(ctx, "semantic params", &params);
+        let u = params_from(ctx, "semantic params", &params);
         let groups = groups_for(self.count);
         dispatch(
             ctx,
@@ -298,7 +298,7 @@ impl GpuSemantic {
             k: 1,
             ..self.params
         };
-        let u = uniform_from(ctx, "binding params", &params);
+        let u = params_from(ctx, "binding params", &params);
         dispatch(
             ctx,
             enc,

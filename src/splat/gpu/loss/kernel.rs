@@ -43,7 +43,7 @@ const PASSES: [(&str, &str, &str); 5] = [
 const TILE: u32 = 16;
 
 wgsl_struct! {
-    /// The uniform of every pass (`common.wgsl`).
+    /// The parameter buffer of every pass (`common.wgsl`).
     struct Params {
         width: u32,
         height: u32,
@@ -158,7 +158,7 @@ impl LossKernel {
                 n_partials,
                 _pad: 0,
             }),
-            usage: wgpu::BufferUsages::UNIFORM,
+            usage: crate::gpu::buffers::STORAGE,
         });
         // Bindings of common.wgsl, in order.
         let all: [&wgpu::Buffer; 9] = [
