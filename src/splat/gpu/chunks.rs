@@ -104,7 +104,7 @@ impl Chunk {
     }
 
     /// A parameter buffer `vec4<u32>(base, len, 0, 0)` that chunked kernels read as `chunk`.
-    pub fn uniform(&self, ctx: &GpuContext) -> wgpu::Buffer {
+    pub fn params(&self, ctx: &GpuContext) -> wgpu::Buffer {
         params_from(ctx, "chunk", &[self.base, self.len, 0, 0])
     }
 }

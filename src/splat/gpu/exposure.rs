@@ -143,7 +143,7 @@ impl GpuExposure {
         })
     }
 
-    fn uniform(
+    fn params(
         &self,
         ctx: &GpuContext,
         width: u32,
@@ -211,7 +211,7 @@ impl GpuExposure {
                 "a held-out view's exposure step needs its photo".into(),
             ));
         }
-        let u = self.uniform(ctx, width, height, slot);
+        let u = self.params(ctx, width, height, slot);
         let buffers = [
             (0, &u),
             (1, rendered),
@@ -240,7 +240,7 @@ impl GpuExposure {
         slot: ExposureSlot,
     ) -> Result<(), GpuError> {
         self.check(scratch, width, height, slot)?;
-        let u = self.uniform(ctx, width, height, slot);
+        let u = self.params(ctx, width, height, slot);
         let buffers = [
             (0, &u),
             (1, rendered),

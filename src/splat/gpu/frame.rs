@@ -21,7 +21,7 @@ pub struct Band {
     pub keys_lo: wgpu::Buffer,
     pub values: wgpu::Buffer,
     /// `vec4<u32>(row0, row0 + rows, Gaussians per slot, count)`, `band` in the shaders.
-    pub uniform: wgpu::Buffer,
+    pub params: wgpu::Buffer,
 }
 
 /// Buffers of one forward render (kept for its backward pass).

@@ -153,7 +153,7 @@ impl GpuMcmc {
         self.check(splats)?;
         let u = params_from(ctx, "mcmc params", &self.params(step, lr));
         for chunk in splats.plan.chunks() {
-            let cu = chunk.uniform(ctx);
+            let cu = chunk.params(ctx);
             let mut b = self.shared_bindings(&u, &cu, &chunk, splats);
             b.extend(extra.map(|(slot, buffer, floats)| (slot, chunk.range(buffer, floats))));
             let bg = bind_entries(ctx, pipeline, &b);

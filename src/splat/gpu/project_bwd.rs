@@ -39,7 +39,7 @@ impl ProjectBwd {
         grads: &GpuGrads,
     ) {
         for chunk in splats.plan.chunks() {
-            let cu = chunk.uniform(ctx);
+            let cu = chunk.params(ctx);
             let bg = bind_ranges(
                 ctx,
                 &self.pipeline,

@@ -27,7 +27,7 @@ pub(crate) fn band_bindings<'a>(frame: &'a Frame, band: &'a Band) -> Vec<wgpu::B
     let mut b = vec![frame.params_buf.as_entire_buffer_binding()];
     b.extend(frame.slots.bindings(&frame.proj, 12, &frame.dummy));
     b.extend([
-        band.uniform.as_entire_buffer_binding(),
+        band.params.as_entire_buffer_binding(),
         band.values.as_entire_buffer_binding(),
         frame.ranges.as_entire_buffer_binding(),
     ]);

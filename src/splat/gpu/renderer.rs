@@ -40,7 +40,7 @@ fn dispatch_projected<'a>(
     more: impl Fn(&Chunk) -> Vec<(u32, wgpu::BufferBinding<'a>)>,
 ) {
     for chunk in splats.plan.chunks() {
-        let cu = chunk.uniform(ctx);
+        let cu = chunk.params(ctx);
         let mut bindings = vec![
             (0, params_buf.as_entire_buffer_binding()),
             (1, chunk.range(proj, 12)),
@@ -229,7 +229,7 @@ impl Renderer {
     ) {
         let p = &self.project;
         for chunk in s.plan.chunks() {
-            let cu = chunk.uniform(ctx);
+            let cu = chunk.params(ctx);
             let bg = bind_ranges(
                 ctx,
                 &p.project,
@@ -266,7 +266,7 @@ impl Renderer {
     ) -> Result<Band, GpuError> {
         let p = &self.project;
         let n = s.count;
-        let uniform = params_from(
+        let params = params_from(
             ctx,
             "band",
             &[span.row0, span.row0 + span.rows, per_slot, span.count],
@@ -279,7 +279,7 @@ impl Renderer {
             Some(b) => {
                 dispatch_projected(ctx, enc, s, &p.band_counts, params_buf, proj, |chunk| {
                     vec![
-                        (8, uniform.as_entire_buffer_binding()),
+                        (8, params.as_entire_buffer_binding()),
                         (10, chunk.range(b, 1)),
                     ]
                 });
@@ -294,7 +294,7 @@ impl Renderer {
                 (3, keys_hi.as_entire_buffer_binding()),
                 (4, keys_lo.as_entire_buffer_binding()),
                 (5, values.as_entire_buffer_binding()),
-                (8, uniform.as_entire_buffer_binding()),
+                (8, params.as_entire_buffer_binding()),
             ]
         });
         self.sorter.encode(
@@ -313,7 +313,7 @@ impl Renderer {
                 (0, params_buf.as_entire_buffer_binding()),
                 (3, keys_hi.as_entire_buffer_binding()),
                 (6, ranges.as_entire_buffer_binding()),
-                (8, uniform.as_entire_buffer_binding()),
+                (8, params.as_entire_buffer_binding()),
             ],
         );
         dispatch_group(enc, &p.ranges, &rbg, groups_for(span.count));
@@ -324,7 +324,7 @@ impl Renderer {
             keys_hi,
             keys_lo,
             values,
-            uniform,
+            params,
         })
     }
 
