@@ -79,7 +79,8 @@ pub fn chunked_zeroed(
 /// recompiled several kernels with LLVM and kept every variant: the resident memory of a
 /// Brighton run grew by 0.73 MiB a step (700 MiB at 500 steps, 1.9 GiB at 2000), nearly all of
 /// it allocated on lavapipe's queue thread (heaptrack, 2026-11-27). A read-only storage buffer
-/// is never inlined, and costs nothing on real GPUs (docs/splatting.md "Parameter buffers").
+/// is never inlined. On real GPUs the difference was not measured (no GPU was lent); docs/
+/// splatting.md "Parameter buffers".
 pub fn params_from<T: bytemuck::Pod>(ctx: &GpuContext, label: &'static str, v: &T) -> wgpu::Buffer {
     ctx.device
         .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -254,7 +255,8 @@ pub fn wgsl_struct_decl(name: &str, fields: &[(&str, &str)]) -> String {
 /// Declares a `#[repr(C)]`, `Pod` parameter struct and, from the same field list, its WGSL
 /// declaration `Name::wgsl()`, which the kernel's source is prefixed with: the shader's struct
 /// cannot drift from the Rust one. Every field's type must be a [`WgslType`]; the layout must
-/// follow WGSL's uniform rules by itself (a `[f32; 3]` is a `vec3`, 16-byte aligned: pad by hand).
+/// follow WGSL's uniform-buffer rules by itself, the stricter ones, which storage buffers also
+/// accept (a `[f32; 3]` is a `vec3`, 16-byte aligned: pad by hand).
 macro_rules! wgsl_struct {
     (
         $(#[$m:meta])*

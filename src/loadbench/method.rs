@@ -426,11 +426,7 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
     let budgets: Vec<u32> = if a.method_budgets.trim().is_empty() {
         vec![a.method_steps]
     } else {
-        a.method_budgets
-            .split(',')
-            .map(|s| s.trim().parse())
-            .collect::<Result<_, _>>()
-            .context("--method-budgets: comma-separated step counts")?
+        super::parse_positive_list("--method-budgets", &a.method_budgets)?
     };
     if budgets.len() > 1 {
         for must in [GAIN_BASE, GAIN_ARM] {

@@ -103,14 +103,16 @@ fn parse_targets(text: &str) -> anyhow::Result<Vec<Target>> {
         .collect()
 }
 
-fn parse_clients(text: &str) -> anyhow::Result<Vec<u32>> {
+/// A comma-separated list of positive whole numbers given to `flag` (--clients,
+/// --method-budgets); the error names the flag and the bad item.
+fn parse_positive_list(flag: &str, text: &str) -> anyhow::Result<Vec<u32>> {
     text.split(',')
         .map(|c| {
             c.trim()
                 .parse::<u32>()
                 .ok()
                 .filter(|n| *n > 0)
-                .ok_or_else(|| anyhow::anyhow!("--clients: {c:?} is not a positive whole number"))
+                .ok_or_else(|| anyhow::anyhow!("{flag}: {c:?} is not a positive whole number"))
         })
         .collect()
 }
@@ -379,7 +381,7 @@ async fn drive(
 pub async fn run(a: &LoadArgs) -> anyhow::Result<()> {
     use std::io::Write;
     let targets = parse_targets(&a.databases)?;
-    let clients = parse_clients(&a.clients)?;
+    let clients = parse_positive_list("--clients", &a.clients)?;
     if !(a.seconds.is_finite() && a.seconds > 0.0) {
         anyhow::bail!("--seconds must be a positive number of seconds");
     }
@@ -460,7 +462,13 @@ mod tests {
         assert!(parse_targets("sqlite,postgres").is_ok());
         assert!(parse_targets("postgres://u@h/db").is_ok());
         assert!(parse_targets("mysql").is_err());
-        assert!(parse_clients("1,16").is_ok());
-        assert!(parse_clients("0").is_err());
+        assert!(parse_positive_list("--clients", "1,16").is_ok());
+        assert!(parse_positive_list("--clients", "0").is_err());
+        let e = parse_positive_list("--method-budgets", "500,0").expect_err("zero steps");
+        assert!(e.to_string().contains("--method-budgets"), "{e}");
+        assert_eq!(
+            parse_positive_list("--method-budgets", " 500, 2000").expect("budgets"),
+            [500, 2000]
+        );
     }
 }
