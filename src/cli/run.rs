@@ -112,6 +112,35 @@ fn choice<T: Copy>(flag: &str, value: &str, choices: &[(&str, T)]) -> anyhow::Re
     )
 }
 
+/// `sylva train --fill`: `on` (the defaults of [`sylva::splat::init::CoverageFill`]),
+/// `agreed` (no fallback depth: only the cells whose depth the photos agree on) or `off`.
+pub(super) fn fill_choice(value: &str) -> anyhow::Result<Option<sylva::splat::init::CoverageFill>> {
+    #[derive(Clone, Copy)]
+    enum Fill {
+        On,
+        Agreed,
+        Off,
+    }
+    let on = sylva::splat::init::CoverageFill::default();
+    let fill = choice(
+        "--fill",
+        value,
+        &[
+            ("on", Fill::On),
+            ("agreed", Fill::Agreed),
+            ("off", Fill::Off),
+        ],
+    )?;
+    Ok(match fill {
+        Fill::On => Some(on),
+        Fill::Agreed => Some(sylva::splat::init::CoverageFill {
+            depth_percentile: None,
+            ..on
+        }),
+        Fill::Off => None,
+    })
+}
+
 /// Applies `sylva run`'s training flags to `params`.
 fn apply_train_flags(a: &RunArgs, params: &mut PipelineParams) -> anyhow::Result<()> {
     use sylva::pipeline::params::{InitSource, TrunkTerm};
@@ -302,6 +331,21 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
 #[cfg(test)]
 mod tests {
     use super::on_off;
+
+    #[test]
+    fn fill_choices_parse_and_name_the_flag_on_error() {
+        let on = fill_choice("on").expect("on").expect("a fill");
+        assert_eq!(on.depth_percentile, Some(0.9));
+        let agreed = fill_choice("agreed").expect("agreed").expect("a fill");
+        assert_eq!(agreed.depth_percentile, None);
+        assert_eq!(agreed.depth_candidates, on.depth_candidates);
+        assert!(fill_choice("off").expect("off").is_none());
+        let err = fill_choice("yes").expect_err("not a choice");
+        assert!(
+            err.to_string().contains("--fill must be on, agreed or off"),
+            "{err}"
+        );
+    }
 
     #[test]
     fn on_off_flags_parse_and_name_the_flag_on_error() {

@@ -1,6 +1,6 @@
 //! The one-off commands on local files: `sylva synth`, `sylva inventory`, `sylva train`.
 
-use super::run::{on_off, parse_backend, parse_strategy};
+use super::run::{fill_choice, on_off, parse_backend, parse_strategy};
 use super::*;
 
 #[derive(Debug, Args)]
@@ -40,8 +40,10 @@ pub struct TrainArgs {
     #[arg(long, env = "SYLVA_TRAIN_ANTIALIAS", default_value = "off")]
     pub antialias: String,
     /// With `--init sfm`, add Gaussians where the training photos see what no SfM point
-    /// covers (`splat::init::fill_uncovered`: dense canopy from above, sky, walls), on or off.
-    /// On by default (ours: Brighton's UAV photos lost their forest without it, issue 38).
+    /// covers (`splat::init::fill_uncovered`: dense canopy from above, sky, walls): `on`
+    /// (at the depth the photos agree on, else far back in what the photo sees), `agreed`
+    /// (only where the photos agree on a depth) or `off`. On by default (ours: Brighton's UAV
+    /// photos lost their forest without it, issue 38).
     #[arg(long, env = "SYLVA_TRAIN_FILL", default_value = "on")]
     pub fill: String,
     /// Per-image exposure compensation, on or off (docs/splatting.md "Exposure"). On (the
@@ -288,8 +290,8 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             &progress,
         )?;
         let init = if a.init == "sfm" {
-            let fill = on_off("--fill", &a.fill)?.then(sylva::splat::init::CoverageFill::default);
-            let g = sylva::pipeline::train::sfm_gaussians(
+            let fill = fill_choice(&a.fill)?;
+            let (g, filled) = sylva::pipeline::train::sfm_gaussians(
                 &data,
                 params.max_gaussians,
                 params.seed,
@@ -299,9 +301,19 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
                 "{} Gaussians from the SfM points{}",
                 g.len(),
                 if fill.is_some() {
-                    " and the photos' uncovered cells"
+                    format!(
+                        " and the photos' uncovered cells ({} cells filled before the cap, {} \
+                         at a depth the photos agree on{})",
+                        filled.added,
+                        filled.agreed,
+                        if filled.added > filled.agreed {
+                            ", the rest far back in what their photo sees"
+                        } else {
+                            ""
+                        }
+                    )
                 } else {
-                    ""
+                    String::new()
                 }
             ));
             g

@@ -110,23 +110,25 @@ pub const DBH_BAND_SHARE_OF_TRUNKS: f64 = 0.5;
 /// (coloured from the photos where the model has no colours, [`Dataset`]), plus, with `fill`,
 /// Gaussians where the training photos see what no SfM point covers
 /// ([`init::fill_uncovered`]); capped at `max` by a draw of `seed` (0 = no cap) with the
-/// scales taken again from what the cap kept.
+/// scales taken again from what the cap kept. Also returns what the fill added (before the
+/// cap; all zero without `fill`).
 pub fn sfm_gaussians(
     data: &Dataset,
     max: u32,
     seed: u64,
     fill: Option<&init::CoverageFill>,
-) -> Result<Gaussians, init::InitError> {
+) -> Result<(Gaussians, init::FillReport), init::InitError> {
     let mut g = init::from_sfm_points(&data.points, &data.colours)?;
-    if let Some(fill) = fill {
-        init::fill_uncovered(&mut g, &data.train, fill);
-    }
+    let report = match fill {
+        Some(fill) => init::fill_uncovered(&mut g, &data.train, fill),
+        None => init::FillReport::default(),
+    };
     let before = g.len();
     cap_gaussians(&mut g, max, seed, None, 0);
     if g.len() < before {
         init::rescale_from_spacing(&mut g, 3, 0.0);
     }
-    Ok(g)
+    Ok((g, report))
 }
 
 /// Keeps at most `max` Gaussians (all when `max` is 0 or not exceeded): up to

@@ -163,23 +163,55 @@ pub struct CoverageFill {
     /// Cells along each photo's long side; a cell is the unit of coverage. Default 32 (ours:
     /// about 10 px at 320 px and 50 px at 1600 px, so a photo adds at most 32 × 32 Gaussians).
     pub cells_long_side: u32,
-    /// Percentile of the depths of the points a photo sees at which its uncovered cells are
-    /// placed, [0, 1]. Default 0.9 (ours: what SfM misses is mostly far or textureless — sky,
-    /// walls, dense canopy seen from above — so it goes to the back of what the photo sees).
-    pub depth_percentile: f64,
+    /// Percentile of the depths of the points a photo sees at which a cell is placed when the
+    /// photos do not agree on a depth for it, [0, 1]; `None` leaves such a cell to
+    /// densification. Default 0.9 (ours: what SfM misses and the photos cannot place is mostly
+    /// far or textureless — sky, walls — so it goes to the back of what the photo sees).
+    pub depth_percentile: Option<f64>,
+    /// Depths tried per cell, evenly in inverse depth (a plane sweep), from half the 2nd to
+    /// the 98th percentile of the depths of the points the photo sees; 0 places every cell at
+    /// `depth_percentile` (the rule before issue 38's Brighton finding). Default 32 (ours: at
+    /// 320 px, adjacent candidates move a cell by well under a pixel in the neighbouring
+    /// photos of both real photo sets).
+    pub depth_candidates: u32,
+    /// Other photos a cell is compared with: those with the nearest camera centres. The cost
+    /// of a depth is the mean of the better half of theirs, so a neighbour that sees the
+    /// point occluded or off its frame does not decide. Default 4 (ours).
+    pub neighbours: usize,
+    /// Samples along each side of the cell's square patch (bilinear). Default 5 (ours: about
+    /// one sample per 2 px at 320 px).
+    pub samples_per_side: u32,
+    /// A depth is taken only when its cost is at most this share of the median cost over the
+    /// candidates (a clear minimum); otherwise the cell goes to `depth_percentile`. Default 0.8
+    /// (ours: a textureless cell, sky or a plain wall, costs the same at every depth).
+    pub max_cost_ratio: f32,
 }
 
 impl Default for CoverageFill {
     fn default() -> Self {
         CoverageFill {
             cells_long_side: 32,
-            depth_percentile: 0.9,
+            depth_percentile: Some(0.9),
+            depth_candidates: 32,
+            neighbours: 4,
+            samples_per_side: 5,
+            max_cost_ratio: 0.8,
         }
     }
 }
 
+/// What [`fill_uncovered`] added.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct FillReport {
+    /// Gaussians added.
+    pub added: usize,
+    /// Of those, the ones placed at a depth on which the photos agreed; the rest sit at the
+    /// fallback percentile depth.
+    pub agreed: usize,
+}
+
 /// Adds a Gaussian wherever a training photo sees something that no Gaussian of `g` projects
-/// to, and returns how many it added.
+/// to, and says how many it added.
 ///
 /// An SfM model has no points where matching fails: dense canopy from above, bark in shadow,
 /// sky and walls. Gaussians grow into such a hole only slowly by densification, so the
@@ -187,12 +219,24 @@ impl Default for CoverageFill {
 /// third of a held-out photo, issue 38). Each photo in turn is cut into a grid of cells
 /// (`cells_long_side` along its long side); every cell no Gaussian projects into — the
 /// Gaussians added for earlier photos included, so a hole seen by many photos is filled once
-/// — gets one Gaussian on the ray through its centre at the `depth_percentile` depth of the
-/// points the photo sees, coloured by the cell's mean pixel, isotropic with σ half the cell's
-/// footprint at that depth, at the initial opacity. Photos that see no point are skipped.
-pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) -> usize {
-    let before = g.len();
-    for view in views {
+/// — gets one Gaussian on the ray through its centre, coloured by the cell's mean pixel,
+/// isotropic with σ half the cell's footprint at its depth, at the initial opacity. Photos
+/// that see no point are skipped.
+///
+/// The depth is the one on which the photos agree ([`agreed_depth`]): a plane sweep over
+/// `depth_candidates` depths, comparing the cell's patch with where it lands in the
+/// `neighbours` photos nearest this one. Where no depth stands out (a textureless cell) the
+/// cell goes to the `depth_percentile` depth of the points the photo sees, or is left to
+/// densification when that is `None`. A single depth per
+/// photo put a closed canopy seen from above at the ground beneath it, where the other photos
+/// saw it in the wrong place (Brighton at 2000 steps, docs/results/splatting.md).
+pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) -> FillReport {
+    let mut report = FillReport::default();
+    let centres: Vec<glam::Vec3> = views
+        .iter()
+        .map(|v| glam::Vec3::from_array(v.camera.centre()))
+        .collect();
+    for (vi, view) in views.iter().enumerate() {
         let cam = &view.camera;
         let (w, h) = (
             view.image.width.min(cam.width),
@@ -218,32 +262,224 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
             depths.push(z);
         }
         depths.sort_unstable_by(f32::total_cmp);
-        let q = params.depth_percentile.clamp(0.0, 1.0);
-        let depth = depths[((depths.len() - 1) as f64 * q).round() as usize];
-        let sigma = 0.5 * cell as f32 * depth / cam.fx.abs().max(f32::MIN_POSITIVE);
-        for c in (0..covered.len()).filter(|&c| !covered[c]) {
-            let (cx, cy) = ((c % gw) as u32 * cell, (c / gw) as u32 * cell);
-            let Some(colour) = cell_colour(view, cx, cy, cell) else {
-                continue;
-            };
-            let (px, py) = (
-                (cx as f32 + 0.5 * cell.min(w - cx) as f32),
-                (cy as f32 + 0.5 * cell.min(h - cy) as f32),
-            );
-            let pc = [
-                (px - cam.cx) / cam.fx * depth,
-                (py - cam.cy) / cam.fy * depth,
-                depth,
-            ];
-            g.push(seed_gaussian(
-                camera_to_world(cam, pc),
-                sigma.ln(),
-                colour,
-                0.0,
-            ));
+        let at = |q: f64| depths[((depths.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize];
+        let fallback = params.depth_percentile.map(at);
+        let sweep = Sweep::new(
+            0.5 * at(0.02),
+            at(0.98),
+            params.depth_candidates,
+            nearest_views(&centres, vi, params.neighbours),
+        );
+        let cells: Vec<usize> = (0..covered.len()).filter(|&c| !covered[c]).collect();
+        let placed: Vec<Option<(glam::Vec3, f32, bool, [u8; 3])>> = cells
+            .par_iter()
+            .map(|&c| {
+                let (cx, cy) = ((c % gw) as u32 * cell, (c / gw) as u32 * cell);
+                let colour = cell_colour(view, cx, cy, cell)?;
+                let (cw, ch) = (cell.min(w - cx) as f32, cell.min(h - cy) as f32);
+                let (px, py) = (cx as f32 + 0.5 * cw, cy as f32 + 0.5 * ch);
+                let agreed = sweep.agreed_depth(view, views, [px, py], cw.min(ch), params);
+                let depth = agreed.or(fallback)?;
+                let pc = [
+                    (px - cam.cx) / cam.fx * depth,
+                    (py - cam.cy) / cam.fy * depth,
+                    depth,
+                ];
+                let mean = glam::Vec3::from_array(camera_to_world(cam, pc));
+                Some((mean, depth, agreed.is_some(), colour))
+            })
+            .collect();
+        for (mean, depth, agreed, colour) in placed.into_iter().flatten() {
+            let sigma = 0.5 * cell as f32 * depth / cam.fx.abs().max(f32::MIN_POSITIVE);
+            g.push(seed_gaussian(mean.to_array(), sigma.ln(), colour, 0.0));
+            report.added += 1;
+            report.agreed += usize::from(agreed);
         }
     }
-    g.len() - before
+    report
+}
+
+/// Indices of the `k` views other than `i` whose camera centres are nearest view `i`'s.
+fn nearest_views(centres: &[glam::Vec3], i: usize, k: usize) -> Vec<usize> {
+    let mut others: Vec<(f32, usize)> = centres
+        .iter()
+        .enumerate()
+        .filter(|&(j, c)| j != i && c.is_finite())
+        .map(|(j, c)| (c.distance_squared(centres[i]), j))
+        .collect();
+    others.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    others.into_iter().take(k).map(|(_, j)| j).collect()
+}
+
+/// The candidate depths of one photo's cells and the photos they are compared in.
+struct Sweep {
+    depths: Vec<f32>,
+    neighbours: Vec<usize>,
+}
+
+impl Sweep {
+    /// `n` depths evenly spaced in inverse depth over [`near`, `far`] metres (none when the
+    /// range is empty or not finite, or `n` is 0).
+    fn new(near: f32, far: f32, n: u32, neighbours: Vec<usize>) -> Self {
+        let ok = near.is_finite() && far.is_finite() && near > NEAR && far > near;
+        let depths = if !ok || n == 0 || neighbours.is_empty() {
+            Vec::new()
+        } else if n == 1 {
+            vec![far]
+        } else {
+            let (a, b) = (1.0 / near, 1.0 / far);
+            (0..n)
+                .map(|k| 1.0 / (a + (b - a) * k as f32 / (n - 1) as f32))
+                .collect()
+        };
+        Sweep { depths, neighbours }
+    }
+
+    /// The candidate depth (metres) at which the square patch of side `side` px about pixel
+    /// `centre` of `view` looks most alike in the neighbouring views, when it stands out: its
+    /// cost at most `max_cost_ratio` of the median over the candidates that any neighbour
+    /// sees. The cost at a depth is the mean absolute difference of the two patches, each
+    /// less its own mean colour (robust to the photos' exposure), over the better half of the
+    /// neighbours that see the whole patch; the patch is taken as a plane facing this photo.
+    fn agreed_depth(
+        &self,
+        view: &View,
+        views: &[View],
+        centre: [f32; 2],
+        side: f32,
+        params: &CoverageFill,
+    ) -> Option<f32> {
+        if self.depths.is_empty() {
+            return None;
+        }
+        let n = params.samples_per_side.max(2);
+        let step = side / n as f32;
+        let offsets: Vec<[f32; 2]> = (0..n * n)
+            .map(|k| {
+                [
+                    centre[0] + ((k % n) as f32 + 0.5) * step - 0.5 * side,
+                    centre[1] + ((k / n) as f32 + 0.5) * step - 0.5 * side,
+                ]
+            })
+            .collect();
+        let own: Vec<[f32; 3]> = offsets
+            .iter()
+            .map(|p| opaque_sample(view, p[0], p[1]))
+            .collect::<Option<_>>()?;
+        let own = less_mean(own);
+        let cam = &view.camera;
+        let mut costs: Vec<Option<f32>> = Vec::with_capacity(self.depths.len());
+        for &d in &self.depths {
+            let points: Vec<[f32; 3]> = offsets
+                .iter()
+                .map(|p| {
+                    camera_to_world(
+                        cam,
+                        [
+                            (p[0] - cam.cx) / cam.fx * d,
+                            (p[1] - cam.cy) / cam.fy * d,
+                            d,
+                        ],
+                    )
+                })
+                .collect();
+            let mut per_view: Vec<f32> = self
+                .neighbours
+                .iter()
+                .filter_map(|&j| {
+                    let other = &views[j];
+                    let theirs: Vec<[f32; 3]> = points
+                        .iter()
+                        .map(|&p| {
+                            let c = other.camera.to_camera(p);
+                            if c[2].is_nan() || c[2] < NEAR {
+                                return None;
+                            }
+                            let oc = &other.camera;
+                            opaque_sample(
+                                other,
+                                oc.fx * c[0] / c[2] + oc.cx,
+                                oc.fy * c[1] / c[2] + oc.cy,
+                            )
+                        })
+                        .collect::<Option<_>>()?;
+                    let theirs = less_mean(theirs);
+                    let sad: f32 = own
+                        .iter()
+                        .zip(&theirs)
+                        .map(|(a, b)| (0..3).map(|k| (a[k] - b[k]).abs()).sum::<f32>())
+                        .sum();
+                    Some(sad / (3 * own.len()) as f32)
+                })
+                .collect();
+            if per_view.is_empty() {
+                costs.push(None);
+                continue;
+            }
+            per_view.sort_unstable_by(f32::total_cmp);
+            let better = per_view.len().div_ceil(2);
+            costs.push(Some(per_view[..better].iter().sum::<f32>() / better as f32));
+        }
+        let mut seen: Vec<f32> = costs.iter().flatten().copied().collect();
+        if seen.len() < 3 {
+            return None;
+        }
+        seen.sort_unstable_by(f32::total_cmp);
+        let median = seen[seen.len() / 2];
+        let (k, best) = costs
+            .iter()
+            .enumerate()
+            .filter_map(|(k, c)| Some((k, (*c)?)))
+            .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        if !(median > 0.0 && best <= params.max_cost_ratio * median) {
+            return None;
+        }
+        // Between the candidates: the vertex of the parabola through the best cost and its two
+        // neighbours, in inverse depth (where the candidates are evenly spaced).
+        let (before, after) = (
+            k.checked_sub(1).and_then(|i| costs[i]),
+            costs.get(k + 1).copied().flatten(),
+        );
+        let shift = match (before, after) {
+            (Some(a), Some(b)) if a + b - 2.0 * best > 0.0 => {
+                (0.5 * (a - b) / (a + b - 2.0 * best)).clamp(-0.5, 0.5)
+            }
+            _ => 0.0,
+        };
+        let inverse = |i: usize| 1.0 / self.depths[i];
+        let step = if self.depths.len() > 1 {
+            inverse(1) - inverse(0)
+        } else {
+            0.0
+        };
+        Some(1.0 / (inverse(k) + shift * step))
+    }
+}
+
+/// RGB (0–255) of `view` at continuous pixel (`x`, `y`) by bilinear interpolation, when every
+/// pixel it draws on is opaque (inside an undistorted photo) and it lies inside the camera.
+fn opaque_sample(view: &View, x: f32, y: f32) -> Option<[f32; 3]> {
+    let (w, h) = (
+        view.image.width.min(view.camera.width) as f32,
+        view.image.height.min(view.camera.height) as f32,
+    );
+    if !(x >= 0.0 && y >= 0.0 && x <= w && y <= h) {
+        return None;
+    }
+    let s = view.image.sample_bilinear(f64::from(x), f64::from(y))?;
+    (s[3] >= 254.5).then_some([s[0], s[1], s[2]])
+}
+
+/// The samples less their mean colour, per channel.
+fn less_mean(mut s: Vec<[f32; 3]>) -> Vec<[f32; 3]> {
+    let n = s.len().max(1) as f32;
+    let mean: [f32; 3] = std::array::from_fn(|k| s.iter().map(|p| p[k]).sum::<f32>() / n);
+    for p in &mut s {
+        for k in 0..3 {
+            p[k] -= mean[k];
+        }
+    }
+    s
 }
 
 /// The pixel (column, row) and depth (metres) of world point `p` in `cam`, when it lies at

@@ -168,11 +168,17 @@ fn uncovered_cells_are_filled_once_at_the_depth_of_the_scene() {
     let mut g = from_sfm_points(&[[0.1, 0.1, 3.0]], &[[10, 20, 30]]).expect("one point");
     let params = CoverageFill {
         cells_long_side: 4,
-        depth_percentile: 0.9,
+        ..CoverageFill::default()
     };
-    let added = fill_uncovered(&mut g, &[view(90), view(90)], &params);
-    // 4 × 4 cells of 16 px, one covered by the point.
-    assert_eq!(added, 15);
+    let report = fill_uncovered(&mut g, &[view(90), view(90)], &params);
+    // 4 × 4 cells of 16 px, one covered by the point; a flat grey photo agrees on no depth.
+    assert_eq!(
+        report,
+        FillReport {
+            added: 15,
+            agreed: 0
+        }
+    );
     assert_eq!(g.len(), 16);
     for i in 1..g.len() {
         assert!(
@@ -187,5 +193,110 @@ fn uncovered_cells_are_filled_once_at_the_depth_of_the_scene() {
     }
     // A photo that sees no Gaussian adds nothing (no depth to place a fill at).
     let mut empty = from_sfm_points(&[[0.0, 0.0, -3.0]], &[[0; 3]]).expect("one point");
-    assert_eq!(fill_uncovered(&mut empty, &[view(90)], &params), 0);
+    assert_eq!(fill_uncovered(&mut empty, &[view(90)], &params).added, 0);
+}
+
+/// A textured plane at 5 m (0.3 m squares of random grey) seen by `n` 64×64 cameras in a row
+/// along x, 0.5 m apart, looking down +z from z = 0 (f = 64 px).
+fn plane_views(n: usize) -> Vec<View> {
+    let texture = |x: f32, y: f32| {
+        let (i, j) = ((x / 0.3).floor() as i64, (y / 0.3).floor() as i64);
+        let mut rng = SplitMix64::new((i * 7919 + j * 104_729) as u64);
+        (rng.below(200) + 30) as u8
+    };
+    (0..n)
+        .map(|k| {
+            let x0 = 0.5 * k as f32;
+            let camera = Camera::look_at(
+                [x0, 0.0, 0.0],
+                [x0, 0.0, 1.0],
+                [0.0, -1.0, 0.0],
+                64,
+                64,
+                64.0,
+            );
+            let mut image = PackedImage::filled(64, 64, [0, 0, 0, 255]);
+            for y in 0..64u32 {
+                for x in 0..64u32 {
+                    // The ray through the pixel's centre meets z = 5 at these coordinates.
+                    let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
+                    let (wx, wy) = (
+                        x0 + (px - camera.cx) / camera.fx * 5.0,
+                        (py - camera.cy) / camera.fy * 5.0,
+                    );
+                    let v = texture(wx, -wy);
+                    image.pixels[(y * 64 + x) as usize] =
+                        crate::splat::packed_image::pack([v, v, v, 255]);
+                }
+            }
+            View {
+                name: format!("p{k}"),
+                camera,
+                image,
+            }
+        })
+        .collect()
+}
+
+/// Where SfM saw only a far wall (10 m) and a few near points (4 m), a textured surface at
+/// 5 m that no point covers is placed at 5 m by agreement between the photos, not at the
+/// 90th-percentile depth (10 m) that the rule before put it at.
+#[test]
+fn uncovered_texture_goes_to_the_depth_the_photos_agree_on() {
+    let views = plane_views(4);
+    let mut pts = Vec::new();
+    for k in 0..80 {
+        pts.push([-3.0 + 0.05 * k as f32, -4.5, 10.0]);
+    }
+    for k in 0..20 {
+        pts.push([-1.2 + 0.02 * k as f32, -1.9, 4.0]);
+    }
+    let cols = vec![[128u8; 3]; pts.len()];
+    let start = from_sfm_points(&pts, &cols).expect("points");
+    let params = CoverageFill {
+        cells_long_side: 8,
+        ..CoverageFill::default()
+    };
+    let mut g = start.clone();
+    let report = fill_uncovered(&mut g, &views, &params);
+    assert!(report.added > 40, "{report:?}");
+    // The first photo's leftmost cells are seen by no other photo: those go to the fallback.
+    assert!(
+        report.agreed as f64 >= 0.75 * report.added as f64,
+        "only {report:?} agreed"
+    );
+    // Every agreed depth within 0.4 m of the plane (one candidate is 0.3 m apart at 5 m);
+    // the rest at the fallback depth.
+    let depths: Vec<f32> = g.means[start.len()..].iter().map(|m| m[2]).collect();
+    let at_plane = depths.iter().filter(|&&z| (z - 5.0).abs() < 0.4).count();
+    let at_fallback = depths.iter().filter(|&&z| (z - 10.0).abs() < 1e-3).count();
+    assert_eq!(at_plane, report.agreed, "{depths:?}");
+    assert_eq!(at_plane + at_fallback, depths.len(), "{depths:?}");
+    // With no fallback depth, only the cells the photos agree on are filled.
+    let mut agreed_only = start.clone();
+    let no_fallback = CoverageFill {
+        depth_percentile: None,
+        ..params
+    };
+    let only = fill_uncovered(&mut agreed_only, &views, &no_fallback);
+    assert_eq!(only.added, only.agreed);
+    assert!(only.agreed > 40, "{only:?}");
+    assert!(
+        agreed_only.means[start.len()..]
+            .iter()
+            .all(|m| (m[2] - 5.0).abs() < 0.4)
+    );
+    // Without the sweep every cell goes to the fallback depth.
+    let mut old = start.clone();
+    let rule_before = CoverageFill {
+        depth_candidates: 0,
+        ..params
+    };
+    let before = fill_uncovered(&mut old, &views, &rule_before);
+    assert_eq!(before.agreed, 0);
+    assert!(
+        old.means[start.len()..]
+            .iter()
+            .all(|m| (m[2] - 10.0).abs() < 1e-3)
+    );
 }

@@ -59,6 +59,55 @@ fn radius_follows_the_eigenvalue_rule() {
     assert!((p.mean2d[0] - 16.5).abs() < 1e-5 && (p.depth - 4.0).abs() < 1e-6);
 }
 
+/// The tile box of `blend_extent` drops only pixels whose alpha is under the cut: at every
+/// pixel of the reference's square (mean ± radius) outside the box, opacity · exp(power) <
+/// ALPHA_MIN; and an elongated or faint Gaussian gets a box narrower than the square.
+#[test]
+fn tile_boxes_drop_only_pixels_under_the_alpha_cut() {
+    use crate::splat::cpu::raster::ALPHA_MIN;
+    let cam = centred_camera();
+    let mut model = Gaussians::default();
+    // Elongated along x (0.6 × 0.02 × 0.02 m), faint, and an opaque isotropic one.
+    let mut long = Gaussian::isotropic([0.0, 0.0, 0.0], 0.02, [0.5; 3], 0.9);
+    long.log_scale[0] = 0.6f32.ln();
+    model.push(long);
+    model.push(Gaussian::isotropic([0.1, 0.0, 0.1], 0.3, [0.5; 3], 0.01));
+    model.push(Gaussian::isotropic([-0.1, 0.0, 0.0], 0.3, [0.5; 3], 0.99));
+    let projected = render(&model, &cam, [0.0; 3]).unwrap().projected;
+    let mut checked = 0;
+    for p in projected.iter().filter(|p| p.visible) {
+        let r = p.radius as i64;
+        let [ex, ey] = p.extent.map(i64::from);
+        assert!(ex <= r && ey <= r, "{p:?}");
+        let (mx, my) = (p.mean2d[0].floor() as i64, p.mean2d[1].floor() as i64);
+        for y in my - r - 1..=my + r + 1 {
+            for x in mx - r - 1..=mx + r + 1 {
+                let (dx, dy) = (x as f64 + 0.5 - p.mean2d[0], y as f64 + 0.5 - p.mean2d[1]);
+                if dx.abs() <= ex as f64 && dy.abs() <= ey as f64 {
+                    continue;
+                }
+                let [a, b, c] = p.conic;
+                let power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy;
+                assert!(p.opacity * power.exp() < ALPHA_MIN, "{p:?} at {dx}, {dy}");
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 100, "{checked} pixels outside the boxes");
+    // The elongated one is narrow across, the faint one narrow both ways, the opaque one not.
+    assert!(
+        projected[0].extent[1] * 3 < projected[0].radius,
+        "{:?}",
+        projected[0]
+    );
+    assert!(
+        projected[1].extent[0] * 3 < projected[1].radius * 2,
+        "{:?}",
+        projected[1]
+    );
+    assert_eq!(projected[2].extent, [projected[2].radius; 2]);
+}
+
 #[test]
 fn antialias_scales_the_opacity_by_the_compensation_and_keeps_the_footprint() {
     let (sigma, opacity) = (0.05f32, 0.8f32);
