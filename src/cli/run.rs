@@ -112,29 +112,28 @@ fn choice<T: Copy>(flag: &str, value: &str, choices: &[(&str, T)]) -> anyhow::Re
     )
 }
 
-/// `sylva train --fill`: `on` (the defaults of [`sylva::splat::init::CoverageFill`]),
-/// `agreed` (no fallback depth: only the cells whose depth the photos agree on) or `off`.
+/// `sylva train --fill`: `on` (the defaults of [`sylva::splat::init::CoverageFill`]: only the
+/// cells whose depth the photos agree on), `guess` (every uncovered cell, those without an
+/// agreed depth at the 90th percentile of the depths their photo sees, the rule before the
+/// sweep) or `off`.
 pub(super) fn fill_choice(value: &str) -> anyhow::Result<Option<sylva::splat::init::CoverageFill>> {
     #[derive(Clone, Copy)]
     enum Fill {
         On,
-        Agreed,
+        Guess,
         Off,
     }
     let on = sylva::splat::init::CoverageFill::default();
     let fill = choice(
         "--fill",
         value,
-        &[
-            ("on", Fill::On),
-            ("agreed", Fill::Agreed),
-            ("off", Fill::Off),
-        ],
+        &[("on", Fill::On), ("guess", Fill::Guess), ("off", Fill::Off)],
     )?;
     Ok(match fill {
         Fill::On => Some(on),
-        Fill::Agreed => Some(sylva::splat::init::CoverageFill {
-            depth_percentile: None,
+        Fill::Guess => Some(sylva::splat::init::CoverageFill {
+            depth_percentile: Some(0.9),
+            place_unseen: true,
             ..on
         }),
         Fill::Off => None,
@@ -335,14 +334,15 @@ mod tests {
     #[test]
     fn fill_choices_parse_and_name_the_flag_on_error() {
         let on = fill_choice("on").expect("on").expect("a fill");
-        assert_eq!(on.depth_percentile, Some(0.9));
-        let agreed = fill_choice("agreed").expect("agreed").expect("a fill");
-        assert_eq!(agreed.depth_percentile, None);
-        assert_eq!(agreed.depth_candidates, on.depth_candidates);
+        assert_eq!(on.depth_percentile, None);
+        let guess = fill_choice("guess").expect("guess").expect("a fill");
+        assert_eq!(guess.depth_percentile, Some(0.9));
+        assert!(guess.place_unseen);
+        assert_eq!(guess.depth_candidates, on.depth_candidates);
         assert!(fill_choice("off").expect("off").is_none());
         let err = fill_choice("yes").expect_err("not a choice");
         assert!(
-            err.to_string().contains("--fill must be on, agreed or off"),
+            err.to_string().contains("--fill must be on, guess or off"),
             "{err}"
         );
     }

@@ -86,6 +86,12 @@ pub struct GpuContext {
     /// Only for tests and experiments: a small cap splits even a small model into many chunks,
     /// slots and bands.
     pub chunk_cap_bytes: Option<u64>,
+    /// Whether the raster backward sums each Gaussian's gradient across a subgroup before its
+    /// atomic adds (`shaders/flush_subgroup.wgsl`): true when the adapter has
+    /// `Features::SUBGROUP` (requested then). A caller may set it to false before building a
+    /// renderer (the tests compare both kernels); setting it true on a device without the
+    /// feature makes the kernel fail to build.
+    pub subgroups: bool,
     /// Pixels per thread of both rasters (1, 2, 4, 8 or 16; see `raster_bwd.wgsl`):
     /// [`RASTER_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, unless the caller sets it.
     /// Read when a [`crate::splat::gpu::Renderer`] is built.
@@ -122,6 +128,10 @@ impl GpuContext {
         if atomic_mode == AtomicMode::Float {
             features |= wgpu::Features::SHADER_FLOAT32_ATOMIC;
         }
+        let subgroups = available.contains(wgpu::Features::SUBGROUP);
+        if subgroups {
+            features |= wgpu::Features::SUBGROUP;
+        }
         // Default (WebGPU) limits, raised to the adapter's storage sizes so that large models fit.
         let al = adapter.limits();
         let limits = wgpu::Limits {
@@ -150,6 +160,7 @@ impl GpuContext {
             max_buffer_bytes: limits.max_buffer_size,
             offset_alignment: u64::from(limits.min_storage_buffer_offset_alignment.max(4)),
             chunk_cap_bytes: None,
+            subgroups,
             raster_pixels: raster_pixels_for(info.device_type),
             description,
         })

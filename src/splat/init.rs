@@ -164,9 +164,11 @@ pub struct CoverageFill {
     /// about 10 px at 320 px and 50 px at 1600 px, so a photo adds at most 32 × 32 Gaussians).
     pub cells_long_side: u32,
     /// Percentile of the depths of the points a photo sees at which a cell is placed when the
-    /// photos do not agree on a depth for it, [0, 1]; `None` leaves such a cell to
-    /// densification. Default 0.9 (ours: what SfM misses and the photos cannot place is mostly
-    /// far or textureless — sky, walls — so it goes to the back of what the photo sees).
+    /// photos do not agree on a depth for it, [0, 1] (0.9 was the only rule before the sweep:
+    /// what SfM misses is mostly far or textureless); `None` leaves such a cell to
+    /// densification. Default `None` (measured on the real photo sets, docs/results/
+    /// splatting.md "A depth the photos agree on": the guessed cells cost Brighton's UAV
+    /// forest 0.7–1.0 dB at 2000 steps).
     pub depth_percentile: Option<f64>,
     /// Depths tried per cell, evenly in inverse depth (a plane sweep), from half the 2nd to
     /// the 98th percentile of the depths of the points the photo sees; 0 places every cell at
@@ -185,17 +187,22 @@ pub struct CoverageFill {
     /// candidates (a clear minimum); otherwise the cell goes to `depth_percentile`. Default 0.8
     /// (ours: a textureless cell, sky or a plain wall, costs the same at every depth).
     pub max_cost_ratio: f32,
+    /// Whether a cell that none of the `neighbours` sees (at fewer than 3 of the depths) also
+    /// goes to `depth_percentile` (when that is set). Default false (ours: only its own photo
+    /// constrains such a Gaussian, at a depth guessed from that photo's points).
+    pub place_unseen: bool,
 }
 
 impl Default for CoverageFill {
     fn default() -> Self {
         CoverageFill {
             cells_long_side: 32,
-            depth_percentile: Some(0.9),
+            depth_percentile: None,
             depth_candidates: 32,
             neighbours: 4,
             samples_per_side: 5,
             max_cost_ratio: 0.8,
+            place_unseen: false,
         }
     }
 }
@@ -208,6 +215,20 @@ pub struct FillReport {
     /// Of those, the ones placed at a depth on which the photos agreed; the rest sit at the
     /// fallback percentile depth.
     pub agreed: usize,
+    /// Uncovered cells left to densification because no neighbouring photo sees them (without
+    /// [`CoverageFill::place_unseen`]).
+    pub unseen: usize,
+}
+
+/// Where the photos put an uncovered cell ([`Sweep::place`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Placement {
+    /// At this depth, metres: a clear minimum of the matching cost.
+    Agreed(f32),
+    /// Seen by a neighbouring photo, but no depth stands out (textureless), or no sweep.
+    Ambiguous,
+    /// No neighbouring photo sees the cell's patch.
+    Unseen,
 }
 
 /// Adds a Gaussian wherever a training photo sees something that no Gaussian of `g` projects
@@ -223,11 +244,12 @@ pub struct FillReport {
 /// isotropic with σ half the cell's footprint at its depth, at the initial opacity. Photos
 /// that see no point are skipped.
 ///
-/// The depth is the one on which the photos agree ([`agreed_depth`]): a plane sweep over
+/// The depth is the one on which the photos agree (`Sweep::place`): a plane sweep over
 /// `depth_candidates` depths, comparing the cell's patch with where it lands in the
 /// `neighbours` photos nearest this one. Where no depth stands out (a textureless cell) the
 /// cell goes to the `depth_percentile` depth of the points the photo sees, or is left to
-/// densification when that is `None`. A single depth per
+/// densification when that is `None`; so is a cell that no neighbouring photo sees, unless
+/// `place_unseen`. A single depth per
 /// photo put a closed canopy seen from above at the ground beneath it, where the other photos
 /// saw it in the wrong place (Brighton at 2000 steps, docs/results/splatting.md).
 pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) -> FillReport {
@@ -271,25 +293,40 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
             nearest_views(&centres, vi, params.neighbours),
         );
         let cells: Vec<usize> = (0..covered.len()).filter(|&c| !covered[c]).collect();
-        let placed: Vec<Option<(glam::Vec3, f32, bool, [u8; 3])>> = cells
+        // Per cell: None without pixels, else (Gaussian or None, agreed, unseen).
+        type Placed = Option<(Option<(glam::Vec3, f32, [u8; 3])>, bool, bool)>;
+        let placed: Vec<Placed> = cells
             .par_iter()
             .map(|&c| {
                 let (cx, cy) = ((c % gw) as u32 * cell, (c / gw) as u32 * cell);
                 let colour = cell_colour(view, cx, cy, cell)?;
                 let (cw, ch) = (cell.min(w - cx) as f32, cell.min(h - cy) as f32);
                 let (px, py) = (cx as f32 + 0.5 * cw, cy as f32 + 0.5 * ch);
-                let agreed = sweep.agreed_depth(view, views, [px, py], cw.min(ch), params);
-                let depth = agreed.or(fallback)?;
-                let pc = [
-                    (px - cam.cx) / cam.fx * depth,
-                    (py - cam.cy) / cam.fy * depth,
-                    depth,
-                ];
-                let mean = glam::Vec3::from_array(camera_to_world(cam, pc));
-                Some((mean, depth, agreed.is_some(), colour))
+                let place = sweep.place(view, views, [px, py], cw.min(ch), params);
+                let depth = match place {
+                    Placement::Agreed(d) => Some(d),
+                    Placement::Ambiguous => fallback,
+                    Placement::Unseen => fallback.filter(|_| params.place_unseen),
+                };
+                let unseen = place == Placement::Unseen && depth.is_none();
+                let agreed = matches!(place, Placement::Agreed(_));
+                let gaussian = depth.map(|depth| {
+                    let pc = [
+                        (px - cam.cx) / cam.fx * depth,
+                        (py - cam.cy) / cam.fy * depth,
+                        depth,
+                    ];
+                    let mean = glam::Vec3::from_array(camera_to_world(cam, pc));
+                    (mean, depth, colour)
+                });
+                Some((gaussian, agreed, unseen))
             })
             .collect();
-        for (mean, depth, agreed, colour) in placed.into_iter().flatten() {
+        for (gaussian, agreed, unseen) in placed.into_iter().flatten() {
+            report.unseen += usize::from(unseen);
+            let Some((mean, depth, colour)) = gaussian else {
+                continue;
+            };
             let sigma = 0.5 * cell as f32 * depth / cam.fx.abs().max(f32::MIN_POSITIVE);
             g.push(seed_gaussian(mean.to_array(), sigma.ln(), colour, 0.0));
             report.added += 1;
@@ -335,22 +372,23 @@ impl Sweep {
         Sweep { depths, neighbours }
     }
 
-    /// The candidate depth (metres) at which the square patch of side `side` px about pixel
-    /// `centre` of `view` looks most alike in the neighbouring views, when it stands out: its
-    /// cost at most `max_cost_ratio` of the median over the candidates that any neighbour
-    /// sees. The cost at a depth is the mean absolute difference of the two patches, each
+    /// Where the photos put the square patch of side `side` px about pixel `centre` of `view`:
+    /// at the candidate depth (metres) where it looks most alike in the neighbouring views, when
+    /// that stands out — its cost at most `max_cost_ratio` of the median over the candidates
+    /// that any neighbour sees; [`Placement::Unseen`] when fewer than 3 candidates are seen by
+    /// any neighbour. The cost at a depth is the mean absolute difference of the two patches, each
     /// less its own mean colour (robust to the photos' exposure), over the better half of the
     /// neighbours that see the whole patch; the patch is taken as a plane facing this photo.
-    fn agreed_depth(
+    fn place(
         &self,
         view: &View,
         views: &[View],
         centre: [f32; 2],
         side: f32,
         params: &CoverageFill,
-    ) -> Option<f32> {
+    ) -> Placement {
         if self.depths.is_empty() {
-            return None;
+            return Placement::Ambiguous;
         }
         let n = params.samples_per_side.max(2);
         let step = side / n as f32;
@@ -362,10 +400,13 @@ impl Sweep {
                 ]
             })
             .collect();
-        let own: Vec<[f32; 3]> = offsets
+        let Some(own) = offsets
             .iter()
             .map(|p| opaque_sample(view, p[0], p[1]))
-            .collect::<Option<_>>()?;
+            .collect::<Option<Vec<[f32; 3]>>>()
+        else {
+            return Placement::Ambiguous;
+        };
         let own = less_mean(own);
         let cam = &view.camera;
         let mut costs: Vec<Option<f32>> = Vec::with_capacity(self.depths.len());
@@ -422,7 +463,7 @@ impl Sweep {
         }
         let mut seen: Vec<f32> = costs.iter().flatten().copied().collect();
         if seen.len() < 3 {
-            return None;
+            return Placement::Unseen;
         }
         seen.sort_unstable_by(f32::total_cmp);
         let median = seen[seen.len() / 2];
@@ -430,9 +471,10 @@ impl Sweep {
             .iter()
             .enumerate()
             .filter_map(|(k, c)| Some((k, (*c)?)))
-            .min_by(|a, b| a.1.total_cmp(&b.1))?;
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap_or((0, f32::INFINITY));
         if !(median > 0.0 && best <= params.max_cost_ratio * median) {
-            return None;
+            return Placement::Ambiguous;
         }
         // Between the candidates: the vertex of the parabola through the best cost and its two
         // neighbours, in inverse depth (where the candidates are evenly spaced).
@@ -452,7 +494,7 @@ impl Sweep {
         } else {
             0.0
         };
-        Some(1.0 / (inverse(k) + shift * step))
+        Placement::Agreed(1.0 / (inverse(k) + shift * step))
     }
 }
 

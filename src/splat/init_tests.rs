@@ -161,14 +161,24 @@ fn the_sky_dome_covers_the_sphere_evenly_and_takes_the_colour_seen_past_the_scen
     );
 }
 
-/// Every cell of a photo that no Gaussian projects into gets one, at the depth of what the
+/// With a fallback depth, every cell of a photo that no Gaussian projects into gets one, at the depth of what the
 /// photo sees, coloured by the cell; a second photo of the same hole adds nothing.
 #[test]
 fn uncovered_cells_are_filled_once_at_the_depth_of_the_scene() {
     let mut g = from_sfm_points(&[[0.1, 0.1, 3.0]], &[[10, 20, 30]]).expect("one point");
-    let params = CoverageFill {
+    // The default leaves a flat grey photo's cells alone: the photos agree on no depth.
+    let mut unfilled = g.clone();
+    let cells = CoverageFill {
         cells_long_side: 4,
         ..CoverageFill::default()
+    };
+    assert_eq!(
+        fill_uncovered(&mut unfilled, &[view(90), view(90)], &cells).added,
+        0
+    );
+    let params = CoverageFill {
+        depth_percentile: Some(0.9),
+        ..cells
     };
     let report = fill_uncovered(&mut g, &[view(90), view(90)], &params);
     // 4 × 4 cells of 16 px, one covered by the point; a flat grey photo agrees on no depth.
@@ -176,7 +186,8 @@ fn uncovered_cells_are_filled_once_at_the_depth_of_the_scene() {
         report,
         FillReport {
             added: 15,
-            agreed: 0
+            agreed: 0,
+            unseen: 0
         }
     );
     assert_eq!(g.len(), 16);
@@ -255,16 +266,18 @@ fn uncovered_texture_goes_to_the_depth_the_photos_agree_on() {
     let start = from_sfm_points(&pts, &cols).expect("points");
     let params = CoverageFill {
         cells_long_side: 8,
+        depth_percentile: Some(0.9),
         ..CoverageFill::default()
     };
     let mut g = start.clone();
     let report = fill_uncovered(&mut g, &views, &params);
     assert!(report.added > 40, "{report:?}");
-    // The first photo's leftmost cells are seen by no other photo: those go to the fallback.
+    // The first photo's leftmost cells are seen by no other photo: those are left out.
     assert!(
         report.agreed as f64 >= 0.75 * report.added as f64,
         "only {report:?} agreed"
     );
+    assert!(report.unseen > 0, "{report:?}");
     // Every agreed depth within 0.4 m of the plane (one candidate is 0.3 m apart at 5 m);
     // the rest at the fallback depth.
     let depths: Vec<f32> = g.means[start.len()..].iter().map(|m| m[2]).collect();
@@ -272,6 +285,15 @@ fn uncovered_texture_goes_to_the_depth_the_photos_agree_on() {
     let at_fallback = depths.iter().filter(|&&z| (z - 10.0).abs() < 1e-3).count();
     assert_eq!(at_plane, report.agreed, "{depths:?}");
     assert_eq!(at_plane + at_fallback, depths.len(), "{depths:?}");
+    // With `place_unseen`, the cells no other photo sees go to the fallback depth too.
+    let mut all = start.clone();
+    let placing = CoverageFill {
+        place_unseen: true,
+        ..params
+    };
+    let every = fill_uncovered(&mut all, &views, &placing);
+    assert_eq!(every.unseen, 0);
+    assert!(every.added > report.added, "{every:?} against {report:?}");
     // With no fallback depth, only the cells the photos agree on are filled.
     let mut agreed_only = start.clone();
     let no_fallback = CoverageFill {
@@ -293,7 +315,7 @@ fn uncovered_texture_goes_to_the_depth_the_photos_agree_on() {
         ..params
     };
     let before = fill_uncovered(&mut old, &views, &rule_before);
-    assert_eq!(before.agreed, 0);
+    assert_eq!((before.agreed, before.unseen), (0, 0));
     assert!(
         old.means[start.len()..]
             .iter()
