@@ -329,7 +329,7 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
 
 #[cfg(test)]
 mod tests {
-    use super::on_off;
+    use super::{fill_choice, on_off};
 
     #[test]
     fn fill_choices_parse_and_name_the_flag_on_error() {
