@@ -33,7 +33,8 @@ pub struct RasterOutput {
 }
 
 /// Tiles `[x0, x1) × [y0, y1)` touched by the closed rectangle `mean2d ± extent`, clamped to the
-/// tile grid of a `width × height` image; `None` when invisible or the range is empty.
+/// tile grid of a `width × height` image; `None` when invisible or the range is empty (the box
+/// may miss the image where the square `mean2d ± radius` that culling uses does not).
 /// Tile `k` spans pixel coordinates `[16k, 16k + 16)`.
 pub fn tile_rect(p: &Projected, width: u32, height: u32) -> Option<[u32; 4]> {
     if !p.visible {
@@ -44,7 +45,7 @@ pub fn tile_rect(p: &Projected, width: u32, height: u32) -> Option<[u32; 4]> {
         let tiles = n.div_ceil(TILE) as i64;
         let lo = (((m - r) / f64::from(TILE)).floor() as i64).max(0);
         let hi = (((m + r) / f64::from(TILE)).floor() as i64).min(tiles - 1);
-        (lo <= hi).then_some((lo as u32, hi as u32 + 1))
+        (lo <= hi).then(|| (lo as u32, hi as u32 + 1))
     };
     let (x0, x1) = span(p.mean2d[0], p.extent[0], width)?;
     let (y0, y1) = span(p.mean2d[1], p.extent[1], height)?;

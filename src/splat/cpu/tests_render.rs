@@ -108,6 +108,32 @@ fn tile_boxes_drop_only_pixels_under_the_alpha_cut() {
     assert_eq!(projected[2].extent, [projected[2].radius; 2]);
 }
 
+/// A box that misses the image, where the square that culling uses does not, touches no tile
+/// (it once overflowed computing its empty range); one that reaches in touches the edge tile.
+#[test]
+fn a_tile_box_off_the_image_touches_no_tile() {
+    use crate::splat::cpu::project::Projected;
+    use crate::splat::cpu::raster::tile_rect;
+    let p = Projected {
+        mean2d: [-20.0, 10.0],
+        radius: 30,
+        extent: [5, 5],
+        visible: true,
+        ..Projected::default()
+    };
+    assert_eq!(tile_rect(&p, 64, 48), None);
+    let below = Projected {
+        mean2d: [10.0, 60.0],
+        ..p
+    };
+    assert_eq!(tile_rect(&below, 64, 48), None);
+    let reaching = Projected {
+        mean2d: [-3.0, 10.0],
+        ..p
+    };
+    assert_eq!(tile_rect(&reaching, 64, 48), Some([0, 0, 1, 1]));
+}
+
 #[test]
 fn antialias_scales_the_opacity_by_the_compensation_and_keeps_the_footprint() {
     let (sigma, opacity) = (0.05f32, 0.8f32);
