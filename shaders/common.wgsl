@@ -46,30 +46,10 @@ fn cam_rot(p: Params) -> mat3x3<f32> {
     return transpose(mat3x3<f32>(p.rot0.xyz, p.rot1.xyz, p.rot2.xyz));
 }
 
-// Half-widths (x, y), pixels, of the box holding every pixel at which a Gaussian of screen
-// covariance diagonal (s00, s11) and blended opacity `opacity` reaches ALPHA_MIN, the rasterisers'
-// cut: k sqrt(s) with k^2 = 2 ln(opacity / ALPHA_MIN) (0 where the opacity cannot reach it),
-// rounded up, never past the reference's square of half-width `r` (3 sqrt(lambda_max)) and at
-// most 65535 (`pack_extent`). Outside it every pixel's alpha is below the cut, so a frame
-// renders exactly as with the square; only the empty tiles go (docs/splatting.md "Tiles").
-fn blend_extent(s00: f32, s11: f32, opacity: f32, r: f32) -> vec2<f32> {
-    let k = sqrt(max(2.0 * log(opacity / ALPHA_MIN), 0.0));
-    return min(ceil(k * sqrt(vec2<f32>(s00, s11))), vec2<f32>(min(r, 65535.0)));
-}
-
-// The extents of `blend_extent` in one u32 (x in the low 16 bits), as the record keeps them.
-fn pack_extent(e: vec2<f32>) -> u32 {
-    return u32(e.x) | (u32(e.y) << 16u);
-}
-
-fn unpack_extent(v: u32) -> vec2<f32> {
-    return vec2<f32>(f32(v & 0xffffu), f32(v >> 16u));
-}
-
-// Inclusive tile rectangle (x0, y0, x1, y1) touched by mean +- r (per axis), clamped to the grid.
-fn tile_rect(m: vec2<f32>, r: vec2<f32>, tiles: vec2<u32>) -> vec4<u32> {
-    let lo = floor((m - r) / f32(TILE));
-    let hi = floor((m + r) / f32(TILE));
+// Inclusive tile rectangle (x0, y0, x1, y1) touched by mean +- radius, clamped to the grid.
+fn tile_rect(m: vec2<f32>, r: f32, tiles: vec2<u32>) -> vec4<u32> {
+    let lo = floor((m - vec2<f32>(r)) / f32(TILE));
+    let hi = floor((m + vec2<f32>(r)) / f32(TILE));
     let mx = vec2<f32>(tiles) - vec2<f32>(1.0);
     let a = clamp(lo, vec2<f32>(0.0), mx);
     let b = clamp(hi, vec2<f32>(0.0), mx);

@@ -8,9 +8,8 @@
 @group(0) @binding(3) var<storage, read> rotations: array<f32>;
 @group(0) @binding(4) var<storage, read> opacity_logits: array<f32>;
 @group(0) @binding(5) var<storage, read> sh: array<f32>;
-// proj[3i] = (mean x, mean y, bitcast packed tile extents (`blend_extent`), bitcast radius),
-// proj[3i+1] = (conic a, b, c, opacity), proj[3i+2] = (r, g, b, camera depth t.z) — the depth is
-// the sort key and the rasterisers' fourth channel.
+// proj[3i] = (mean x, mean y, depth, bitcast radius), proj[3i+1] = (conic a, b, c, opacity),
+// proj[3i+2] = (r, g, b, camera depth t.z) — the depth is the rasterisers' fourth channel.
 @group(0) @binding(6) var<storage, read_write> proj: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read_write> tile_counts: array<u32>;
 // First Gaussian of the chunk, Gaussians in the chunk.
@@ -86,10 +85,9 @@ fn main(inv: Invocation) {
         // The 2-D Mip filter: the blended opacity is sigmoid(logit) * rho.
         opacity *= compensation(c00, c01, c11, det);
     }
-    let extent = pack_extent(blend_extent(s00, s11, opacity, r));
-    proj[3u * c] = vec4<f32>(mean2d, bitcast<f32>(extent), bitcast<f32>(u32(r)));
+    proj[3u * c] = vec4<f32>(mean2d, t.z, bitcast<f32>(u32(r)));
     proj[3u * c + 1u] = vec4<f32>(conic, opacity);
     proj[3u * c + 2u] = vec4<f32>(rgb, t.z);
-    let rect = tile_rect(mean2d, unpack_extent(extent), p.dims.zw);
+    let rect = tile_rect(mean2d, r, p.dims.zw);
     tile_counts[c] = (rect.z - rect.x + 1u) * (rect.w - rect.y + 1u);
 }

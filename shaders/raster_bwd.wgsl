@@ -2,14 +2,13 @@
 // tile row (PIX and THREADS = 256 / PIX are prepended by `raster_bwd.rs`), walking their runs back
 // to front from the last blended Gaussian, recovering the transmittance by division
 // (T_before = T_after / (1 - alpha)). Per Gaussian, a thread first sums its own pixels'
-// contributions in registers, then `flush` adds the sum to the Gaussian's screen-space gradient
-// with `add_grad` (float atomics or a CAS loop, prepended), per thread or, with subgroup
-// operations, once per subgroup (`flush_plain.wgsl`, `flush_subgroup.wgsl`, prepended): grads2d[10 g ..] = dL/d(mean x, mean y),
+// contributions in registers, then adds the sum to the Gaussian's screen-space gradient with
+// `add_grad` (float atomics or a CAS loop, prepended): grads2d[10 g ..] = dL/d(mean x, mean y),
 // dL/d(conic a, b, c), dL/d(r, g, b), dL/d(opacity), dL/d(depth z). The depth is a fourth channel
 // (record lane 2.w, background 0) whose per-pixel gradient comes from `depth_grad` (zero unless
 // a depth loss wrote it). PIX = 1 is the classic one-pixel-per-thread
 // kernel; a larger PIX divides the global atomics by up to PIX, which pays on CPU adapters
-// (lavapipe) where an atomic float add is a locked compare-and-swap loop.
+// (lavapipe) where an atomic float add is a locked compare-and-swap loop. No subgroup operations.
 
 // Bindings 0-7 (parameters, projected record slots, band, the band's sorted intersections):
 // `slots.wgsl`; 11-14: the screen-space gradient slots, same split as the records
@@ -95,6 +94,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
         for (var jj = 0u; jj < in_batch; jj++) {
             let j = in_batch - 1u - jj;
             let idx = b * BATCH + j;
+            if idx >= my_last {
+                continue;
+            }
             let xo = b_xy_op[j];
             let q = b_conic[j].xyz;
             let rgb = b_rgb[j];
@@ -104,9 +106,7 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
             var g_opacity = 0.0;
             var hit = false;
             var hit_geo = false;
-            // Threads past their last Gaussian skip the pixels but still flush (zeros), so the
-            // flush runs in subgroup-uniform control flow.
-            for (var k = 0u; k < select(PIX, 0u, idx >= my_last); k++) {
+            for (var k = 0u; k < PIX; k++) {
                 if idx >= last[k] {
                     continue;
                 }
@@ -136,7 +136,21 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l
                     hit_geo = true;
                 }
             }
-            flush(lid, bitcast<u32>(xo.w), hit, hit_geo, g_rgb, g_mean, g_conic, g_opacity);
+            if hit {
+                let g = bitcast<u32>(xo.w);
+                add_grad(g, 5u, g_rgb.x);
+                add_grad(g, 6u, g_rgb.y);
+                add_grad(g, 7u, g_rgb.z);
+                add_grad(g, 9u, g_rgb.w);
+                if hit_geo {
+                    add_grad(g, 0u, g_mean.x);
+                    add_grad(g, 1u, g_mean.y);
+                    add_grad(g, 2u, g_conic.x);
+                    add_grad(g, 3u, g_conic.y);
+                    add_grad(g, 4u, g_conic.z);
+                    add_grad(g, 8u, g_opacity);
+                }
+            }
         }
     }
 }

@@ -16,7 +16,7 @@
 @group(0) @binding(6) var<storage, read> values: array<u32>;
 @group(0) @binding(7) var<storage, read> ranges: array<u32>;
 
-// Record row k (0: mean, tile extents, radius; 1: conic, opacity; 2: rgb, depth) of Gaussian g.
+// Record row k (0: mean, depth, radius; 1: conic, opacity; 2: rgb) of Gaussian g.
 fn load_proj(g: u32, k: u32) -> vec4<f32> {
     let s = min(g / band.z, 3u);
     let o = 3u * (g - s * band.z) + k;

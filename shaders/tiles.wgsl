@@ -24,8 +24,8 @@
 @group(0) @binding(9) var<storage, read_write> rows: array<atomic<u32>>;
 @group(0) @binding(10) var<storage, read_write> counts: array<u32>;
 
-// Tile rectangle of chunk Gaussian `c` (x0, y0, x1, y1 inclusive) from its packed extents;
-// `ok` false when culled (a visible Gaussian has a radius of at least 2 px, `project.wgsl`).
+// Tile rectangle of chunk Gaussian `c` (x0, y0, x1, y1 inclusive); `ok` false when culled (a
+// visible Gaussian has a radius of at least 2 px, `project.wgsl`).
 struct Rect {
     r: vec4<u32>,
     ok: bool,
@@ -37,7 +37,7 @@ fn rect_of(c: u32) -> Rect {
     if radius == 0u {
         return Rect(vec4<u32>(0u), false);
     }
-    return Rect(tile_rect(p0.xy, unpack_extent(bitcast<u32>(p0.z)), params.dims.zw), true);
+    return Rect(tile_rect(p0.xy, f32(radius), params.dims.zw), true);
 }
 
 // The tile rectangle of chunk Gaussian `c` clipped to the band's rows (inclusive, as
@@ -61,7 +61,7 @@ fn emit(inv: Invocation) {
     }
     let i = chunk.x + c;
     // Depth > NEAR > 0, so its IEEE bits order like the value.
-    let depth_bits = bitcast<u32>(proj[3u * c + 2u].w);
+    let depth_bits = bitcast<u32>(proj[3u * c].z);
     var k = offsets[c];
     for (var ty = rc.r.y; ty <= rc.r.w; ty++) {
         for (var tx = rc.r.x; tx <= rc.r.z; tx++) {

@@ -86,15 +86,6 @@ pub struct GpuContext {
     /// Only for tests and experiments: a small cap splits even a small model into many chunks,
     /// slots and bands.
     pub chunk_cap_bytes: Option<u64>,
-    /// Whether the raster backward sums each Gaussian's gradient across a subgroup before its
-    /// atomic adds (`shaders/flush_subgroup.wgsl`): true on GPUs whose adapter has
-    /// `Features::SUBGROUP` (one set of atomics per warp instead of per thread; not measured
-    /// on a GPU), false on CPU adapters, where it was measured slower (lavapipe, `nerfpl_tree`:
-    /// backward raster 148 against 140 ms a step, docs/results/splatting.md). The feature is
-    /// requested whenever the adapter has it, so a caller may set this either way before
-    /// building a renderer (the tests compare both kernels) when
-    /// `device.features()` contains `SUBGROUP`; without the feature the kernel fails to build.
-    pub subgroups: bool,
     /// Pixels per thread of both rasters (1, 2, 4, 8 or 16; see `raster_bwd.wgsl`):
     /// [`RASTER_PIXELS_CPU`] on CPU adapters (lavapipe), 1 on GPUs, unless the caller sets it.
     /// Read when a [`crate::splat::gpu::Renderer`] is built.
@@ -131,10 +122,6 @@ impl GpuContext {
         if atomic_mode == AtomicMode::Float {
             features |= wgpu::Features::SHADER_FLOAT32_ATOMIC;
         }
-        let has_subgroups = available.contains(wgpu::Features::SUBGROUP);
-        if has_subgroups {
-            features |= wgpu::Features::SUBGROUP;
-        }
         // Default (WebGPU) limits, raised to the adapter's storage sizes so that large models fit.
         let al = adapter.limits();
         let limits = wgpu::Limits {
@@ -163,7 +150,6 @@ impl GpuContext {
             max_buffer_bytes: limits.max_buffer_size,
             offset_alignment: u64::from(limits.min_storage_buffer_offset_alignment.max(4)),
             chunk_cap_bytes: None,
-            subgroups: has_subgroups && info.device_type != wgpu::DeviceType::Cpu,
             raster_pixels: raster_pixels_for(info.device_type),
             description,
         })

@@ -196,31 +196,6 @@ fn every_pixels_per_thread_variant_matches_cpu_reference() {
     }
 }
 
-/// The raster backward with its per-Gaussian sums added once per subgroup (where the adapter
-/// has subgroup operations) and once per thread, each against the CPU reference, at one and at
-/// eight pixels per thread.
-#[test]
-fn subgroup_and_per_thread_flushes_match_cpu_reference() {
-    let Some(ctx) = common::context() else { return };
-    let has = ctx.device.features().contains(wgpu::Features::SUBGROUP);
-    if !has {
-        eprintln!("device has no subgroup operations: only the per-thread flush is tested");
-    }
-    let (seed, n, deg, w, h) = (11u64, 400usize, 3u32, 64u32, 48u32);
-    let (_, want, want_stat) = cpu_backward((seed, n, deg), (w, h), Default::default());
-    for subgroups in [has, false] {
-        for pix in [1u32, 8] {
-            let mut c = ctx.clone();
-            c.subgroups = subgroups;
-            c.raster_pixels = pix;
-            eprintln!("subgroups {subgroups}, {pix} pixels per thread");
-            let got = gpu_backward(&c, seed, n, deg, w, h);
-            check_all(&got.grads, &want);
-            check("densify stat", &got.stat, &want_stat);
-        }
-    }
-}
-
 /// The depth channel's backward (a loss on the expected depth) against the CPU reference.
 #[test]
 fn depth_backward_matches_cpu_reference() {

@@ -8,7 +8,6 @@ use crate::splat::cpu::linalg::{
     Mat3, Mat23, dot, mul_t_vec, mul_vec, mul23_33, mul33, normalise_vjp, normalise4, quat_to_mat,
     quat_to_mat_vjp, transpose,
 };
-use crate::splat::cpu::raster::ALPHA_MIN;
 use crate::splat::cpu::sh::{eval_sh, eval_sh_backward};
 use crate::splat::model::Gaussians;
 
@@ -34,8 +33,6 @@ pub struct Projected {
     pub depth: f64,
     /// Screen radius `ceil(3 √λ_max)`, pixels.
     pub radius: u32,
-    /// Half-widths (x, y) of the box of tiles the rasteriser visits, pixels: [`blend_extent`].
-    pub extent: [u32; 2],
     /// Colour after SH, +0.5 and clamp at 0 (unitless, usually in [0, 1]).
     pub rgb: [f64; 3],
     /// Opacity the rasteriser blends with: `sigmoid(logit)`, times the compensation `ρ` of
@@ -43,20 +40,6 @@ pub struct Projected {
     pub opacity: f64,
     /// False when culled (behind the near plane, degenerate covariance or off-screen).
     pub visible: bool,
-}
-
-/// Half-widths (x, y), pixels, of the box that holds every pixel at which a Gaussian of screen
-/// covariance diagonal (`s00`, `s11`, pixels²) and blended `opacity` reaches the rasterisers'
-/// cut [`ALPHA_MIN`]: `k √s` with `k² = 2 ln(opacity / ALPHA_MIN)` (0 where the opacity cannot
-/// reach the cut), rounded up, never past the reference's square of half-width `radius`
-/// (`ceil(3 √λ_max)`) and at most 65 535 (the GPU packs both in one u32). Every pixel outside the
-/// box has an alpha below the cut, so a frame renders as it does with the square, while an
-/// elongated or faint Gaussian visits fewer tiles (the GPU twin: `blend_extent` of
-/// `shaders/common.wgsl`; docs/splatting.md "Tiles").
-pub fn blend_extent(s00: f64, s11: f64, opacity: f64, radius: f64) -> [u32; 2] {
-    let k = (2.0 * (opacity / ALPHA_MIN).ln()).max(0.0).sqrt();
-    let cap = radius.min(65_535.0);
-    [s00, s11].map(|s| (k * s.max(0.0).sqrt()).ceil().min(cap) as u32)
 }
 
 /// Gradient of the loss with respect to one [`Projected`] (what the raster backward produces).
@@ -203,7 +186,6 @@ fn forward(model: &Gaussians, i: usize, cam: &Camera, opts: RenderOptions) -> Op
         conic,
         depth: t[2],
         radius: radius as u32,
-        extent: blend_extent(s00, s11, opacity * rho, radius),
         rgb: raw_rgb.map(|c| (c + 0.5).max(0.0)),
         opacity: opacity * rho,
         visible: true,

@@ -2,9 +2,8 @@
 //! and its back-to-front backward.
 //!
 //! Coverage follows the GPU's 16×16 tiles: a Gaussian is evaluated at every pixel of every tile
-//! that its screen rectangle `mean2d ± extent` touches ([`tile_rect`], the extents of
-//! [`crate::splat::cpu::project::blend_extent`]), exactly like a tiled rasteriser; pixels
-//! outside its rectangle but inside such a tile are evaluated too.
+//! that its screen rectangle `mean2d ± radius` touches ([`tile_rect`]), exactly like a tiled
+//! rasteriser; pixels outside its rectangle but inside such a tile are evaluated too.
 
 use crate::splat::cpu::project::{Projected, ProjectedGrad};
 use rayon::prelude::*;
@@ -32,23 +31,22 @@ pub struct RasterOutput {
     pub depth: Vec<f64>,
 }
 
-/// Tiles `[x0, x1) × [y0, y1)` touched by the closed rectangle `mean2d ± extent`, clamped to the
-/// tile grid of a `width × height` image; `None` when invisible or the range is empty (the box
-/// may miss the image where the square `mean2d ± radius` that culling uses does not).
+/// Tiles `[x0, x1) × [y0, y1)` touched by the closed rectangle `mean2d ± radius`, clamped to the
+/// tile grid of a `width × height` image; `None` when invisible or the range is empty.
 /// Tile `k` spans pixel coordinates `[16k, 16k + 16)`.
 pub fn tile_rect(p: &Projected, width: u32, height: u32) -> Option<[u32; 4]> {
     if !p.visible {
         return None;
     }
-    let span = |m: f64, r: u32, n: u32| -> Option<(u32, u32)> {
-        let r = f64::from(r);
+    let r = f64::from(p.radius);
+    let span = |m: f64, n: u32| -> Option<(u32, u32)> {
         let tiles = n.div_ceil(TILE) as i64;
         let lo = (((m - r) / f64::from(TILE)).floor() as i64).max(0);
         let hi = (((m + r) / f64::from(TILE)).floor() as i64).min(tiles - 1);
-        (lo <= hi).then(|| (lo as u32, hi as u32 + 1))
+        (lo <= hi).then_some((lo as u32, hi as u32 + 1))
     };
-    let (x0, x1) = span(p.mean2d[0], p.extent[0], width)?;
-    let (y0, y1) = span(p.mean2d[1], p.extent[1], height)?;
+    let (x0, x1) = span(p.mean2d[0], width)?;
+    let (y0, y1) = span(p.mean2d[1], height)?;
     Some([x0, y0, x1, y1])
 }
 

@@ -29,8 +29,8 @@ pub struct Frame {
     /// The uniform parameters (with the intersection count filled in).
     pub params: RenderParams,
     pub params_buf: wgpu::Buffer,
-    /// Per Gaussian, 3 × vec4: (mean2d px, tile half-widths x | y << 16 px as u32 bits, radius
-    /// px as u32 bits), (conic a, b, c, opacity), (r, g, b, camera depth m). All zero for culled Gaussians. Bound in chunks and
+    /// Per Gaussian, 3 × vec4: (mean2d px, depth m, radius px as u32 bits), (conic a, b, c,
+    /// opacity), (r, g, b, camera depth m). All zero for culled Gaussians. Bound in chunks and
     /// `slots`.
     pub proj: wgpu::Buffer,
     /// How the rasterisers bind `proj` and the screen-space gradients (random access by id).

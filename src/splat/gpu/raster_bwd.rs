@@ -1,7 +1,5 @@
 //! Backward rasterisation kernel (`raster_bwd.wgsl`), built with native float atomics or with
-//! the compare-and-swap fallback (`atomic_float.wgsl` / `atomic_cas.wgsl`), and with its
-//! per-Gaussian sums added once per subgroup where the device has subgroup operations
-//! (`flush_subgroup.wgsl`), else once per thread (`flush_plain.wgsl`).
+//! the compare-and-swap fallback (`atomic_float.wgsl` / `atomic_cas.wgsl`).
 
 use crate::splat::gpu::buffers::pipeline;
 use crate::splat::gpu::chunks::{SLOTS, bind_ranges};
@@ -23,7 +21,7 @@ pub struct RasterBwd {
 }
 
 impl RasterBwd {
-    /// Compiles the kernel for the context's atomic mode, pixels per thread and subgroups.
+    /// Compiles the kernel for the context's atomic mode and pixels per thread.
     pub fn new(ctx: &GpuContext) -> Self {
         let atomics = match ctx.atomic_mode {
             AtomicMode::Float => include_str!("../../../shaders/atomic_float.wgsl"),
@@ -37,14 +35,9 @@ impl RasterBwd {
             })
             .collect::<Vec<_>>()
             .join("\n");
-        let flush = if ctx.subgroups {
-            include_str!("../../../shaders/flush_subgroup.wgsl")
-        } else {
-            include_str!("../../../shaders/flush_plain.wgsl")
-        };
         let src = raster_source(
             ctx,
-            &format!("{atomics}\n{flush}\n"),
+            &format!("{atomics}\n"),
             include_str!("../../../shaders/raster_bwd.wgsl"),
         );
         RasterBwd {
