@@ -305,7 +305,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
                     format!(
                         " and the photos' uncovered cells ({} cells filled before the cap, {} \
                          at a depth the photos agree on{}; {} cells that no neighbouring photo \
-                         sees left to densification)",
+                         sees and {} on whose depth they agree on nothing left to densification)",
                         filled.added,
                         filled.agreed,
                         if filled.added > filled.agreed {
@@ -313,7 +313,8 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
                         } else {
                             ""
                         },
-                        filled.unseen
+                        filled.unseen,
+                        filled.ambiguous
                     )
                 } else {
                     String::new()

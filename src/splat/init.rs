@@ -218,6 +218,9 @@ pub struct FillReport {
     /// Uncovered cells left to densification because no neighbouring photo sees them (without
     /// [`CoverageFill::place_unseen`]).
     pub unseen: usize,
+    /// Uncovered cells left to densification because the photos agree on no depth for them
+    /// and there is no fallback depth ([`CoverageFill::depth_percentile`] `None`).
+    pub ambiguous: usize,
 }
 
 /// Where the photos put an uncovered cell ([`Sweep::place`]).
@@ -293,8 +296,8 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
             nearest_views(&centres, vi, params.neighbours),
         );
         let cells: Vec<usize> = (0..covered.len()).filter(|&c| !covered[c]).collect();
-        // Per cell: None without pixels, else (Gaussian or None, agreed, unseen).
-        type Placed = Option<(Option<(glam::Vec3, f32, [u8; 3])>, bool, bool)>;
+        // Per cell: None without pixels, else (Gaussian or None, agreed, unseen, ambiguous).
+        type Placed = Option<(Option<(glam::Vec3, f32, [u8; 3])>, bool, bool, bool)>;
         let placed: Vec<Placed> = cells
             .par_iter()
             .map(|&c| {
@@ -309,6 +312,7 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
                     Placement::Unseen => fallback.filter(|_| params.place_unseen),
                 };
                 let unseen = place == Placement::Unseen && depth.is_none();
+                let ambiguous = place == Placement::Ambiguous && depth.is_none();
                 let agreed = matches!(place, Placement::Agreed(_));
                 let gaussian = depth.map(|depth| {
                     let pc = [
@@ -319,11 +323,12 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
                     let mean = glam::Vec3::from_array(camera_to_world(cam, pc));
                     (mean, depth, colour)
                 });
-                Some((gaussian, agreed, unseen))
+                Some((gaussian, agreed, unseen, ambiguous))
             })
             .collect();
-        for (gaussian, agreed, unseen) in placed.into_iter().flatten() {
+        for (gaussian, agreed, unseen, ambiguous) in placed.into_iter().flatten() {
             report.unseen += usize::from(unseen);
+            report.ambiguous += usize::from(ambiguous);
             let Some((mean, depth, colour)) = gaussian else {
                 continue;
             };
