@@ -91,7 +91,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let work = out.join("work");
             let inputs = StageInputs {
                 lidar: out.join("lidar.laz"),
-                colmap: out.join("colmap"),
+                colmap: Some(out.join("colmap")),
+                photos: None,
                 control_points: None,
                 field_dbh: None,
             };

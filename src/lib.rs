@@ -24,6 +24,7 @@ pub mod jobs;
 pub mod pipeline;
 pub mod progress;
 pub mod rng;
+pub mod sfm;
 pub mod splat;
 pub mod stage;
 pub mod store;

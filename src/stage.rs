@@ -12,6 +12,9 @@ use serde::{Deserialize, Serialize};
 #[serde(rename_all = "lowercase")]
 pub enum Stage {
     Ingest,
+    /// Structure from motion: COLMAP run on the job's photos (nothing to do when the job
+    /// gave a COLMAP project).
+    Sfm,
     Register,
     Anchors,
     Segment,
@@ -21,8 +24,9 @@ pub enum Stage {
 }
 
 impl Stage {
-    pub const ALL: [Stage; 7] = [
+    pub const ALL: [Stage; 8] = [
         Stage::Ingest,
+        Stage::Sfm,
         Stage::Register,
         Stage::Anchors,
         Stage::Segment,
@@ -34,6 +38,7 @@ impl Stage {
     pub fn name(self) -> &'static str {
         match self {
             Stage::Ingest => "ingest",
+            Stage::Sfm => "sfm",
             Stage::Register => "register",
             Stage::Anchors => "anchors",
             Stage::Segment => "segment",
@@ -56,14 +61,17 @@ impl Stage {
         &Stage::ALL[..self.index()]
     }
 
-    /// Share of a whole job's progress bar this stage takes; training dominates a real run.
+    /// Share of a whole job's progress bar this stage takes; training dominates a real run,
+    /// and COLMAP on the CPU takes about as long as a short training where it runs (18 drone
+    /// photos: 12 min on 2 cores, docs/results/photos.md).
     pub fn weight(self) -> f64 {
         match self {
             Stage::Ingest => 0.05,
+            Stage::Sfm => 0.15,
             Stage::Register => 0.05,
             Stage::Anchors => 0.05,
             Stage::Segment => 0.10,
-            Stage::Train => 0.60,
+            Stage::Train => 0.45,
             Stage::Dbh => 0.05,
             Stage::Export => 0.10,
         }
@@ -101,6 +109,8 @@ pub enum UploadKind {
     Lidar,
     /// A zip or tar(.gz) of a COLMAP project: images/ and sparse/0 or sparse/.
     Colmap,
+    /// A zip or tar(.gz) of photos (JPEG, PNG or TIFF) for stage `sfm` to reconstruct.
+    Photos,
     /// Control point pairs (CSV).
     ControlPoints,
     /// Field-measured DBH (CSV).
@@ -111,6 +121,7 @@ impl UploadKind {
     pub const ALL: &'static [UploadKind] = &[
         UploadKind::Lidar,
         UploadKind::Colmap,
+        UploadKind::Photos,
         UploadKind::ControlPoints,
         UploadKind::FieldDbh,
     ];
@@ -119,6 +130,7 @@ impl UploadKind {
         match self {
             UploadKind::Lidar => "lidar",
             UploadKind::Colmap => "colmap",
+            UploadKind::Photos => "photos",
             UploadKind::ControlPoints => "control_points",
             UploadKind::FieldDbh => "field_dbh",
         }
@@ -126,5 +138,10 @@ impl UploadKind {
 
     pub fn parse(s: &str) -> Option<Self> {
         Self::ALL.iter().copied().find(|k| k.as_str() == s)
+    }
+
+    /// True for the kinds uploaded as a zip or tar and unpacked once, on inspection.
+    pub fn is_archive(self) -> bool {
+        matches!(self, UploadKind::Colmap | UploadKind::Photos)
     }
 }

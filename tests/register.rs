@@ -104,7 +104,8 @@ fn register_with(
 ) -> Result<serde_json::Value, pipeline::StageError> {
     let inputs = StageInputs {
         lidar: lidar.to_path_buf(),
-        colmap: colmap.to_path_buf(),
+        colmap: Some(colmap.to_path_buf()),
+        photos: None,
         control_points: control.map(Path::to_path_buf),
         field_dbh: None,
     };

@@ -64,7 +64,8 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
     sylva::synth::generate(&p, &plot, &NoProgress).expect("synth");
     let inputs = StageInputs {
         lidar: plot.join("lidar.laz"),
-        colmap: plot.join("colmap"),
+        colmap: Some(plot.join("colmap")),
+        photos: None,
         control_points: Some(plot.join("control_points.csv")),
         field_dbh: Some(plot.join("field_dbh.csv")),
     };

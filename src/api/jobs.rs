@@ -109,6 +109,9 @@ pub async fn create(State(state): State<AppState>, req: Request) -> Result<Respo
             })?;
         let create: JobCreate =
             serde_json::from_slice(&body).map_err(|e| json_error(e, "the body"))?;
+        if let Some(why) = create.inputs.problem() {
+            return Err(ApiError::unprocessable(why).with_error("inputs", why));
+        }
         let params = effective_params(create.params)?;
         let webhook = accept_webhook(&state, create.webhook).await?;
         let hash = request_hash(&hashed(
@@ -273,7 +276,7 @@ async fn multipart_inputs(
         }
         let Some(kind) = UploadKind::parse(&name) else {
             return Err(ApiError::unprocessable(format!(
-                "unknown part `{name}`; expected lidar, colmap, control_points, field_dbh, params or webhook"
+                "unknown part `{name}`; expected lidar, colmap, photos, control_points, field_dbh, params or webhook"
             )));
         };
         let filename = field
@@ -322,17 +325,21 @@ async fn multipart_inputs(
         files.insert(kind, (id, sha));
     }
     let take = |k: UploadKind| files.get(&k).map(|(id, _)| id.clone());
-    let (Some(lidar), Some(colmap)) = (take(UploadKind::Lidar), take(UploadKind::Colmap)) else {
+    let Some(lidar) = take(UploadKind::Lidar) else {
         return Err(ApiError::unprocessable(
-            "parts `lidar` and `colmap` are required",
+            "part `lidar` and one of `colmap` or `photos` are required",
         ));
     };
     let inputs = JobInputs {
         lidar,
-        colmap,
+        colmap: take(UploadKind::Colmap),
+        photos: take(UploadKind::Photos),
         control_points: take(UploadKind::ControlPoints),
         field_dbh: take(UploadKind::FieldDbh),
     };
+    if let Some(why) = inputs.problem() {
+        return Err(ApiError::unprocessable(why));
+    }
     let params = effective_params(params)?;
     let webhook = accept_webhook(state, webhook).await?;
     let mut hashes: Vec<(&str, &str)> = files

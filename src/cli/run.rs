@@ -12,13 +12,18 @@ fn parse_stage(s: &str) -> Result<Stage, String> {
 }
 
 #[derive(Debug, Args)]
+#[command(group(clap::ArgGroup::new("views").required(true).args(["colmap", "photos"])))]
 pub struct RunArgs {
     /// The LiDAR point cloud (LAS, LAZ, PLY, XYZ), in metres.
     #[arg(long, env = "SYLVA_LIDAR")]
     pub lidar: PathBuf,
     /// The COLMAP project: a folder (images/ and sparse/0 or sparse/) or a zip/tar(.gz) of one.
-    #[arg(long, env = "SYLVA_COLMAP")]
-    pub colmap: PathBuf,
+    #[arg(long, env = "SYLVA_COLMAP", conflicts_with = "photos")]
+    pub colmap: Option<PathBuf>,
+    /// Photos (JPEG, PNG, TIFF) instead of a COLMAP project: a folder or a zip/tar(.gz) of
+    /// one. Stage `sfm` runs COLMAP on them (Debian's package `colmap`).
+    #[arg(long, env = "SYLVA_PHOTOS")]
+    pub photos: Option<PathBuf>,
     /// Control point pairs (CSV: sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z), at least 4.
     #[arg(long, env = "SYLVA_CONTROL_POINTS")]
     pub control_points: Option<PathBuf>,
@@ -29,7 +34,7 @@ pub struct RunArgs {
     /// every finished stage's report.
     #[arg(long, env = "SYLVA_OUT")]
     pub out: PathBuf,
-    /// Stop after this stage (ingest, register, anchors, segment, train, dbh, export).
+    /// Stop after this stage (ingest, sfm, register, anchors, segment, train, dbh, export).
     #[arg(long, env = "SYLVA_UNTIL", value_parser = parse_stage)]
     pub until: Option<Stage>,
     /// Job parameters as a JSON file (the `params` object of the API; see `GET /v1/options`).
@@ -73,6 +78,29 @@ pub struct RunArgs {
     /// Log filter in tracing's syntax.
     #[arg(long, env = "SYLVA_LOG", default_value = "warn")]
     pub log: String,
+}
+
+/// `input` itself when it is a folder; an archive unpacked to `<out>/inputs/<name>`.
+pub(super) async fn unpacked(input: &Path, out: &Path, name: &str) -> anyhow::Result<PathBuf> {
+    if !input.is_file() {
+        return Ok(input.to_path_buf());
+    }
+    let dest = out.join("inputs").join(name);
+    if dest.exists() {
+        std::fs::remove_dir_all(&dest)?;
+    }
+    let (src, d2) = (input.to_path_buf(), dest.clone());
+    tokio::task::spawn_blocking(move || {
+        archive::extract_archive(
+            &src,
+            &d2,
+            &ExtractLimits::default(),
+            &sylva::progress::NoProgress,
+        )
+    })
+    .await?
+    .with_context(|| format!("{}: cannot unpack", input.display()))?;
+    Ok(dest)
 }
 
 /// `--strategy`'s value.
@@ -256,30 +284,18 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     apply_train_flags(&a, &mut params)?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
-    let colmap = if a.colmap.is_file() {
-        let dest = a.out.join("inputs").join("colmap");
-        if dest.exists() {
-            std::fs::remove_dir_all(&dest)?;
-        }
-        let src = a.colmap.clone();
-        let d2 = dest.clone();
-        tokio::task::spawn_blocking(move || {
-            archive::extract_archive(
-                &src,
-                &d2,
-                &ExtractLimits::default(),
-                &sylva::progress::NoProgress,
-            )
-        })
-        .await?
-        .with_context(|| format!("{}: cannot unpack", a.colmap.display()))?;
-        dest
-    } else {
-        a.colmap.clone()
+    let colmap = match &a.colmap {
+        Some(c) => Some(unpacked(c, &a.out, "colmap").await?),
+        None => None,
+    };
+    let photos = match &a.photos {
+        Some(p) => Some(unpacked(p, &a.out, "photos").await?),
+        None => None,
     };
     let inputs = StageInputs {
         lidar: a.lidar.clone(),
         colmap,
+        photos,
         control_points: a.control_points.clone(),
         field_dbh: a.field_dbh.clone(),
     };

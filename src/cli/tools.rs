@@ -4,10 +4,20 @@ use super::run::{fill_choice, on_off, parse_backend, parse_strategy};
 use super::*;
 
 #[derive(Debug, Args)]
+#[command(group(clap::ArgGroup::new("views").required(true).args(["colmap", "photos"])))]
 pub struct TrainArgs {
     /// The COLMAP project folder (images/ and sparse/0 or sparse/).
-    #[arg(long, env = "SYLVA_TRAIN_COLMAP")]
-    pub colmap: PathBuf,
+    #[arg(long, env = "SYLVA_TRAIN_COLMAP", conflicts_with = "photos")]
+    pub colmap: Option<PathBuf>,
+    /// Photos (JPEG, PNG, TIFF) instead of a COLMAP project: a folder or a zip/tar(.gz) of
+    /// one. COLMAP (Debian's package `colmap`) makes the model first, as stage `sfm` does,
+    /// into <out>/sfm/ (its report, log and model).
+    #[arg(long, env = "SYLVA_TRAIN_PHOTOS")]
+    pub photos: Option<PathBuf>,
+    /// With --photos: the `sfm` parameters as a JSON file (the `params.sfm` object of the API;
+    /// see `GET /v1/options`).
+    #[arg(long, env = "SYLVA_TRAIN_SFM_PARAMS", requires = "photos")]
+    pub sfm_params: Option<PathBuf>,
     /// Output folder.
     #[arg(long, env = "SYLVA_TRAIN_OUT")]
     pub out: PathBuf,
@@ -248,6 +258,34 @@ pub(super) async fn inventory(a: InventoryArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// `sylva train --photos`: COLMAP on the photos into `<out>/sfm/` (as stage `sfm`), with
+/// its report as `<out>/sfm/report.json`. Returns the model's folder and the photos' folder.
+fn sfm_from_photos(
+    photos: &Path,
+    params: &sylva::pipeline::params::SfmParams,
+    out: &Path,
+    progress: &ConsoleProgress,
+) -> anyhow::Result<(PathBuf, PathBuf)> {
+    let dir = sylva::io::photos::find_photos_dir(photos)?;
+    let names = sylva::io::photos::list_photos(&dir)?;
+    let gps = names
+        .iter()
+        .filter(|n| matches!(sylva::io::gps::read_fix(&dir.join(n)), Ok(Some(_))))
+        .count();
+    let sfm_dir = out.join("sfm");
+    if sfm_dir.exists() {
+        std::fs::remove_dir_all(&sfm_dir)?;
+    }
+    std::fs::create_dir_all(&sfm_dir)?;
+    let report = sylva::pipeline::sfm::reconstruct_photos(photos, gps, params, &sfm_dir, progress)
+        .map_err(|e| anyhow::anyhow!("sfm: {e}"))?;
+    std::fs::write(
+        sfm_dir.join("report.json"),
+        serde_json::to_vec_pretty(&report)?,
+    )?;
+    Ok((sfm_dir.join("sparse"), dir))
+}
+
 pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
     use sylva::pipeline::params::TrainParams;
     let backend = parse_backend(&a.backend)?;
@@ -262,16 +300,41 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         exposure: on_off("--exposure", &a.exposure)?,
         ..TrainParams::default()
     };
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
+    let photos = match &a.photos {
+        Some(p) => Some(super::run::unpacked(p, &a.out, "photos").await?),
+        None => None,
+    };
+    let sfm_params: sylva::pipeline::params::SfmParams = match &a.sfm_params {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read {}", p.display()))?;
+            serde_json::from_str(&text)
+                .with_context(|| format!("{}: invalid sfm parameters", p.display()))?
+        }
+        None => Default::default(),
+    };
     let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+        let (sparse_dir, images) = match (&photos, &a.colmap) {
+            (Some(photos), _) => {
+                let progress = ConsoleProgress::new("sfm", None);
+                sfm_from_photos(photos, &sfm_params, &a.out, &progress)?
+            }
+            (None, Some(colmap)) => {
+                let project = sylva::io::colmap::find_project(colmap)?;
+                let images = project.images_dir.clone().ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "{}: no images/ folder beside the sparse model",
+                        colmap.display()
+                    )
+                })?;
+                (project.sparse_dir, images)
+            }
+            (None, None) => anyhow::bail!("give --colmap or --photos"),
+        };
         let progress = ConsoleProgress::new("train", None);
-        let project = sylva::io::colmap::find_project(&a.colmap)?;
-        let images = project.images_dir.clone().ok_or_else(|| {
-            anyhow::anyhow!(
-                "{}: no images/ folder beside the sparse model",
-                a.colmap.display()
-            )
-        })?;
-        let model = sylva::io::colmap::read_model(&project.sparse_dir, &progress)?;
+        let model = sylva::io::colmap::read_model(&sparse_dir, &progress)?;
         let mut backend = sylva::pipeline::train::backend_for(&params)?;
         let (params, budget_source) =
             sylva::pipeline::train::with_budget(&params, backend.device_kind());

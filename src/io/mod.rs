@@ -13,6 +13,7 @@ pub mod e57;
 pub mod gpkg;
 pub mod gps;
 pub mod las;
+pub mod photos;
 pub mod ply;
 pub mod pointcloud;
 pub mod tables;

@@ -143,12 +143,16 @@ string_enum!(
 
 pub use crate::stage::UploadKind;
 
-/// The uploads a job reads, by upload id.
+/// The uploads a job reads, by upload id: the LiDAR cloud, and either a COLMAP project or
+/// photos for stage `sfm`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct JobInputs {
     pub lidar: String,
-    pub colmap: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub colmap: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub photos: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub control_points: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -156,12 +160,30 @@ pub struct JobInputs {
 }
 
 impl JobInputs {
+    /// Why these inputs cannot make a job: neither or both of `colmap` and `photos`.
+    pub fn problem(&self) -> Option<&'static str> {
+        match (&self.colmap, &self.photos) {
+            (Some(_), Some(_)) => Some(
+                "give either `colmap` (a COLMAP project) or `photos` (for stage sfm to \
+                 reconstruct), not both",
+            ),
+            (None, None) => Some(
+                "`lidar` and one of `colmap` (a COLMAP project) or `photos` (photos for stage \
+                 sfm) are required",
+            ),
+            _ => None,
+        }
+    }
+
     /// (kind, upload id) of every input given.
     pub fn all(&self) -> Vec<(UploadKind, &str)> {
-        let mut v = vec![
-            (UploadKind::Lidar, self.lidar.as_str()),
-            (UploadKind::Colmap, self.colmap.as_str()),
-        ];
+        let mut v = vec![(UploadKind::Lidar, self.lidar.as_str())];
+        if let Some(id) = &self.colmap {
+            v.push((UploadKind::Colmap, id));
+        }
+        if let Some(id) = &self.photos {
+            v.push((UploadKind::Photos, id));
+        }
         if let Some(id) = &self.control_points {
             v.push((UploadKind::ControlPoints, id));
         }

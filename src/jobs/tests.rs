@@ -123,7 +123,8 @@ async fn create_as(
 fn inputs() -> JobInputs {
     JobInputs {
         lidar: "l".into(),
-        colmap: "c".into(),
+        colmap: Some("c".into()),
+        photos: None,
         control_points: None,
         field_dbh: None,
     }
@@ -388,13 +389,15 @@ async fn retry_resumes_at_the_first_unfinished_stage(db: JobStore) {
     let j = db.get_job(&job).await.expect("get").expect("job");
     assert_eq!(j.state, JobState::Failed);
     assert_eq!(j.error, Some(problem));
-    assert_eq!(j.stages[1].state, StageState::Failed);
+    // Stage 1 is sfm, which this job skipped; register is stage 2.
+    assert_eq!(j.stages[2].state, StageState::Failed);
     assert!(matches!(
         db.retry(&job, Some(Stage::Anchors)).await,
         Err(DbError::Invalid(_))
     ));
     let reset = db.retry(&job, None).await.expect("retry");
-    assert_eq!(reset.first().map(String::as_str), Some("register"));
+    // The first unfinished stage: sfm, never run here.
+    assert_eq!(reset.first().map(String::as_str), Some("sfm"));
     let j = db.get_job(&job).await.expect("get").expect("job");
     assert_eq!(j.state, JobState::Queued);
     assert_eq!(j.attempt, 0);
@@ -599,7 +602,8 @@ async fn owners_have_quotas_and_retention_expires_uploads_and_purges_jobs(db: Jo
     assert_eq!(db.stored_bytes("").await.expect("bytes"), 2);
     let mine = JobInputs {
         lidar: "la".into(),
-        colmap: "ca".into(),
+        colmap: Some("ca".into()),
+        photos: None,
         control_points: None,
         field_dbh: None,
     };

@@ -183,7 +183,8 @@ fn prepare_plot(
     }
     let inputs = StageInputs {
         lidar: plot.join("lidar.laz"),
-        colmap: plot.join("colmap"),
+        colmap: Some(plot.join("colmap")),
+        photos: None,
         control_points: Some(plot.join("control_points.csv")),
         field_dbh: Some(plot.join("field_dbh.csv")),
     };

@@ -239,7 +239,8 @@ async fn seed(db: &JobStore, n: u32) -> anyhow::Result<Vec<String>> {
     }
     let inputs = JobInputs {
         lidar: lidar.id,
-        colmap: colmap.id,
+        colmap: Some(colmap.id),
+        photos: None,
         control_points: None,
         field_dbh: None,
     };

@@ -3,7 +3,8 @@
 //! The LiDAR file (LAS/LAZ/PLY/XYZ) becomes `ingest/cloud.ply` in local coordinates with its
 //! offset in the header, the COLMAP model is checked (supported camera models, every
 //! registered image present and decodable at its camera's size) and copied as text to
-//! `ingest/sparse/`, and optional control points and field DBH tables are parsed. The cloud's
+//! `ingest/sparse/`; a job that gave photos instead has them listed and their headers read
+//! (at least 3, every one readable), and stage `sfm` makes the model. Optional control points and field DBH tables are parsed. The cloud's
 //! CRS (the job's `crs`, else the file's declaration) is settled here once and written as
 //! `ingest/crs.json`, which every later stage that writes coordinates copies beside them. The
 //! photos' EXIF GPS positions, when they carry any, become `ingest/gps.json` (stage `register`
@@ -21,7 +22,7 @@ use crate::io::colmap;
 use crate::io::crs::CrsRecord;
 use crate::io::gps::{self, GpsFix};
 use crate::io::pointcloud::PointCloud;
-use crate::io::{ply, pointcloud, tables};
+use crate::io::{photos, ply, pointcloud, tables};
 use crate::progress::SubProgress;
 
 /// How many names of missing or broken images an error message lists before "and N more".
@@ -49,8 +50,18 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     }
     ctx.progress.set(0.5);
 
-    // 2. The COLMAP project (0.5 .. 0.95).
-    let colmap_report = ingest_colmap(ctx, &mut warnings)?;
+    // 2. The COLMAP project, or the photos stage `sfm` reconstructs (0.5 .. 0.95).
+    let (colmap_report, photos_report) = match (&ctx.inputs.photos, &ctx.inputs.colmap) {
+        (Some(photos), _) => (
+            serde_json::Value::Null,
+            ingest_photos(ctx, photos, &mut warnings)?,
+        ),
+        (None, Some(colmap)) => (
+            ingest_colmap(ctx, colmap, &mut warnings)?,
+            serde_json::Value::Null,
+        ),
+        (None, None) => return Err(StageError::Input(super::NO_PHOTOS.into())),
+    };
 
     // 3. Optional tables.
     let control_points = match &ctx.inputs.control_points {
@@ -81,6 +92,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             "crs_source": crs.source,
         },
         "colmap": colmap_report,
+        "photos": photos_report,
         "control_points": control_points,
         "field_trees": field_trees,
         "warnings": warnings,
@@ -156,9 +168,10 @@ fn ingest_cloud(
 /// the report's `colmap`.
 fn ingest_colmap(
     ctx: &StageContext<'_>,
+    colmap_dir: &std::path::Path,
     warnings: &mut Vec<String>,
 ) -> Result<serde_json::Value, StageError> {
-    let project = colmap::find_project(&ctx.inputs.colmap)?;
+    let project = colmap::find_project(colmap_dir)?;
     let model = colmap::read_model(
         &project.sparse_dir,
         &SubProgress::new(ctx.progress, 0.5, 0.1),
@@ -187,12 +200,9 @@ fn ingest_colmap(
     if ctx.progress.is_cancelled() {
         return Err(StageError::Cancelled);
     }
-    let gps = read_gps(images_dir, &model, warnings);
-    if !gps.is_empty() {
-        let path = ctx.out_dir.join(GPS_FILE);
-        let text = serde_json::to_vec_pretty(&gps).map_err(|e| StageError::Input(e.to_string()))?;
-        std::fs::write(&path, text).map_err(|e| crate::io::IoError::io(&path, e))?;
-    }
+    let names: Vec<String> = model.images.values().map(|im| im.name.clone()).collect();
+    let gps = read_gps(images_dir, &names, warnings);
+    write_gps(ctx, &gps)?;
     let sparse_out = ctx.out_dir.join("sparse");
     std::fs::create_dir_all(&sparse_out).map_err(|e| crate::io::IoError::io(&sparse_out, e))?;
     colmap::write_text(&model, &sparse_out)?;
@@ -206,6 +216,70 @@ fn ingest_colmap(
     report["images_checked"] = json!(check.as_ref().map(|c| c.images_found));
     report["images_with_gps"] = json!(gps.len());
     Ok(report)
+}
+
+/// Writes `gps.json` when any photo has a position.
+fn write_gps(ctx: &StageContext<'_>, gps: &BTreeMap<String, GpsFix>) -> Result<(), StageError> {
+    if !gps.is_empty() {
+        let path = ctx.out_dir.join(GPS_FILE);
+        let text = serde_json::to_vec_pretty(gps).map_err(|e| StageError::Input(e.to_string()))?;
+        std::fs::write(&path, text).map_err(|e| crate::io::IoError::io(&path, e))?;
+    }
+    Ok(())
+}
+
+/// Finds the photos of a job that gave photos instead of a COLMAP project, refuses a set
+/// stage `sfm` cannot use (fewer than 3 photos, a photo whose header cannot be read), and
+/// reads their GPS positions into `gps.json`. Returns the report's `photos`.
+fn ingest_photos(
+    ctx: &StageContext<'_>,
+    root: &std::path::Path,
+    warnings: &mut Vec<String>,
+) -> Result<serde_json::Value, StageError> {
+    let dir = photos::find_photos_dir(root)?;
+    let names = photos::list_photos(&dir)?;
+    if names.len() < 3 {
+        return Err(StageError::Input(format!(
+            "photos: {} photo(s) found; structure from motion needs at least 3 overlapping \
+             photos",
+            names.len()
+        )));
+    }
+    ctx.progress.log(&format!("{} photos", names.len()));
+    let check = photos::check_photos(&dir, &names);
+    if !check.unreadable.is_empty() {
+        let broken: Vec<String> = check
+            .unreadable
+            .iter()
+            .map(|f| format!("{} ({})", f.name, f.fault))
+            .collect();
+        return Err(StageError::Input(format!(
+            "photos: {} photo(s) cannot be read: {}",
+            broken.len(),
+            list(&broken)
+        )));
+    }
+    if ctx.progress.is_cancelled() {
+        return Err(StageError::Cancelled);
+    }
+    let gps = read_gps(&dir, &names, warnings);
+    write_gps(ctx, &gps)?;
+    let sizes: Vec<serde_json::Value> = check
+        .size_counts()
+        .iter()
+        .map(|(s, n)| json!({ "width": s[0], "height": s[1], "photos": n }))
+        .collect();
+    if sizes.len() > 1 {
+        warnings.push(format!(
+            "photos: {} different sizes; each size gets its own camera in stage sfm",
+            sizes.len()
+        ));
+    }
+    Ok(json!({
+        "photos": names.len(),
+        "sizes": sizes,
+        "images_with_gps": gps.len(),
+    }))
 }
 
 /// Refuses photos the check found missing, undecodable or not at their camera's size,
@@ -243,19 +317,18 @@ fn refuse_unusable_photos(check: &colmap::ImageCheck) -> Result<(), StageError> 
 /// Written only when at least one registered photo has one; stage `register` starts from it.
 pub const GPS_FILE: &str = "gps.json";
 
-/// The EXIF GPS position of every registered photo that has one, by name. A photo whose
+/// The EXIF GPS position of every photo in `names` that has one, by name. A photo whose
 /// EXIF is malformed adds a warning and no position.
 fn read_gps(
     images_dir: &std::path::Path,
-    model: &colmap::ColmapModel,
+    names: &[String],
     warnings: &mut Vec<String>,
 ) -> BTreeMap<String, GpsFix> {
-    let names: Vec<&String> = model.images.values().map(|im| &im.name).collect();
     let read: Vec<(String, Result<Option<GpsFix>, String>)> = names
         .par_iter()
         .filter_map(|name| {
             let path = colmap::image_path(images_dir, name)?;
-            Some(((*name).clone(), gps::read_fix(&path)))
+            Some((name.clone(), gps::read_fix(&path)))
         })
         .collect();
     let mut bad = Vec::new();

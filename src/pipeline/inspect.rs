@@ -1,15 +1,15 @@
 //! Content inspection of a finished upload: is this file what its kind says, and usable?
 //!
 //! Runs when a client completes an upload, so a broken file is refused with reasons (HTTP 422)
-//! before any job is queued on it. A COLMAP archive is extracted here, safely, once; jobs
-//! read the extracted folder.
+//! before any job is queued on it. A COLMAP or photos archive is extracted here, safely, once;
+//! jobs read the extracted folder.
 
 use std::path::Path;
 
 use serde_json::json;
 
 use crate::io::archive::{self, ExtractLimits};
-use crate::io::{IoError, colmap, pointcloud, tables};
+use crate::io::{IoError, colmap, photos, pointcloud, tables};
 use crate::progress::Progress;
 
 pub use crate::stage::UploadKind;
@@ -66,6 +66,7 @@ pub fn inspect_upload(
                 json!({ "point_cloud": s, "warnings": warnings })
             }),
         UploadKind::Colmap => inspect_colmap(blob, unpack_dir, limits, progress),
+        UploadKind::Photos => inspect_photos(blob, unpack_dir, limits, progress),
         UploadKind::ControlPoints => tables::read_control_points(blob)
             .map_err(InspectError::from)
             .map(|v| json!({ "control_points": v.len() })),
@@ -125,7 +126,8 @@ fn units_warning(filename: &str, s: &pointcloud::CloudSummary) -> Option<String>
     })
 }
 
-fn inspect_colmap(
+/// Extracts an archive upload into `unpack_dir` (emptied first), returning its summary.
+fn extract(
     blob: &Path,
     unpack_dir: &Path,
     limits: &ExtractLimits,
@@ -141,6 +143,62 @@ fn inspect_colmap(
             archive::ArchiveError::File(e) => InspectError::Io(e),
             other => InspectError::Unusable(format!("archive: {other}")),
         })?;
+    Ok(json!(summary))
+}
+
+/// A `photos` upload: an archive of at least 3 photos, each with a readable header.
+fn inspect_photos(
+    blob: &Path,
+    unpack_dir: &Path,
+    limits: &ExtractLimits,
+    progress: &dyn Progress,
+) -> Result<serde_json::Value, InspectError> {
+    let summary = extract(blob, unpack_dir, limits, progress)?;
+    let dir = photos::find_photos_dir(unpack_dir)?;
+    let names = photos::list_photos(&dir)?;
+    if names.len() < 3 {
+        return Err(InspectError::Unusable(format!(
+            "{} photo(s) found; structure from motion needs at least 3 overlapping photos",
+            names.len()
+        )));
+    }
+    let check = photos::check_photos(&dir, &names);
+    if !check.unreadable.is_empty() {
+        let shown: Vec<String> = check
+            .unreadable
+            .iter()
+            .take(5)
+            .map(|f| format!("{} ({})", f.name, f.fault))
+            .collect();
+        return Err(InspectError::Unusable(format!(
+            "{} photo(s) cannot be read: {}{}",
+            check.unreadable.len(),
+            shown.join(", "),
+            if check.unreadable.len() > 5 {
+                ", …"
+            } else {
+                ""
+            }
+        )));
+    }
+    let sizes: Vec<serde_json::Value> = check
+        .size_counts()
+        .iter()
+        .map(|(s, n)| json!({ "width": s[0], "height": s[1], "photos": n }))
+        .collect();
+    Ok(json!({
+        "archive": summary,
+        "photos": { "photos": names.len(), "sizes": sizes },
+    }))
+}
+
+fn inspect_colmap(
+    blob: &Path,
+    unpack_dir: &Path,
+    limits: &ExtractLimits,
+    progress: &dyn Progress,
+) -> Result<serde_json::Value, InspectError> {
+    let summary = extract(blob, unpack_dir, limits, progress)?;
     let project = colmap::find_project(unpack_dir)?;
     let model = colmap::read_model(&project.sparse_dir, progress)?;
     let images_dir = project.images_dir.as_ref().ok_or_else(|| {

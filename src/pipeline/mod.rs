@@ -1,4 +1,4 @@
-//! The pipeline: seven stages, each a function of files in and files out.
+//! The pipeline: eight stages, each a function of files in and files out.
 //!
 //! A stage reads its inputs and the outputs of earlier stages from the job's work directory,
 //! writes its own outputs into a fresh `<stage>.partial/` folder, and [`execute_stage`] renames
@@ -15,6 +15,7 @@ pub mod inspect;
 pub mod params;
 pub mod register;
 pub mod segment;
+pub mod sfm;
 pub mod train;
 
 use std::fs;
@@ -24,19 +25,36 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::io::IoError;
+use crate::io::{IoError, colmap};
 use crate::progress::Progress;
 pub use crate::stage::{OutputFile, Stage};
 pub use params::PipelineParams;
 
 /// The files a job starts from, already on local disk. `colmap` is a folder holding the
-/// COLMAP project (an uploaded archive is unpacked before the pipeline sees it).
+/// COLMAP project, `photos` a folder of photos for stage `sfm` to reconstruct (an uploaded
+/// archive is unpacked before the pipeline sees it); a job gives one of the two.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct StageInputs {
     pub lidar: PathBuf,
-    pub colmap: PathBuf,
+    #[serde(default)]
+    pub colmap: Option<PathBuf>,
+    #[serde(default)]
+    pub photos: Option<PathBuf>,
     pub control_points: Option<PathBuf>,
     pub field_dbh: Option<PathBuf>,
+}
+
+impl StageInputs {
+    /// Inputs from a COLMAP project (the form every job had before stage `sfm`).
+    pub fn with_colmap(lidar: PathBuf, colmap: PathBuf) -> Self {
+        Self {
+            lidar,
+            colmap: Some(colmap),
+            photos: None,
+            control_points: None,
+            field_dbh: None,
+        }
+    }
 }
 
 /// Why a stage did not finish.
@@ -51,6 +69,10 @@ pub enum StageError {
     /// The GPU is missing or failed (the service's fault, not the input's).
     #[error("{0}")]
     Device(String),
+    /// A program the stage runs is missing on this worker (the service's fault): the message
+    /// names it and how to install it.
+    #[error("{0}")]
+    Unavailable(String),
     /// The data were usable but a gate refused the result (the automatic registration was
     /// not sure): `detail` says why and what to supply, `candidates` what was weighed (the
     /// job's problem carries them, the web page lists them).
@@ -128,6 +150,33 @@ impl StageContext<'_> {
         Ok(crate::forest::read_crs(&ingest)?)
     }
 
+    /// The folder holding the job's SfM model in the SfM frame, as text: `sfm/sparse` when
+    /// stage `sfm` reconstructed one from photos, else `ingest/sparse` (the uploaded
+    /// project, copied by stage `ingest`).
+    pub fn sfm_model_dir(&self, me: Stage) -> Result<PathBuf, StageError> {
+        let ingest = self.output_of(Stage::Ingest, me)?;
+        let from_photos = self.work_dir.join(Stage::Sfm.name()).join("sparse");
+        if self.inputs.photos.is_some() {
+            self.output_of(Stage::Sfm, me)?;
+            return Ok(from_photos);
+        }
+        Ok(ingest.join("sparse"))
+    }
+
+    /// The folder of the job's photos, as the SfM model names them: the uploaded project's
+    /// `images/`, or the folder of photos stage `sfm` reconstructed.
+    pub fn images_dir(&self) -> Result<PathBuf, StageError> {
+        match (&self.inputs.photos, &self.inputs.colmap) {
+            (Some(photos), _) => Ok(crate::io::photos::find_photos_dir(photos)?),
+            (None, Some(colmap)) => colmap::find_project(colmap)?.images_dir.ok_or_else(|| {
+                StageError::Input(
+                    "COLMAP project: no images/ folder beside the sparse model".into(),
+                )
+            }),
+            (None, None) => Err(StageError::Input(NO_PHOTOS.into())),
+        }
+    }
+
     /// The finished output folder of an earlier stage, or a clear error if it is missing.
     pub fn output_of(&self, stage: Stage, me: Stage) -> Result<PathBuf, StageError> {
         let dir = self.work_dir.join(stage.name());
@@ -141,6 +190,10 @@ impl StageContext<'_> {
         }
     }
 }
+
+/// What a job without either source of photos is told.
+pub const NO_PHOTOS: &str =
+    "the job has neither photos nor a COLMAP project; give one of `photos` and `colmap`";
 
 /// Name of the report every stage leaves in its folder.
 pub const REPORT_FILE: &str = "report.json";
@@ -157,6 +210,7 @@ pub struct StageOutcome {
 pub fn run_stage(stage: Stage, ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     match stage {
         Stage::Ingest => ingest::run(ctx),
+        Stage::Sfm => sfm::run(ctx),
         Stage::Register => register::run(ctx),
         Stage::Anchors => anchors::run(ctx),
         Stage::Segment => segment::run(ctx),

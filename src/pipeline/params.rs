@@ -23,6 +23,8 @@ pub struct PipelineParams {
     /// the trees on the Earth (its geometries are null) and every output says so.
     pub crs: Option<String>,
     pub ingest: IngestParams,
+    /// Stage `sfm`: COLMAP on the job's photos (unused when the job gives a COLMAP project).
+    pub sfm: SfmParams,
     pub register: RegisterParams,
     pub anchors: AnchorParams,
     /// Stage `segment`: ground, wood/leaf labels, stems and their LiDAR diameters
@@ -51,6 +53,86 @@ impl Default for IngestParams {
         Self {
             decode_images: true,
             max_plausible_extent_m: 5000.0,
+        }
+    }
+}
+
+/// How stage `sfm` pairs photos for matching.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum SfmMatching {
+    /// Exhaustive for up to `exhaustive_max_photos` photos; above that spatial when at least
+    /// half the photos carry EXIF GPS, else sequential (name order, as cameras number them).
+    Auto,
+    Exhaustive,
+    Spatial,
+    Sequential,
+}
+
+/// Stage `sfm`: structure from motion by COLMAP's command line on the job's photos
+/// (docs/method.md, Stage 0). Defaults follow COLMAP 3.8's own where not said otherwise.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct SfmParams {
+    /// COLMAP camera model (default `SIMPLE_RADIAL`: one focal length, the principal point and
+    /// one radial term, what a drone or phone camera needs; COLMAP's own default too). Must be
+    /// one Sylva undistorts: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV.
+    pub camera_model: String,
+    /// One camera shared by photos of one size (default true: a plot is flown with one
+    /// camera; fewer unknowns make the mapper steadier). Photos of several sizes always get
+    /// one camera each.
+    pub single_camera: bool,
+    /// Longest photo side for feature extraction, pixels (default 2000: a 4000 × 2250 drone
+    /// photo is halved; with it COLMAP made Brighton's model from its 18 photos in 12 minutes
+    /// on 2 cores, issue 39. COLMAP's own default is 3200).
+    pub max_image_size: u32,
+    /// How photos are paired (default `auto`).
+    pub matching: SfmMatching,
+    /// `auto` matches exhaustively up to this many photos (default 60: 1,770 pairs; above it
+    /// the pairs grow as n², and 857 photos would be 366,796 pairs).
+    pub exhaustive_max_photos: u32,
+    /// Nearest GPS neighbours each photo is matched with under spatial matching (default 30:
+    /// a UAV grid with 80 % forward and 70 % side overlap sees a ground point in about 25
+    /// photos; COLMAP's default is 50).
+    pub spatial_neighbours: u32,
+    /// Photos after each, in name order, it is matched with under sequential matching
+    /// (default 10, COLMAP's own; quadratic overlap adds 2, 4, 8, … further on).
+    pub sequential_overlap: u32,
+    /// Smallest model the mapper keeps, in photos (default 3: COLMAP's default of 10 throws
+    /// away every model of a small set; stage `sfm` keeps the largest model anyway).
+    pub min_model_photos: u32,
+    /// The stage fails when fewer than this share of the photos register (default 0.5); the
+    /// failure lists the photos left out and why. Fewer unregistered photos are a warning.
+    pub min_registered_share: f64,
+    /// Use COLMAP's CUDA SIFT where the worker's COLMAP has CUDA (default false: Debian's
+    /// build has none, and with none COLMAP refuses the GPU option).
+    pub use_gpu: bool,
+    /// CPU threads COLMAP uses (default 0: all).
+    pub threads: u32,
+    /// The stage fails past this many minutes of COLMAP (default 720: twelve hours; the
+    /// worker's `--max-stage-secs sfm=…` stops it too).
+    pub time_limit_min: f64,
+    /// Keep COLMAP's database of features and matches in the stage's folder (default false:
+    /// it is large, tens of MB for 18 photos, and later stages never read it).
+    pub keep_database: bool,
+}
+
+impl Default for SfmParams {
+    fn default() -> Self {
+        Self {
+            camera_model: "SIMPLE_RADIAL".into(),
+            single_camera: true,
+            max_image_size: 2000,
+            matching: SfmMatching::Auto,
+            exhaustive_max_photos: 60,
+            spatial_neighbours: 30,
+            sequential_overlap: 10,
+            min_model_photos: 3,
+            min_registered_share: 0.5,
+            use_gpu: false,
+            threads: 0,
+            time_limit_min: 720.0,
+            keep_database: false,
         }
     }
 }
@@ -556,9 +638,9 @@ mod tests {
         };
         assert_eq!(
             p.stages(),
-            vec![Stage::Ingest, Stage::Register, Stage::Anchors]
+            vec![Stage::Ingest, Stage::Sfm, Stage::Register, Stage::Anchors]
         );
-        assert_eq!(PipelineParams::default().stages().len(), 7);
+        assert_eq!(PipelineParams::default().stages().len(), 8);
     }
 
     #[test]

@@ -140,7 +140,10 @@ fn weighed(runs: &[CandidateRun]) -> String {
 fn load_inputs(ctx: &StageContext<'_>) -> Result<(PointCloud, ColmapModel), StageError> {
     let ingest = ctx.output_of(Stage::Ingest, Stage::Register)?;
     let cloud = ctx.read_ingest_cloud(&ingest, 0.1)?;
-    let model = colmap::read_model(&ingest.join("sparse"), &crate::progress::NoProgress)?;
+    let model = colmap::read_model(
+        &ctx.sfm_model_dir(Stage::Register)?,
+        &crate::progress::NoProgress,
+    )?;
     Ok((cloud, model))
 }
 

@@ -400,10 +400,7 @@ fn inherit_trunk_prob(g: &mut Gaussians, anchors: &[Anchor]) {
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let register = ctx.output_of(Stage::Register, Stage::Train)?;
     let model = colmap::read_model(&register.join("sparse"), &NoProgress)?;
-    let project = colmap::find_project(&ctx.inputs.colmap)?;
-    let images = project.images_dir.ok_or_else(|| {
-        StageError::Input("COLMAP project: no images/ folder beside the sparse model".into())
-    })?;
+    let images = ctx.images_dir()?;
     let depth_weight = ctx.params.train.depth_weight;
     if !(depth_weight.is_finite() && depth_weight >= 0.0) {
         return Err(StageError::Input(format!(

@@ -122,6 +122,7 @@ fn job_progress(stages: &[Stage], stage: Stage, fraction: f64) -> f64 {
 fn stage_problem(stage: Stage, e: &StageError) -> serde_json::Value {
     let (slug, title, status) = match e {
         StageError::Device(_) => ("device-unavailable", "GPU unavailable", 503),
+        StageError::Unavailable(_) => ("tool-unavailable", "Tool unavailable", 503),
         _ if e.is_storage_full() => ("insufficient-storage", "Disk full", 507),
         _ if e.is_input_fault() => ("input-unusable", "Input unusable", 422),
         _ => ("stage-failed", "Stage failed", 500),
@@ -260,7 +261,7 @@ impl WorkerPool {
                 max_unpacked_bytes: u64::MAX,
                 max_ratio: f64::INFINITY,
             };
-            let unpack = (kind == UploadKind::Colmap).then_some(&limits);
+            let unpack = kind.is_archive().then_some(&limits);
             let path = self
                 .blobs
                 .local_input(id, &up.filename, unpack)
@@ -276,7 +277,8 @@ impl WorkerPool {
         };
         Ok(StageInputs {
             lidar: get(UploadKind::Lidar).ok_or("no lidar input")?,
-            colmap: get(UploadKind::Colmap).ok_or("no colmap input")?,
+            colmap: get(UploadKind::Colmap),
+            photos: get(UploadKind::Photos),
             control_points: get(UploadKind::ControlPoints),
             field_dbh: get(UploadKind::FieldDbh),
         })

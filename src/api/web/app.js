@@ -385,9 +385,15 @@ function fileProgressUi(container, file) {
 let jobKey = null; // one Idempotency-Key per plot, kept until its job exists
 async function submitPlot(e) {
   e.preventDefault();
-  const inputs = [['lidar', '#in-lidar'], ['colmap', '#in-colmap'], ['control_points', '#in-control'], ['field_dbh', '#in-field']]
+  const inputs = [['lidar', '#in-lidar'], ['photos', '#in-photos'], ['colmap', '#in-colmap'], ['control_points', '#in-control'], ['field_dbh', '#in-field']]
     .map(([kind, sel]) => [kind, $(sel).files[0]]).filter(([, f]) => f);
   const status = $('#upload-status'), btn = $('#upload-submit'), box = $('#upload-progress');
+  const given = new Set(inputs.map(([kind]) => kind));
+  if (given.has('photos') === given.has('colmap')) {
+    box.replaceChildren(el('div', { class: 'error' },
+      given.has('photos') ? 'Choose photos or a COLMAP project, not both.' : 'Choose the photos (or a COLMAP project).'));
+    return;
+  }
   btn.disabled = true;
   box.replaceChildren();
   status.textContent = 'Uploading…';
