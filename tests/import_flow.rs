@@ -21,7 +21,7 @@ const LAYERS: &[(u32, &[&str])] = &[
     (4, &["jobs", "store"]),
     (3, &["pipeline"]),
     (2, &["forest", "splat", "synth"]),
-    (1, &["geom", "io", "gpu"]),
+    (1, &["geom", "io", "gpu", "sfm"]),
     (0, &["progress", "stage", "rng", "testing"]),
 ];
 

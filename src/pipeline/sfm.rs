@@ -56,6 +56,25 @@ pub fn reconstruct_photos(
     out_dir: &Path,
     progress: &dyn Progress,
 ) -> Result<serde_json::Value, StageError> {
+    reconstruct_with(
+        &sfm::colmap_program(),
+        photos_root,
+        gps,
+        p,
+        out_dir,
+        progress,
+    )
+}
+
+/// [`reconstruct_photos`] with the COLMAP program given.
+fn reconstruct_with(
+    program: &Path,
+    photos_root: &Path,
+    gps: usize,
+    p: &SfmParams,
+    out_dir: &Path,
+    progress: &dyn Progress,
+) -> Result<serde_json::Value, StageError> {
     check_params(p)?;
     let photos_dir = photos::find_photos_dir(photos_root)?;
     let names = photos::list_photos(&photos_dir)?;
@@ -69,8 +88,7 @@ pub fn reconstruct_photos(
     let check = photos::check_photos(&photos_dir, &names);
     let sizes = check.size_counts();
     let matching = choose_matching(p, names.len(), gps);
-    let program = sfm::colmap_program();
-    let version = sfm::check_program(&program).map_err(map_err)?;
+    let version = sfm::check_program(program).map_err(map_err)?;
     progress.log(&format!(
         "{} photos ({} with GPS); {} matching; {version}",
         names.len(),
@@ -78,7 +96,7 @@ pub fn reconstruct_photos(
         matching.name()
     ));
     let opts = SfmOptions {
-        program,
+        program: program.to_path_buf(),
         photos_dir: photos_dir.clone(),
         photos: names.len(),
         camera_model: p.camera_model.clone(),
@@ -431,6 +449,101 @@ mod tests {
             ..SfmParams::default()
         };
         assert_eq!(choose_matching(&forced, 18, 18), Matching::Sequential);
+    }
+
+    fn photos(dir: &Path, n: usize) -> PathBuf {
+        let photos = dir.join("photos");
+        std::fs::create_dir_all(&photos).expect("mkdir");
+        for k in 0..n {
+            image::RgbImage::from_pixel(40, 30, image::Rgb([30 * k as u8, 90, 60]))
+                .save(photos.join(format!("p{k}.png")))
+                .expect("png");
+        }
+        photos
+    }
+
+    /// A stand-in for COLMAP whose mapper leaves a model of one photo, `p0.png`, of four.
+    fn one_photo_mapper(dir: &Path) -> PathBuf {
+        use std::os::unix::fs::PermissionsExt;
+        let script = dir.join("fake-colmap");
+        std::fs::write(
+            &script,
+            r#"#!/bin/sh
+if [ "$1" = mapper ]; then
+  while [ $# -gt 0 ]; do [ "$1" = --output_path ] && out="$2"; shift; done
+  mkdir -p "$out/0"
+  echo "1 PINHOLE 40 30 30 30 20 15" > "$out/0/cameras.txt"
+  printf '1 1 0 0 0 0 0 0 1 p0.png
+
+' > "$out/0/images.txt"
+  : > "$out/0/points3D.txt"
+  echo "Registering image #1 (1)"
+fi
+"#,
+        )
+        .expect("script");
+        std::fs::set_permissions(&script, std::fs::Permissions::from_mode(0o755)).expect("chmod");
+        script
+    }
+
+    #[test]
+    fn too_few_registered_photos_fail_the_stage_naming_the_others() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let photos = photos(dir.path(), 4);
+        let program = one_photo_mapper(dir.path());
+        let out = dir.path().join("out");
+        std::fs::create_dir_all(&out).expect("mkdir");
+        let p = SfmParams::default();
+        let e = reconstruct_with(&program, &photos, 0, &p, &out, &crate::progress::NoProgress)
+            .expect_err("1 of 4 registered");
+        let text = e.to_string();
+        assert!(e.is_input_fault(), "{text}");
+        assert!(text.contains("only 1 of 4 photos registered"), "{text}");
+        for name in ["p1.png", "p2.png", "p3.png"] {
+            assert!(text.contains(name), "{name} not named: {text}");
+        }
+        assert!(!text.contains("p0.png"), "{text}");
+        // With a share the user accepts, the model is written and the others are reported.
+        let lenient = SfmParams {
+            min_registered_share: 0.2,
+            ..SfmParams::default()
+        };
+        let report = reconstruct_with(
+            &program,
+            &photos,
+            0,
+            &lenient,
+            &out,
+            &crate::progress::NoProgress,
+        )
+        .expect("accepted");
+        assert_eq!(report["registered"], 1);
+        assert_eq!(report["unregistered"].as_array().map(Vec::len), Some(3));
+        assert!(out.join("sparse").join("images.txt").is_file());
+        assert!(
+            !out.join("colmap").exists(),
+            "COLMAP's working folder is removed"
+        );
+    }
+
+    #[test]
+    fn a_worker_without_colmap_fails_the_stage_as_unavailable_naming_the_package() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let photos = photos(dir.path(), 3);
+        let out = dir.path().join("out");
+        std::fs::create_dir_all(&out).expect("mkdir");
+        let e = reconstruct_with(
+            &dir.path().join("no-colmap-here"),
+            &photos,
+            0,
+            &SfmParams::default(),
+            &out,
+            &crate::progress::NoProgress,
+        )
+        .expect_err("no COLMAP");
+        assert!(matches!(e, StageError::Unavailable(_)), "{e}");
+        assert!(!e.is_input_fault());
+        assert!(e.to_string().contains("apt-get install colmap"), "{e}");
     }
 
     #[test]
