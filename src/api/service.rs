@@ -209,6 +209,18 @@ pub async fn info(
 pub async fn options() -> Response {
     Json(json!({
         "stages": Stage::ALL.iter().map(|s| s.name()).collect::<Vec<_>>(),
+        "inputs": {
+            "required": ["lidar"],
+            "one_of": ["photos", "colmap"],
+            "optional": ["control_points", "field_dbh"],
+            "kinds": {
+                "lidar": "point cloud in metres: LAS, LAZ, PLY, E57 or XYZ",
+                "photos": "zip or tar of JPEG, PNG or TIFF photos (at least 3); stage sfm runs COLMAP on them",
+                "colmap": "zip or tar of a COLMAP project: images/ and sparse/0 (or sparse/)",
+                "control_points": "CSV sfm_x,sfm_y,sfm_z,lidar_x,lidar_y,lidar_z, at least 4 pairs",
+                "field_dbh": "CSV x,y,dbh_cm of tape-measured trees",
+            },
+        },
         "defaults": PipelineParams::default(),
         "schema": PipelineParams::schema(),
     }))
