@@ -20,6 +20,9 @@ use sylva::io::gps::GpsFix;
 use sylva::pipeline::params::RegisterParams;
 use sylva::progress::NoProgress;
 
+/// A named subset of the SfM points, by index.
+type Bin<'a> = (&'static str, Box<dyn Fn(usize) -> bool + 'a>);
+
 fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
         return f64::NAN;
@@ -164,7 +167,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "  cameras' mean height {:.1} m over the highest SfM point",
             cams.iter().map(|k| k.z).sum::<f64>() / cams.len() as f64 - top
         );
-        let bins: [(&str, Box<dyn Fn(usize) -> bool>); 9] = [
+        let bins: [Bin; 9] = [
             (
                 "r < 15 m",
                 Box::new(|i: usize| (moved[i] - c).truncate().length() < 15.0),
