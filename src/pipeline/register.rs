@@ -29,7 +29,8 @@ use super::{Stage, StageContext, StageError};
 use crate::geom::coarse::CoarseAlignment;
 use crate::geom::register::{
     AUTOMATIC_MAX_STD_ROTATION_DEG, AUTOMATIC_MAX_STD_SCALE, AUTOMATIC_REFINE_PASSES, CandidateRun,
-    SurfaceTarget, icp_from, refine_on_surface, verify_candidates,
+    MIN_LAYERED_SHARE, SurfaceEvidence, SurfaceTarget, icp_from, layered_share, refine_on_surface,
+    surface_evidence, verify_candidates,
 };
 use crate::geom::{self, IcpMethod, IcpParams, IcpResult, RobustKernel, Similarity};
 use crate::io::colmap::{self, ColmapModel};
@@ -203,6 +204,9 @@ struct Start {
     /// The automatic path's surface and the pose its verification refined to, which the
     /// refinement goes on from.
     verified: Option<(SurfaceTarget, Similarity)>,
+    /// The report's `verification` (null with control points): which rule judged the
+    /// automatic alignment and its figures.
+    verification: serde_json::Value,
 }
 
 /// The final pose (local frame) and its figures.
@@ -218,8 +222,13 @@ struct Refined {
 
 /// What the georeferenced starts gave when each was verified alone.
 struct StartsWeighed {
-    /// The best start that passed the gates, with its label.
-    chosen: Option<(geom::register::Verified, &'static str)>,
+    /// The best start that passed the gates, with its label and, when the cloud has no
+    /// ground under its canopy, the surface evidence that passed it.
+    chosen: Option<(
+        geom::register::Verified,
+        &'static str,
+        Option<SurfaceEvidence>,
+    )>,
     /// The starts that reached the cloud, passing or not (they compete again in a search).
     competing: Vec<(&'static str, CoarseAlignment)>,
     /// Why each start that did not pass failed.
@@ -311,11 +320,26 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         }
     };
     let (candidates, mut pairs) = (start.candidates, start.pairs);
+    let verification = start.verification;
     let local = refined.transform;
     let gps_report = match &gps {
         Some(g) => a.check_gps(g, &local, method)?,
         None => serde_json::Value::Null,
     };
+    let residuals = a.residuals(&local, gps.as_ref())?;
+    ctx.progress.log(&format!(
+        "registered from the {label} start: SfM points to the cloud median {:.3} m, 90th \
+         percentile {:.3} m{}",
+        residuals["sfm_to_cloud_median_m"]
+            .as_f64()
+            .unwrap_or(f64::NAN),
+        residuals["sfm_to_cloud_p90_m"].as_f64().unwrap_or(f64::NAN),
+        residuals["cameras_to_gps_rms_m"]
+            .as_f64()
+            .map_or(String::new(), |r| format!(
+                "; cameras {r:.2} m (RMS, horizontal) from their GPS positions"
+            )),
+    ));
     // Each control pair's residual under the final transform too (metres, LiDAR frame).
     if let Some(c) = &a.control {
         for ((v, sfm), lidar) in pairs.iter_mut().zip(&c.sfm).zip(&c.lidar_local) {
@@ -350,6 +374,8 @@ fn align(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "icp_converged": refined.converged,
         "uncertainty": refined.uncertainty,
         "confidence": confidence,
+        "verification": verification,
+        "residuals": residuals,
         "candidates": candidates,
         "sfm_points": a.sfm.len(),
         "lidar_points_target": a.target.len(),
@@ -378,6 +404,34 @@ fn icp_params(p: &RegisterParams) -> IcpParams {
 }
 
 impl Aligner<'_, '_> {
+    /// The report's `residuals` of the final pose `local`: each SfM point's distance to the
+    /// nearest point of the ICP target (the cloud thinned to `target_voxel_m`), median and
+    /// 90th percentile in metres, and the cameras' RMS horizontal distance from their GPS
+    /// positions (null without GPS).
+    fn residuals(
+        &self,
+        local: &Similarity,
+        gps: Option<&GpsPairs>,
+    ) -> Result<serde_json::Value, StageError> {
+        let index = geom::PointIndex::new(&self.target)?;
+        let moved: Vec<Vec3> = self.sfm.iter().map(|x| local.apply(*x).as_vec3()).collect();
+        let mut d: Vec<f64> = index
+            .nearest_batch(&moved, &crate::progress::NoProgress)?
+            .iter()
+            .map(|n| n.map_or(f64::INFINITY, |n| f64::from(n.dist2).sqrt()))
+            .collect();
+        d.sort_by(f64::total_cmp);
+        let at = |q: f64| {
+            d.get(((d.len().max(1) - 1) as f64 * q).round() as usize)
+                .copied()
+        };
+        Ok(json!({
+            "sfm_to_cloud_median_m": at(0.5),
+            "sfm_to_cloud_p90_m": at(0.9),
+            "cameras_to_gps_rms_m": gps.map(|g| g.rms_under(local)),
+        }))
+    }
+
     /// The coarse similarity from the control point pairs (Umeyama), and ICP from it.
     fn control_points(&self, path: &Path, c: &ControlPairs) -> Result<Start, StageError> {
         let fit = geom::similarity_from_pairs(&c.sfm, &c.lidar_local, true)
@@ -413,6 +467,7 @@ impl Aligner<'_, '_> {
             fine,
             candidates: serde_json::Value::Null,
             verified: None,
+            verification: serde_json::Value::Null,
         })
     }
 
@@ -428,7 +483,22 @@ impl Aligner<'_, '_> {
             &SubProgress::new(ctx.progress, 0.12, 0.03),
         )?;
         let starts = georeferenced_starts(ctx, &self.sfm, &self.cloud, gps)?;
-        let weighed_starts = self.verify_starts(&starts, &st)?;
+        let layered = layered_share(&self.target);
+        ctx.progress.log(&format!(
+            "{:.3} of the cloud's points stand more than 0.5 m above the lowest of their 0.5 m \
+             cell: {}",
+            layered,
+            if layered >= MIN_LAYERED_SHARE {
+                "it sees ground under the trees"
+            } else {
+                "a surface without ground under the canopy (a georeferenced start is verified \
+                 by the surface evidence)"
+            }
+        ));
+        let surface_gps = (layered < MIN_LAYERED_SHARE)
+            .then(|| gps.and_then(|g| g.fit.as_ref()))
+            .flatten();
+        let weighed_starts = self.verify_starts(&starts, &st, surface_gps)?;
         if weighed_starts.chosen.is_none() && !starts.is_empty() {
             if p.start != RegisterStart::Auto {
                 let labels: Vec<&str> = weighed_starts.competing.iter().map(|s| s.0).collect();
@@ -448,9 +518,29 @@ impl Aligner<'_, '_> {
                 "no georeferenced start verified; searching over yaw, scale and offset instead",
             );
         }
-        let (v, label) = match weighed_starts.chosen {
+        let (v, label, evidence) = match weighed_starts.chosen {
             Some(found) => found,
-            None => self.search(&weighed_starts.competing, &st)?,
+            None => {
+                let (v, label) = self.search(&weighed_starts.competing, &st)?;
+                (v, label, None)
+            }
+        };
+        let verification = match &evidence {
+            Some(e) => json!({
+                "rule": "surface",
+                "layered_share": layered,
+                "on_cloud": e.on_cloud,
+                "shift_m": e.shift_m,
+                "shifted_on_cloud": e.shifted,
+                "peak_sigmas": e.peak_sigmas,
+            }),
+            None => json!({
+                "rule": "elevated",
+                "layered_share": layered,
+                "on_cloud": v.best_fit,
+                "elevated_on_cloud": v.best_elevated,
+                "runner_up": v.runner_up,
+            }),
         };
         Ok(Start {
             coarse: v.coarse,
@@ -461,16 +551,22 @@ impl Aligner<'_, '_> {
             candidates: candidates_json(&v.candidates),
             fine: v.fine,
             verified: Some((st, v.refined)),
+            verification,
         })
     }
 
     /// Verifies each georeferenced start on its own (one far off the cloud, as from a wrong
     /// CRS, fails ICP without taking the others down) and keeps the best that passes the
-    /// gates.
+    /// gates. `surface_gps`: the GPS fit when the cloud has no ground under its canopy; the
+    /// `gps` start is then judged by [`surface_evidence`] instead of the elevated share
+    /// (docs/method.md, Stage 1): a GPS fit within the ICP's first correspondence distance,
+    /// and a pose whose on-cloud share is a peak against the pose moved by three times the
+    /// fit's RMS (at least that distance).
     fn verify_starts(
         &self,
         starts: &[(&'static str, CoarseAlignment)],
         st: &SurfaceTarget,
+        surface_gps: Option<&geom::coarse::PositionFit>,
     ) -> Result<StartsWeighed, StageError> {
         let (ctx, p) = (self.ctx, self.p);
         let mut out = StartsWeighed {
@@ -490,7 +586,7 @@ impl Aligner<'_, '_> {
                 &surface_params(p),
                 &SubProgress::new(ctx.progress, 0.15 + share * k as f64, share),
             );
-            let v = match verified {
+            let mut v = match verified {
                 Ok(v) => v,
                 Err(geom::GeomError::Cancelled) => return Err(StageError::Cancelled),
                 Err(e) => {
@@ -501,6 +597,30 @@ impl Aligner<'_, '_> {
                     continue;
                 }
             };
+            let mut evidence = None;
+            if let (Some(fit), "gps") = (surface_gps, *label) {
+                let e = surface_evidence(
+                    &self.sfm,
+                    &v.refined,
+                    &geom::PointIndex::new(&self.target)?,
+                    (3.0 * fit.rms_m).max(p.icp_max_distance_m),
+                );
+                let gps_ok = fit.rms_m <= p.icp_max_distance_m;
+                ctx.progress.log(&format!(
+                    "{label} start on a cloud without ground: GPS fit {:.2} m RMS ({} the \
+                     ICP's reach of {:.2} m); on-cloud share {:.3}, at most {:.3} with the \
+                     pose moved {:.2} m ({:.1} standard errors below)",
+                    fit.rms_m,
+                    if gps_ok { "within" } else { "beyond" },
+                    p.icp_max_distance_m,
+                    e.on_cloud,
+                    e.shifted,
+                    e.shift_m,
+                    e.peak_sigmas
+                ));
+                v.confidence = if gps_ok { e.confidence() } else { 0.0 };
+                evidence = Some(e);
+            }
             ctx.progress.log(&format!(
                 "{label} start: on-cloud share {:.3} (elevated {:.3}); confidence {:.2}",
                 v.best_fit, v.best_elevated, v.confidence
@@ -521,9 +641,9 @@ impl Aligner<'_, '_> {
             } else if out
                 .chosen
                 .as_ref()
-                .is_none_or(|(c, _)| v.best_fit + v.best_elevated > c.best_fit + c.best_elevated)
+                .is_none_or(|(c, _, _)| v.best_fit + v.best_elevated > c.best_fit + c.best_elevated)
             {
-                out.chosen = Some((v, label));
+                out.chosen = Some((v, label, evidence));
             }
         }
         Ok(out)
