@@ -1,5 +1,6 @@
 //! Why stage `register` takes or refuses a real photo/cloud pair with GPS (issue 39): from an
-//! output folder where stage `ingest` ran (`sylva run ... --until ingest --out DIR`), the GPS
+//! output folder where stage `ingest` ran (`sylva run ... --until ingest --out DIR`; with
+//! `--photos`, `--until sfm`), the GPS
 //! start of [`sylva::geom::coarse::from_positions`], then ICP and the surface passes as the
 //! stage runs them, each step printed with the SfM points' distance to the cloud (to the
 //! nearest cloud point, and to the plane through its 8 nearest), the on-cloud and elevated
@@ -62,7 +63,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let dir = PathBuf::from(std::env::args().nth(1).ok_or("usage: register_real DIR")?);
     let ingest = dir.join("ingest");
     let cloud = sylva::io::pointcloud::read_point_cloud(&ingest.join("cloud.ply"), &NoProgress)?;
-    let model = sylva::io::colmap::read_model(&ingest.join("sparse"), &NoProgress)?;
+    // A job from photos has its model from stage sfm; one from a COLMAP project in ingest.
+    let from_photos = dir.join("sfm").join("sparse");
+    let sparse = if from_photos.is_dir() {
+        from_photos
+    } else {
+        ingest.join("sparse")
+    };
+    let model = sylva::io::colmap::read_model(&sparse, &NoProgress)?;
     let p: RegisterParams = match std::env::var("REG_PARAMS") {
         Ok(json) => serde_json::from_str(&json)?,
         Err(_) => RegisterParams::default(),
