@@ -9,7 +9,7 @@
 //! - `photos/*.JPG`: every photo scaled to LONGEST_SIDE_PX (default 800) on its longest side
 //!   (Lanczos), JPEG quality 85, with the photo's own EXIF tags for its camera, focal length,
 //!   time and GPS position (its maker note and thumbnail, 50 kB a photo, are left out);
-//! - `cloud.laz`: `model.laz` thinned to one point per VOXEL_M (default 0.3 m) voxel (the
+//! - `cloud.laz`: `model.laz` thinned to one point per VOXEL_M (default 0.1 m) voxel (the
 //!   centroid and mean colour of its points), with the same CRS.
 //!
 //! Both are the real data, only smaller: the GPS tags are the drone's, the cloud is the
@@ -85,7 +85,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         _ => return Err("usage: real_drone_set SRC OUT [LONGEST_SIDE_PX] [VOXEL_M]".into()),
     };
     let longest: u32 = args.get(2).map_or(Ok(800), |v| v.parse())?;
-    let voxel: f32 = args.get(3).map_or(Ok(0.3), |v| v.parse())?;
+    let voxel: f32 = args.get(3).map_or(Ok(0.1), |v| v.parse())?;
     let n = photos(&src.join("images"), &out.join("photos"), longest)?;
 
     let laz = src.join("model.laz");

@@ -81,56 +81,110 @@ fn report<'a>(j: &'a Value, stage_name: &str) -> &'a Value {
     &stage(j, stage_name)["metrics"]
 }
 
+/// The job from photos and the cloud alone, through the API. Stage `sfm` registers the
+/// photos and `register` verifies the GPS start on the cloud without ground; then its
+/// precision gate refuses, as it does on the full-size flight (the split halves of the SfM
+/// points disagree on the yaw by 0.046° here, 0.033° at full size, where 0.025° is the
+/// limit without control points; docs/results/photos.md). When the registration of such a
+/// pair gets precise enough, this test must ask for the whole job.
 #[tokio::test(flavor = "multi_thread")]
-async fn a_job_from_real_photos_runs_every_stage() {
-    if !colmap_present() || !gpu_present() {
+async fn a_job_from_real_drone_photos_reconstructs_and_verifies_its_gps_start() {
+    if !colmap_present() {
         return;
     }
     let dir = tempfile::tempdir().expect("tmp");
     let data = dir.path().join("data");
     let srv = serve(&data, &[]);
-    let _worker = worker(&data, &[]);
     let (c, base) = (client(), srv.base.clone());
     let (lidar, photos) = upload_photos(&c, &base, dir.path()).await;
-    let body = json!({
-        "inputs": { "lidar": lidar, "photos": photos },
-        // A short training: the test is of the stages' hand-over, not of the twin's quality.
-        "params": { "train": { "steps": 150, "resolution": 160, "max_gaussians": 3000 } },
-    });
+    let body = json!({ "inputs": { "lidar": lidar, "photos": photos } });
     let id = submit(&c, &base, &body).await;
-    let (job, progress) = wait_job(&c, &base, &id, Duration::from_secs(1500), is_terminal).await;
+    let (job, progress) = wait_job(&c, &base, &id, Duration::from_secs(1200), is_terminal).await;
     let log = log_text(&c, &base, &id).await;
-    assert_eq!(job["state"], "succeeded", "{job}\n{log}");
     assert!(
         progress.windows(2).all(|w| w[1] >= w[0] - 1e-9),
         "progress went back: {progress:?}"
     );
-    // Stage sfm: COLMAP's progress reached the log, most photos registered.
-    assert!(log.contains("COLMAP features"), "{log}");
+    // Stage sfm: COLMAP's progress reached the log, every photo registered.
+    assert!(log.contains("COLMAP matching: 100%"), "{log}");
     let sfm = report(&job, "sfm");
+    assert_eq!(stage(&job, "sfm")["state"], "done", "{job}\n{log}");
+    assert_eq!(sfm["photos"], 18, "{sfm}");
+    assert_eq!(sfm["photos_with_gps"], 18, "{sfm}");
+    assert_eq!(sfm["matching"], "exhaustive", "{sfm}");
     let registered = sfm["registered"].as_u64().unwrap_or(0);
     assert!(
-        registered >= 15,
+        registered >= 16,
         "only {registered} of 18 photos registered: {sfm}"
     );
-    assert_eq!(sfm["photos"], 18, "{sfm}");
-    assert_eq!(sfm["matching"], "exhaustive", "{sfm}");
+    let error = sfm["mean_reprojection_error_px"]
+        .as_f64()
+        .unwrap_or(f64::NAN);
+    assert!(error > 0.0 && error < 1.5, "{sfm}");
+    // Stage register: the GPS start verified on a cloud without ground, then the refusal.
     assert!(
-        sfm["mean_reprojection_error_px"]
-            .as_f64()
-            .is_some_and(|e| e > 0.0 && e < 2.0)
+        log.contains("a surface without ground under the canopy"),
+        "{log}"
     );
-    // Stage register started from the GPS tags.
-    let reg = report(&job, "register");
-    assert_eq!(reg["start"], "gps", "{reg}");
-    // Every later stage ran and the twin was exported.
-    for name in ["anchors", "segment", "train", "dbh", "export"] {
-        assert_eq!(stage(&job, name)["state"], "done", "{name}: {job}");
+    assert!(log.contains("gps start: on-cloud share"), "{log}");
+    assert!(log.contains("confidence 1.00"), "{log}");
+    assert_eq!(job["state"], "failed", "{job}");
+    assert_eq!(job["error"]["stage"], "register", "{job}");
+    let detail = job["error"]["detail"].as_str().unwrap_or("");
+    assert!(detail.contains("not precise enough"), "{detail}");
+    assert!(detail.contains("control points"), "{detail}");
+    println!("real_drone job: {registered}/18 registered, reprojection {error:.2} px; {detail}");
+}
+
+/// `sylva train --photos`: COLMAP, then a short training, held out above the mean colour.
+#[test]
+fn train_from_real_drone_photos_alone_beats_the_mean_colour() {
+    if !colmap_present() || !gpu_present() {
+        return;
     }
-    let train = report(&job, "train");
+    let dir = tempfile::tempdir().expect("tmp");
+    let out = dir.path().join("twin");
+    let run = std::process::Command::new(BIN)
+        .args(["train", "--photos"])
+        .arg(real_drone().join("photos"))
+        .arg("--out")
+        .arg(&out)
+        .args([
+            "--steps",
+            "300",
+            "--resolution",
+            "160",
+            "--max-gaussians",
+            "4000",
+        ])
+        .args(["--seed", "1", "--exposure", "off"])
+        .env("LP_NUM_THREADS", "1")
+        .output()
+        .expect("sylva train");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&run.stdout),
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(run.status.success(), "{text}");
+    let sfm = read_json(&out.join("sfm").join("report.json"));
+    assert!(sfm["registered"].as_u64().unwrap_or(0) >= 16, "{sfm}");
+    assert!(out.join("sfm").join("sparse").join("cameras.txt").is_file());
+    let eval = read_json(&out.join("eval.json"));
+    let psnr = eval["psnr"].as_f64().unwrap_or(0.0);
+    // The mean colour's PSNR, as the command prints it.
+    let mean = text
+        .split("(mean colour ")
+        .nth(1)
+        .and_then(|t| t.split(" dB").next())
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no mean colour in the output: {text}"));
     println!(
-        "real_drone job: {registered}/18 registered, reprojection {:.2} px; register {}; train {}",
-        sfm["mean_reprojection_error_px"], reg, train
+        "train --photos on real_drone: held-out {psnr:.2} dB against the mean colour's {mean:.2} dB"
+    );
+    assert!(
+        psnr > mean + 1.0,
+        "held out {psnr:.2} dB, mean colour {mean:.2} dB\n{text}"
     );
 }
 
