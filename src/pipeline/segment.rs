@@ -173,7 +173,21 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         .zip(&inv.is_ground)
         .filter(|(l, g)| **l == forest::TRUNK && !**g)
         .count();
+    // No stem is a finding about the cloud, not a failure: say what the cloud held.
+    let finding = inv.stems.is_empty().then(|| {
+        let why = format!(
+            "no stems found: {trunk} of {n} points ({:.2} %) were labelled trunk wood and \
+             {ground} ({:.1} %) ground. A cloud from above (nadir photogrammetry, airborne \
+             LiDAR) sees the canopy, not the stems; a handheld or terrestrial scan under the \
+             canopy is what finds them",
+            100.0 * trunk as f64 / n.max(1) as f64,
+            100.0 * ground as f64 / n.max(1) as f64,
+        );
+        ctx.progress.log(&why);
+        why
+    });
     Ok(json!({
+        "finding": finding,
         "points": { "total": n, "ground": ground, "trunk": trunk, "leaf": n - ground - trunk },
         "anchors": { "total": anchors.len(), "trunk": trunk_anchors },
         "stems": inv.stems.len(),
