@@ -103,6 +103,68 @@ pub fn list_photos(dir: &Path) -> Result<Vec<String>, IoError> {
     Ok(out)
 }
 
+/// The fewest photos structure from motion can use.
+pub const MIN_PHOTOS: usize = 3;
+
+/// A folder of photos checked for stage `sfm`: where they lie, their names and sizes.
+#[derive(Debug, Clone)]
+pub struct PhotoSet {
+    pub dir: PathBuf,
+    pub names: Vec<String>,
+    pub check: PhotoCheck,
+}
+
+/// Finds the photos under `root` ([`find_photos_dir`]), lists them and reads each header;
+/// a `Format` error when there are fewer than [`MIN_PHOTOS`] or any cannot be read (naming
+/// the first five). The one check an upload's inspection, stage `ingest` and stage `sfm`
+/// share.
+pub fn usable_photos(root: &Path) -> Result<PhotoSet, IoError> {
+    let dir = find_photos_dir(root)?;
+    let names = list_photos(&dir)?;
+    if names.len() < MIN_PHOTOS {
+        return Err(IoError::format(
+            root,
+            format!(
+                "{} photo(s) found; structure from motion needs at least {MIN_PHOTOS} \
+                 overlapping photos",
+                names.len()
+            ),
+        ));
+    }
+    let check = check_photos(&dir, &names);
+    if !check.unreadable.is_empty() {
+        let shown: Vec<String> = check
+            .unreadable
+            .iter()
+            .take(5)
+            .map(|f| format!("{} ({})", f.name, f.fault))
+            .collect();
+        return Err(IoError::format(
+            root,
+            format!(
+                "{} photo(s) cannot be read: {}{}",
+                check.unreadable.len(),
+                shown.join(", "),
+                if check.unreadable.len() > 5 {
+                    ", …"
+                } else {
+                    ""
+                }
+            ),
+        ));
+    }
+    Ok(PhotoSet { dir, names, check })
+}
+
+/// Each distinct size of a checked set as the reports give it: width, height, photos.
+pub fn sizes_json(check: &PhotoCheck) -> serde_json::Value {
+    check
+        .size_counts()
+        .iter()
+        .map(|(s, n)| serde_json::json!({ "width": s[0], "height": s[1], "photos": n }))
+        .collect()
+}
+
 /// One photo that cannot be read, with why.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PhotoFault {
@@ -205,5 +267,21 @@ mod tests {
         assert_eq!(check.unreadable.len(), 1);
         assert_eq!(check.unreadable[0].name, "bad.jpg");
         assert_eq!(check.sizes.len(), 1);
+        let e = usable_photos(dir.path()).expect_err("two photos, one broken");
+        assert!(e.to_string().contains("2 photo(s) found"), "{e}");
+        png(&dir.path().join("third.png"), 4, 4);
+        let e = usable_photos(dir.path()).expect_err("one broken");
+        assert!(
+            e.to_string().contains("1 photo(s) cannot be read: bad.jpg"),
+            "{e}"
+        );
+        std::fs::remove_file(dir.path().join("bad.jpg")).expect("rm");
+        png(&dir.path().join("fourth.png"), 4, 4);
+        let set = usable_photos(dir.path()).expect("usable");
+        assert_eq!(set.names, ["fourth.png", "good.png", "third.png"]);
+        assert_eq!(
+            sizes_json(&set.check),
+            serde_json::json!([{"width": 4, "height": 4, "photos": 3}])
+        );
     }
 }

@@ -236,48 +236,23 @@ fn ingest_photos(
     root: &std::path::Path,
     warnings: &mut Vec<String>,
 ) -> Result<serde_json::Value, StageError> {
-    let dir = photos::find_photos_dir(root)?;
-    let names = photos::list_photos(&dir)?;
-    if names.len() < 3 {
-        return Err(StageError::Input(format!(
-            "photos: {} photo(s) found; structure from motion needs at least 3 overlapping \
-             photos",
-            names.len()
-        )));
-    }
+    let set = photos::usable_photos(root)?;
+    let (dir, names) = (&set.dir, &set.names);
     ctx.progress.log(&format!("{} photos", names.len()));
-    let check = photos::check_photos(&dir, &names);
-    if !check.unreadable.is_empty() {
-        let broken: Vec<String> = check
-            .unreadable
-            .iter()
-            .map(|f| format!("{} ({})", f.name, f.fault))
-            .collect();
-        return Err(StageError::Input(format!(
-            "photos: {} photo(s) cannot be read: {}",
-            broken.len(),
-            list(&broken)
-        )));
-    }
     if ctx.progress.is_cancelled() {
         return Err(StageError::Cancelled);
     }
-    let gps = read_gps(&dir, &names, warnings);
+    let gps = read_gps(dir, names, warnings);
     write_gps(ctx, &gps)?;
-    let sizes: Vec<serde_json::Value> = check
-        .size_counts()
-        .iter()
-        .map(|(s, n)| json!({ "width": s[0], "height": s[1], "photos": n }))
-        .collect();
-    if sizes.len() > 1 {
+    let sizes = set.check.size_counts().len();
+    if sizes > 1 {
         warnings.push(format!(
-            "photos: {} different sizes; each size gets its own camera in stage sfm",
-            sizes.len()
+            "photos: {sizes} different sizes; each size gets its own camera in stage sfm"
         ));
     }
     Ok(json!({
         "photos": names.len(),
-        "sizes": sizes,
+        "sizes": photos::sizes_json(&set.check),
         "images_with_gps": gps.len(),
     }))
 }

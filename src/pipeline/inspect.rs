@@ -154,41 +154,10 @@ fn inspect_photos(
     progress: &dyn Progress,
 ) -> Result<serde_json::Value, InspectError> {
     let summary = extract(blob, unpack_dir, limits, progress)?;
-    let dir = photos::find_photos_dir(unpack_dir)?;
-    let names = photos::list_photos(&dir)?;
-    if names.len() < 3 {
-        return Err(InspectError::Unusable(format!(
-            "{} photo(s) found; structure from motion needs at least 3 overlapping photos",
-            names.len()
-        )));
-    }
-    let check = photos::check_photos(&dir, &names);
-    if !check.unreadable.is_empty() {
-        let shown: Vec<String> = check
-            .unreadable
-            .iter()
-            .take(5)
-            .map(|f| format!("{} ({})", f.name, f.fault))
-            .collect();
-        return Err(InspectError::Unusable(format!(
-            "{} photo(s) cannot be read: {}{}",
-            check.unreadable.len(),
-            shown.join(", "),
-            if check.unreadable.len() > 5 {
-                ", …"
-            } else {
-                ""
-            }
-        )));
-    }
-    let sizes: Vec<serde_json::Value> = check
-        .size_counts()
-        .iter()
-        .map(|(s, n)| json!({ "width": s[0], "height": s[1], "photos": n }))
-        .collect();
+    let set = photos::usable_photos(unpack_dir)?;
     Ok(json!({
         "archive": summary,
-        "photos": { "photos": names.len(), "sizes": sizes },
+        "photos": { "photos": set.names.len(), "sizes": photos::sizes_json(&set.check) },
     }))
 }
 

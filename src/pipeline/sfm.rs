@@ -76,17 +76,9 @@ fn reconstruct_with(
     progress: &dyn Progress,
 ) -> Result<serde_json::Value, StageError> {
     check_params(p)?;
-    let photos_dir = photos::find_photos_dir(photos_root)?;
-    let names = photos::list_photos(&photos_dir)?;
-    if names.len() < 3 {
-        return Err(StageError::Input(format!(
-            "photos: {} photo(s) found; structure from motion needs at least 3 overlapping \
-             photos",
-            names.len()
-        )));
-    }
-    let check = photos::check_photos(&photos_dir, &names);
-    let sizes = check.size_counts();
+    let set = photos::usable_photos(photos_root)?;
+    let (photos_dir, names) = (&set.dir, &set.names);
+    let sizes = set.check.size_counts();
     let matching = choose_matching(p, names.len(), gps);
     let version = sfm::check_program(program).map_err(map_err)?;
     progress.log(&format!(
@@ -204,7 +196,7 @@ fn reconstruct_with(
         "colmap": version,
         "photos": names.len(),
         "photos_with_gps": gps,
-        "photo_sizes": sizes.iter().map(|(s, n)| json!({"width": s[0], "height": s[1], "photos": n})).collect::<Vec<_>>(),
+        "photo_sizes": photos::sizes_json(&set.check),
         "camera_model": p.camera_model,
         "single_camera": opts.single_camera,
         "max_image_size": p.max_image_size,
