@@ -110,7 +110,7 @@ fn reconstruct_with(
     let run = match outcome {
         Ok(run) => run,
         Err(SfmError::Failed { step: "mapper", .. }) => {
-            let why = unregistered_reasons(&database, &names, &BTreeSet::new());
+            let why = unregistered_reasons(&database, names, &BTreeSet::new());
             return Err(StageError::Input(format!(
                 "COLMAP's mapper built no model from the {} photos: no pair of photos had \
                  enough matches and parallax to start one. {}",
@@ -122,7 +122,7 @@ fn reconstruct_with(
     };
     let (model, models) = largest_model(&run.sparse_root)?;
     let Some(model) = model else {
-        let why = unregistered_reasons(&database, &names, &BTreeSet::new());
+        let why = unregistered_reasons(&database, names, &BTreeSet::new());
         return Err(StageError::Input(format!(
             "COLMAP's mapper left no model of at least {} photos. {}",
             opts.min_model_size,
@@ -133,7 +133,7 @@ fn reconstruct_with(
         .check_cameras()
         .map_err(|e| StageError::Input(format!("COLMAP cameras: {e}")))?;
     let registered: BTreeSet<String> = model.images.values().map(|im| im.name.clone()).collect();
-    let why = unregistered_reasons(&database, &names, &registered);
+    let why = unregistered_reasons(&database, names, &registered);
     let share = registered.len() as f64 / names.len() as f64;
     if share < p.min_registered_share {
         return Err(StageError::Input(format!(
