@@ -198,3 +198,56 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "crs": crs.label,
     }))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::pointcloud::{CloudFormat, PointCloud};
+    use crate::pipeline::{PipelineParams, StageInputs, execute_stage};
+
+    /// A canopy seen from above (a rolling surface, nothing under it, no stem): the stage
+    /// finishes and says why it found no stems.
+    #[test]
+    fn a_cloud_without_stems_is_a_finding_not_a_failure() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let work = dir.path();
+        let mut positions = Vec::new();
+        for i in 0..200 {
+            for j in 0..200 {
+                let (x, y) = (i as f32 * 0.1, j as f32 * 0.1);
+                let z = 8.0 + 1.5 * (x * 0.7).sin() * (y * 0.5).cos();
+                positions.push(glam::Vec3::new(x, y, z));
+            }
+        }
+        let cloud = PointCloud {
+            offset: glam::DVec3::new(500_000.0, 4_000_000.0, 100.0),
+            positions,
+            colors: None,
+            intensity: None,
+            format: CloudFormat::Ply,
+        };
+        let ingest = work.join("ingest");
+        let anchors = work.join("anchors");
+        for d in [&ingest, &anchors] {
+            std::fs::create_dir_all(d).expect("mkdir");
+            std::fs::write(d.join(super::super::REPORT_FILE), b"{}").expect("report");
+        }
+        ply::write_ply(&ingest.join(super::super::INGEST_CLOUD), &cloud, &[]).expect("cloud");
+        ply::write_ply(&anchors.join("anchors.ply"), &cloud, &[]).expect("anchors");
+        let crs = crate::io::crs::resolve(None, Ok(None)).expect("crs");
+        forest::write_crs(&ingest, &crs).expect("crs.json");
+        let inputs = StageInputs::with_colmap(work.join("lidar.ply"), work.join("colmap"));
+        let out = execute_stage(
+            Stage::Segment,
+            &inputs,
+            work,
+            &PipelineParams::default(),
+            &crate::progress::NoProgress,
+        )
+        .expect("segment finishes");
+        assert_eq!(out.report["stems"], 0, "{}", out.report);
+        let finding = out.report["finding"].as_str().unwrap_or("");
+        assert!(finding.starts_with("no stems found"), "{}", out.report);
+        assert!(finding.contains("sees the canopy"), "{finding}");
+    }
+}
