@@ -80,6 +80,16 @@ pub struct RunArgs {
     pub log: String,
 }
 
+/// A JSON file read as `T`; errors name the file and `what` it should hold.
+pub(super) fn json_file<T: serde::de::DeserializeOwned>(
+    path: &Path,
+    what: &str,
+) -> anyhow::Result<T> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{}: invalid {what}", path.display()))
+}
+
 /// `input` itself when it is a folder; an archive unpacked to `<out>/inputs/<name>`.
 pub(super) async fn unpacked(input: &Path, out: &Path, name: &str) -> anyhow::Result<PathBuf> {
     if !input.is_file() {
@@ -266,12 +276,7 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     };
     init_tracing(&store);
     let mut params: PipelineParams = match &a.params {
-        Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("cannot read {}", p.display()))?;
-            serde_json::from_str(&text)
-                .with_context(|| format!("{}: invalid parameters", p.display()))?
-        }
+        Some(p) => json_file(p, "parameters")?,
         None => PipelineParams::default(),
     };
     if a.until.is_some() {

@@ -277,8 +277,10 @@ fn sfm_from_photos(
         std::fs::remove_dir_all(&sfm_dir)?;
     }
     std::fs::create_dir_all(&sfm_dir)?;
-    let report = sylva::pipeline::sfm::reconstruct_photos(photos, gps, params, &sfm_dir, progress)
-        .map_err(|e| anyhow::anyhow!("sfm: {e}"))?;
+    let program = sylva::sfm::colmap_program();
+    let report =
+        sylva::pipeline::sfm::reconstruct_photos(&program, photos, gps, params, &sfm_dir, progress)
+            .map_err(|e| anyhow::anyhow!("sfm: {e}"))?;
     std::fs::write(
         sfm_dir.join("report.json"),
         serde_json::to_vec_pretty(&report)?,
@@ -307,12 +309,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         None => None,
     };
     let sfm_params: sylva::pipeline::params::SfmParams = match &a.sfm_params {
-        Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("cannot read {}", p.display()))?;
-            serde_json::from_str(&text)
-                .with_context(|| format!("{}: invalid sfm parameters", p.display()))?
-        }
+        Some(p) => super::run::json_file(p, "sfm parameters")?,
         None => Default::default(),
     };
     let outcome = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {

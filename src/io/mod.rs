@@ -90,6 +90,17 @@ pub(crate) fn check_cancel(progress: &dyn Progress) -> Result<(), IoError> {
     }
 }
 
+/// `path` relative to `base`, its components joined by `/` whatever the platform (`path`
+/// itself when it does not lie under `base`): the names of stage outputs and of photos.
+pub fn relative_name(path: &Path, base: &Path) -> String {
+    path.strip_prefix(base)
+        .unwrap_or(path)
+        .components()
+        .map(|c| c.as_os_str().to_string_lossy().into_owned())
+        .collect::<Vec<_>>()
+        .join("/")
+}
+
 /// Turns a name found inside a file (an archive entry, an image name in a COLMAP model) into a
 /// relative path that cannot leave the folder it is joined to.
 ///

@@ -88,14 +88,7 @@ pub fn list_photos(dir: &Path) -> Result<Vec<String>, IoError> {
             if path.is_dir() {
                 stack.push(path);
             } else if is_photo_name(&name) {
-                let rel = path
-                    .strip_prefix(dir)
-                    .unwrap_or(&path)
-                    .components()
-                    .map(|c| c.as_os_str().to_string_lossy().into_owned())
-                    .collect::<Vec<_>>()
-                    .join("/");
-                out.push(rel);
+                out.push(super::relative_name(&path, dir));
             }
         }
     }

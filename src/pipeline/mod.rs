@@ -298,13 +298,7 @@ pub fn list_outputs(stage: Stage, work_dir: &Path) -> Result<Vec<OutputFile>, St
             if ft.is_dir() {
                 stack.push(path);
             } else if ft.is_file() {
-                let rel = path
-                    .strip_prefix(work_dir)
-                    .unwrap_or(&path)
-                    .components()
-                    .map(|c| c.as_os_str().to_string_lossy().into_owned())
-                    .collect::<Vec<_>>()
-                    .join("/");
+                let rel = crate::io::relative_name(&path, work_dir);
                 let (size, sha256) = hash_file(&path).map_err(|e| io_err(&path, e))?;
                 let (kind, content_type) = classify(&rel);
                 out.push(OutputFile {

@@ -43,31 +43,21 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         };
     };
     let gps = gps_count(ctx)?;
-    reconstruct_photos(photos_root, gps, &ctx.params.sfm, ctx.out_dir, ctx.progress)
-}
-
-/// A COLMAP model of the photos under `photos_root` (of which `gps` carry an EXIF position),
-/// written as text to `<out_dir>/sparse/` with COLMAP's log as `<out_dir>/colmap.log`;
-/// returns the report. Stage `sfm` and `sylva train --photos` both run it.
-pub fn reconstruct_photos(
-    photos_root: &Path,
-    gps: usize,
-    p: &SfmParams,
-    out_dir: &Path,
-    progress: &dyn Progress,
-) -> Result<serde_json::Value, StageError> {
-    reconstruct_with(
+    reconstruct_photos(
         &sfm::colmap_program(),
         photos_root,
         gps,
-        p,
-        out_dir,
-        progress,
+        &ctx.params.sfm,
+        ctx.out_dir,
+        ctx.progress,
     )
 }
 
-/// [`reconstruct_photos`] with the COLMAP program given.
-fn reconstruct_with(
+/// A COLMAP model, made by `program` ([`sfm::colmap_program`] outside tests), of the photos
+/// under `photos_root` (of which `gps` carry an EXIF position), written as text to
+/// `<out_dir>/sparse/` with COLMAP's log as `<out_dir>/colmap.log`; returns the report.
+/// Stage `sfm` and `sylva train --photos` both run it.
+pub fn reconstruct_photos(
     program: &Path,
     photos_root: &Path,
     gps: usize,
@@ -486,7 +476,7 @@ fi
         let out = dir.path().join("out");
         std::fs::create_dir_all(&out).expect("mkdir");
         let p = SfmParams::default();
-        let e = reconstruct_with(&program, &photos, 0, &p, &out, &crate::progress::NoProgress)
+        let e = reconstruct_photos(&program, &photos, 0, &p, &out, &crate::progress::NoProgress)
             .expect_err("1 of 4 registered");
         let text = e.to_string();
         assert!(e.is_input_fault(), "{text}");
@@ -500,7 +490,7 @@ fi
             min_registered_share: 0.2,
             ..SfmParams::default()
         };
-        let report = reconstruct_with(
+        let report = reconstruct_photos(
             &program,
             &photos,
             0,
@@ -524,7 +514,7 @@ fi
         let photos = photos(dir.path(), 3);
         let out = dir.path().join("out");
         std::fs::create_dir_all(&out).expect("mkdir");
-        let e = reconstruct_with(
+        let e = reconstruct_photos(
             &dir.path().join("no-colmap-here"),
             &photos,
             0,
