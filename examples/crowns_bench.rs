@@ -2,9 +2,11 @@
 //! segmentation's parameters (`forest::crowns`): height RMSE, crown-diameter error (mean and
 //! worst) and the segmentation's seconds, one row per seed and setting.
 //!
-//! `cargo run --profile test --example crowns_bench -- [SEEDS] [voxel_m,k,max_edge_m,edge_power ...]`
+//! `cargo run --profile test --example crowns_bench -- [SEEDS] [key=value,key=value ...]`
 //! (SEEDS `5` for 1-5 or a range `6-10`; default 1-5 with the default parameters, then each
-//! setting given). With `CROWNS_BENCH_TREES` set, every tree's figures go to stderr.
+//! setting given as `CrownParams` fields over the defaults, e.g. `edge_power=1,max_edge_m=0.5`). With `CROWNS_BENCH_TREES` set, every tree's figures go to stderr;
+//! `CROWNS_BENCH_HIDDEN_STEM_M` and `CROWNS_BENCH_INTERLOCK` turn on the generator's
+//! hidden-stem and interlocking-crown knobs (`SynthParams::hidden_stem_m`, `crown_interlock`).
 
 use std::time::Instant;
 
@@ -22,30 +24,30 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let mut settings = vec![CrownParams::default()];
     for spec in args.iter().skip(1) {
-        let v: Vec<f64> = spec.split(',').filter_map(|x| x.parse().ok()).collect();
-        if let [voxel, k, edge, power] = v[..] {
-            settings.push(CrownParams {
-                voxel_m: voxel as f32,
-                k: k as usize,
-                max_edge_m: edge as f32,
-                edge_power: power as f32,
-                ..CrownParams::default()
-            });
+        // `key=value,key=value` over the defaults, e.g. `axis_reach_m=0,gap_max_m=0`.
+        let mut obj = serde_json::Map::new();
+        for kv in spec.split(',') {
+            let (k, v) = kv
+                .split_once('=')
+                .ok_or("settings are key=value,key=value")?;
+            obj.insert(k.to_string(), serde_json::from_str(v)?);
         }
+        settings.push(serde_json::from_value(serde_json::Value::Object(obj))?);
     }
-    println!(
-        "| seed | voxel m | k | max edge m | edge power | height RMSE m | \
-         crown error mean / worst % | trees | seconds |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("| seed | setting | height RMSE m | crown error mean / worst % | trees | seconds |");
+    println!("|---|---|---|---|---|---|");
     for seed in first..=last {
         let mut p = SynthParams::new(Preset::Stand);
         p.seed = seed;
+        let knob = |name: &str| std::env::var(name).ok().and_then(|v| v.parse::<f64>().ok());
+        p.hidden_stem_m = knob("CROWNS_BENCH_HIDDEN_STEM_M");
+        p.crown_interlock = knob("CROWNS_BENCH_INTERLOCK");
         let plot = lidar_plot(&p, &NoProgress)?;
         let inv = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress)?;
         let pts = &plot.cloud.positions;
         let heights = inv.dtm.heights_above(pts);
-        for s in &settings {
+        for (k, s) in settings.iter().enumerate() {
+            let name = if k == 0 { "default" } else { args[k].as_str() };
             let t = Instant::now();
             let seg = segment_trees(pts, &heights, &inv.is_ground, &inv.stems, s, &NoProgress)?;
             let secs = t.elapsed().as_secs_f64();
@@ -60,9 +62,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 sq += (tree.height_m - truth.height_m).powi(2);
                 if std::env::var_os("CROWNS_BENCH_TREES").is_some() {
                     eprintln!(
-                        "seed {seed} stem {}: height {:.2} (truth {:.2}), crown {:.2} (truth \
+                        "seed {seed} {name} stem {}: gap {:?} height {:.2} (truth {:.2}), crown {:.2} (truth \
                          {crown_truth:.2}), {} points",
-                        stem.id, tree.height_m, truth.height_m, tree.crown_diameter_m, tree.points
+                        stem.id,
+                        tree.gap_m,
+                        tree.height_m,
+                        truth.height_m,
+                        tree.crown_diameter_m,
+                        tree.points
                     );
                 }
                 let e = tree.crown_diameter_m / crown_truth - 1.0;
@@ -71,11 +78,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 n += 1;
             }
             println!(
-                "| {seed} | {} | {} | {} | {} | {:.2} | {:.1} / {:.1} | {n} | {secs:.2} |",
-                s.voxel_m,
-                s.k,
-                s.max_edge_m,
-                s.edge_power,
+                "| {seed} | {name} | {:.2} | {:.1} / {:.1} | {n} | {secs:.2} |",
                 (sq / n.max(1) as f64).sqrt(),
                 100.0 * rel / n.max(1) as f64,
                 100.0 * worst

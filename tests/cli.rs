@@ -145,7 +145,8 @@ fn run_until_segment_gives_the_lidar_inventory_of_a_synthetic_plot() {
         csv.lines().next(),
         Some(
             "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality,gs_quality,\
-             height_m,crown_base_m,crown_area_m2,crown_diameter_m,basal_area_m2,volume_m3,agb_kg,carbon_kg"
+             height_m,crown_base_m,crown_area_m2,crown_diameter_m,basal_area_m2,volume_m3,agb_kg,carbon_kg,\
+             height_quality,crown_gap_m"
         )
     );
     assert_eq!(csv.lines().count(), n_true + 1);

@@ -217,7 +217,8 @@ fn inventory_of_a_synthetic_plot_matches_its_field_measurements() {
     assert!(
         text.starts_with(
             "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality,gs_quality,\
-             height_m,crown_base_m,crown_area_m2,crown_diameter_m,basal_area_m2,volume_m3,agb_kg,carbon_kg\n"
+             height_m,crown_base_m,crown_area_m2,crown_diameter_m,basal_area_m2,volume_m3,agb_kg,carbon_kg,\
+             height_quality,crown_gap_m\n"
         ),
         "{text}"
     );

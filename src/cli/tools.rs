@@ -115,6 +115,15 @@ pub struct SynthArgs {
     /// Scan the trees without leaves while the photos show them leafy.
     #[arg(long, env = "SYLVA_SYNTH_LIDAR_LEAF_OFF", default_value_t = false)]
     pub lidar_leaf_off: bool,
+    /// Hide each tree's upper stem from the scan over a length drawn in [0.3, this] metres
+    /// from its crown base up, as foliage hides it from a scanner below (default: nothing
+    /// hidden).
+    #[arg(long, env = "SYLVA_SYNTH_HIDDEN_STEM_M")]
+    pub hidden_stem_m: Option<f64>,
+    /// Crowns that interlock: each crown reaches this share farther than the spacing of the
+    /// stems allows, 0–1.5 (default: none).
+    #[arg(long, env = "SYLVA_SYNTH_CROWN_INTERLOCK")]
+    pub crown_interlock: Option<f64>,
 }
 
 #[derive(Debug, Args)]
@@ -173,6 +182,8 @@ pub(super) async fn synth(a: SynthArgs) -> anyhow::Result<ExitCode> {
     p.slope_pct = a.slope_pct;
     p.lidar_coverage = a.lidar_coverage;
     p.lidar_leaf_off = a.lidar_leaf_off;
+    p.hidden_stem_m = a.hidden_stem_m;
+    p.crown_interlock = a.crown_interlock;
     let out = a.out.clone();
     let summary = tokio::task::spawn_blocking(move || {
         sylva::synth::generate(&p, &out, &ConsoleProgress::new("synth", None))

@@ -63,6 +63,35 @@ pub struct CrownParams {
     /// Quantile of the crown points' heights taken as the crown base (default 0.02: the
     /// lowest live branches, robust to a few stray points).
     pub crown_base_quantile: f64,
+    /// Horizontal reach of the axis prior, metres (0 turns it off): a path of tree t into a
+    /// voxel whose centre lies r metres from t's axis (extended up) costs (1 + (r / this)²)
+    /// times its edge, so that where two crowns touch, the points go to the tree whose
+    /// axis they stand over rather than to the one that reaches them through the contact.
+    /// See the measurements in docs/results/inventory.md (issue 40).
+    pub axis_reach_m: f32,
+    /// Radius of a stem's column beyond its own radius, metres (default 0.3): the voxels
+    /// within it of the axis, extended up, are joined from one to the next over gaps the
+    /// scan left in the stem (foliage hides the upper stem from a scanner below), so a
+    /// crown cut off from its stem is still reached through it.
+    pub column_radius_m: f32,
+    /// Shortest vertical gap in a column joined by such a bridge and reported as a gap,
+    /// metres (default 0.3: shorter ones the ordinary edges cross).
+    pub gap_min_m: f32,
+    /// Longest gap a column bridges, metres (default 5: above the 0.3–3 m of issue 40's
+    /// independent generator; 0 turns the bridges off).
+    pub gap_max_m: f32,
+    /// Give the voxels no path reaches to the tree whose axis is nearest (default false: they
+    /// belong to no tree, as a bush standing alone). `segment.cloud = "segmented_tree"` sets
+    /// it: a cloud that is one tree holds nothing else, so a piece of crown the graph cannot
+    /// join (a top scanned apart from the rest) is still that tree's.
+    pub assign_unreached: bool,
+    /// Cost of a bridge per metre of its length, in metres of path (default 1: as dear as
+    /// the stem it stands in for). Bridges stand only where the stem is bare below the gap,
+    /// which already keeps a short tree's column out of an overhanging neighbour; measured
+    /// on `stand` seeds 1–5 with the hidden-stem knob at 3 m (docs/results/inventory.md),
+    /// 1 gave height RMSE 0.28 / 1.33 / 0.12 / 2.35 / 1.23 m where 3 gave
+    /// 0.28 / 1.91 / 1.26 / 2.35 / 1.23, and the same figures without the knob.
+    pub gap_cost: f32,
 }
 
 impl Default for CrownParams {
@@ -75,6 +104,12 @@ impl Default for CrownParams {
             edge_power: 4.0,
             crown_offset_m: 0.5,
             crown_base_quantile: 0.02,
+            axis_reach_m: 3.0,
+            column_radius_m: 0.3,
+            gap_min_m: 0.3,
+            gap_max_m: 5.0,
+            gap_cost: 1.0,
+            assign_unreached: false,
         }
     }
 }
@@ -97,6 +132,19 @@ impl CrownParams {
                 "crowns: k must be 1 to 32, got {}",
                 self.k
             )));
+        }
+        let non_negative = |v: f32| v.is_finite() && v >= 0.0;
+        if !(non_negative(self.axis_reach_m)
+            && non_negative(self.column_radius_m)
+            && non_negative(self.gap_min_m)
+            && non_negative(self.gap_max_m)
+            && non_negative(self.gap_cost))
+        {
+            return Err(ForestError::Params(
+                "crowns: axis_reach_m, column_radius_m, gap_min_m, gap_max_m and gap_cost \
+                 must be zero or more"
+                    .into(),
+            ));
         }
         if !(0.0..=1.0).contains(&self.crown_base_quantile) {
             return Err(ForestError::Params(
@@ -123,6 +171,57 @@ pub struct TreeCrown {
     pub hull: Vec<[f32; 2]>,
     /// Points of the tree.
     pub points: usize,
+    /// The longest gap in the stem's column the path to the tree's top crossed, metres;
+    /// `None` when the top is joined to the stem through the cloud.
+    pub gap_m: Option<f64>,
+    /// The top lies in a piece no path reached, given to the nearest stem
+    /// ([`CrownParams::assign_unreached`]).
+    pub top_unreached: bool,
+}
+
+/// How far a tree's height can be trusted, from how its top was reached
+/// (`trees.csv` `height_quality`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum HeightQuality {
+    /// The top is joined to the stem through the cloud.
+    Connected,
+    /// The top was reached across a gap in the stem's column (`crown_gap_m`): the crown
+    /// came as a piece apart from its stem, and it was given to the tree whose axis it
+    /// stands over.
+    Bridged,
+    /// No point of the tree lies away from its stem: the height is the top of the visible
+    /// stem, and the crown is missing (hidden, or not in the cloud), so it is likely low.
+    StemOnly,
+    /// The top lies in a piece of the cloud joined to no stem, given to the nearest one
+    /// because the cloud is one tree (`segment.cloud = "segmented_tree"`).
+    Nearest,
+}
+
+impl HeightQuality {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            HeightQuality::Connected => "connected",
+            HeightQuality::Bridged => "bridged",
+            HeightQuality::StemOnly => "stem_only",
+            HeightQuality::Nearest => "nearest",
+        }
+    }
+}
+
+impl TreeCrown {
+    /// The height's quality flag ([`HeightQuality`]).
+    pub fn height_quality(&self) -> HeightQuality {
+        if self.crown_base_m.is_none() {
+            HeightQuality::StemOnly
+        } else if self.top_unreached {
+            HeightQuality::Nearest
+        } else if self.gap_m.is_some() {
+            HeightQuality::Bridged
+        } else {
+            HeightQuality::Connected
+        }
+    }
 }
 
 /// The trees of a cloud: the owner of every point and each stem's measures.
@@ -221,6 +320,22 @@ pub fn segment_trees(
         return Err(ForestError::Cancelled);
     }
 
+    // Each stem's axis, extended up (a stem leaning below the horizontal reads as vertical).
+    let axes: Vec<(Vec3, Vec3)> = stems
+        .iter()
+        .map(|s| (s.base, if s.axis.z > 0.05 { s.axis } else { Vec3::Z }))
+        .collect();
+    // Horizontal distance of `c` from the axis of tree `t` at c's height, metres.
+    let off_axis = |t: usize, c: Vec3| {
+        let (base, axis) = axes[t];
+        let on_axis = base + axis * ((c.z - base.z) / axis.z);
+        (c - on_axis).truncate().length()
+    };
+    let bridges = column_bridges(centres, &index, stems, &axes, params);
+    if progress.is_cancelled() {
+        return Err(ForestError::Cancelled);
+    }
+
     // Seeds: the voxels of each stem's breast-height points.
     let mut kept_slot = vec![NO_TREE; n];
     for (slot, &i) in kept.iter().enumerate() {
@@ -228,6 +343,8 @@ pub fn segment_trees(
     }
     let mut dist = vec![f32::INFINITY; m];
     let mut owner = vec![NO_TREE; m];
+    // The longest bridge on the path that reached each voxel, metres.
+    let mut gap = vec![0.0f32; m];
     // Distances are non-negative f32, whose bit patterns order as the values do.
     let mut heap: BinaryHeap<Reverse<(u32, u32)>> = BinaryHeap::new();
     for (t, stem) in stems.iter().enumerate() {
@@ -244,13 +361,26 @@ pub fn segment_trees(
             }
         }
     }
-    // Multi-source Dijkstra.
+    // Multi-source Dijkstra, with each stem's bridge usable by that tree's paths alone, and
+    // the axis prior on the paths that crossed a bridge (a crown reached across a gap is
+    // split from its neighbours by the axes it stands over): the first tree to settle a voxel
+    // owns it.
+    let reach2 = params.axis_reach_m * params.axis_reach_m;
+    let prior = |t: usize, c: Vec3| {
+        if reach2 > 0.0 {
+            1.0 + off_axis(t, c).powi(2) / reach2
+        } else {
+            1.0
+        }
+    };
     let mut settled = 0usize;
+    let mut done = vec![false; m];
     while let Some(Reverse((bits, v))) = heap.pop() {
         let (v, d) = (v as usize, f32::from_bits(bits));
-        if d > dist[v] {
+        if done[v] || d > dist[v] {
             continue;
         }
+        done[v] = true;
         settled += 1;
         if settled.is_multiple_of(1 << 16) {
             progress.set(0.6 + 0.3 * settled as f64 / m as f64);
@@ -258,18 +388,60 @@ pub fn segment_trees(
                 return Err(ForestError::Cancelled);
             }
         }
+        let t = owner[v] as usize;
+        let bridged = gap[v] > 0.0;
         for &(w, len) in &adj[start[v] as usize..start[v + 1] as usize] {
-            let nd = d + len;
-            if nd < dist[w as usize] {
-                dist[w as usize] = nd;
-                owner[w as usize] = owner[v];
+            let wu = w as usize;
+            if done[wu] {
+                continue;
+            }
+            let nd = d + if bridged {
+                len * prior(t, centres[wu])
+            } else {
+                len
+            };
+            if nd < dist[wu] {
+                dist[wu] = nd;
+                owner[wu] = t as u32;
+                gap[wu] = gap[v];
                 heap.push(Reverse((nd.to_bits(), w)));
+            }
+        }
+        for b in bridges.from(v) {
+            let wu = b.to as usize;
+            if b.tree as usize != t || done[wu] {
+                continue;
+            }
+            let nd = d + b.cost;
+            if nd < dist[wu] {
+                dist[wu] = nd;
+                owner[wu] = t as u32;
+                gap[wu] = gap[v].max(b.length);
+                heap.push(Reverse((nd.to_bits(), b.to)));
+            }
+        }
+    }
+    if params.assign_unreached {
+        for (v, o) in owner.iter_mut().enumerate() {
+            if *o == NO_TREE {
+                let nearest = (0..stems.len())
+                    .map(|t| (off_axis(t, centres[v]), t))
+                    .min_by(|a, b| a.0.total_cmp(&b.0));
+                if let Some((_, t)) = nearest {
+                    *o = t as u32;
+                    // Marks a voxel no path reached (see `TreeCrown::top_unreached`).
+                    gap[v] = -1.0;
+                }
             }
         }
     }
     for (slot, &i) in kept.iter().enumerate() {
         tree_of_point[i as usize] = owner[voxel_of[slot] as usize];
     }
+    let gap_of_point = |i: u32| {
+        let slot = kept_slot[i as usize];
+        (slot != NO_TREE).then(|| gap[voxel_of[slot as usize] as usize])
+    };
 
     // Each tree's measures.
     let mut members: Vec<Vec<u32>> = vec![Vec::new(); stems.len()];
@@ -281,7 +453,7 @@ pub fn segment_trees(
     let trees = stems
         .iter()
         .zip(&members)
-        .map(|(stem, idx)| measure(points, stem, idx, params))
+        .map(|(stem, idx)| measure(points, stem, idx, params, &gap_of_point))
         .collect();
     progress.set(1.0);
     Ok(TreeSegmentation {
@@ -291,7 +463,13 @@ pub fn segment_trees(
 }
 
 /// Height, crown base and crown projection of one tree from its points.
-fn measure(points: &[Vec3], stem: &Stem, idx: &[u32], params: &CrownParams) -> TreeCrown {
+fn measure(
+    points: &[Vec3],
+    stem: &Stem,
+    idx: &[u32],
+    params: &CrownParams,
+    gap_of_point: &dyn Fn(u32) -> Option<f32>,
+) -> TreeCrown {
     let base = stem.base;
     let axis = if stem.axis.z > 0.0 {
         stem.axis
@@ -299,12 +477,16 @@ fn measure(points: &[Vec3], stem: &Stem, idx: &[u32], params: &CrownParams) -> T
         Vec3::Z
     };
     let mut top = 0.0f32;
+    let mut top_point = None;
     let mut crown_heights: Vec<f32> = Vec::new();
     let reach = stem.radius_estimate.max(0.0) + params.crown_offset_m;
     for &i in idx {
         let p = points[i as usize];
         let h = p.z - base.z;
-        top = top.max(h);
+        if h >= top {
+            top = h;
+            top_point = Some(i);
+        }
         // Horizontal distance from the axis at the point's height.
         let on_axis = base + axis * (h / axis.z);
         let off = (p - on_axis).truncate().length();
@@ -343,6 +525,150 @@ fn measure(points: &[Vec3], stem: &Stem, idx: &[u32], params: &CrownParams) -> T
         crown_diameter_m: 2.0 * (area / std::f64::consts::PI).sqrt(),
         hull: ring,
         points: idx.len(),
+        gap_m: top_point
+            .and_then(gap_of_point)
+            .filter(|&g| g > 0.0)
+            .map(f64::from),
+        top_unreached: top_point.and_then(gap_of_point).is_some_and(|g| g < 0.0),
+    }
+}
+
+/// A bridge over a gap in a stem's column: from voxel `from` (below the gap) to `to`, usable
+/// only by `tree`'s paths.
+#[derive(Debug, Clone, Copy)]
+struct Bridge {
+    to: u32,
+    tree: u32,
+    /// Length of the gap, metres.
+    length: f32,
+    /// Its cost in the tree's path ([`CrownParams::gap_cost`] × length).
+    cost: f32,
+}
+
+/// The bridges of every column, by the voxel they leave from (CSR).
+struct Bridges {
+    start: Vec<u32>,
+    list: Vec<Bridge>,
+}
+
+impl Bridges {
+    fn from(&self, v: usize) -> &[Bridge] {
+        match (self.start.get(v), self.start.get(v + 1)) {
+            (Some(&a), Some(&b)) => &self.list[a as usize..b as usize],
+            _ => &[],
+        }
+    }
+}
+
+/// Most voxels around a stem's top, in the ring [`BARE_RING_M`] wide beyond its column and the
+/// metre below the top, for the stem to count as bare there ([`bare_below`]).
+const BARE_RING_VOXELS: usize = 10;
+/// Width of that ring, metres: narrow enough that a neighbour's foliage seldom reaches into it.
+const BARE_RING_M: f32 = 0.5;
+
+/// Whether the stem of axis (`base`, `axis`) and column radius `r` is bare in the metre
+/// below height `h` (above its base): at most [`BARE_RING_VOXELS`] voxels in the ring from
+/// `r` to `r` + [`BARE_RING_M`] around it. A stem whose crown was hidden has nothing there; a tree whose
+/// column ends at the top of its own crown has that crown there, and a bridge from it would
+/// land in an overhanging neighbour.
+fn bare_below(
+    centres: &[Vec3],
+    index: &PointIndex,
+    base: Vec3,
+    axis: Vec3,
+    r: f32,
+    h: f32,
+) -> bool {
+    let outer = r + BARE_RING_M;
+    let centre = base + axis * ((h - 0.5) / axis.z);
+    let around = index.within(centre, (outer * outer + 0.25).sqrt());
+    let ring = around
+        .iter()
+        .filter(|nb| {
+            let p = centres[nb.index as usize];
+            let hp = p.z - base.z;
+            let on_axis = base + axis * (hp / axis.z);
+            let off = (p - on_axis).truncate().length();
+            (h - 1.0..=h).contains(&hp) && off > r && off <= outer
+        })
+        .count();
+    ring <= BARE_RING_VOXELS
+}
+
+/// Each stem's column: the voxels within its radius plus [`CrownParams::column_radius_m`] of
+/// its axis extended up, from 1 m above its base (below it the stem is scanned whole) to the
+/// top of the cloud; one after the other by height, each pair `gap_min_m` to `gap_max_m`
+/// apart is joined by a bridge, upwards.
+fn column_bridges(
+    centres: &[Vec3],
+    index: &PointIndex,
+    stems: &[Stem],
+    axes: &[(Vec3, Vec3)],
+    params: &CrownParams,
+) -> Bridges {
+    let m = centres.len();
+    let mut pairs: Vec<(u32, Bridge)> = Vec::new();
+    if params.gap_max_m > params.gap_min_m && m > 0 {
+        let top = centres.iter().map(|c| c.z).fold(f32::MIN, f32::max);
+        for (t, (stem, &(base, axis))) in stems.iter().zip(axes).enumerate() {
+            let r = stem.radius_estimate.max(0.0) + params.column_radius_m;
+            if r <= 0.0 {
+                continue;
+            }
+            // Balls of radius r·√2 every r along the axis cover the cylinder of radius r.
+            let step = r;
+            let mut column: Vec<(f32, u32)> = Vec::new();
+            let mut h = 1.0f32;
+            while base.z + h <= top + step {
+                let c = base + axis * (h / axis.z);
+                for nb in index.within(c, r * std::f32::consts::SQRT_2) {
+                    let p = centres[nb.index as usize];
+                    let hp = p.z - base.z;
+                    let on_axis = base + axis * (hp / axis.z);
+                    if hp >= 1.0 && (p - on_axis).truncate().length() <= r {
+                        column.push((hp, nb.index));
+                    }
+                }
+                h += step;
+            }
+            column.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            column.dedup_by_key(|e| e.1);
+            // Going up the column, every gap where the stem is bare below it, up to the first
+            // gap where it is not: higher gaps lie in the tree's own crown, which its paths
+            // reach anyway, or above its top, where a bridge would take a taller neighbour's
+            // overhanging branches.
+            for w in column.windows(2) {
+                let (lo, hi) = (w[0], w[1]);
+                let length = hi.0 - lo.0;
+                if length < params.gap_min_m {
+                    continue;
+                }
+                if length > params.gap_max_m || !bare_below(centres, index, base, axis, r, lo.0) {
+                    break;
+                }
+                pairs.push((
+                    lo.1,
+                    Bridge {
+                        to: hi.1,
+                        tree: t as u32,
+                        length,
+                        cost: params.gap_cost * length,
+                    },
+                ));
+            }
+        }
+    }
+    pairs.sort_unstable_by_key(|p| (p.0, p.1.tree, p.1.to));
+    let mut start = vec![0u32; m + 1];
+    for &(v, _) in &pairs {
+        start[v as usize + 1] += 1;
+    }
+    for i in 0..m {
+        start[i + 1] += start[i];
+    }
+    Bridges {
+        start,
+        list: pairs.into_iter().map(|p| p.1).collect(),
     }
 }
 
@@ -430,6 +756,70 @@ mod tests {
             assert!((tree.crown_diameter_m - 2.0).abs() < 0.05, "{t}: {tree:?}");
             assert!(tree.hull.len() >= 8, "{t}: {tree:?}");
         }
+    }
+
+    /// A crown cut off from its stem (issue 40): a bare stem to 4 m, nothing from 4 to 6 m, a
+    /// crown disc at 6 m. Across the gap the stem's column bridges, so the crown is the tree's,
+    /// its height the disc's and its flag `bridged` with the 2 m gap; without bridges the
+    /// crown belongs to no tree and the height is the stem's top, flagged `stem_only`.
+    #[test]
+    fn a_crown_cut_off_from_its_stem_is_bridged_and_flagged() {
+        let mut pts = Vec::new();
+        let mut band = Vec::new();
+        for k in 0..=80 {
+            let z = k as f32 * 0.05;
+            if (1.0..=1.6).contains(&z) {
+                band.push(pts.len() as u32);
+            }
+            pts.push(Vec3::new(0.0, 0.0, z));
+        }
+        for iz in 0..5 {
+            for ix in -20..=20 {
+                for iy in -20..=20 {
+                    let (dx, dy) = (ix as f32 * 0.05, iy as f32 * 0.05);
+                    if dx * dx + dy * dy <= 1.0 {
+                        pts.push(Vec3::new(dx, dy, 6.0 + iz as f32 * 0.05));
+                    }
+                }
+            }
+        }
+        let heights: Vec<f32> = pts.iter().map(|p| p.z).collect();
+        let ground = vec![false; pts.len()];
+        let stems = vec![stem_at(1, 0.0, band)];
+        let seg = segment_trees(
+            &pts,
+            &heights,
+            &ground,
+            &stems,
+            &CrownParams::default(),
+            &NoProgress,
+        )
+        .expect("segment");
+        let tree = &seg.trees[0];
+        assert!((tree.height_m - 6.2).abs() < 1e-4, "{tree:?}");
+        let gap = tree.gap_m.expect("a gap");
+        assert!((gap - 2.0).abs() < 0.11, "{tree:?}");
+        assert_eq!(tree.height_quality(), HeightQuality::Bridged);
+        assert!((tree.crown_diameter_m - 2.0).abs() < 0.05, "{tree:?}");
+        let off = CrownParams {
+            gap_max_m: 0.0,
+            ..CrownParams::default()
+        };
+        let seg =
+            segment_trees(&pts, &heights, &ground, &stems, &off, &NoProgress).expect("segment");
+        let tree = &seg.trees[0];
+        assert!((tree.height_m - 4.0).abs() < 1e-4, "{tree:?}");
+        assert_eq!(tree.height_quality(), HeightQuality::StemOnly);
+        // With `assign_unreached` (a segmented tree) the crown is the nearest stem's again.
+        let nearest = CrownParams {
+            gap_max_m: 0.0,
+            assign_unreached: true,
+            ..CrownParams::default()
+        };
+        let seg =
+            segment_trees(&pts, &heights, &ground, &stems, &nearest, &NoProgress).expect("segment");
+        assert_eq!(seg.trees[0].height_quality(), HeightQuality::Nearest);
+        assert!((seg.trees[0].height_m - 6.2).abs() < 1e-4);
     }
 
     #[test]

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::allometry::{AllometryParams, tree_allometry};
-use super::crowns::{CrownParams, NO_TREE, TreeCrown, segment_trees};
+use super::crowns::{CrownParams, HeightQuality, NO_TREE, TreeCrown, segment_trees};
 use super::dbh::{DbhParams, measure_dbh};
 use super::ground::{CsfParams, Dtm, classify_ground};
 use super::segment::{SegmentParams, SegmentSeconds, segment_wood_leaf};
@@ -60,7 +60,19 @@ pub enum CloudKind {
     /// height above the ground, so the ground is the plane z = 0 and points within the ground
     /// filter's `class_threshold_m` of it are ground, whether or not there are any.
     Normalised,
+    /// One tree, already segmented, with the ground cut away and z not normalised (the input
+    /// TreeQSM and ITSMe take): the ground is the horizontal plane through the stem's lowest
+    /// point (the [`SEGMENTED_TREE_FOOT_QUANTILE`] of the points' z, so a stray point below
+    /// does not move it), no point is ground, and every height (breast height, total height)
+    /// is measured from that plane. Every point above `crowns.min_height_m` is the tree's:
+    /// a piece of crown the graph does not join goes to the nearest stem
+    /// (`crowns.assign_unreached`).
+    SegmentedTree,
 }
+
+/// Quantile of z taken as the foot of a `segmented_tree` cloud: its lowest point, robust to
+/// a few stray returns below it (0.0005: 1 point in 2000).
+pub const SEGMENTED_TREE_FOOT_QUANTILE: f64 = 0.0005;
 
 /// Least height span of a cloud for `auto`, metres: the stems are followed from the ground
 /// to above breast height, so a thinner cloud is a slice.
@@ -122,7 +134,9 @@ fn check_stems_stand_on_ground(
             "only {grounded} of {} stems stand on ground returns (ground points around their \
              foot): the ground seems cut away, and heights and DBH are measured from the \
              ground. Give the cloud with its ground; if z is already the height above the \
-             ground, set segment.cloud = \"normalised\" (sylva inventory --params)",
+             ground, set segment.cloud = \"normalised\"; if it is one tree cut out of its \
+             plot (z not normalised), set segment.cloud = \"segmented_tree\", which measures \
+             from the stem's lowest point (sylva inventory --params)",
             stems.len()
         )));
     }
@@ -190,6 +204,14 @@ pub struct TreeRow {
     pub agb_kg: Option<f64>,
     /// Carbon, kg.
     pub carbon_kg: Option<f64>,
+    /// How the tree's top was reached, so how far its height can be trusted
+    /// ([`HeightQuality`]: connected, bridged or stem_only); `None` without a height.
+    #[serde(default)]
+    pub height_quality: Option<HeightQuality>,
+    /// The longest gap in the stem's column crossed to reach the top, metres (with
+    /// `height_quality` bridged).
+    #[serde(default)]
+    pub crown_gap_m: Option<f64>,
 }
 
 /// Wall-clock seconds of each inventory phase.
@@ -261,6 +283,29 @@ fn normalised_ground(pts: &[Vec3], offset_z: f64, p: &CsfParams) -> super::groun
     }
 }
 
+/// The ground of one segmented tree: the horizontal plane through its lowest point (see
+/// [`CloudKind::SegmentedTree`]); no point is ground.
+fn segmented_tree_ground(pts: &[Vec3]) -> super::ground::GroundResult {
+    let mut z: Vec<f32> = pts.iter().map(|p| p.z).collect();
+    let k = ((z.len().saturating_sub(1)) as f64 * SEGMENTED_TREE_FOOT_QUANTILE).round() as usize;
+    let foot = if z.is_empty() {
+        0.0
+    } else {
+        *z.select_nth_unstable_by(k, f32::total_cmp).1
+    };
+    super::ground::GroundResult {
+        is_ground: vec![false; pts.len()],
+        dtm: Dtm {
+            origin: [0.0, 0.0],
+            cell: 1.0,
+            nx: 1,
+            ny: 1,
+            heights: vec![foot],
+        },
+        iterations: 0,
+    }
+}
+
 /// Runs ground → segmentation (non-ground points only) → stems → DBH on `cloud`.
 pub fn inventory(
     cloud: &PointCloud,
@@ -298,6 +343,10 @@ pub fn inventory(
         CloudKind::Normalised => {
             progress.log("ground: z = 0 (a height-normalised cloud)");
             normalised_ground(pts, cloud.offset.z, &params.ground)
+        }
+        CloudKind::SegmentedTree => {
+            progress.log("ground: the plane through the stem's lowest point (one segmented tree)");
+            segmented_tree_ground(pts)
         }
     };
     let heights = ground.dtm.heights_above(pts);
@@ -368,12 +417,17 @@ pub fn inventory(
     // handed to a neighbour; rows are written for the stems with a diameter.
     let t = Instant::now();
     progress.log("trees: crowns and heights");
+    let crown_params = CrownParams {
+        assign_unreached: params.crowns.assign_unreached
+            || params.cloud == CloudKind::SegmentedTree,
+        ..params.crowns.clone()
+    };
     let seg = segment_trees(
         pts,
         &heights,
         &ground.is_ground,
         &stems,
-        &params.crowns,
+        &crown_params,
         &SubProgress::new(progress, 0.95, 0.05),
     )?;
     let mut kept = Vec::new();
@@ -412,6 +466,8 @@ pub fn inventory(
             volume_m3: allometry.volume_m3,
             agb_kg: allometry.agb_kg,
             carbon_kg: allometry.carbon_kg,
+            height_quality: height.map(|_| crown.height_quality()),
+            crown_gap_m: height.and(crown.gap_m),
         });
         kept.push(Stem { id, ..stem });
         dbh.push(d);

@@ -14,7 +14,7 @@ use crate::io::crs::{CRS_FILE, CrsError, CrsRecord};
 /// are only ever added at the end, so readers of an older header keep theirs.
 pub const TREES_CSV_HEADER: &str = "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,\
 arc_coverage,quality,gs_quality,height_m,crown_base_m,crown_area_m2,crown_diameter_m,\
-basal_area_m2,volume_m3,agb_kg,carbon_kg";
+basal_area_m2,volume_m3,agb_kg,carbon_kg,height_quality,crown_gap_m";
 
 /// trees.csv as text: the header, then one line per tree; a field without a value (no
 /// Gaussian DBH, no height) is empty. Coordinates and heights with millimetre precision, DBH
@@ -51,6 +51,10 @@ pub fn trees_csv(rows: &[TreeRow]) -> String {
             opt(r.volume_m3, 4),
             opt(r.agb_kg, 1),
             opt(r.carbon_kg, 1),
+            r.height_quality
+                .map(|q| q.as_str().to_string())
+                .unwrap_or_default(),
+            opt(r.crown_gap_m, 2),
         ]);
     }
     let bytes = w.into_inner().unwrap_or_default();
@@ -202,7 +206,7 @@ pub fn write_trees_gpkg(
         .map(|name| {
             let t = match name {
                 "tree_id" | "n_points" => ColumnType::Integer,
-                "quality" | "gs_quality" => ColumnType::Text,
+                "quality" | "gs_quality" | "height_quality" => ColumnType::Text,
                 _ => ColumnType::Real,
             };
             (name.to_string(), t)

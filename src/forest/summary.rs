@@ -328,6 +328,8 @@ mod tests {
             volume_m3: a.volume_m3,
             agb_kg: a.agb_kg,
             carbon_kg: a.carbon_kg,
+            height_quality: None,
+            crown_gap_m: None,
         }
     }
 

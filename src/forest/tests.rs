@@ -332,3 +332,122 @@ fn colour_joins_the_features_when_the_cloud_has_it() {
     println!("accuracy geometry only {geometric:.3}, with colour {coloured:.3}");
     assert!(coloured >= geometric, "{coloured} < {geometric}");
 }
+
+/// Issue 40.3: real single trees, whose height is known without a field crew: the top of the
+/// cloud above zero for a height-normalised cloud (TreeLS), above its lowest point for a tree
+/// cut out of its plot with z not normalised (PyTLidar's TreeQSM demo trees and AdTree's), read
+/// under `segment.cloud = "segmented_tree"`. The tree with the most points is the tree; its
+/// height must be within 0.5 m of the cloud's. Measured (2026-11-28, docs/results/inventory.md):
+/// within 0.05 m on every tree but AdTree's tree13, in which no stem is found (its stem is
+/// 7 k points of a thin street tree), so 7 of 8 trees must be found.
+#[test]
+fn real_single_trees_have_the_height_of_their_cloud() {
+    let cases = [
+        ("TreeLS_extdata/pine.laz", CloudKind::Normalised),
+        ("TreeLS_extdata/spruce.laz", CloudKind::Normalised),
+        ("PyTLidar_trees/tree_1.las", CloudKind::SegmentedTree),
+        ("PyTLidar_trees/tree_2.las", CloudKind::SegmentedTree),
+        ("AdTree_trees/tree1.xyz", CloudKind::SegmentedTree),
+        ("AdTree_trees/tree7.xyz", CloudKind::SegmentedTree),
+        ("AdTree_trees/tree13.xyz", CloudKind::SegmentedTree),
+        ("AdTree_trees/tree33.xyz", CloudKind::SegmentedTree),
+    ];
+    let mut found = 0;
+    let mut off = Vec::new();
+    let mut table = vec!["| tree | cloud | truth m | sylva m | error m | quality |".to_string()];
+    for (rel, kind) in cases {
+        let Some(path) = crate::io::real_data(rel) else {
+            return;
+        };
+        let cloud = read_point_cloud(&path, &NoProgress).expect("read");
+        // File coordinates.
+        let (lo, hi) = cloud.bounds().expect("points");
+        let truth = match kind {
+            CloudKind::Normalised => hi.z,
+            _ => hi.z - lo.z,
+        };
+        let params = InventoryParams {
+            cloud: kind,
+            ..InventoryParams::default()
+        };
+        let inv = inventory(&cloud, &params, &NoProgress).expect("inventory");
+        let Some((row, crown)) = inv
+            .trees
+            .iter()
+            .zip(&inv.crowns)
+            .max_by_key(|(_, c)| c.points)
+        else {
+            table.push(format!("| {rel} | {kind:?} | {truth:.2} | no stem | | |"));
+            continue;
+        };
+        found += 1;
+        let h = row.height_m.expect("a height");
+        table.push(format!(
+            "| {rel} | {kind:?} | {truth:.2} | {h:.2} | {:+.2} | {} |",
+            h - truth,
+            crown.height_quality().as_str()
+        ));
+        if (h - truth).abs() > 0.5 {
+            off.push(rel);
+        }
+    }
+    println!("{}", table.join("\n"));
+    assert!(
+        off.is_empty(),
+        "{off:?} off by more than 0.5 m:\n{}",
+        table.join("\n")
+    );
+    assert!(
+        found >= 7,
+        "{found} of 8 single trees found:\n{}",
+        table.join("\n")
+    );
+}
+
+/// `segmented_tree` measures from the stem's lowest point: a generated tree with its ground cut
+/// away and lifted by 100 m gives the same height and DBH as the whole plot, where `auto`
+/// refuses it (its stem stands on no ground).
+#[test]
+fn a_segmented_tree_is_measured_from_its_lowest_point() {
+    let plot = lidar_plot(
+        &SynthParams {
+            trees: Some(1),
+            lidar_rgb: false,
+            ..SynthParams::new(Preset::Tiny)
+        },
+        &NoProgress,
+    )
+    .expect("synth");
+    let whole = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress).expect("plot");
+    assert_eq!(whole.trees.len(), 1, "{:?}", whole.trees);
+    // The tree alone: its wood and leaves, without the ground, stones and shrubs.
+    let mut cut = plot.cloud.clone();
+    cut.positions = cut
+        .positions
+        .iter()
+        .zip(&plot.labels)
+        .filter(|(_, l)| **l == Label::Wood as u8 || **l == Label::Leaf as u8)
+        .map(|(p, _)| *p)
+        .collect();
+    cut.intensity = None;
+    cut.offset.z += 100.0;
+    let auto = inventory(&cut, &InventoryParams::default(), &NoProgress);
+    assert!(
+        matches!(&auto, Err(ForestError::NotAPlot(m)) if m.contains("segmented_tree")),
+        "{:?}",
+        auto.map(|i| i.trees)
+    );
+    let params = InventoryParams {
+        cloud: CloudKind::SegmentedTree,
+        ..InventoryParams::default()
+    };
+    let tree = inventory(&cut, &params, &NoProgress).expect("segmented tree");
+    assert_eq!(tree.trees.len(), 1, "{:?}", tree.trees);
+    let (a, b) = (&whole.trees[0], &tree.trees[0]);
+    assert!(
+        (a.dbh_lidar_cm - b.dbh_lidar_cm).abs() < 0.5,
+        "{a:?}\n{b:?}"
+    );
+    let (ha, hb) = (a.height_m.expect("height"), b.height_m.expect("height"));
+    assert!((ha - hb).abs() < 0.3, "{ha} against {hb}");
+}

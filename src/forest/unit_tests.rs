@@ -115,6 +115,8 @@ fn row(id: u32, x: f64, y: f64, dbh: f64) -> TreeRow {
         volume_m3: None,
         agb_kg: None,
         carbon_kg: None,
+        height_quality: None,
+        crown_gap_m: None,
     }
 }
 
@@ -126,12 +128,13 @@ fn trees_csv_has_the_fixed_header_and_an_empty_gaussian_dbh() {
         lines.next(),
         Some(
             "tree_id,x,y,ground_z,dbh_lidar_cm,dbh_gs_cm,n_points,rms_mm,arc_coverage,quality,gs_quality,\
-             height_m,crown_base_m,crown_area_m2,crown_diameter_m,basal_area_m2,volume_m3,agb_kg,carbon_kg"
+             height_m,crown_base_m,crown_area_m2,crown_diameter_m,basal_area_m2,volume_m3,agb_kg,carbon_kg,\
+             height_quality,crown_gap_m"
         )
     );
     assert_eq!(
         lines.next(),
-        Some("1,500000.123,4000000.500,100.000,23.46,,42,3.50,0.750,good,,,,,,,,,")
+        Some("1,500000.123,4000000.500,100.000,23.46,,42,3.50,0.750,good,,,,,,,,,,,")
     );
     let unknown = CrsRecord::unknown("no CRS in this test");
     let gj = trees_geojson(&[row(1, 5.0, 6.0, 20.0)], &unknown).expect("geojson");
@@ -158,7 +161,7 @@ fn trees_csv_has_the_fixed_header_and_an_empty_gaussian_dbh() {
     let csv = trees_csv(std::slice::from_ref(&measured));
     assert_eq!(
         csv.lines().nth(1),
-        Some("2,1.000,2.000,100.000,24.00,24.13,42,3.50,0.750,good,partial_arc,,,,,,,,")
+        Some("2,1.000,2.000,100.000,24.00,24.13,42,3.50,0.750,good,partial_arc,,,,,,,,,,")
     );
     let gj = trees_geojson(std::slice::from_ref(&measured), &unknown).expect("geojson");
     assert_eq!(gj["features"][0]["properties"]["gs_quality"], "partial_arc");
@@ -375,10 +378,10 @@ fn trees_csv_quotes_a_field_that_needs_it_and_reads_back() {
     let text = trees_csv(std::slice::from_ref(&odd));
     assert_eq!(
         text.lines().nth(1),
-        Some("4,1.000,2.000,100.000,20.00,,42,3.50,0.750,\"odd, \"\"q\"\"\",,,,,,,,,")
+        Some("4,1.000,2.000,100.000,20.00,,42,3.50,0.750,\"odd, \"\"q\"\"\",,,,,,,,,,,")
     );
     let mut r = csv::Reader::from_reader(text.as_bytes());
     let rec = r.records().next().expect("a row").expect("parses");
-    assert_eq!(rec.len(), 19);
+    assert_eq!(rec.len(), 21);
     assert_eq!(&rec[9], "odd, \"q\"");
 }

@@ -49,6 +49,12 @@ pub struct LayoutParams {
     pub stem_dbh_cm: Vec<f64>,
     /// Grade of the terrain's planar part, percent, in place of the draw.
     pub slope_pct: Option<f64>,
+    /// Longest hidden band of the upper stem, metres (see
+    /// [`super::SynthParams::hidden_stem_m`]).
+    pub hidden_stem_m: Option<f64>,
+    /// Crown reach added after placement, as a share (see
+    /// [`super::SynthParams::crown_interlock`]).
+    pub crown_interlock: Option<f64>,
 }
 
 /// Lognormal DBH (cm) truncated to the species range.
@@ -139,6 +145,11 @@ pub fn build_plot(p: &LayoutParams) -> Plot {
     }
     for (s, xy) in specs.iter_mut().zip(&placed) {
         s.base = DVec3::new(xy[0], xy[1], terrain.height(xy[0], xy[1]));
+        // Placed for their own reach, grown into each other's (no draw: the default plot
+        // is unchanged).
+        if let Some(more) = p.crown_interlock {
+            s.crown_radius_m *= 1.0 + more;
+        }
     }
 
     let mut prims = terrain.triangles();
@@ -147,8 +158,15 @@ pub fn build_plot(p: &LayoutParams) -> Plot {
         .map(|s| build_tree(s, sp, &mut Stream::new(p.seed, domain::TREE, s.id as u64)))
         .collect();
     let mut trees = Vec::with_capacity(n);
-    for (tp, truth) in built {
+    for (tp, mut truth) in built {
         prims.extend(tp);
+        // The band of the upper stem the scan does not see, from its own stream so that
+        // every other draw stays as it was.
+        if let Some(longest) = p.hidden_stem_m {
+            let mut r = Stream::new(p.seed, domain::HIDDEN, truth.id as u64);
+            let len = r.range(0.3, longest.max(0.3));
+            truth.hidden_m = Some([truth.crown_base_m, truth.crown_base_m + len]);
+        }
         trees.push(truth);
     }
 

@@ -163,6 +163,22 @@ pub fn scan(
         .map(|j| (-15.0f32 + 2.0 * j as f32).to_radians().sin_cos())
         .collect();
     let tilt = Mat3::from_rotation_y(TILT_DEG.to_radians());
+    // Per primitive owner (tree index + 1): the tree's base, axis and hidden band of heights
+    // along the axis ([`super::SynthParams::hidden_stem_m`]).
+    let hidden: Vec<Option<(Vec3, Vec3, f32, f32)>> = std::iter::once(None)
+        .chain(plot.trees.iter().map(|t| {
+            t.hidden_m
+                .map(|[lo, hi]| (t.base.as_vec3(), t.axis.as_vec3(), lo as f32, hi as f32))
+        }))
+        .collect();
+    let is_hidden = |prim: u32, p: Vec3| {
+        let owner = plot.scene.prims.get(prim as usize).map_or(0, |q| q.owner) as usize;
+        hidden
+            .get(owner)
+            .copied()
+            .flatten()
+            .is_some_and(|(base, axis, lo, hi)| (lo..=hi).contains(&(p - base).dot(axis)))
+    };
 
     let run_block = |block: usize| -> Vec<Return> {
         let mut rng = Stream::new(seed, domain::LIDAR, block as u64);
@@ -202,7 +218,7 @@ pub fn scan(
                 let p_drop = params.dropout + 0.3 * grazing + 0.5 * far;
                 let drop = rng.chance(p_drop);
                 let noise = rng.normal() * params.noise_m;
-                if drop {
+                if drop || is_hidden(hit.prim, origin + d * hit.t) {
                     continue;
                 }
                 let r = hit.t as f64 + noise;

@@ -317,6 +317,8 @@ fn layout_params(params: &SynthParams) -> LayoutParams {
         leafless: params.leafless,
         stem_dbh_cm: params.stem_dbh_cm.clone(),
         slope_pct: params.slope_pct,
+        hidden_stem_m: params.hidden_stem_m,
+        crown_interlock: params.crown_interlock,
     }
 }
 

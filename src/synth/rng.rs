@@ -22,6 +22,7 @@ pub mod domain {
     pub const SHRUB: u64 = 8;
     pub const TRACK: u64 = 9;
     pub const GPS: u64 = 10;
+    pub const HIDDEN: u64 = 11;
 }
 
 /// One deterministic random stream.

@@ -58,6 +58,10 @@ pub struct TreeTruth {
     pub lean_deg: f64,
     pub leafless: bool,
     pub species: &'static str,
+    /// The band of heights along the axis above the base, metres, in which the scan saw none
+    /// of this tree ([`super::SynthParams::hidden_stem_m`]); absent when nothing is hidden.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hidden_m: Option<[f64; 2]>,
 }
 
 impl TreeTruth {
@@ -367,6 +371,7 @@ pub fn build_tree(spec: &TreeSpec, species: &Species, rng: &mut Stream) -> (Vec<
         lean_deg: spec.lean_deg,
         leafless: spec.leafless,
         species: species.name,
+        hidden_m: None,
     };
     (b.prims, truth)
 }

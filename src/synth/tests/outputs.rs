@@ -357,3 +357,71 @@ fn gps_tags_place_the_photos_where_their_cameras_are() {
         Err(SynthError::InvalidParams(_))
     ));
 }
+
+/// Issue 40's knobs: with `hidden_stem_m` each tree's band (`truth.json` `hidden_m`, from its
+/// crown base up, 0.3–3 m long) holds none of the tree's returns, where the same plot without
+/// the knob has them; with `crown_interlock` the stems stand where they stood and each crown
+/// covers more ground.
+#[test]
+fn hidden_stems_and_interlocking_crowns_do_what_they_say() {
+    let one = SynthParams {
+        trees: Some(1),
+        lidar_points: Some(100_000),
+        ..small(3)
+    };
+    let in_band = |plot: &crate::synth::LidarPlot, [lo, hi]: [f64; 2]| {
+        let t = &plot.trees[0];
+        plot.cloud
+            .positions
+            .iter()
+            .zip(&plot.labels)
+            .filter(|(p, l)| {
+                let h = (p.as_dvec3() - t.base).dot(t.axis);
+                // 5 cm inside the band: the range noise (1 cm) moves a return across its edge.
+                **l != 0
+                    && (lo + 0.05..=hi - 0.05).contains(&h)
+                    && (p.as_dvec3() - t.base).truncate().length() < 3.0
+            })
+            .count()
+    };
+    let hidden = lidar_plot(
+        &SynthParams {
+            hidden_stem_m: Some(3.0),
+            ..one.clone()
+        },
+        &NoProgress,
+    )
+    .expect("plot");
+    let band = hidden.trees[0].hidden_m.expect("a hidden band");
+    assert!((0.3..=3.0).contains(&(band[1] - band[0])), "{band:?}");
+    assert!((band[0] - hidden.trees[0].crown_base_m).abs() < 1e-9);
+    assert_eq!(in_band(&hidden, band), 0);
+    assert!(hidden.cloud.positions.len() > 1000);
+    let seen = lidar_plot(&one, &NoProgress).expect("plot");
+    assert!(seen.trees[0].hidden_m.is_none());
+    let n = in_band(&seen, band);
+    assert!(n > 100, "{n} returns in the band {band:?} without the knob");
+
+    let base = lidar_plot(&small(5), &NoProgress).expect("plot");
+    let wide = lidar_plot(
+        &SynthParams {
+            crown_interlock: Some(0.5),
+            ..small(5)
+        },
+        &NoProgress,
+    )
+    .expect("plot");
+    for (a, b) in base.trees.iter().zip(&wide.trees) {
+        assert!((a.base - b.base).length() < 1e-9);
+        assert!((b.crown_radius_m / a.crown_radius_m - 1.5).abs() < 1e-9);
+        assert!(b.crown_area_m2 > 1.3 * a.crown_area_m2, "{a:?}\n{b:?}");
+    }
+    let bad = SynthParams {
+        hidden_stem_m: Some(0.1),
+        ..small(5)
+    };
+    assert!(matches!(
+        lidar_plot(&bad, &NoProgress),
+        Err(SynthError::InvalidParams(_))
+    ));
+}
