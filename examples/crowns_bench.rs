@@ -10,7 +10,7 @@
 
 use std::time::Instant;
 
-use sylva::forest::{CrownParams, InventoryParams, inventory, segment_trees};
+use sylva::forest::{CrownParams, InventoryParams, inventory, segment_trees_labelled};
 use sylva::progress::NoProgress;
 use sylva::synth::{Preset, SynthParams, lidar_plot};
 
@@ -49,7 +49,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for (k, s) in settings.iter().enumerate() {
             let name = if k == 0 { "default" } else { args[k].as_str() };
             let t = Instant::now();
-            let seg = segment_trees(pts, &heights, &inv.is_ground, &inv.stems, s, &NoProgress)?;
+            let seg = segment_trees_labelled(
+                pts,
+                &heights,
+                &inv.is_ground,
+                Some(&inv.labels),
+                &inv.stems,
+                s,
+                &NoProgress,
+            )?;
             let secs = t.elapsed().as_secs_f64();
             let (mut sq, mut rel, mut worst, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
             for (stem, tree) in inv.stems.iter().zip(&seg.trees) {

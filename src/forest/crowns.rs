@@ -238,7 +238,8 @@ pub struct TreeSegmentation {
 pub const NO_TREE: u32 = u32::MAX;
 
 /// Segments the trees of `points` (local metres) from `stems` and measures them; `heights` are
-/// heights above the terrain and `is_ground` the ground mask, one per point.
+/// heights above the terrain and `is_ground` the ground mask, one per point. Without wood/leaf
+/// labels every voxel counts in a stem's column (see [`segment_trees_labelled`]).
 pub fn segment_trees(
     points: &[Vec3],
     heights: &[f32],
@@ -247,13 +248,29 @@ pub fn segment_trees(
     params: &CrownParams,
     progress: &dyn Progress,
 ) -> Result<TreeSegmentation, ForestError> {
+    segment_trees_labelled(points, heights, is_ground, None, stems, params, progress)
+}
+
+/// [`segment_trees`] with the wood/leaf labels of the points ([`super::TRUNK`] or
+/// [`super::LEAF`]): a stem's column then holds only the voxels whose points are mostly wood,
+/// so a neighbour's foliage in front of a hidden stretch of stem does not fill its gap.
+pub fn segment_trees_labelled(
+    points: &[Vec3],
+    heights: &[f32],
+    is_ground: &[bool],
+    wood: Option<&[u8]>,
+    stems: &[Stem],
+    params: &CrownParams,
+    progress: &dyn Progress,
+) -> Result<TreeSegmentation, ForestError> {
     params.validate()?;
     let n = points.len();
-    if heights.len() != n || is_ground.len() != n {
+    if heights.len() != n || is_ground.len() != n || wood.is_some_and(|w| w.len() != n) {
         return Err(ForestError::Params(format!(
-            "crowns: {n} points but {} heights and {} ground flags",
+            "crowns: {n} points but {} heights, {} ground flags and {} wood labels",
             heights.len(),
-            is_ground.len()
+            is_ground.len(),
+            wood.map_or(n, <[u8]>::len)
         )));
     }
     let mut tree_of_point = vec![NO_TREE; n];
@@ -331,7 +348,19 @@ pub fn segment_trees(
         let on_axis = base + axis * ((c.z - base.z) / axis.z);
         (c - on_axis).truncate().length()
     };
-    let bridges = column_bridges(centres, &index, stems, &axes, params);
+    // Voxels that may stand in a column: mostly wood, or all without labels.
+    let in_column: Vec<bool> = match wood {
+        Some(labels) => {
+            let mut count = vec![[0u32; 2]; m];
+            for (slot, &i) in kept.iter().enumerate() {
+                let c = &mut count[voxel_of[slot] as usize];
+                c[usize::from(labels[i as usize] == super::TRUNK)] += 1;
+            }
+            count.iter().map(|c| c[1] >= c[0]).collect()
+        }
+        None => vec![true; m],
+    };
+    let bridges = column_bridges(centres, &in_column, &index, stems, &axes, params);
     if progress.is_cancelled() {
         return Err(ForestError::Cancelled);
     }
@@ -601,6 +630,7 @@ fn bare_below(
 /// apart is joined by a bridge, upwards.
 fn column_bridges(
     centres: &[Vec3],
+    in_column: &[bool],
     index: &PointIndex,
     stems: &[Stem],
     axes: &[(Vec3, Vec3)],
@@ -625,7 +655,10 @@ fn column_bridges(
                     let p = centres[nb.index as usize];
                     let hp = p.z - base.z;
                     let on_axis = base + axis * (hp / axis.z);
-                    if hp >= 1.0 && (p - on_axis).truncate().length() <= r {
+                    if in_column[nb.index as usize]
+                        && hp >= 1.0
+                        && (p - on_axis).truncate().length() <= r
+                    {
                         column.push((hp, nb.index));
                     }
                 }

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::allometry::{AllometryParams, tree_allometry};
-use super::crowns::{CrownParams, HeightQuality, NO_TREE, TreeCrown, segment_trees};
+use super::crowns::{CrownParams, HeightQuality, NO_TREE, TreeCrown, segment_trees_labelled};
 use super::dbh::{DbhParams, measure_dbh};
 use super::ground::{CsfParams, Dtm, classify_ground};
 use super::segment::{SegmentParams, SegmentSeconds, segment_wood_leaf};
@@ -422,10 +422,11 @@ pub fn inventory(
             || params.cloud == CloudKind::SegmentedTree,
         ..params.crowns.clone()
     };
-    let seg = segment_trees(
+    let seg = segment_trees_labelled(
         pts,
         &heights,
         &ground.is_ground,
+        Some(&wood.labels),
         &stems,
         &crown_params,
         &SubProgress::new(progress, 0.95, 0.05),

@@ -37,7 +37,9 @@ pub use accuracy::{
 };
 pub use allometry::{AllometryParams, Equations, TreeAllometry, tree_allometry};
 pub use circle::{CircleFit, fit_circle_weighted};
-pub use crowns::{CrownParams, TreeCrown, TreeSegmentation, segment_trees};
+pub use crowns::{
+    CrownParams, HeightQuality, TreeCrown, TreeSegmentation, segment_trees, segment_trees_labelled,
+};
 pub use dbh::{
     DbhParams, FitQuality, SliceCenterPrior, SliceSource, StemDbh, measure_dbh, measure_dbh_of,
     slice_offsets,
