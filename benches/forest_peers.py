@@ -174,6 +174,101 @@ def heights_side_by_side(cloud):
               f"{float(r['dbh_lidar_cm']):.1f} |")
 
 
+# Issue 40.3: real single trees and how each is given. `normalised`: z is already the height
+# above the ground; `segmented_tree`: cut out of its plot, ground gone, z not normalised.
+SINGLE_TREES = [
+    ("TreeLS_extdata/pine.laz", "normalised"),
+    ("TreeLS_extdata/spruce.laz", "normalised"),
+    ("PyTLidar_trees/tree_1.las", "segmented_tree"),
+    ("PyTLidar_trees/tree_2.las", "segmented_tree"),
+    ("AdTree_trees/tree1.xyz", "segmented_tree"),
+    ("AdTree_trees/tree7.xyz", "segmented_tree"),
+    ("AdTree_trees/tree13.xyz", "segmented_tree"),
+    ("AdTree_trees/tree33.xyz", "segmented_tree"),
+]
+
+
+def read_xyz_any(path):
+    """x, y, z of a LAS/LAZ or whitespace-separated text cloud, as numpy arrays."""
+    import numpy as np
+
+    if path.lower().endswith((".las", ".laz")):
+        import laspy
+
+        las = laspy.read(path)
+        return np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+    a = np.loadtxt(path, usecols=(0, 1, 2))
+    return a[:, 0], a[:, 1], a[:, 2]
+
+
+def single_trees(sylva, skip_3dfin):
+    """Each real single tree's height: the top of its cloud above zero (normalised) or above its
+    lowest point (segmented), Sylva's under the matching `segment.cloud`, and 3DFin's on a
+    height-normalised copy (z minus the lowest point for a segmented tree; 3DFin run without
+    --normalize), its tallest row."""
+    import numpy as np
+    import laspy
+
+    d = real_data_dir()
+    if d is None:
+        print("no single trees: real data not found (set SYLVA_REAL_DATA)")
+        return
+    print("\nReal single trees: height of the cloud (truth), Sylva's and 3DFin's (default "
+          "settings, on a height-normalised copy)")
+    print("| tree | given as | truth m | sylva m | sylva error m | height_quality | "
+          "3DFin m | 3DFin error m |")
+    print("|---|---|---|---|---|---|---|---|")
+    for rel, kind in SINGLE_TREES:
+        path = os.path.join(d, rel)
+        if not os.path.isfile(path):
+            print(f"| {rel} | {kind} | | | | | | missing |")
+            continue
+        x, y, z = read_xyz_any(path)
+        foot = 0.0 if kind == "normalised" else float(z.min())
+        truth = float(z.max()) - foot
+        work = tempfile.mkdtemp(prefix="single-tree-")
+        params = os.path.join(work, "params.json")
+        with open(params, "w") as f:
+            f.write('{"cloud": "%s"}' % kind)
+        out = os.path.join(work, "trees.csv")
+        subprocess.run([sylva, "inventory", path, "--out", out, "--params", params],
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        rows = list(csv.DictReader(open(out))) if os.path.isfile(out) else []
+        best = max(rows, key=lambda r: float(r.get("height_m") or 0), default=None)
+        mine = float(best["height_m"]) if best and best.get("height_m") else None
+        peer = None
+        if not skip_3dfin:
+            norm = os.path.join(work, "tree.las")
+            hdr = laspy.LasHeader(point_format=0, version="1.2")
+            hdr.scales = np.array([1e-4, 1e-4, 1e-4])
+            hdr.offsets = np.array([float(x.min()), float(y.min()), 0.0])
+            las = laspy.LasData(hdr)
+            las.x, las.y, las.z = x, y, z - foot
+            las.write(norm)
+            shipped = threedfin_config("default", work)
+            o = os.path.join(work, "3dfin")
+            os.makedirs(o)
+            env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+            subprocess.run([sys.executable, "-m", "three_d_fin", "cli", "--export_txt", norm, o,
+                            shipped], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                           env=env)
+            table = os.path.join(o, "tree_dbh_and_heights.txt")
+            if os.path.isfile(table):
+                hs = []
+                for line in open(table):
+                    try:
+                        hs.append(float(line.split()[0]))
+                    except (ValueError, IndexError):
+                        continue
+                peer = max(hs) if hs else None
+        cell = lambda v: "" if v is None else f"{v:.2f}"  # noqa: E731
+        err = lambda v: "" if v is None else f"{v - truth:+.2f}"  # noqa: E731
+        quality = best.get("height_quality", "") if best else "no stem"
+        print(f"| {rel} | {kind} | {truth:.2f} | {cell(mine)} | {err(mine)} | {quality} | "
+              f"{cell(peer)} | {err(peer)} |", flush=True)
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def big_cloud(work_root):
     """The 9.2 M-point benchmark cloud (../shared/bench/make_plot10m.py), built once."""
     out = os.path.join(ROOT, "target", "bench", "plot10m")
@@ -194,8 +289,13 @@ def main():
     ap.add_argument("--sylva", required=True)
     ap.add_argument("--big", action="store_true", help="also the 9.2 M-point bench cloud")
     ap.add_argument("--skip-3dfin", action="store_true")
+    ap.add_argument("--single-trees", action="store_true",
+                    help="the real single trees' heights beside 3DFin's, instead")
     ap.add_argument("clouds", nargs="*")
     a = ap.parse_args()
+    if a.single_trees:
+        single_trees(a.sylva, a.skip_3dfin)
+        return 0
 
     clouds = list(a.clouds)
     if not clouds:

@@ -7,6 +7,7 @@
 #   benches/forest_peers.sh --big      # and the 9.2 M-point benchmark cloud of
 #                                      # ../shared/bench/make_plot10m.py (built once under target/)
 #   benches/forest_peers.sh A.laz ...  # other clouds
+#   benches/forest_peers.sh --single-trees  # the real single trees' heights beside 3DFin's
 #
 # Environment: SYLVA_REAL_DATA (default ../shared/data/real), SYLVA_BIN (a built `sylva`;
 # default: `cargo build --release --bin sylva`), PEERS_VENV (default target/peers-venv).
