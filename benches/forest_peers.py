@@ -244,6 +244,10 @@ def single_trees(sylva, skip_3dfin):
             hdr.offsets = np.array([float(x.min()), float(y.min()), 0.0])
             las = laspy.LasData(hdr)
             las.x, las.y, las.z = x, y, z - foot
+            # 3DFin without --normalize reads the height above the ground from the extra
+            # dimension its config names (`normalized_height_field`, "Z0" as shipped).
+            las.add_extra_dim(laspy.ExtraBytesParams(name="Z0", type=np.float64))
+            las.Z0 = z - foot
             las.write(norm)
             shipped = threedfin_config("default", work)
             o = os.path.join(work, "3dfin")
