@@ -345,11 +345,7 @@ pub fn segment_trees_labelled(
         .map(|s| (s.base, if s.axis.z > 0.05 { s.axis } else { Vec3::Z }))
         .collect();
     // Horizontal distance of `c` from the axis of tree `t` at c's height, metres.
-    let off_axis = |t: usize, c: Vec3| {
-        let (base, axis) = axes[t];
-        let on_axis = base + axis * ((c.z - base.z) / axis.z);
-        (c - on_axis).truncate().length()
-    };
+    let off_axis = |t: usize, c: Vec3| axis_offset(axes[t].0, axes[t].1, c).1;
     // Voxels that may stand in a column: mostly wood, or all without labels.
     let in_column: Vec<bool> = match wood {
         Some(labels) => {
@@ -493,6 +489,14 @@ pub fn segment_trees_labelled(
     })
 }
 
+/// Height of `p` above `base` (along z, metres) and its horizontal distance from the axis
+/// through `base` along `axis` (unit, pointing up) at that height, metres.
+fn axis_offset(base: Vec3, axis: Vec3, p: Vec3) -> (f32, f32) {
+    let h = p.z - base.z;
+    let on_axis = base + axis * (h / axis.z);
+    (h, (p - on_axis).truncate().length())
+}
+
 /// Height, crown base and crown projection of one tree from its points.
 fn measure(
     points: &[Vec3],
@@ -512,15 +516,11 @@ fn measure(
     let mut crown_heights: Vec<f32> = Vec::new();
     let reach = stem.radius_estimate.max(0.0) + params.crown_offset_m;
     for &i in idx {
-        let p = points[i as usize];
-        let h = p.z - base.z;
+        let (h, off) = axis_offset(base, axis, points[i as usize]);
         if h >= top {
             top = h;
             top_point = Some(i);
         }
-        // Horizontal distance from the axis at the point's height.
-        let on_axis = base + axis * (h / axis.z);
-        let off = (p - on_axis).truncate().length();
         if off > reach {
             crown_heights.push(h);
         }
@@ -616,10 +616,7 @@ fn bare_below(
     let ring = around
         .iter()
         .filter(|nb| {
-            let p = centres[nb.index as usize];
-            let hp = p.z - base.z;
-            let on_axis = base + axis * (hp / axis.z);
-            let off = (p - on_axis).truncate().length();
+            let (hp, off) = axis_offset(base, axis, centres[nb.index as usize]);
             (h - 1.0..=h).contains(&hp) && off > r && off <= outer
         })
         .count();
@@ -655,13 +652,8 @@ fn column_bridges(
         while base.z + h <= top + step {
             let c = base + axis * (h / axis.z);
             for nb in index.within(c, r * std::f32::consts::SQRT_2) {
-                let p = centres[nb.index as usize];
-                let hp = p.z - base.z;
-                let on_axis = base + axis * (hp / axis.z);
-                if in_column[nb.index as usize]
-                    && hp >= 1.0
-                    && (p - on_axis).truncate().length() <= r
-                {
+                let (hp, off) = axis_offset(base, axis, centres[nb.index as usize]);
+                if in_column[nb.index as usize] && hp >= 1.0 && off <= r {
                     column.push((hp, nb.index));
                 }
             }
