@@ -339,7 +339,8 @@ fn colour_joins_the_features_when_the_cloud_has_it() {
 /// under `segment.cloud = "segmented_tree"`. The tree with the most points is the tree; its
 /// height must be within 0.5 m of the cloud's. Measured (2026-11-28, docs/results/inventory.md):
 /// within 0.05 m on every tree but AdTree's tree13, in which no stem is found (its stem is
-/// 7 k points of a thin street tree), so 7 of 8 trees must be found.
+/// 7 k points of a thin street tree), so 7 of 8 trees must be found when all are here (a clean
+/// clone has three of them in tests/data/real, which are checked).
 #[test]
 fn real_single_trees_have_the_height_of_their_cloud() {
     let cases = [
@@ -352,12 +353,14 @@ fn real_single_trees_have_the_height_of_their_cloud() {
         ("AdTree_trees/tree13.xyz", CloudKind::SegmentedTree),
         ("AdTree_trees/tree33.xyz", CloudKind::SegmentedTree),
     ];
-    let mut found = 0;
+    let (mut found, mut missing) = (0, 0);
     let mut off = Vec::new();
     let mut table = vec!["| tree | cloud | truth m | sylva m | error m | quality |".to_string()];
     for (rel, kind) in cases {
+        // A clean clone has some of them (tests/data/real): those are checked.
         let Some(path) = crate::io::real_data(rel) else {
-            return;
+            missing += 1;
+            continue;
         };
         let cloud = read_point_cloud(&path, &NoProgress).expect("read");
         // File coordinates.
