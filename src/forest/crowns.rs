@@ -725,6 +725,21 @@ mod tests {
         }
     }
 
+    /// A crown disc at 6 m centred on x = `x0`, y = 0: a 5 cm grid of radius 1 m, in a layer
+    /// 0.2 m thick.
+    fn crown_disc(pts: &mut Vec<Vec3>, x0: f32) {
+        for iz in 0..5 {
+            for ix in -20..=20 {
+                for iy in -20..=20 {
+                    let (dx, dy) = (ix as f32 * 0.05, iy as f32 * 0.05);
+                    if dx * dx + dy * dy <= 1.0 {
+                        pts.push(Vec3::new(x0 + dx, dy, 6.0 + iz as f32 * 0.05));
+                    }
+                }
+            }
+        }
+    }
+
     /// Two "trees" 3 m apart: a vertical line of points (the stem, 0–6 m) topped by a disc of
     /// radius 1 m at 6 m (the crown). Each crown goes to its own stem, heights and crown base
     /// come out at the built values, and the crown's hull has the disc's area.
@@ -740,17 +755,7 @@ mod tests {
                 }
                 pts.push(Vec3::new(x0, 0.0, z));
             }
-            // Crown disc at 6 m, 5 cm grid, radius 1 m, plus a 0.2 m thick layer.
-            for iz in 0..5 {
-                for ix in -20..=20 {
-                    for iy in -20..=20 {
-                        let (dx, dy) = (ix as f32 * 0.05, iy as f32 * 0.05);
-                        if dx * dx + dy * dy <= 1.0 {
-                            pts.push(Vec3::new(x0 + dx, dy, 6.0 + iz as f32 * 0.05));
-                        }
-                    }
-                }
-            }
+            crown_disc(&mut pts, x0);
         }
         // A ground point and a lone point far away.
         pts.push(Vec3::new(1.5, 0.0, 0.0));
@@ -809,16 +814,7 @@ mod tests {
             }
             pts.push(Vec3::new(0.0, 0.0, z));
         }
-        for iz in 0..5 {
-            for ix in -20..=20 {
-                for iy in -20..=20 {
-                    let (dx, dy) = (ix as f32 * 0.05, iy as f32 * 0.05);
-                    if dx * dx + dy * dy <= 1.0 {
-                        pts.push(Vec3::new(dx, dy, 6.0 + iz as f32 * 0.05));
-                    }
-                }
-            }
-        }
+        crown_disc(&mut pts, 0.0);
         let heights: Vec<f32> = pts.iter().map(|p| p.z).collect();
         let ground = vec![false; pts.len()];
         let stems = vec![stem_at(1, 0.0, band)];

@@ -270,14 +270,19 @@ impl Inventory {
 fn normalised_ground(pts: &[Vec3], offset_z: f64, p: &CsfParams) -> super::ground::GroundResult {
     let zero = (-offset_z) as f32;
     let threshold = p.class_threshold_m as f32;
+    flat_ground(zero, pts.iter().map(|q| q.z - zero <= threshold).collect())
+}
+
+/// A ground that is the horizontal plane at local height `z`, with the ground mask given.
+fn flat_ground(z: f32, is_ground: Vec<bool>) -> super::ground::GroundResult {
     super::ground::GroundResult {
-        is_ground: pts.iter().map(|q| q.z - zero <= threshold).collect(),
+        is_ground,
         dtm: Dtm {
             origin: [0.0, 0.0],
             cell: 1.0,
             nx: 1,
             ny: 1,
-            heights: vec![zero],
+            heights: vec![z],
         },
         iterations: 0,
     }
@@ -293,17 +298,7 @@ fn segmented_tree_ground(pts: &[Vec3]) -> super::ground::GroundResult {
     } else {
         *z.select_nth_unstable_by(k, f32::total_cmp).1
     };
-    super::ground::GroundResult {
-        is_ground: vec![false; pts.len()],
-        dtm: Dtm {
-            origin: [0.0, 0.0],
-            cell: 1.0,
-            nx: 1,
-            ny: 1,
-            heights: vec![foot],
-        },
-        iterations: 0,
-    }
+    flat_ground(foot, vec![false; pts.len()])
 }
 
 /// Runs ground → segmentation (non-ground points only) → stems → DBH on `cloud`.
