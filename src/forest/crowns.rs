@@ -818,15 +818,10 @@ mod tests {
         let heights: Vec<f32> = pts.iter().map(|p| p.z).collect();
         let ground = vec![false; pts.len()];
         let stems = vec![stem_at(1, 0.0, band)];
-        let seg = segment_trees(
-            &pts,
-            &heights,
-            &ground,
-            &stems,
-            &CrownParams::default(),
-            &NoProgress,
-        )
-        .expect("segment");
+        let run = |p: &CrownParams| {
+            segment_trees(&pts, &heights, &ground, &stems, p, &NoProgress).expect("segment")
+        };
+        let seg = run(&CrownParams::default());
         let tree = &seg.trees[0];
         assert!((tree.height_m - 6.2).abs() < 1e-4, "{tree:?}");
         let gap = tree.gap_m.expect("a gap");
@@ -837,8 +832,7 @@ mod tests {
             gap_max_m: 0.0,
             ..CrownParams::default()
         };
-        let seg =
-            segment_trees(&pts, &heights, &ground, &stems, &off, &NoProgress).expect("segment");
+        let seg = run(&off);
         let tree = &seg.trees[0];
         assert!((tree.height_m - 4.0).abs() < 1e-4, "{tree:?}");
         assert_eq!(tree.height_quality(), HeightQuality::StemOnly);
@@ -848,8 +842,7 @@ mod tests {
             assign_unreached: true,
             ..CrownParams::default()
         };
-        let seg =
-            segment_trees(&pts, &heights, &ground, &stems, &nearest, &NoProgress).expect("segment");
+        let seg = run(&nearest);
         assert_eq!(seg.trees[0].height_quality(), HeightQuality::Nearest);
         assert!((seg.trees[0].height_m - 6.2).abs() < 1e-4);
     }
