@@ -1,6 +1,6 @@
 //! Generates a synthetic plot and prints the summary with per-phase timings.
 //!
-//! `cargo run --release --example synth_stand -- [tiny|plot|stand] [OUT] [SEED] [--top-view]`
+//! `cargo run --release --example synth_stand -- [tiny|plot|stand|paper|object] [OUT] [SEED] [--top-view]`
 //! (defaults: stand, out/stand, 1); `--views-only` redraws the pictures of an existing OUT. With `--top-view`, also writes OUT/top_view.png: the
 //! LiDAR cloud seen orthographically from above, coloured by label (ground brown, wood
 //! dark red, leaf green, other grey), highest point per pixel, and PNG copies of four views.
@@ -17,7 +17,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let top_view = args.iter().any(|a| a == "--top-view");
     let pos: Vec<&String> = args.iter().filter(|a| !a.starts_with("--")).collect();
     let preset = match pos.first() {
-        Some(name) => Preset::from_name(name).ok_or("preset must be tiny, plot or stand")?,
+        Some(name) => {
+            Preset::from_name(name).ok_or("preset must be tiny, plot, stand, paper or object")?
+        }
         None => Preset::Stand,
     };
     let out = pos

@@ -57,7 +57,7 @@ fn train_tree(exposure: bool) -> Option<()> {
     // Coloured from the photos: the bark and the lawn, not black.
     let (mean, _) = grey_stats(data.colours.iter().map(|c| c.map(|v| f32::from(v) / 255.0)));
     assert!(mean > 0.15, "SfM points coloured at mean grey {mean:.3}");
-    let (init, _) = sylva::pipeline::train::sfm_gaussians(
+    let (init, _) = sylva::splat::start::sfm_gaussians(
         &data,
         params.max_gaussians,
         params.seed,

@@ -126,7 +126,7 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             cfg.densify_until = 0;
             cfg.test_every = 0;
             let data = sylva::splat::dataset::load(&model, &images, cfg.resolution, 0, &sylva::progress::NoProgress)?;
-            let (init, _) = sylva::pipeline::train::sfm_gaussians(&data, params.max_gaussians, params.seed, None)?;
+            let (init, _) = sylva::splat::start::sfm_gaussians(&data, params.max_gaussians, params.seed, None)?;
             let n = init.len();
             let mut backend = if a.raster_pixels > 0 && backend == TrainBackend::Gpu {
                 let mut ctx = sylva::splat::gpu::GpuContext::new()?;

@@ -110,7 +110,7 @@ async fn start_server(
 async fn job_params(steps: Option<u32>) -> serde_json::Value {
     match &sylva::gpu::probe().await {
         // A software adapter (lavapipe) gets short training; its Gaussian budget is the
-        // device default (`max_gaussians` 0: pipeline::train::SOFTWARE_GPU_BUDGET), an even
+        // device default (`max_gaussians` 0: splat::budget::SOFTWARE_GPU_BUDGET), an even
         // draw of about a twentieth of the ~180 k anchors.
         Some(g) if g.device_type == "cpu" => {
             eprintln!("training on {} (a software GPU: small budget)", g.name);
@@ -122,7 +122,7 @@ async fn job_params(steps: Option<u32>) -> serde_json::Value {
         }
         None => {
             eprintln!("no GPU adapter: training on the CPU reference with a small budget");
-            // The CPU reference's default budget (pipeline::train::CPU_REFERENCE_BUDGET).
+            // The CPU reference's default budget (splat::budget::CPU_REFERENCE_BUDGET).
             serde_json::json!({"train": {"backend": "cpu", "steps": steps.unwrap_or(300),
                 "resolution": 80}})
         }

@@ -67,8 +67,9 @@ pub struct TrainArgs {
 #[derive(Debug, Args)]
 pub struct SynthArgs {
     /// Scene preset: tiny (1-3 trees, 30 small images), plot (one large broadleaf tree), stand
-    /// (17 trees, canopy closure about 0.5), object (one tree in 71 close portrait phone-like
-    /// frames with a sparse SfM start).
+    /// (17 trees, canopy closure about 0.5), paper (stand at the paper's plot-3 size: 857
+    /// photos at 1920×1080, 59.9 M LiDAR points), object (one tree in 71 close portrait
+    /// phone-like frames with a sparse SfM start).
     #[arg(long, env = "SYLVA_SYNTH_PRESET", default_value = "tiny")]
     pub preset: String,
     /// Random seed: the same seed gives byte-identical files.
@@ -363,7 +364,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         )?;
         let init = if a.init == "sfm" {
             let fill = fill_choice(&a.fill)?;
-            let (g, filled) = sylva::pipeline::train::sfm_gaussians(
+            let (g, filled) = sylva::splat::start::sfm_gaussians(
                 &data,
                 params.max_gaussians,
                 params.seed,
@@ -397,13 +398,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
                 std::fs::File::open(&a.init).map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?;
             let mut g = sylva::splat::export::read_ply(std::io::BufReader::new(file))
                 .map_err(|e| anyhow::anyhow!("{}: {e}", a.init))?;
-            sylva::pipeline::train::cap_gaussians(
-                &mut g,
-                params.max_gaussians,
-                params.seed,
-                None,
-                0,
-            );
+            sylva::splat::budget::cap_gaussians(&mut g, params.max_gaussians, params.seed, None, 0);
             g
         };
         let mut strategy = sylva::splat::trainer::strategy_for(&cfg)?;

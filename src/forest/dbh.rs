@@ -103,6 +103,85 @@ pub struct StemDbh {
     pub quality: FitQuality,
 }
 
+/// A stem's axis with its LiDAR fit, in local coordinates (metres): what the band of its DBH
+/// slices ([`in_dbh_band`]) needs.
+#[derive(Debug, Clone, Copy)]
+pub struct StemAxis {
+    /// Where the axis meets the ground.
+    pub base: Vec3,
+    /// Axis direction, pointing up (normalised here where it is not unit).
+    pub axis: Vec3,
+    /// The LiDAR fit.
+    pub lidar: StemDbh,
+}
+
+/// How far around the LiDAR axis the Gaussians of a stem are looked for: 2 × the LiDAR
+/// radius + 0.10 m, metres (room for a Gaussian circle twice as wide, and for the axis being
+/// off by a few centimetres).
+pub fn reach_m(lidar: &StemDbh) -> f32 {
+    lidar.diameter_m as f32 + 0.10
+}
+
+/// The slice heights `p` may use on a stem whose LiDAR fit is `lidar`, lowest and highest,
+/// metres along the axis (with the slice half thickness): 1.3 m, the fallback slices and the
+/// LiDAR fit's own slice.
+pub fn slice_height_range(lidar: &StemDbh, p: &DbhParams) -> (f32, f32) {
+    let hs = p
+        .fallback_heights_m
+        .iter()
+        .chain([&p.breast_height_m, &lidar.slice_height_m]);
+    let lo = hs.clone().fold(f32::INFINITY, |a, &h| a.min(h));
+    let hi = hs.fold(f32::NEG_INFINITY, |a, &h| a.max(h));
+    (lo - p.half_thickness_m, hi + p.half_thickness_m)
+}
+
+/// Per point of `means`, whether it lies in the band of some stem's DBH slices: within
+/// [`reach_m`] of the axis and within the heights any slice of `p` may use
+/// ([`slice_height_range`], and 0.1 m more for a Gaussian's extent). The initial draw of a
+/// capped splat model keeps this band dense (`crate::splat::budget`).
+///
+/// The stems are binned by the horizontal boxes of their bands in a grid of 1 m cells, so a
+/// point tests only the stems of its own cell: linear in points and stems together, for
+/// millions of anchors and thousands of stems.
+pub fn in_dbh_band(means: &[[f32; 3]], stems: &[StemAxis], p: &DbhParams) -> Vec<bool> {
+    const CELL_M: f32 = 1.0;
+    let bands: Vec<(Vec3, Vec3, f32, f32, f32)> = stems
+        .iter()
+        .map(|s| {
+            let (lo, hi) = slice_height_range(&s.lidar, p);
+            let axis = s.axis.try_normalize().unwrap_or(Vec3::Z);
+            (s.base, axis, reach_m(&s.lidar), lo - 0.1, hi + 0.1)
+        })
+        .filter(|(base, ..)| base.is_finite())
+        .collect();
+    let cell = |x: f32| (x / CELL_M).floor() as i64;
+    let mut grid: std::collections::HashMap<(i64, i64), Vec<usize>> =
+        std::collections::HashMap::new();
+    for (k, &(base, axis, reach, lo, hi)) in bands.iter().enumerate() {
+        let (a, b) = (base + axis * lo, base + axis * hi);
+        let (min, max) = (a.min(b) - Vec3::splat(reach), a.max(b) + Vec3::splat(reach));
+        for x in cell(min.x)..=cell(max.x) {
+            for y in cell(min.y)..=cell(max.y) {
+                grid.entry((x, y)).or_default().push(k);
+            }
+        }
+    }
+    means
+        .iter()
+        .map(|m| {
+            let m = Vec3::from_array(*m);
+            grid.get(&(cell(m.x), cell(m.y))).is_some_and(|ks| {
+                ks.iter().any(|&k| {
+                    let (base, axis, reach, lo, hi) = bands[k];
+                    let d = m - base;
+                    let s = d.dot(axis);
+                    s >= lo && s <= hi && (d - axis * s).length() <= reach
+                })
+            })
+        })
+        .collect()
+}
+
 /// Orthonormal basis (e1, e2) of the plane perpendicular to `axis`.
 fn plane_basis(axis: Vec3) -> (Vec3, Vec3) {
     let e1 = axis.any_orthonormal_vector();

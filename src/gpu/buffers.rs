@@ -43,6 +43,37 @@ pub fn chunked_from<T: bytemuck::Pod>(
         }))
 }
 
+/// The most a model upload ([`chunked_uploaded`]) stages at once, bytes: 8 MiB (Sylva's
+/// choice; `crate::splat::plan` counts it).
+pub const UPLOAD_SLICE_BYTES: usize = 8 << 20;
+
+/// As [`chunked_from`], uploaded in slices of at most [`UPLOAD_SLICE_BYTES`], each waited for,
+/// so the upload never stages more than one slice beside the buffer (wgpu's
+/// `create_buffer_init` stages the whole of it until the next submission is done: a model's
+/// parameters and moments, uploaded at every refinement, would need their size twice). Blocks
+/// until the buffer holds `data`.
+pub fn chunked_uploaded<T: bytemuck::Pod>(
+    ctx: &GpuContext,
+    label: &'static str,
+    data: &[T],
+) -> Result<wgpu::Buffer, GpuError> {
+    let bytes: &[u8] = bytemuck::cast_slice(data);
+    let buf = chunked_zeroed(ctx, label, bytes.len() as u64)?;
+    for (k, slice) in bytes.chunks(UPLOAD_SLICE_BYTES).enumerate() {
+        let offset = (k * UPLOAD_SLICE_BYTES) as u64;
+        if slice.len() % 4 == 0 {
+            ctx.queue.write_buffer(&buf, offset, slice);
+        } else {
+            let mut padded = slice.to_vec();
+            padded.resize(slice.len().div_ceil(4) * 4, 0);
+            ctx.queue.write_buffer(&buf, offset, &padded);
+        }
+        ctx.queue.submit([]);
+        ctx.wait()?;
+    }
+    Ok(buf)
+}
+
 /// A zero-filled storage buffer of `bytes` bytes (rounded up to a multiple of 4, at least 16 so
 /// that an empty model still binds `array<vec4<f32>>`), bound whole: it must fit one binding.
 pub fn storage_zeroed(

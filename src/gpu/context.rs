@@ -32,6 +32,10 @@ pub enum GpuError {
         bytes: u64,
         limit: u64,
     },
+    /// A frame's tile intersections exceed the room a memory plan left for them
+    /// ([`crate::splat::plan`]); nothing was allocated for them.
+    #[error("{intersections} tile intersections exceed the {limit} the memory plan has room for")]
+    OverPlan { intersections: u64, limit: u64 },
     /// Inputs disagree with each other (lengths, counts).
     #[error("invalid input: {0}")]
     Invalid(String),
@@ -184,6 +188,36 @@ impl GpuContext {
     pub fn chunk_binding_bytes(&self) -> u64 {
         self.chunk_cap_bytes
             .map_or(self.max_binding_bytes, |c| c.min(self.max_binding_bytes))
+    }
+
+    /// The GPU's own memory, bytes: the largest device-local heap the Vulkan driver reports
+    /// (`VkPhysicalDeviceMemoryProperties`; on a discrete card its VRAM, on lavapipe and
+    /// integrated GPUs the share of system memory the driver offers). `None` on a backend that
+    /// does not say.
+    pub fn device_memory_bytes(&self) -> Option<u64> {
+        // SAFETY: the hal adapter is only read (the physical device's memory properties), and
+        // the guard is dropped before the function returns.
+        let hal = unsafe { self.adapter.as_hal::<wgpu::hal::api::Vulkan>() }?;
+        let instance = hal.shared_instance().raw_instance();
+        // SAFETY: the physical device belongs to this instance and outlives the call.
+        let props =
+            unsafe { instance.get_physical_device_memory_properties(hal.raw_physical_device()) };
+        let count = (props.memory_heap_count as usize).min(props.memory_heaps.len());
+        // VK_MEMORY_HEAP_DEVICE_LOCAL_BIT = 0x1.
+        props.memory_heaps[..count]
+            .iter()
+            .filter(|h| h.flags.as_raw() & 1 != 0)
+            .map(|h| h.size)
+            .max()
+    }
+
+    /// What the device's memory allocator holds now, bytes: (allocated to live buffers,
+    /// reserved in its memory blocks), from wgpu's allocator report; `None` where the backend
+    /// gives none. Buffers dropped while the GPU still uses them count until it is done.
+    pub fn allocated_bytes(&self) -> Option<(u64, u64)> {
+        self.device
+            .generate_allocator_report()
+            .map(|r| (r.total_allocated_bytes, r.total_reserved_bytes))
     }
 
     /// Blocks until all submitted work has finished.

@@ -23,7 +23,10 @@ use serde::Deserialize;
 use serde_json::json;
 
 use super::{Stage, StageContext, StageError};
-use crate::forest::dbh::{SliceCenterPrior, SliceSource, measure_dbh_of, slice_offsets};
+use crate::forest::dbh::{
+    SliceCenterPrior, SliceSource, StemAxis, measure_dbh_of, reach_m, slice_height_range,
+    slice_offsets,
+};
 use crate::forest::{self, CircleParams, DbhParams, FitQuality, StemDbh, TreeRow};
 use crate::splat::model::{Gaussians, sigmoid};
 use crate::splat::strategy::quat_to_matrix;
@@ -38,6 +41,18 @@ pub struct StemRecord {
     pub axis: [f32; 3],
     /// The LiDAR fit.
     pub dbh: StemDbh,
+}
+
+impl StemRecord {
+    /// The stem's axis and LiDAR fit, for the band of its DBH slices
+    /// ([`forest::dbh::in_dbh_band`]).
+    pub fn axis(&self) -> StemAxis {
+        StemAxis {
+            base: Vec3::from_array(self.base),
+            axis: Vec3::from_array(self.axis),
+            lidar: self.dbh,
+        }
+    }
 }
 
 #[derive(Deserialize)]
@@ -116,13 +131,6 @@ impl TrunkGaussians {
     }
 }
 
-/// How far around the LiDAR axis the Gaussians of a stem are looked for: 2 × the LiDAR
-/// radius + 0.10 m, metres (room for a Gaussian circle twice as wide, and for the axis being
-/// off by a few centimetres).
-pub fn reach_m(lidar: &StemDbh) -> f32 {
-    lidar.diameter_m as f32 + 0.10
-}
-
 /// What the Gaussian fit of one stem found.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GaussianDbh {
@@ -145,70 +153,11 @@ pub fn gaussian_dbh_params(segment_dbh: &DbhParams, ransac_threshold_m: f64) -> 
     }
 }
 
-/// The slice heights `p` may use, lowest and highest, metres along the axis (with the slice
-/// half thickness), and the LiDAR fit's own slice.
-fn height_range(stem: &StemRecord, p: &DbhParams) -> (f32, f32) {
-    let hs = p
-        .fallback_heights_m
-        .iter()
-        .chain([&p.breast_height_m, &stem.dbh.slice_height_m]);
-    let lo = hs.clone().fold(f32::INFINITY, |a, &h| a.min(h));
-    let hi = hs.fold(f32::NEG_INFINITY, |a, &h| a.max(h));
-    (lo - p.half_thickness_m, hi + p.half_thickness_m)
-}
-
 /// The stems of stage `segment` (`stems.json` in `segment_dir`) in its local frame, with that
 /// frame's offset (file coordinates of its origin).
 pub fn read_stems(segment_dir: &Path) -> Result<([f64; 3], Vec<StemRecord>), StageError> {
     let stems: StemsFile = read_json(&segment_dir.join("stems.json"))?;
     Ok((stems.offset, stems.stems))
-}
-
-/// Per point of `means`, whether it lies in the band of some stem's DBH slices: within
-/// [`reach_m`] of the axis and within the heights any slice of `p` may use (1.3 m and the
-/// fallback slices, ± the slice half thickness, and 0.1 m more for a Gaussian's extent).
-///
-/// The stems are binned by the horizontal boxes of their bands in a grid of 1 m cells, so a
-/// point tests only the stems of its own cell: linear in points and stems together, for
-/// millions of anchors and thousands of stems.
-pub fn in_dbh_band(means: &[[f32; 3]], stems: &[StemRecord], p: &DbhParams) -> Vec<bool> {
-    const CELL_M: f32 = 1.0;
-    let bands: Vec<(Vec3, Vec3, f32, f32, f32)> = stems
-        .iter()
-        .map(|s| {
-            let (lo, hi) = height_range(s, p);
-            let axis = Vec3::from_array(s.axis).try_normalize().unwrap_or(Vec3::Z);
-            let base = Vec3::from_array(s.base);
-            (base, axis, reach_m(&s.dbh), lo - 0.1, hi + 0.1)
-        })
-        .filter(|(base, ..)| base.is_finite())
-        .collect();
-    let cell = |x: f32| (x / CELL_M).floor() as i64;
-    let mut grid: std::collections::HashMap<(i64, i64), Vec<usize>> =
-        std::collections::HashMap::new();
-    for (k, &(base, axis, reach, lo, hi)) in bands.iter().enumerate() {
-        let (a, b) = (base + axis * lo, base + axis * hi);
-        let (min, max) = (a.min(b) - Vec3::splat(reach), a.max(b) + Vec3::splat(reach));
-        for x in cell(min.x)..=cell(max.x) {
-            for y in cell(min.y)..=cell(max.y) {
-                grid.entry((x, y)).or_default().push(k);
-            }
-        }
-    }
-    means
-        .iter()
-        .map(|m| {
-            let m = Vec3::from_array(*m);
-            grid.get(&(cell(m.x), cell(m.y))).is_some_and(|ks| {
-                ks.iter().any(|&k| {
-                    let (base, axis, reach, lo, hi) = bands[k];
-                    let d = m - base;
-                    let s = d.dot(axis);
-                    s >= lo && s <= hi && (d - axis * s).length() <= reach
-                })
-            })
-        })
-        .collect()
 }
 
 /// The Gaussian DBH of one stem (see the module doc): `None` when no slice holds an acceptable
@@ -217,7 +166,7 @@ pub fn gaussian_dbh(t: &TrunkGaussians, stem: &StemRecord, p: &DbhParams) -> Opt
     let base = Vec3::from_array(stem.base);
     let axis = Vec3::from_array(stem.axis);
     let reach = reach_m(&stem.dbh);
-    let (lo, hi) = height_range(stem, p);
+    let (lo, hi) = slice_height_range(&stem.dbh, p);
     let near = t.near_axis(base, axis, reach, lo, hi);
     // The LiDAR fit's own slice first, so that both diameters come from one slice.
     let breast_height_m = p.breast_height_m;
@@ -676,13 +625,14 @@ mod tests {
                 [u(-3.0, 6.0), u(-3.0, 4.0), u(0.0, 4.0)]
             })
             .collect();
-        let got = in_dbh_band(&means, &stems, &p);
+        let axes: Vec<StemAxis> = stems.iter().map(StemRecord::axis).collect();
+        let got = forest::dbh::in_dbh_band(&means, &axes, &p);
         // The same test against every stem, without the grid.
         let brute: Vec<bool> = means
             .iter()
             .map(|m| {
                 stems.iter().any(|s| {
-                    let (lo, hi) = height_range(s, &p);
+                    let (lo, hi) = slice_height_range(&s.dbh, &p);
                     let axis = Vec3::from_array(s.axis).normalize();
                     let d = Vec3::from_array(*m) - Vec3::from_array(s.base);
                     let h = d.dot(axis);
@@ -695,7 +645,7 @@ mod tests {
         // A point on the first stem at 1.3 m is in, one at 3 m is not.
         let on = |h: f32| [0.99 + 0.15, 2.0, 0.5 + h];
         assert_eq!(
-            in_dbh_band(&[on(1.3), on(3.0)], &stems, &p),
+            forest::dbh::in_dbh_band(&[on(1.3), on(3.0)], &axes, &p),
             vec![true, false]
         );
     }

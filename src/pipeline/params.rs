@@ -367,11 +367,17 @@ pub struct TrainParams {
     pub resolution: u32,
     /// Upper bound on the number of Gaussians, at initialisation (an even draw in space of
     /// the anchors or points, half of it reserved for trunk Gaussians and half of that for the
-    /// stems' DBH band: see `train::cap_gaussians`) and during densification; 0 (default) =
-    /// the budget of the device that trains (`train::default_budget`: none on a hardware GPU,
-    /// 10 000 on a software one such as lavapipe, 3 000 on the CPU reference; measured in
-    /// docs/results/twin.md, "Budgets").
+    /// stems' DBH band: see `splat::budget::cap_gaussians`) and during densification; 0
+    /// (default) = the budget of the device that trains (`splat::budget::default_budget`: none
+    /// on a hardware GPU, 10 000 on a software one such as lavapipe, 3 000 on the CPU
+    /// reference; measured in docs/results/twin.md, "Budgets"). On a GPU the memory plan
+    /// lowers it to what fits (`gpu_memory_mb`).
     pub max_gaussians: u32,
+    /// The GPU memory a run may plan with, MB (MiB); 0 (default) = the device's own, as its
+    /// Vulkan driver reports it (the largest device-local heap). From it stage `train` plans the
+    /// Gaussian budget and where the photos live (all on the GPU, or a cache streamed from host
+    /// memory; `splat::plan`, docs/splatting.md "Memory plan"). Ignored by the CPU reference.
+    pub gpu_memory_mb: u64,
     /// Weight λ of the LiDAR depth loss (`splat::depth`): the rendered expected depth of each
     /// training view is pulled towards the registered LiDAR anchors' depth there,
     /// λ · mean |D − L| / L over the pixels with a LiDAR return (occlusion-aware maps); 0 =
@@ -475,6 +481,7 @@ impl Default for TrainParams {
             trunk_beta: semantic::DEFAULT_TRUNK_BETA,
             resolution: 1600,
             max_gaussians: 0,
+            gpu_memory_mb: 0,
             strategy: DensifyStrategy::Default,
             depth_weight: 0.0,
             backend: TrainBackend::Gpu,

@@ -12,16 +12,19 @@ use std::collections::HashMap;
 
 use super::params::{InitSource, TrainBackend, TrainParams, TrunkTerm};
 use super::{Stage, StageContext, StageError};
+use crate::forest::dbh::{StemAxis, in_dbh_band};
 use crate::io::colmap;
 use crate::io::ply;
 use crate::progress::{NoProgress, SubProgress};
-use crate::rng::SplitMix64;
 use crate::splat::backend::{Backend, CpuBackend, DeviceKind, TrainError};
 use crate::splat::bind;
+use crate::splat::budget::default_budget;
 use crate::splat::dataset::{self, Dataset, DatasetError};
-use crate::splat::init::{self, Anchor, AnchorInit};
+use crate::splat::init::Anchor;
 use crate::splat::model::Gaussians;
+use crate::splat::plan::{self, MemoryPlan, MemorySource};
 use crate::splat::semantic::{AnchorIndex, SemanticAnchors};
+use crate::splat::start::{Start, initial_gaussians};
 use crate::splat::trainer;
 use crate::splat::trunk_diag::{SliceFn, TrunkMonitor};
 
@@ -55,27 +58,6 @@ pub fn backend_for(params: &TrainParams) -> Result<Box<dyn Backend>, TrainError>
     }
 }
 
-/// Default Gaussian budget on a software GPU (lavapipe), when `params.train.max_gaussians` is
-/// 0: measured on `stand` seed 1 with `sylva bench method` (docs/results/twin.md, "Budgets"),
-/// where it kept a 500-step run at 80 px within a few minutes on 2 cores.
-pub const SOFTWARE_GPU_BUDGET: u32 = 10_000;
-
-/// Default Gaussian budget on the CPU reference backend (docs/results/twin.md, "Budgets"): the
-/// demo's, which trains `tiny` in seconds on 2 cores.
-pub const CPU_REFERENCE_BUDGET: u32 = 3_000;
-
-/// The Gaussian budget a run gets when `params.train.max_gaussians` is 0: none on a hardware
-/// GPU (the reference 3DGS has no cap; not measured here, there being no GPU on the machines
-/// Sylva is tested on), [`SOFTWARE_GPU_BUDGET`] on a software one, [`CPU_REFERENCE_BUDGET`] on
-/// the CPU reference.
-pub fn default_budget(kind: DeviceKind) -> Option<u32> {
-    match kind {
-        DeviceKind::Gpu => None,
-        DeviceKind::SoftwareGpu => Some(SOFTWARE_GPU_BUDGET),
-        DeviceKind::CpuReference => Some(CPU_REFERENCE_BUDGET),
-    }
-}
-
 /// `params` with the budget of [`default_budget`] when it asks for the default (0), and where
 /// the budget came from: "params", "default for <kind>" or "none".
 pub fn with_budget(params: &TrainParams, kind: DeviceKind) -> (TrainParams, String) {
@@ -92,160 +74,66 @@ pub fn with_budget(params: &TrainParams, kind: DeviceKind) -> (TrainParams, Stri
     }
 }
 
-/// Share of a Gaussian cap reserved for trunk Gaussians (trunk probability ≥ 0.5). The trunks
-/// are a small part of a plot, yet the Gaussian DBH of stage `dbh` fits circles to the trunk
-/// Gaussians of a 20 cm slice: a uniform subset of a capped initialisation leaves too few
-/// there (about 10 per stem with 10 k of the 179 k anchors of `tiny`). Sylva's choice.
-pub const TRUNK_SHARE_OF_CAP: f64 = 0.5;
-
-/// Share of the trunk Gaussians' part of a cap kept for the band of the DBH slices (Gaussians
-/// within reach of a stem's axis between 0.5 and 2.1 m along it, [`super::dbh::in_dbh_band`]):
-/// half (Sylva's choice). The trunk surfels are what stage `dbh` measures; an even draw over
-/// the whole trunk surface leaves a 20 cm slice of a 17-stem plot about 8 surfels at a cap
-/// of 10 000, too few for a circle (10 inliers at least), while the rest of the trunks, which
-/// only the photos see, render as well from a coarser draw.
-pub const DBH_BAND_SHARE_OF_TRUNKS: f64 = 0.5;
-
-/// The start of `sylva train` and the real-photo tests: one Gaussian per SfM point of `data`
-/// (coloured from the photos where the model has no colours, [`Dataset`]), plus, with `fill`,
-/// Gaussians where the training photos see what no SfM point covers
-/// ([`init::fill_uncovered`]); capped at `max` by a draw of `seed` (0 = no cap) with the
-/// scales taken again from what the cap kept. Also returns what the fill added (before the
-/// cap; all zero without `fill`).
-pub fn sfm_gaussians(
+/// The budget of [`with_budget`], lowered to what the device's memory holds, and the memory
+/// plan the backend then follows (`splat::plan`; `None` on the CPU reference, or on a GPU that
+/// does not report its memory when `params.gpu_memory_mb` is 0).
+fn budget_and_plan(
+    ctx: &StageContext<'_>,
+    params: &TrainParams,
+    backend: &mut dyn Backend,
     data: &Dataset,
-    max: u32,
-    seed: u64,
-    fill: Option<&init::CoverageFill>,
-) -> Result<(Gaussians, init::FillReport), init::InitError> {
-    let mut g = init::from_sfm_points(&data.points, &data.colours)?;
-    let report = match fill {
-        Some(fill) => init::fill_uncovered(&mut g, &data.train, fill),
-        None => init::FillReport::default(),
-    };
-    let before = g.len();
-    cap_gaussians(&mut g, max, seed, None, 0);
-    if g.len() < before {
-        init::rescale_from_spacing(&mut g, 3, 0.0);
-    }
-    Ok((g, report))
-}
-
-/// Keeps at most `max` Gaussians (all when `max` is 0 or not exceeded): up to
-/// [`TRUNK_SHARE_OF_CAP`] of the cap from the trunk Gaussians (of that, up to
-/// [`DBH_BAND_SHARE_OF_TRUNKS`] from those `band` marks, when given), the rest from the
-/// others; a share one side does not use goes to the other. Each part is drawn evenly in
-/// space ([`voxel_draw`]): one Gaussian per cell of the finest grid that fits the share, the
-/// grid shifted by the seed, so a slice of a stem holds surfels all round its circumference
-/// rather than a random subset's clumps and gaps. Scales are left as they are: the caller
-/// sets them from the spacing of what is kept ([`crate::splat::init::rescale_from_spacing`]).
-///
-/// `added_later` Gaussians of the others' side (the sky dome) join the model after the cap:
-/// the trunks' share is of `max + added_later`, so the dome's room comes from the others.
-pub fn cap_gaussians(
-    g: &mut Gaussians,
-    max: u32,
-    seed: u64,
-    band: Option<&[bool]>,
-    added_later: u32,
-) {
-    let n = g.len();
-    if max == 0 || n <= max as usize {
-        return;
-    }
-    let max = max as usize;
-    let in_band = |i: usize| band.is_some_and(|b| b.get(i).copied().unwrap_or(false));
-    let (trunk, other): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| g.trunk_prob[i] >= 0.5);
-    let (trunk_band, trunk_rest): (Vec<usize>, Vec<usize>) =
-        trunk.iter().partition(|&&i| in_band(i));
-    let share_of = max + added_later as usize;
-    let reserve = ((share_of as f64 * TRUNK_SHARE_OF_CAP) as usize)
-        .min(trunk.len())
-        .min(max);
-    let from_other = (max - reserve).min(other.len());
-    let from_trunk = (max - from_other).min(trunk.len());
-    let band_reserve =
-        ((from_trunk as f64 * DBH_BAND_SHARE_OF_TRUNKS) as usize).min(trunk_band.len());
-    let from_rest = (from_trunk - band_reserve).min(trunk_rest.len());
-    let from_band = from_trunk - from_rest;
-    let mut rng = SplitMix64::new(seed);
-    let mut keep = vec![false; n];
-    for (part, count) in [
-        (&trunk_band, from_band),
-        (&trunk_rest, from_rest),
-        (&other, from_other),
-    ] {
-        for i in voxel_draw(&g.means, part, count, &mut rng) {
-            keep[i] = true;
-        }
-    }
-    g.retain_mask(&keep);
-}
-
-/// Exactly `count` of the points `idx` of `means` (all when there are no more), spread evenly:
-/// a bisection of the log cell edge (24 halvings, to 1e-6 of its range) finds the finest grid,
-/// offset by a seeded random shift, with at most `count` occupied cells; each cell gives the
-/// point nearest its centre, and a seeded random choice among the rest tops the draw up to
-/// `count` (the occupied cells jump as the grid changes). Each halving hashes every point
-/// once (25 passes in all).
-fn voxel_draw(means: &[[f32; 3]], idx: &[usize], count: usize, rng: &mut SplitMix64) -> Vec<usize> {
-    if count >= idx.len() {
-        return idx.to_vec();
-    }
-    if count == 0 {
-        return Vec::new();
-    }
-    let p = |i: usize| glam::DVec3::from(means[i].map(f64::from));
-    let (lo, hi) = idx.iter().fold(
-        (
-            glam::DVec3::splat(f64::INFINITY),
-            glam::DVec3::splat(f64::NEG_INFINITY),
-        ),
-        |(lo, hi), &i| (lo.min(p(i)), hi.max(p(i))),
+) -> Result<(TrainParams, String, Option<MemoryPlan>), StageError> {
+    let (mut p, mut source) = with_budget(params, backend.device_kind());
+    let input = plan::run_input(
+        backend,
+        data,
+        &p.config(),
+        p.gpu_memory_mb,
+        p.depth_weight > 0.0,
+        p.semantic != TrunkTerm::Off,
     );
-    let extent = (hi - lo).max_element().max(1e-6);
-    let shift = glam::DVec3::new(rng.uniform(), rng.uniform(), rng.uniform());
-    // One point per occupied cell of edge `v`: the nearest to the cell's centre.
-    let cells = |v: f64| {
-        let mut best: std::collections::HashMap<[i64; 3], (f64, usize)> =
-            std::collections::HashMap::new();
-        for &i in idx {
-            let q = (p(i) - lo) / v + shift;
-            let c = q.floor();
-            let d2 = (q - c - glam::DVec3::splat(0.5)).length_squared();
-            let key = [c.x as i64, c.y as i64, c.z as i64];
-            let e = best.entry(key).or_insert((f64::INFINITY, i));
-            if d2 < e.0 || (d2 == e.0 && i < e.1) {
-                *e = (d2, i);
-            }
+    let Some(input) = input else {
+        if backend.device_kind() != DeviceKind::CpuReference {
+            ctx.progress.log(
+                "the GPU does not report its memory: no memory plan (set params.train.gpu_memory_mb to plan one)",
+            );
         }
-        let mut picked: Vec<usize> = best.into_values().map(|(_, i)| i).collect();
-        picked.sort_unstable();
-        picked
+        return Ok((p, source, None));
     };
-    // Cell edges between extent / 1e6 (every point alone) and 2 × extent (one cell).
-    let (mut fine, mut coarse) = ((extent * 1e-6).ln(), (2.0 * extent).ln());
-    let mut picked = cells(coarse.exp());
-    for _ in 0..24 {
-        let mid = 0.5 * (fine + coarse);
-        let c = cells(mid.exp());
-        if c.len() <= count {
-            coarse = mid;
-            picked = c;
-        } else {
-            fine = mid;
-        }
+    let plan = plan::plan(&input).map_err(|e| match input.source {
+        MemorySource::Params => StageError::Input(format!("params.train.gpu_memory_mb: {e}")),
+        MemorySource::Device => StageError::Device(e.to_string()),
+    })?;
+    ctx.progress.log(&plan.describe());
+    if plan.memory_bound {
+        source = format!(
+            "{source}, lowered to what {} MB hold",
+            input.device_bytes >> 20
+        );
     }
-    let mut taken = vec![false; means.len()];
-    for &i in &picked {
-        taken[i] = true;
+    p.max_gaussians = plan.budget;
+    backend.set_plan(&plan)?;
+    Ok((p, source, Some(plan)))
+}
+
+/// The report's `memory`: the plan and what the device held at most against it.
+fn memory_note(
+    ctx: &StageContext<'_>,
+    plan: Option<&MemoryPlan>,
+    backend: &dyn Backend,
+) -> serde_json::Value {
+    let used = backend.memory_use();
+    if let (Some(plan), Some(used)) = (plan, used) {
+        ctx.progress.log(&format!(
+            "GPU memory: at most {:.0} MB allocated ({:.0} MB reserved) of {:.0} MB planned; {} photo uploads, {} steps over the plan",
+            used.peak_allocated_bytes as f64 / 1048576.0,
+            used.peak_reserved_bytes as f64 / 1048576.0,
+            plan.total_bytes as f64 / 1048576.0,
+            used.photo_uploads,
+            used.over_plan_steps
+        ));
     }
-    let mut rest: Vec<usize> = idx.iter().copied().filter(|&i| !taken[i]).collect();
-    while picked.len() < count && !rest.is_empty() {
-        let j = rng.below(rest.len() as u64) as usize;
-        picked.push(rest.swap_remove(j));
-    }
-    picked
+    json!({ "plan": plan, "used": used })
 }
 
 /// The labelled anchors of stage `segment` (LiDAR local frame): position, colour, trunk
@@ -296,107 +184,6 @@ fn read_anchors(ctx: &StageContext<'_>) -> Result<LabelledAnchors, StageError> {
 /// Anchors, their trunk labels and their normals (when known).
 type LabelledAnchors = (Vec<Anchor>, Vec<bool>, Option<Vec<[f32; 3]>>);
 
-/// Initial Gaussians for `params.init`: the LiDAR anchors labelled by stage `segment`, or the
-/// SfM points of the dataset. SfM Gaussians take the trunk probability of their nearest anchor
-/// when anchors are given (so the semantic term can act on them too).
-fn initial_gaussians(
-    data: &Dataset,
-    params: &TrainParams,
-    anchors: Option<&[Anchor]>,
-    stems: &[super::dbh::StemRecord],
-    dbh_params: &crate::forest::DbhParams,
-) -> Result<Gaussians, StageError> {
-    let mut g = match (params.init, anchors) {
-        (InitSource::Lidar, Some(anchors)) => {
-            let mut g = init::from_anchors(anchors, &data.train, &AnchorInit::default())
-                .map_err(|e| StageError::Input(format!("anchor initialisation: {e}")))?;
-            if params.sfm_fill_m > 0.0 {
-                sfm_fill(&mut g, anchors, data, params.sfm_fill_m);
-            }
-            g
-        }
-        (InitSource::Lidar, None) => {
-            return Err(StageError::Input(
-                "LiDAR initialisation needs the anchors of stage segment".into(),
-            ));
-        }
-        (InitSource::Sfm, _) => {
-            let mut g = init::from_sfm_points(&data.points, &data.colours)
-                .map_err(|e| StageError::Input(format!("SfM initialisation: {e}")))?;
-            if let Some(anchors) = anchors {
-                inherit_trunk_prob(&mut g, anchors);
-            }
-            g
-        }
-    };
-    let before = g.len();
-    // The sky dome's share of a cap: at most a tenth.
-    let sky = match params.max_gaussians {
-        0 => params.sky_gaussians,
-        max => params.sky_gaussians.min(max / 10),
-    };
-    let max = params.max_gaussians.saturating_sub(sky);
-    if params.max_gaussians > 0 && g.len() > max as usize {
-        let band = super::dbh::in_dbh_band(&g.means, stems, dbh_params);
-        cap_gaussians(&mut g, max, params.seed, Some(&band), sky);
-    }
-    if g.len() < before {
-        // Scales from the spacing of what the cap kept (the same rule as the source's).
-        match params.init {
-            InitSource::Lidar => init::rescale_from_spacing(&mut g, 1, AnchorInit::default().eps),
-            InitSource::Sfm => init::rescale_from_spacing(&mut g, 3, 0.0),
-        }
-    }
-    init::add_sky(&mut g, &data.train, sky as usize);
-    Ok(g)
-}
-
-/// A nearest-neighbour index of the anchors' positions; `None` when they cannot be indexed.
-fn anchor_index(anchors: &[Anchor]) -> Option<crate::geom::PointIndex> {
-    let pts: Vec<glam::Vec3> = anchors
-        .iter()
-        .map(|a| glam::Vec3::from_array(a.position))
-        .collect();
-    crate::geom::PointIndex::new(&pts).ok()
-}
-
-/// Appends, as non-trunk Gaussians of the SfM rule, the SfM points of `data` farther than
-/// `min_dist_m` from every anchor (see `TrainParams::sfm_fill_m`).
-fn sfm_fill(g: &mut Gaussians, anchors: &[Anchor], data: &Dataset, min_dist_m: f64) {
-    let Some(index) = anchor_index(anchors) else {
-        return;
-    };
-    let far = |p: &[f32; 3]| {
-        index
-            .nearest(glam::Vec3::from_array(*p))
-            .is_none_or(|n| f64::from(n.dist2) > min_dist_m * min_dist_m)
-    };
-    let (points, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = data
-        .points
-        .iter()
-        .zip(&data.colours)
-        .filter(|(p, _)| far(p))
-        .map(|(p, c)| (*p, *c))
-        .unzip();
-    if let Ok(fill) = init::from_sfm_points(&points, &colours) {
-        for i in 0..fill.len() {
-            g.push(fill.get(i));
-        }
-    }
-}
-
-/// Sets every Gaussian's trunk probability to that of its nearest anchor.
-fn inherit_trunk_prob(g: &mut Gaussians, anchors: &[Anchor]) {
-    let Some(index) = anchor_index(anchors) else {
-        return;
-    };
-    for (m, p) in g.means.iter().zip(g.trunk_prob.iter_mut()) {
-        if let Some(n) = index.nearest(glam::Vec3::from_array(*m)) {
-            *p = anchors[n.index as usize].trunk_prob;
-        }
-    }
-}
-
 pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     let register = ctx.output_of(Stage::Register, Stage::Train)?;
     let model = colmap::read_model(&register.join("sparse"), &NoProgress)?;
@@ -408,7 +195,16 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         )));
     }
     let mut backend = backend_for(&ctx.params.train)?;
-    let (budgeted, budget_source) = with_budget(&ctx.params.train, backend.device_kind());
+    let base_cfg = ctx.params.train.config();
+    let data = dataset::load(
+        &model,
+        &images,
+        base_cfg.resolution,
+        base_cfg.test_every,
+        &SubProgress::new(ctx.progress, 0.0, 0.05),
+    )?;
+    let (budgeted, budget_source, memory_plan) =
+        budget_and_plan(ctx, &ctx.params.train, backend.as_mut(), &data)?;
     let params = &budgeted;
     let cfg = params.config();
     ctx.progress.log(&format!(
@@ -419,13 +215,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             n => n.to_string(),
         }
     ));
-    let data = dataset::load(
-        &model,
-        &images,
-        cfg.resolution,
-        cfg.test_every,
-        &SubProgress::new(ctx.progress, 0.0, 0.05),
-    )?;
     // The anchors: the initialisation of the paper's method, the targets of L_geo and the
     // surface of Sylva's binding.
     let wants_anchors = params.init == InitSource::Lidar || params.semantic != TrunkTerm::Off;
@@ -443,13 +232,17 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     } else {
         Vec::new()
     };
-    let mut init = initial_gaussians(
-        &data,
-        params,
-        anchors.as_deref(),
-        &stems,
-        &ctx.params.segment.dbh,
-    )?;
+    let axes: Vec<StemAxis> = stems.iter().map(super::dbh::StemRecord::axis).collect();
+    let band = |means: &[[f32; 3]]| in_dbh_band(means, &axes, &ctx.params.segment.dbh);
+    let start = Start {
+        lidar: params.init == InitSource::Lidar,
+        sfm_fill_m: params.sfm_fill_m,
+        max_gaussians: params.max_gaussians,
+        sky_gaussians: params.sky_gaussians,
+        seed: params.seed,
+    };
+    let mut init = initial_gaussians(&data, &start, anchors.as_deref(), &band)
+        .map_err(|e| StageError::Input(e.to_string()))?;
     let n_init = init.len();
     let mut cfg = cfg;
     cfg.semantic.temperature_m = ctx.params.anchors.voxel_size_m as f32;
@@ -503,6 +296,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         // Loading took the first 5 %, writing the outputs takes the last 3 %.
         &SubProgress::new(ctx.progress, 0.05, 0.92),
     )?;
+    let memory = memory_note(ctx, memory_plan.as_ref(), backend.as_ref());
     trainer::write_outputs(ctx.out_dir, &outcome, &data)
         .map_err(|e| super::io_err(ctx.out_dir, e))?;
     // Held-out depth error against the LiDAR (also without the depth loss, to compare).
@@ -542,6 +336,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "views": { "train": data.train.len(), "test": data.test.len() },
         "gaussians": { "initial": n_init, "final": outcome.model.len() },
         "budget": { "max_gaussians": params.max_gaussians, "source": budget_source, "device_kind": backend.device_kind().as_str() },
+        "memory": memory,
         "render": outcome.eval,
         "depth": depth_note,
         "baseline_psnr": outcome.baseline_psnr,
@@ -788,7 +583,7 @@ fn read_offset(ctx: &StageContext<'_>) -> Result<[f64; 3], StageError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::splat::model::Gaussian;
+    use crate::splat::budget::{CPU_REFERENCE_BUDGET, SOFTWARE_GPU_BUDGET};
 
     #[test]
     fn the_default_budget_follows_the_device_and_a_given_one_wins() {
@@ -810,114 +605,5 @@ mod tests {
         let (b, src) = with_budget(&given, DeviceKind::SoftwareGpu);
         assert_eq!((b.max_gaussians, src.as_str()), (500, "params"));
         assert_eq!(b.config().max_gaussians, Some(500));
-    }
-
-    fn scene(trunk: usize, other: usize) -> Gaussians {
-        let mut g = Gaussians::default();
-        for i in 0..trunk + other {
-            let mut one = Gaussian::isotropic([i as f32, 0.0, 0.0], 0.01, [0.5; 3], 0.1);
-            one.trunk_prob = if i < trunk { 0.9 } else { 0.1 };
-            g.push(one);
-        }
-        g
-    }
-
-    fn trunk_count(g: &Gaussians) -> usize {
-        g.trunk_prob.iter().filter(|&&p| p >= 0.5).count()
-    }
-
-    #[test]
-    fn a_cap_keeps_a_share_for_the_trunks_and_lends_what_one_side_leaves() {
-        // (trunk Gaussians, others), cap, room for Gaussians added later; then (kept, trunks kept).
-        for ((trunk, other), cap, later, kept) in [
-            // Few trunk Gaussians: all are kept, the others fill the cap.
-            ((50, 10_000), 1000, 0, (1000, 50)),
-            // Many: half the cap for each side.
-            ((5000, 10_000), 1000, 0, (1000, 500)),
-            // Room for 100 Gaussians added later comes from the others' share.
-            ((5000, 10_000), 900, 100, (900, 500)),
-            // Few others: the trunks take the rest of the cap.
-            ((5000, 100), 1000, 0, (1000, 900)),
-        ] {
-            let mut g = scene(trunk, other);
-            cap_gaussians(&mut g, cap, 7, None, later);
-            assert_eq!(
-                (g.len(), trunk_count(&g)),
-                kept,
-                "{trunk} + {other} capped at {cap}"
-            );
-        }
-        // Under the cap, or no cap: nothing goes.
-        let mut g = scene(10, 10);
-        cap_gaussians(&mut g, 1000, 7, None, 0);
-        assert_eq!(g.len(), 20);
-        cap_gaussians(&mut g, 0, 7, None, 0);
-        assert_eq!(g.len(), 20);
-        // The same seed keeps the same Gaussians; another keeps others.
-        let (mut a, mut b, mut c) = (scene(3000, 3000), scene(3000, 3000), scene(3000, 3000));
-        cap_gaussians(&mut a, 500, 1, None, 0);
-        cap_gaussians(&mut b, 500, 1, None, 0);
-        cap_gaussians(&mut c, 500, 2, None, 0);
-        assert_eq!(a.means, b.means);
-        assert_ne!(a.means, c.means);
-    }
-
-    /// The farthest any point of `all` lies from its nearest kept Gaussian, metres.
-    fn covering_radius(all: &Gaussians, kept: &Gaussians) -> f32 {
-        let pts: Vec<glam::Vec3> = kept
-            .means
-            .iter()
-            .map(|m| glam::Vec3::from_array(*m))
-            .collect();
-        let index = crate::geom::PointIndex::new(&pts).expect("index");
-        all.means
-            .iter()
-            .map(|m| {
-                index
-                    .nearest(glam::Vec3::from_array(*m))
-                    .map_or(f32::INFINITY, |n| n.dist2.sqrt())
-            })
-            .fold(0.0, f32::max)
-    }
-
-    #[test]
-    fn a_cap_draws_a_stem_surface_evenly_and_scales_follow_the_kept_spacing() {
-        // 20 000 points at random on a 15 cm stem 10 m tall; a cap of 400 keeps one in 50.
-        let mut rng = SplitMix64::new(3);
-        let mut g = Gaussians::default();
-        for _ in 0..20_000 {
-            let a = rng.uniform() * std::f64::consts::TAU;
-            let z = rng.uniform() * 10.0;
-            let p = [(0.15 * a.cos()) as f32, (0.15 * a.sin()) as f32, z as f32];
-            let mut one = Gaussian::isotropic(p, 0.005, [0.5; 3], 0.1);
-            one.trunk_prob = 0.9;
-            g.push(one);
-        }
-        let mut drawn = g.clone();
-        cap_gaussians(&mut drawn, 400, 1, None, 0);
-        assert_eq!(drawn.len(), 400);
-        // A random subset of the same size, for comparison.
-        let mut keep = vec![false; g.len()];
-        let mut left: Vec<usize> = (0..g.len()).collect();
-        for _ in 0..400 {
-            let j = rng.below(left.len() as u64) as usize;
-            keep[left.swap_remove(j)] = true;
-        }
-        let mut random = g.clone();
-        random.retain_mask(&keep);
-        let (even, uneven) = (covering_radius(&g, &drawn), covering_radius(&g, &random));
-        assert!(even < 0.7 * uneven, "even draw {even} m, random {uneven} m");
-        // 9.4 m² over 400 Gaussians: about 15 cm apart; the scales follow the kept spacing.
-        init::rescale_from_spacing(&mut drawn, 1, 0.0);
-        let mean_sigma = drawn
-            .log_scales
-            .iter()
-            .map(|s| f64::from(s[0]).exp())
-            .sum::<f64>()
-            / 400.0;
-        assert!(
-            (0.06..0.2).contains(&mean_sigma),
-            "mean nearest spacing {mean_sigma} m"
-        );
     }
 }

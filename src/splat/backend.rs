@@ -15,6 +15,7 @@ use super::depth::{self, DepthTargets};
 use super::exposure::{EXPOSURE_FLOATS, ExposureSlot, ExposureState};
 use super::mcmc::{self, StepTerms};
 use super::model::Gaussians;
+use super::plan::MemoryPlan;
 use super::semantic::{self, SemanticAnchors, SemanticConfig};
 use super::strategy::DensifyStats;
 
@@ -56,7 +57,7 @@ pub struct PhaseTimes {
 }
 
 /// What kind of device runs the steps; it sets the default Gaussian budget
-/// (`pipeline::train::default_budget`).
+/// ([`super::budget::default_budget`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DeviceKind {
@@ -162,6 +163,46 @@ pub trait Backend {
     /// Wait for the device after every phase so that [`Backend::phase_times`] are exact
     /// (slower; for benchmarks). Backends that run synchronously ignore it.
     fn set_timed(&mut self, _timed: bool) {}
+    /// The device's own memory, bytes, where the backend can tell (a GPU's driver); `None`
+    /// for the CPU reference, which trains in host memory.
+    fn device_memory(&self) -> Option<u64> {
+        None
+    }
+    /// Follows `plan` from now on ([`crate::splat::plan`]): at most its photo slots on the
+    /// device, and no step past its tile intersections (such a step is skipped and counted
+    /// in [`MemoryUse::over_plan_steps`]). The CPU reference keeps everything in host memory
+    /// and has nothing to plan.
+    fn set_plan(&mut self, _plan: &MemoryPlan) -> Result<(), TrainError> {
+        Ok(())
+    }
+    /// Names the photo the next step trains on, so a device can upload it while the current
+    /// step runs. The CPU reference reads photos from host memory and needs no notice.
+    fn prefetch(&mut self, _view: &View) -> Result<(), TrainError> {
+        Ok(())
+    }
+    /// What the device's memory held at most so far and how the photos moved; `None` where
+    /// the backend does not measure it (the CPU reference).
+    fn memory_use(&self) -> Option<MemoryUse> {
+        None
+    }
+}
+
+/// What a device's memory held during a run ([`Backend::memory_use`]), bytes.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct MemoryUse {
+    /// The most the allocator had given to live buffers, sampled at the end of every step
+    /// (when the step's buffers all exist) and after every upload of the model; 0 where the
+    /// driver gives no allocator report.
+    pub peak_allocated_bytes: u64,
+    /// The most it had reserved in memory blocks (what the device really gives up).
+    pub peak_reserved_bytes: u64,
+    /// Photos written to the device, and steps whose photo was already there.
+    pub photo_uploads: u64,
+    pub photo_hits: u64,
+    /// Steps skipped because their tile intersections exceeded the plan's room.
+    pub over_plan_steps: u64,
+    /// The most tile intersections one step had.
+    pub max_intersections: u64,
 }
 
 /// The CPU reference as a backend (see the module docs).

@@ -7,6 +7,7 @@
 pub mod adam;
 pub mod backend;
 pub mod bind;
+pub mod budget;
 pub mod camera;
 pub mod camera_models;
 pub mod cameras;
@@ -24,8 +25,10 @@ pub mod init;
 pub mod mcmc;
 pub mod model;
 pub mod packed_image;
+pub mod plan;
 pub mod plot;
 pub mod semantic;
+pub mod start;
 pub mod strategy;
 pub mod trainer;
 pub mod trunk_diag;

@@ -114,12 +114,7 @@ pub fn train_monitored(
             return Err(TrainError::Cancelled);
         }
         if order.is_empty() {
-            order = (0..step_views.len()).collect();
-            // Fisher–Yates with the seeded generator: the same seed visits views identically.
-            for i in (1..order.len()).rev() {
-                let j = rng.below(i as u64 + 1) as usize;
-                order.swap(i, j);
-            }
+            order = shuffled(step_views.len(), &mut rng);
         }
         let (view, slot) = step_views[order.pop().unwrap_or(0)];
         let lr = LearningRates::at(cfg, step, data.extent);
@@ -133,6 +128,16 @@ pub fn train_monitored(
             sh_degree: cfg.sh_degree_at(step),
             stats: step < cfg.densify_until,
         })?;
+        // The next step's photo, named now so a device can upload it while this step runs
+        // (the next round's order is drawn here, as it would be at the next step).
+        if step < cfg.steps {
+            if order.is_empty() {
+                order = shuffled(step_views.len(), &mut rng);
+            }
+            if let Some(&next) = order.last() {
+                backend.prefetch(step_views[next].0)?;
+            }
+        }
         if strategy.wants_refine(step) {
             let stats = backend.take_stats()?;
             strategy.absorb_stats(&stats);
@@ -356,6 +361,17 @@ pub fn write_outputs(out: &Path, outcome: &TrainOutcome, data: &Dataset) -> std:
         .map_err(std::io::Error::other)?;
     }
     Ok(())
+}
+
+/// `0..n` in a random order (Fisher–Yates with the seeded generator: the same seed visits
+/// views identically); the trainer pops from the end.
+fn shuffled(n: usize, rng: &mut SplitMix64) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..n).collect();
+    for i in (1..order.len()).rev() {
+        let j = rng.below(i as u64 + 1) as usize;
+        order.swap(i, j);
+    }
+    order
 }
 
 #[cfg(test)]

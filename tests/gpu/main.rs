@@ -11,6 +11,7 @@ mod depth;
 mod exposure;
 mod forward;
 mod mcmc;
+mod plan;
 mod semantic;
 mod sort_scan;
 // The scenes and photo sets of the library's CPU tests, the same file (it names the library

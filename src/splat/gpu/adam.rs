@@ -6,7 +6,7 @@
 use crate::splat::model::SH_FLOATS;
 
 use crate::splat::gpu::buffers::{
-    chunked_from, chunked_zeroed, params_from, read_buffer, wgsl_struct,
+    chunked_uploaded, chunked_zeroed, params_from, read_buffer, wgsl_struct,
 };
 use crate::splat::gpu::chunks::bind_ranges;
 use crate::splat::gpu::context::{GpuContext, GpuError};
@@ -205,18 +205,22 @@ impl GpuAdam {
                 )));
             }
         }
-        let mut s = Self::new(ctx, count)?;
-        s.step = step;
-        s.moments = moments
+        // Uploaded directly: no zeroed moments beside them, even for a moment.
+        let moments = moments
             .iter()
             .map(|(m, v)| {
                 Ok((
-                    chunked_from(ctx, "adam m", m)?,
-                    chunked_from(ctx, "adam v", v)?,
+                    chunked_uploaded(ctx, "adam m", m)?,
+                    chunked_uploaded(ctx, "adam v", v)?,
                 ))
             })
             .collect::<Result<_, GpuError>>()?;
-        Ok(s)
+        Ok(GpuAdam {
+            pipeline: adam_pipeline(ctx),
+            moments,
+            step,
+            count,
+        })
     }
 
     /// Reads the moments back (blocking), in [`GpuSplats::buffers`] order.

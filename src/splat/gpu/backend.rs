@@ -1,25 +1,31 @@
 //! The trainer's GPU backend: the model, its gradients and the Adam moments live on the GPU;
 //! one step is the forward render (one 4-byte read of the intersection count, which sizes the
 //! sort), then the fused loss, the backward passes and Adam recorded into one command buffer.
-//! Training images are uploaded once, packed RGBA8, and stay on the GPU. The loss is read back
+//! Training images are uploaded packed RGBA8 on first use and stay on the GPU, or, under a
+//! memory plan ([`crate::splat::plan`]), share a fixed number of slots ([`super::photos`]);
+//! the allocator's figures are sampled after every step and model upload
+//! ([`Backend::memory_use`]). The loss is read back
 //! only when the loop asks for it; the model, the moments and the densification statistics only
 //! when the strategy refines.
 
-use std::collections::HashMap;
 use std::time::Instant;
 
 use super::adam::{AdamRates, GpuAdam, MomentPair};
-use super::buffers::{read_buffer, storage_from, storage_zeroed};
+use super::buffers::{read_buffer, storage_zeroed};
 use super::exposure::{ExposureScratch, GpuExposure};
 use super::loss::{LOSS_OUT_BYTES, LossKernel};
+use super::photos::PhotoCache;
 use super::{GpuContext, GpuError, GpuGrads, GpuSplats, Renderer};
 use crate::splat::adam::{AdamState, Moments};
-use crate::splat::backend::{Backend, DeviceKind, PhaseTimes, Step, StepLoss, TrainError};
+use crate::splat::backend::{
+    Backend, DeviceKind, MemoryUse, PhaseTimes, Step, StepLoss, TrainError,
+};
 use crate::splat::bind::BindConfig;
 use crate::splat::camera::{Camera, RenderOptions};
 use crate::splat::cameras::View;
 use crate::splat::exposure::{EXPOSURE_FLOATS, ExposureSlot};
 use crate::splat::model::Gaussians;
+use crate::splat::plan::MemoryPlan;
 use crate::splat::semantic::{SemanticAnchors, SemanticConfig};
 use crate::splat::strategy::DensifyStats;
 
@@ -34,6 +40,11 @@ impl From<GpuError> for TrainError {
         TrainError::Device(e.to_string())
     }
 }
+
+/// Steps a run may skip for exceeding the memory plan's tile intersections before it fails
+/// (or a tenth of its steps, when more): a few large early Gaussians may pass the room once or
+/// twice; more means the plan does not fit the scene.
+pub const MAX_OVER_PLAN_STEPS: u64 = 5;
 
 /// The model and optimiser on the GPU.
 struct OnDevice {
@@ -52,7 +63,15 @@ pub struct GpuBackend {
     background: [f32; 3],
     options: RenderOptions,
     state: Option<OnDevice>,
-    targets: HashMap<String, wgpu::Buffer>,
+    /// The photos (and depth maps) on the GPU.
+    photos: PhotoCache,
+    /// The photo of the latest step (a prefetch does not take its slot).
+    current: Option<String>,
+    /// Tile intersections a training step may have (the plan's; `None`: no limit).
+    max_intersections: Option<u64>,
+    memory: MemoryUse,
+    /// Training steps asked for so far (skipped ones included).
+    steps: u64,
     /// dL/dimage and the loss of the latest step, resized with the image.
     dl_dimage: Option<(usize, wgpu::Buffer)>,
     loss_out: wgpu::Buffer,
@@ -68,7 +87,6 @@ pub struct GpuBackend {
     mcmc: Option<GpuMcmc>,
     /// LiDAR depth supervision: the maps (uploaded per view on first use) and the kernel.
     depth: DepthTargets,
-    depth_maps: HashMap<String, (wgpu::Buffer, usize)>,
     depth_loss: DepthLoss,
     /// The per-image exposures, once installed, and their per-step buffers (resized with the
     /// image).
@@ -96,7 +114,11 @@ impl GpuBackend {
             background,
             options: RenderOptions::default(),
             state: None,
-            targets: HashMap::new(),
+            photos: PhotoCache::default(),
+            current: None,
+            max_intersections: None,
+            memory: MemoryUse::default(),
+            steps: 0,
             dl_dimage: None,
             loss_out,
             times: PhaseTimes::default(),
@@ -106,7 +128,6 @@ impl GpuBackend {
             bind: None,
             mcmc: None,
             depth: DepthTargets::default(),
-            depth_maps: HashMap::new(),
             depth_loss,
             exposure: None,
             exposure_scratch: None,
@@ -140,14 +161,21 @@ impl GpuBackend {
             .ok_or_else(|| TrainError::Invalid("no model on the GPU yet".into()))
     }
 
-    fn target(&mut self, view: &View) -> Result<&wgpu::Buffer, TrainError> {
-        if !self.targets.contains_key(&view.name) {
-            let buf = storage_from(&self.ctx, "target image", &view.image.pixels)?;
-            self.targets.insert(view.name.clone(), buf);
+    /// Puts `view`'s photo and depth map on the GPU, keeping the slot of `keep`.
+    fn resident(&mut self, view: &View, keep: Option<&str>) -> Result<(), TrainError> {
+        let map = self.depth.for_view(&view.name);
+        let depth = map.map(|m| (m, crate::splat::depth::valid_count(m)));
+        self.photos.ensure(&self.ctx, view, depth, keep)?;
+        Ok(())
+    }
+
+    /// Samples the allocator's figures into the peaks.
+    fn sample_memory(&mut self) {
+        if let Some((allocated, reserved)) = self.ctx.allocated_bytes() {
+            let m = &mut self.memory;
+            m.peak_allocated_bytes = m.peak_allocated_bytes.max(allocated);
+            m.peak_reserved_bytes = m.peak_reserved_bytes.max(reserved);
         }
-        self.targets
-            .get(&view.name)
-            .ok_or_else(|| TrainError::Invalid(format!("no target for {}", view.name)))
     }
 
     fn wait_ms(&self, t: Instant) -> Result<f64, TrainError> {
@@ -188,14 +216,8 @@ impl GpuBackend {
             self.exposure_for(slot.index)?;
             self.exposure_scratch_for(pixels)?;
         }
-        self.target(view)?;
-        if !self.depth_maps.contains_key(&view.name)
-            && let Some(map) = self.depth.for_view(&view.name)
-        {
-            let buf = storage_from(&self.ctx, "LiDAR depth", map)?;
-            let valid = crate::splat::depth::valid_count(map);
-            self.depth_maps.insert(view.name.clone(), (buf, valid));
-        }
+        self.resident(view, None)?;
+        self.current = Some(view.name.clone());
         Ok(())
     }
 }
@@ -230,6 +252,9 @@ impl Backend for GpuBackend {
                 "model and optimiser state disagree in size".into(),
             ));
         }
+        // The old model goes first, so a refinement never holds two models at once (the GPU
+        // has finished with it: the strategy read it back before refining).
+        self.state = None;
         let splats = GpuSplats::upload(&self.ctx, model)?;
         let grads = GpuGrads::new(&self.ctx, splats.count)?;
         let moments = [
@@ -252,6 +277,7 @@ impl Backend for GpuBackend {
             adam: gpu_adam,
             trunk_prob: model.trunk_prob.clone(),
         });
+        self.sample_memory();
         Ok(())
     }
 
@@ -265,6 +291,7 @@ impl Backend for GpuBackend {
         } = *step;
         let (w, h) = (view.camera.width, view.camera.height);
         self.step_buffers(view, exposure)?;
+        self.steps += 1;
         let t = Instant::now();
         let state = self
             .state
@@ -273,14 +300,40 @@ impl Backend for GpuBackend {
         state.splats.sh_degree = sh_degree.min(3);
         // Timed: wait after projection (with its read-back), sort and raster so that each lands
         // in its own column; untimed, the forward's GPU work finishes inside later phases.
-        let (frame, pt) = self.renderer.render_passes(
+        let rendered = self.renderer.render_passes_limited(
             &self.ctx,
             &state.splats,
             &view.camera,
             self.background,
             self.options,
             self.timed,
-        )?;
+            self.max_intersections,
+        );
+        let (frame, pt) = match rendered {
+            Err(GpuError::OverPlan {
+                intersections,
+                limit,
+            }) => {
+                // Past the plan's room: skip the step rather than allocate past the plan; a run
+                // where that is common has too little memory for its Gaussians at this size.
+                self.memory.over_plan_steps += 1;
+                self.memory.max_intersections = self.memory.max_intersections.max(intersections);
+                if self.memory.over_plan_steps > MAX_OVER_PLAN_STEPS.max(self.steps / 10) {
+                    return Err(TrainError::Device(format!(
+                        "{} of {} steps had more tile intersections than the memory plan has room for ({intersections} against {limit}, {:.1} per Gaussian): raise params.train.gpu_memory_mb, or train at a lower resolution or with a smaller budget",
+                        self.memory.over_plan_steps,
+                        self.steps,
+                        intersections as f64 / f64::from(state.splats.count.max(1)),
+                    )));
+                }
+                return Ok(());
+            }
+            r => r?,
+        };
+        self.memory.max_intersections = self
+            .memory
+            .max_intersections
+            .max(u64::from(frame.intersections));
         if self.timed {
             self.times.projection_ms += pt.project_ms;
             self.times.sort_ms += pt.sort_ms;
@@ -289,7 +342,8 @@ impl Backend for GpuBackend {
             self.times.raster_ms += t.elapsed().as_secs_f64() * 1000.0;
         }
         self.times.intersections += u64::from(frame.intersections);
-        let (Some(target), Some((_, dl))) = (self.targets.get(&view.name), self.dl_dimage.as_ref())
+        let resident = self.photos.get(&view.name);
+        let (Some(target), Some((_, dl))) = (resident.map(|r| &r.photo), self.dl_dimage.as_ref())
         else {
             return Err(TrainError::Invalid("internal: missing step buffers".into()));
         };
@@ -335,7 +389,7 @@ impl Backend for GpuBackend {
             )
             .map_err(|e| TrainError::Invalid(e.to_string()))?;
         if self.depth.weight > 0.0
-            && let Some((map, valid)) = self.depth_maps.get(&view.name)
+            && let Some((map, valid)) = resident.and_then(|r| r.depth.as_ref())
         {
             self.depth_loss
                 .encode(&self.ctx, &mut enc, &frame, map, self.depth.weight, *valid)?;
@@ -402,6 +456,10 @@ impl Backend for GpuBackend {
         }
         self.ctx.queue.submit([enc.finish()]);
         let optimizer_ms = self.wait_ms(t)?;
+        // Every buffer of the step still exists (the frame until this returns, the sort's
+        // scratch until the GPU is done with it): the step's high-water mark.
+        self.sample_memory();
+        drop(frame);
         self.times.loss_ms += loss_ms;
         self.times.backward_ms += backward_ms;
         self.times.optimizer_ms += optimizer_ms;
@@ -509,7 +567,7 @@ impl Backend for GpuBackend {
 
     fn set_depth_targets(&mut self, targets: DepthTargets) -> Result<(), TrainError> {
         self.depth = targets;
-        self.depth_maps.clear();
+        self.photos.clear_depth();
         Ok(())
     }
 
@@ -592,5 +650,29 @@ impl Backend for GpuBackend {
 
     fn set_timed(&mut self, timed: bool) {
         self.timed = timed;
+    }
+
+    fn device_memory(&self) -> Option<u64> {
+        self.ctx.device_memory_bytes()
+    }
+
+    fn set_plan(&mut self, plan: &MemoryPlan) -> Result<(), TrainError> {
+        self.photos
+            .set_slots((!plan.all_photos).then_some(plan.photo_slots));
+        self.max_intersections = Some(plan.max_intersections);
+        Ok(())
+    }
+
+    fn prefetch(&mut self, view: &View) -> Result<(), TrainError> {
+        let keep = self.current.clone();
+        self.resident(view, keep.as_deref())
+    }
+
+    fn memory_use(&self) -> Option<MemoryUse> {
+        Some(MemoryUse {
+            photo_uploads: self.photos.uploads,
+            photo_hits: self.photos.hits,
+            ..self.memory
+        })
     }
 }

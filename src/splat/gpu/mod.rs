@@ -31,6 +31,7 @@ pub mod frame;
 pub mod loss;
 pub mod mcmc;
 pub mod params;
+pub mod photos;
 pub mod project;
 pub mod project_bwd;
 pub mod raster_bwd;

@@ -113,6 +113,22 @@ impl Renderer {
         options: RenderOptions,
         timed: bool,
     ) -> Result<(Frame, PassTimings), GpuError> {
+        self.render_passes_limited(ctx, splats, cam, background, options, timed, None)
+    }
+
+    /// [`Renderer::render_passes`] that fails with [`GpuError::OverPlan`], before allocating
+    /// anything for them, when the frame's tile intersections exceed `max_intersections`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn render_passes_limited(
+        &self,
+        ctx: &GpuContext,
+        splats: &GpuSplats,
+        cam: &Camera,
+        background: [f32; 3],
+        options: RenderOptions,
+        timed: bool,
+        max_intersections: Option<u64>,
+    ) -> Result<(Frame, PassTimings), GpuError> {
         if cam.width == 0 || cam.height == 0 || !(cam.fx > 0.0 && cam.fy > 0.0) {
             return Err(GpuError::Invalid(format!(
                 "camera {}x{} px with fx {} fy {}",
@@ -141,6 +157,12 @@ impl Renderer {
             .first()
             .copied()
             .unwrap_or(0);
+        if let Some(limit) = max_intersections.filter(|&l| u64::from(isect) > l) {
+            return Err(GpuError::OverPlan {
+                intersections: u64::from(isect),
+                limit,
+            });
+        }
         times.project_ms =
             clock.submit(ctx, ctx.device.create_command_encoder(&Default::default()))?;
 

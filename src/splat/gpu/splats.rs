@@ -2,7 +2,7 @@
 
 use crate::splat::model::{GaussianGrads, Gaussians, SH_FLOATS};
 
-use crate::splat::gpu::buffers::{chunked_from, chunked_zeroed, read_buffer};
+use crate::splat::gpu::buffers::{chunked_uploaded, chunked_zeroed, read_buffer};
 use crate::splat::gpu::chunks::ChunkPlan;
 use crate::splat::gpu::context::{GpuContext, GpuError};
 
@@ -41,11 +41,11 @@ impl GpuSplats {
         }
         let count = check_count(model.len())?;
         Ok(GpuSplats {
-            means: chunked_from(ctx, "means", &model.means)?,
-            log_scales: chunked_from(ctx, "log_scales", &model.log_scales)?,
-            rotations: chunked_from(ctx, "rotations", &model.rotations)?,
-            opacity_logits: chunked_from(ctx, "opacity_logits", &model.opacity_logits)?,
-            sh: chunked_from(ctx, "sh", &model.sh)?,
+            means: chunked_uploaded(ctx, "means", &model.means)?,
+            log_scales: chunked_uploaded(ctx, "log_scales", &model.log_scales)?,
+            rotations: chunked_uploaded(ctx, "rotations", &model.rotations)?,
+            opacity_logits: chunked_uploaded(ctx, "opacity_logits", &model.opacity_logits)?,
+            sh: chunked_uploaded(ctx, "sh", &model.sh)?,
             count,
             sh_degree: model.sh_degree.min(3),
             plan: ChunkPlan::new(ctx, count)?,

@@ -1,0 +1,161 @@
+//! The start of training: the initial Gaussians, from the LiDAR anchors labelled by stage
+//! `segment` (the paper's method) or from the SfM points (vanilla 3DGS), capped to the budget
+//! by the draw of [`super::budget::cap_gaussians`], their scales taken again from what the cap
+//! kept, and the sky dome added.
+
+use super::budget::cap_gaussians;
+use super::dataset::Dataset;
+use super::init::{
+    Anchor, AnchorInit, CoverageFill, FillReport, InitError, add_sky, fill_uncovered, from_anchors,
+    from_sfm_points, rescale_from_spacing,
+};
+use super::model::Gaussians;
+
+/// How a run starts (the initialisation part of `params.train`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Start {
+    /// From the LiDAR anchors (true) or the SfM points (false).
+    pub lidar: bool,
+    /// With LiDAR anchors, also the SfM points farther than this from every anchor, metres
+    /// (0 = none; `params.train.sfm_fill_m`).
+    pub sfm_fill_m: f64,
+    /// The Gaussian budget, sky dome included (0 = none).
+    pub max_gaussians: u32,
+    /// Gaussians of the sky dome (at most a tenth of a budget).
+    pub sky_gaussians: u32,
+    /// Seed of the draw.
+    pub seed: u64,
+}
+
+/// Why the start failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error("LiDAR initialisation needs the anchors of stage segment")]
+    NoAnchors,
+    #[error("anchor initialisation: {0}")]
+    Anchors(InitError),
+    #[error("SfM initialisation: {0}")]
+    Sfm(InitError),
+}
+
+/// The initial Gaussians of `start`: the LiDAR anchors, or the SfM points of `data` (which then
+/// take the trunk probability of their nearest anchor when anchors are given, so the trunk
+/// term can act on them too). Past the budget, [`cap_gaussians`] keeps the DBH band that
+/// `band` marks (per Gaussian centre) dense.
+pub fn initial_gaussians(
+    data: &Dataset,
+    start: &Start,
+    anchors: Option<&[Anchor]>,
+    band: &dyn Fn(&[[f32; 3]]) -> Vec<bool>,
+) -> Result<Gaussians, StartError> {
+    let mut g = match (start.lidar, anchors) {
+        (true, Some(anchors)) => {
+            let mut g = from_anchors(anchors, &data.train, &AnchorInit::default())
+                .map_err(StartError::Anchors)?;
+            if start.sfm_fill_m > 0.0 {
+                sfm_fill(&mut g, anchors, data, start.sfm_fill_m);
+            }
+            g
+        }
+        (true, None) => return Err(StartError::NoAnchors),
+        (false, _) => {
+            let mut g = from_sfm_points(&data.points, &data.colours).map_err(StartError::Sfm)?;
+            if let Some(anchors) = anchors {
+                inherit_trunk_prob(&mut g, anchors);
+            }
+            g
+        }
+    };
+    let before = g.len();
+    // The sky dome's share of a cap: at most a tenth.
+    let sky = match start.max_gaussians {
+        0 => start.sky_gaussians,
+        max => start.sky_gaussians.min(max / 10),
+    };
+    let max = start.max_gaussians.saturating_sub(sky);
+    if start.max_gaussians > 0 && g.len() > max as usize {
+        let band = band(&g.means);
+        cap_gaussians(&mut g, max, start.seed, Some(&band), sky);
+    }
+    if g.len() < before {
+        // Scales from the spacing of what the cap kept (the same rule as the source's).
+        if start.lidar {
+            rescale_from_spacing(&mut g, 1, AnchorInit::default().eps);
+        } else {
+            rescale_from_spacing(&mut g, 3, 0.0);
+        }
+    }
+    add_sky(&mut g, &data.train, sky as usize);
+    Ok(g)
+}
+
+/// The start of `sylva train` and the real-photo tests (SfM points only): one Gaussian per SfM point of `data`
+/// (coloured from the photos where the model has no colours, [`Dataset`]), plus, with `fill`,
+/// Gaussians where the training photos see what no SfM point covers
+/// ([`fill_uncovered`]); capped at `max` by a draw of `seed` (0 = no cap) with the
+/// scales taken again from what the cap kept. Also returns what the fill added (before the
+/// cap; all zero without `fill`).
+pub fn sfm_gaussians(
+    data: &Dataset,
+    max: u32,
+    seed: u64,
+    fill: Option<&CoverageFill>,
+) -> Result<(Gaussians, FillReport), InitError> {
+    let mut g = from_sfm_points(&data.points, &data.colours)?;
+    let report = match fill {
+        Some(fill) => fill_uncovered(&mut g, &data.train, fill),
+        None => FillReport::default(),
+    };
+    let before = g.len();
+    cap_gaussians(&mut g, max, seed, None, 0);
+    if g.len() < before {
+        rescale_from_spacing(&mut g, 3, 0.0);
+    }
+    Ok((g, report))
+}
+
+/// A nearest-neighbour index of the anchors' positions; `None` when they cannot be indexed.
+fn anchor_index(anchors: &[Anchor]) -> Option<crate::geom::PointIndex> {
+    let pts: Vec<glam::Vec3> = anchors
+        .iter()
+        .map(|a| glam::Vec3::from_array(a.position))
+        .collect();
+    crate::geom::PointIndex::new(&pts).ok()
+}
+
+/// Appends, as non-trunk Gaussians of the SfM rule, the SfM points of `data` farther than
+/// `min_dist_m` from every anchor (`params.train.sfm_fill_m`).
+fn sfm_fill(g: &mut Gaussians, anchors: &[Anchor], data: &Dataset, min_dist_m: f64) {
+    let Some(index) = anchor_index(anchors) else {
+        return;
+    };
+    let far = |p: &[f32; 3]| {
+        index
+            .nearest(glam::Vec3::from_array(*p))
+            .is_none_or(|n| f64::from(n.dist2) > min_dist_m * min_dist_m)
+    };
+    let (points, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = data
+        .points
+        .iter()
+        .zip(&data.colours)
+        .filter(|(p, _)| far(p))
+        .map(|(p, c)| (*p, *c))
+        .unzip();
+    if let Ok(fill) = from_sfm_points(&points, &colours) {
+        for i in 0..fill.len() {
+            g.push(fill.get(i));
+        }
+    }
+}
+
+/// Sets every Gaussian's trunk probability to that of its nearest anchor.
+fn inherit_trunk_prob(g: &mut Gaussians, anchors: &[Anchor]) {
+    let Some(index) = anchor_index(anchors) else {
+        return;
+    };
+    for (m, p) in g.means.iter().zip(g.trunk_prob.iter_mut()) {
+        if let Some(n) = index.nearest(glam::Vec3::from_array(*m)) {
+            *p = anchors[n.index as usize].trunk_prob;
+        }
+    }
+}
