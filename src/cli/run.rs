@@ -318,6 +318,7 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     for stage in params.stages() {
         let progress = Arc::new(ConsoleProgress::new(stage.name(), Some(cancel.clone())));
         let started = Instant::now();
+        let before = Resources::now_reset();
         let (inp, out, prm, p) = (
             inputs.clone(),
             a.out.clone(),
@@ -331,8 +332,14 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
         match result {
             Ok(outcome) => {
                 progress.set(1.0);
-                eprintln!("  done in {:.1} s", started.elapsed().as_secs_f64());
-                results.insert(stage.name().to_string(), outcome.report);
+                let wall_s = started.elapsed().as_secs_f64();
+                let used = Resources::since(before, wall_s);
+                eprintln!("  done in {wall_s:.1} s{}", used.describe());
+                let mut report = outcome.report;
+                if let Some(r) = report.as_object_mut() {
+                    r.insert("resources".into(), serde_json::to_value(used)?);
+                }
+                results.insert(stage.name().to_string(), report);
                 summarise(&mut results);
                 write_results(&a.out, &results)?;
             }
@@ -346,6 +353,63 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
     }
     eprintln!("results: {}", a.out.join("results.json").display());
     Ok(ExitCode::SUCCESS)
+}
+
+/// What one stage of `sylva run` took: wall and CPU seconds, and the process's peak resident
+/// memory during it (Linux: VmHWM of /proc/self/status, reset before each stage through
+/// /proc/self/clear_refs; CPU time from /proc/self/stat in USER_HZ ticks, 100 a second).
+/// `None` where /proc does not say.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+struct Resources {
+    wall_s: f64,
+    cpu_s: Option<f64>,
+    peak_rss_mb: Option<f64>,
+}
+
+impl Resources {
+    /// The CPU seconds so far, after resetting the peak resident memory.
+    fn now_reset() -> Option<f64> {
+        // "5" resets the peak resident set size (Linux 4.0 and later); harmless elsewhere.
+        let _ = std::fs::write("/proc/self/clear_refs", "5");
+        cpu_seconds()
+    }
+
+    fn since(cpu_before: Option<f64>, wall_s: f64) -> Resources {
+        Resources {
+            wall_s,
+            cpu_s: cpu_seconds().zip(cpu_before).map(|(a, b)| a - b),
+            peak_rss_mb: peak_rss_mb(),
+        }
+    }
+
+    fn describe(&self) -> String {
+        let mut s = String::new();
+        if let Some(c) = self.cpu_s {
+            s += &format!(", {c:.1} CPU s");
+        }
+        if let Some(m) = self.peak_rss_mb {
+            s += &format!(", peak memory {m:.0} MB");
+        }
+        s
+    }
+}
+
+/// User + system CPU seconds of this process (/proc/self/stat fields 14 and 15).
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The command name (field 2) may hold spaces: count from the closing parenthesis.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+/// Peak resident memory since the last reset, MB (VmHWM).
+fn peak_rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
 }
 
 #[cfg(test)]
