@@ -27,9 +27,20 @@ pub struct BenchArgs {
     /// Longest image side, pixels (comma-separated for several rows).
     #[arg(long, env = "SYLVA_BENCH_RESOLUTION", default_value = "320")]
     pub resolution: String,
-    /// Gaussians to train (a seeded subset of the SfM points; 0 = all).
-    #[arg(long, env = "SYLVA_BENCH_GAUSSIANS", default_value_t = 0)]
-    pub gaussians: u32,
+    /// Gaussians to train, comma-separated for several rows: a seeded even draw of the SfM
+    /// points, or, past their number, each point spread into jittered copies
+    /// (`splat::start::spread_to`); 0 = the SfM points as they are.
+    #[arg(long, env = "SYLVA_BENCH_GAUSSIANS", default_value = "0")]
+    pub gaussians: String,
+    /// train: plan the GPU's memory as stage `train` does (`splat::plan`) for this many MiB
+    /// (0 = what the device reports) and print the plan against the peak the allocator saw;
+    /// without it, no plan (every photo stays on the GPU).
+    #[arg(long, env = "SYLVA_BENCH_GPU_MEMORY_MB")]
+    pub gpu_memory_mb: Option<u64>,
+    /// train: hold out every 8th photo and print the held-out PSNR after the steps (the
+    /// evaluation is not in the step times).
+    #[arg(long, env = "SYLVA_BENCH_HELDOUT")]
+    pub heldout: bool,
     /// gpu or cpu.
     #[arg(long, env = "SYLVA_BENCH_BACKEND", default_value = "gpu")]
     pub backend: String,
@@ -90,6 +101,12 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         .map(|r| r.trim().parse::<u32>())
         .collect::<Result<_, _>>()
         .map_err(|e| anyhow::anyhow!("--resolution: {e}"))?;
+    let counts: Vec<u32> = a
+        .gaussians
+        .split(',')
+        .map(|r| r.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--gaussians: {e}"))?;
     tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
         let tmp = std::env::temp_dir().join(format!("sylva-bench-{}", std::process::id()));
         let colmap = match &a.colmap {
@@ -110,23 +127,28 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             .ok_or_else(|| anyhow::anyhow!("{}: no images/ folder", colmap.display()))?;
         let model = sylva::io::colmap::read_model(&project.sparse_dir, &sylva::progress::NoProgress)?;
         println!(
-            "| device | resolution (px) | images | Gaussians | tiles per Gaussian | steps/s | s/step | projection ms | sort ms | raster ms | loss ms | backward ms | optimiser ms | peak RSS MiB |"
+            "| device | resolution (px) | images | Gaussians | tiles per Gaussian | steps/s | s/step | projection ms | sort ms | raster ms | loss ms | backward ms | optimiser ms | peak RSS MiB | held-out PSNR dB | GPU memory planned MiB | GPU peak allocated MiB | photos on the GPU | photo uploads |"
         );
-        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-        for res in resolutions {
+        println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+        for (res, count) in resolutions
+            .iter()
+            .flat_map(|&r| counts.iter().map(move |&c| (r, c)))
+        {
             let params = TrainParams {
                 steps: a.steps,
                 resolution: res,
-                max_gaussians: a.gaussians,
                 backend,
                 ..TrainParams::default()
             };
             let mut cfg = params.config();
-            // Time the steps themselves: no densification, no evaluation views.
+            // Time the steps themselves: no densification; the held-out views only with
+            // --heldout (evaluated after the timed steps).
             cfg.densify_until = 0;
-            cfg.test_every = 0;
-            let data = sylva::splat::dataset::load(&model, &images, cfg.resolution, 0, &sylva::progress::NoProgress)?;
-            let (init, _) = sylva::splat::start::sfm_gaussians(&data, params.max_gaussians, params.seed, None)?;
+            cfg.test_every = if a.heldout { 8 } else { 0 };
+            cfg.exposure = false;
+            let data = sylva::splat::dataset::load(&model, &images, cfg.resolution, cfg.test_every, &sylva::progress::NoProgress)?;
+            let (mut init, _) = sylva::splat::start::sfm_gaussians(&data, count, params.seed, None)?;
+            sylva::splat::start::spread_to(&mut init, count as usize, params.seed);
             let n = init.len();
             let mut backend = if a.raster_pixels > 0 && backend == TrainBackend::Gpu {
                 let mut ctx = sylva::splat::gpu::GpuContext::new()?;
@@ -135,6 +157,22 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
                     as Box<dyn sylva::splat::backend::Backend>
             } else {
                 sylva::pipeline::train::backend_for(&params)?
+            };
+            let plan = match a.gpu_memory_mb {
+                Some(mb) => {
+                    let mut c = cfg.clone();
+                    c.max_gaussians = Some(n);
+                    let input = sylva::splat::plan::run_input(backend.as_ref(), &data, &c, mb, false, false)
+                        .ok_or_else(|| anyhow::anyhow!("--gpu-memory-mb: this backend has no GPU memory to plan (give a figure, or train on a GPU)"))?;
+                    let plan = sylva::splat::plan::plan(&input)?;
+                    if (plan.budget as usize) < n {
+                        anyhow::bail!("{} Gaussians do not fit {} MiB: {}", n, input.device_bytes >> 20, plan.describe());
+                    }
+                    eprintln!("{}", plan.describe());
+                    backend.set_plan(&plan)?;
+                    Some(plan)
+                }
+                None => None,
             };
             backend.set_timed(true);
             let mut strategy = sylva::splat::trainer::default_strategy(&cfg);
@@ -147,10 +185,12 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
                 &sylva::progress::NoProgress,
             )?;
             let t = out.phase_times;
+            let used = backend.memory_use();
+            let mib = |b: u64| format!("{:.0}", b as f64 / 1048576.0);
             let steps = f64::from(cfg.steps);
             let first = data.train.first().map(|v| (v.camera.width, v.camera.height)).unwrap_or((0, 0));
             println!(
-                "| {} | {}×{} | {} | {} | {} | {:.2} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} |",
+                "| {} | {}×{} | {} | {} | {} | {:.2} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {} | {} | {} | {} | {} |",
                 out.device,
                 first.0,
                 first.1,
@@ -169,8 +209,16 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
                 t.loss_ms / steps,
                 t.backward_ms / steps,
                 t.optimizer_ms / steps,
-                crate::loadbench::peak_rss_mib()
+                crate::loadbench::peak_rss_mib(),
+                if a.heldout { format!("{:.2}", out.eval.psnr) } else { "–".into() },
+                plan.as_ref().map_or("–".into(), |p| mib(p.total_bytes)),
+                used.map_or("–".into(), |u| mib(u.peak_allocated_bytes)),
+                plan.as_ref().map_or("all".into(), |p| if p.all_photos { "all".into() } else { format!("{} of {}", p.photo_slots, p.input.photos) }),
+                used.map_or("–".into(), |u| u.photo_uploads.to_string()),
             );
+            if let Some(u) = used.filter(|u| u.over_plan_steps > 0) {
+                eprintln!("{} steps skipped: their tile intersections exceeded the plan's room", u.over_plan_steps);
+            }
         }
         let _ = std::fs::remove_dir_all(&tmp);
         Ok(())

@@ -159,3 +159,37 @@ fn inherit_trunk_prob(g: &mut Gaussians, anchors: &[Anchor]) {
         }
     }
 }
+
+/// `g` spread to `n` Gaussians (nothing happens when it has as many or more): each Gaussian
+/// becomes ⌈n / len⌉ copies, each moved by a seeded normal offset of its own scale and
+/// shrunk by the cube root of the copies (so the copies fill about the volume the one did),
+/// then [`cap_gaussians`] draws `n` of them evenly. For benchmarks that need a model of a
+/// given size from a sparse start (`sylva bench train --gaussians`, benches/gpu_check.sh), not
+/// for training a twin: the stage starts from the LiDAR anchors.
+pub fn spread_to(g: &mut Gaussians, n: usize, seed: u64) {
+    let have = g.len();
+    if have == 0 || n <= have {
+        return;
+    }
+    let copies = n.div_ceil(have);
+    let shrink = (copies as f32).cbrt().ln();
+    let mut rng = crate::rng::SplitMix64::new(seed);
+    let mut out = Gaussians {
+        sh_degree: g.sh_degree,
+        ..Gaussians::default()
+    };
+    for i in 0..have {
+        let one = g.get(i);
+        let sigma = one.log_scale.map(f32::exp);
+        for _ in 0..copies {
+            let mut c = one;
+            for k in 0..3 {
+                c.mean[k] += sigma[k] * rng.normal() as f32;
+                c.log_scale[k] -= shrink;
+            }
+            out.push(c);
+        }
+    }
+    cap_gaussians(&mut out, n as u32, seed, None, 0);
+    *g = out;
+}
