@@ -60,13 +60,30 @@ pub fn cap_gaussians(
     band: Option<&[bool]>,
     added_later: u32,
 ) {
-    let n = g.len();
+    if let Some(keep) = cap_mask(&g.means, &g.trunk_prob, max, seed, band, added_later) {
+        g.retain_mask(&keep);
+    }
+}
+
+/// The draw of [`cap_gaussians`] on centres `means` with trunk probabilities `trunk_prob`
+/// (one each): which to keep, or `None` when all stay. Lets a start draw its anchors before
+/// it makes Gaussians of them (`super::start`), so millions of anchors never become
+/// Gaussians only to be dropped.
+pub fn cap_mask(
+    means: &[[f32; 3]],
+    trunk_prob: &[f32],
+    max: u32,
+    seed: u64,
+    band: Option<&[bool]>,
+    added_later: u32,
+) -> Option<Vec<bool>> {
+    let n = means.len().min(trunk_prob.len());
     if max == 0 || n <= max as usize {
-        return;
+        return None;
     }
     let max = max as usize;
     let in_band = |i: usize| band.is_some_and(|b| b.get(i).copied().unwrap_or(false));
-    let (trunk, other): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| g.trunk_prob[i] >= 0.5);
+    let (trunk, other): (Vec<usize>, Vec<usize>) = (0..n).partition(|&i| trunk_prob[i] >= 0.5);
     let (trunk_band, trunk_rest): (Vec<usize>, Vec<usize>) =
         trunk.iter().partition(|&&i| in_band(i));
     let share_of = max + added_later as usize;
@@ -86,11 +103,11 @@ pub fn cap_gaussians(
         (&trunk_rest, from_rest),
         (&other, from_other),
     ] {
-        for i in voxel_draw(&g.means, part, count, &mut rng) {
+        for i in voxel_draw(means, part, count, &mut rng) {
             keep[i] = true;
         }
     }
-    g.retain_mask(&keep);
+    Some(keep)
 }
 
 /// Exactly `count` of the points `idx` of `means` (all when there are no more), spread evenly:

@@ -30,7 +30,12 @@ pub enum InitError {
 }
 
 /// One Gaussian with a DC colour from 8-bit RGB (reference `RGB2SH`: (c − 0.5) / C0).
-fn seed_gaussian(mean: [f32; 3], log_scale: f32, rgb: [u8; 3], trunk_prob: f32) -> Gaussian {
+pub(crate) fn seed_gaussian(
+    mean: [f32; 3],
+    log_scale: f32,
+    rgb: [u8; 3],
+    trunk_prob: f32,
+) -> Gaussian {
     let mut sh = [0.0; SH_FLOATS];
     for c in 0..3 {
         sh[c] = (rgb[c] as f32 / 255.0 - 0.5) / SH_C0;
@@ -645,27 +650,36 @@ pub fn photometric_colours(
     views: &[View],
     params: &AnchorInit,
 ) -> Vec<[u8; 3]> {
-    let mut samples: Vec<Vec<[u8; 3]>> = vec![Vec::new(); anchors.len()];
+    // One flat reservoir of `keep` samples per anchor (3 B each) with its fill and the count
+    // of views that saw the anchor: 53 B an anchor at the default 16 samples, for the millions
+    // of anchors of a paper-size plot (a vector per anchor took twice that).
+    let keep = params.max_samples.clamp(1, usize::from(u8::MAX));
+    let mut samples = vec![[0u8; 3]; anchors.len() * keep];
+    let mut filled = vec![0u8; anchors.len()];
     let mut seen = vec![0u64; anchors.len()];
     let mut rng = SplitMix64::new(params.seed);
-    let keep = params.max_samples.max(1);
     for view in views {
         for (i, c) in visible_colours(anchors, view, params) {
             seen[i] += 1;
-            if samples[i].len() < keep {
-                samples[i].push(c);
+            let f = usize::from(filled[i]);
+            if f < keep {
+                samples[i * keep + f] = c;
+                filled[i] += 1;
             } else {
                 let j = rng.below(seen[i]) as usize;
                 if j < keep {
-                    samples[i][j] = c;
+                    samples[i * keep + j] = c;
                 }
             }
         }
     }
-    samples
-        .into_iter()
-        .zip(anchors)
-        .map(|(s, a)| median_colour(s).unwrap_or(a.colour))
+    anchors
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            let s = samples[i * keep..i * keep + usize::from(filled[i])].to_vec();
+            median_colour(s).unwrap_or(a.colour)
+        })
         .collect()
 }
 
