@@ -12,6 +12,7 @@ use sylva::pipeline::{self, REPORT_FILE, Stage, StageInputs};
 use sylva::progress::NoProgress;
 use sylva::splat::budget::SOFTWARE_GPU_BUDGET;
 use sylva::splat::plan::{self, MemorySource, PlanInput};
+use sylva::splat::semantic::SemanticAnchors;
 use sylva::synth::{Preset, SynthParams};
 
 fn report(dir: &Path, stage: Stage) -> Value {
@@ -32,6 +33,30 @@ fn a_job_streams_its_photos_and_keeps_to_a_small_gpu_memory() {
         ..SynthParams::new(Preset::Tiny)
     };
     let summary = sylva::synth::generate(&synth, &plot, &NoProgress).expect("synth");
+    let inputs = StageInputs {
+        lidar: plot.join("lidar.laz"),
+        colmap: Some(plot.join("colmap")),
+        photos: None,
+        control_points: Some(plot.join("control_points.csv")),
+        field_dbh: Some(plot.join("field_dbh.csv")),
+    };
+    let out = dir.path().join("job");
+    let mut params = PipelineParams::default();
+    params.train.steps = 200;
+    for &stage in Stage::Train.predecessors() {
+        pipeline::execute_stage(stage, &inputs, &out, &params, &NoProgress)
+            .unwrap_or_else(|e| panic!("stage {stage}: {e}"));
+    }
+    // The trunk term's anchors, as stage `train` will hold them on the GPU.
+    let (cloud, fields) = sylva::io::ply::read_ply_with_fields(
+        &out.join(Stage::Segment.name()).join("anchors.ply"),
+        &NoProgress,
+    )
+    .expect("anchors");
+    let label = fields.iter().find(|f| f.name == "label").expect("labels");
+    let points: Vec<[f32; 3]> = cloud.positions.iter().map(|p| p.to_array()).collect();
+    let is_trunk: Vec<bool> = label.values.iter().map(|&l| l == 1.0).collect();
+    let anchors = SemanticAnchors::new(&points, None, &is_trunk).expect("trunk anchors");
     // What stage `train` will plan with at the defaults (exposure on: every photo trains;
     // Sylva's binding; the software GPU's budget): the smallest memory, in MiB, whose plan
     // streams the photos and lowers the budget.
@@ -44,6 +69,7 @@ fn a_job_streams_its_photos_and_keeps_to_a_small_gpu_memory() {
         exposure: true,
         trunk_term: true,
         mcmc: false,
+        anchor_bytes: anchors.device_bytes(),
         budget: Some(SOFTWARE_GPU_BUDGET),
         intersections_per_gaussian: plan::INTERSECTIONS_PER_GAUSSIAN,
     };
@@ -56,18 +82,8 @@ fn a_job_streams_its_photos_and_keeps_to_a_small_gpu_memory() {
             .is_ok_and(|p| !p.all_photos && p.memory_bound)
         })
         .expect("a memory that streams the photos and binds the budget");
-    let inputs = StageInputs {
-        lidar: plot.join("lidar.laz"),
-        colmap: Some(plot.join("colmap")),
-        photos: None,
-        control_points: Some(plot.join("control_points.csv")),
-        field_dbh: Some(plot.join("field_dbh.csv")),
-    };
-    let out = dir.path().join("job");
-    let mut params = PipelineParams::default();
     params.train.gpu_memory_mb = mb;
-    params.train.steps = 200;
-    for stage in params.stages() {
+    for stage in [Stage::Train, Stage::Dbh, Stage::Export] {
         pipeline::execute_stage(stage, &inputs, &out, &params, &NoProgress)
             .unwrap_or_else(|e| panic!("stage {stage} under {mb} MiB: {e}"));
     }

@@ -162,7 +162,7 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
                 Some(mb) => {
                     let mut c = cfg.clone();
                     c.max_gaussians = Some(n);
-                    let input = sylva::splat::plan::run_input(backend.as_ref(), &data, &c, mb, false, false)
+                    let input = sylva::splat::plan::run_input(backend.as_ref(), &data, &c, mb, false, None)
                         .ok_or_else(|| anyhow::anyhow!("--gpu-memory-mb: this backend has no GPU memory to plan (give a figure, or train on a GPU)"))?;
                     let plan = sylva::splat::plan::plan(&input)?;
                     if (plan.budget as usize) < n {

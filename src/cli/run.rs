@@ -37,6 +37,11 @@ pub struct RunArgs {
     /// Stop after this stage (ingest, sfm, register, anchors, segment, train, dbh, export).
     #[arg(long, env = "SYLVA_UNTIL", value_parser = parse_stage)]
     pub until: Option<Stage>,
+    /// Start at this stage, keeping the earlier stages' outputs already in --out (each must
+    /// have finished there: its folder holds a report.json). To train again with other
+    /// parameters without redoing the LiDAR stages.
+    #[arg(long, env = "SYLVA_FROM", value_parser = parse_stage)]
+    pub from: Option<Stage>,
     /// Job parameters as a JSON file (the `params` object of the API; see `GET /v1/options`).
     #[arg(long, env = "SYLVA_PARAMS")]
     pub params: Option<PathBuf>,
@@ -315,7 +320,25 @@ pub(super) async fn run(a: RunArgs) -> anyhow::Result<ExitCode> {
         });
     }
     let mut results = serde_json::Map::new();
-    for stage in params.stages() {
+    let mut stages = params.stages();
+    if let Some(from) = a.from {
+        let Some(at) = stages.iter().position(|&s| s == from) else {
+            anyhow::bail!("--from {from}: this job does not run stage {from} (stages: {stages:?})");
+        };
+        for &earlier in &stages[..at] {
+            let report = a.out.join(earlier.name()).join(pipeline::REPORT_FILE);
+            let text = std::fs::read(&report).with_context(|| {
+                format!(
+                    "--from {from}: stage {earlier} has not finished in {} (no {})",
+                    a.out.display(),
+                    report.display()
+                )
+            })?;
+            results.insert(earlier.name().to_string(), serde_json::from_slice(&text)?);
+        }
+        stages.drain(..at);
+    }
+    for stage in stages {
         let progress = Arc::new(ConsoleProgress::new(stage.name(), Some(cancel.clone())));
         let started = Instant::now();
         let before = Resources::now_reset();

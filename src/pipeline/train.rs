@@ -23,7 +23,7 @@ use crate::splat::dataset::{self, Dataset, DatasetError};
 use crate::splat::init::Anchor;
 use crate::splat::model::Gaussians;
 use crate::splat::plan::{self, MemoryPlan, MemorySource};
-use crate::splat::semantic::{AnchorIndex, SemanticAnchors};
+use crate::splat::semantic::{AnchorIndex, MAX_ANCHORS, SemanticAnchors};
 use crate::splat::start::{Start, initial_gaussians};
 use crate::splat::trainer;
 use crate::splat::trunk_diag::{SliceFn, TrunkMonitor};
@@ -82,6 +82,7 @@ fn budget_and_plan(
     params: &TrainParams,
     backend: &mut dyn Backend,
     data: &Dataset,
+    trunk_anchors: Option<&SemanticAnchors>,
 ) -> Result<(TrainParams, String, Option<MemoryPlan>), StageError> {
     let (mut p, mut source) = with_budget(params, backend.device_kind());
     let input = plan::run_input(
@@ -90,7 +91,7 @@ fn budget_and_plan(
         &p.config(),
         p.gpu_memory_mb,
         p.depth_weight > 0.0,
-        p.semantic != TrunkTerm::Off,
+        trunk_anchors,
     );
     let Some(input) = input else {
         if backend.device_kind() != DeviceKind::CpuReference {
@@ -203,8 +204,30 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         base_cfg.test_every,
         &SubProgress::new(ctx.progress, 0.0, 0.05),
     )?;
-    let (budgeted, budget_source, memory_plan) =
-        budget_and_plan(ctx, &ctx.params.train, backend.as_mut(), &data)?;
+    // The anchors: the initialisation of the paper's method, the targets of L_geo and the
+    // surface of Sylva's binding (at most `semantic::MAX_ANCHORS` of them on the GPU).
+    let train_params = &ctx.params.train;
+    let wants_anchors =
+        train_params.init == InitSource::Lidar || train_params.semantic != TrunkTerm::Off;
+    let (anchors, is_trunk, normals) = if wants_anchors {
+        let (a, t, n) = read_anchors(ctx)?;
+        (Some(a), t, n)
+    } else {
+        (None, Vec::new(), None)
+    };
+    let set = anchors
+        .as_deref()
+        .and_then(|a| trunk_anchors(ctx, train_params, a, normals.as_deref(), &is_trunk));
+    drop(normals);
+    drop(is_trunk);
+    let (budgeted, budget_source, memory_plan) = budget_and_plan(
+        ctx,
+        train_params,
+        backend.as_mut(),
+        &data,
+        set.as_ref()
+            .filter(|_| train_params.semantic != TrunkTerm::Off),
+    )?;
     let params = &budgeted;
     let cfg = params.config();
     ctx.progress.log(&format!(
@@ -215,15 +238,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             n => n.to_string(),
         }
     ));
-    // The anchors: the initialisation of the paper's method, the targets of L_geo and the
-    // surface of Sylva's binding.
-    let wants_anchors = params.init == InitSource::Lidar || params.semantic != TrunkTerm::Off;
-    let (anchors, is_trunk, normals) = if wants_anchors {
-        let (a, t, n) = read_anchors(ctx)?;
-        (Some(a), t, n)
-    } else {
-        (None, Vec::new(), None)
-    };
     // The stems of stage `segment`, whose DBH band a cap keeps dense and the trunk monitor
     // follows; none without the anchors (vanilla runs need no stage `segment`).
     let offset = read_offset(ctx)?;
@@ -251,9 +265,6 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         .and_then(|_| cfg.bind.validate())
         .and_then(|_| cfg.validate_exposure())
         .map_err(|e| StageError::Input(format!("params.train: {e}")))?;
-    let set = anchors
-        .as_deref()
-        .and_then(|a| trunk_anchors(ctx, params, a, normals.as_deref(), &is_trunk));
     let trunk_note = trunk_term(
         ctx,
         params,
@@ -366,12 +377,23 @@ fn trunk_anchors(
     is_trunk: &[bool],
 ) -> Option<SemanticAnchors> {
     let points: Vec<[f32; 3]> = anchors.iter().map(|a| a.position).collect();
-    SemanticAnchors::new(&points, normals, is_trunk)
+    let set = SemanticAnchors::new(&points, normals, is_trunk)
         .map_err(|e| {
             ctx.progress
                 .log(&format!("trunk term {} off: {e}", params.semantic.as_str()))
         })
-        .ok()
+        .ok()?;
+    let all = set.trunk.len() + set.leaf.len();
+    let set = set.thinned(MAX_ANCHORS, params.seed);
+    if set.trunk.len() + set.leaf.len() < all {
+        ctx.progress.log(&format!(
+            "trunk term: {all} anchors drawn evenly down to {} ({} trunk, {} leaf), the most the term holds",
+            MAX_ANCHORS,
+            set.trunk.len(),
+            set.leaf.len()
+        ));
+    }
+    Some(set)
 }
 
 /// Sets up the trunk term `params.semantic` asks for on `backend` when the anchors give one

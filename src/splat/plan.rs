@@ -31,6 +31,7 @@ use serde::Serialize;
 use super::backend::{Backend, DeviceKind};
 use super::config::{StrategyKind, TrainConfig};
 use super::dataset::Dataset;
+use super::semantic::SemanticAnchors;
 
 /// Floats of one Gaussian's parameters: mean 3, log-scales 3, rotation 4, opacity 1, SH 48.
 pub const PARAMETER_FLOATS: u64 = 59;
@@ -98,10 +99,11 @@ pub const MIN_PHOTO_SLOTS: usize = 2;
 
 /// Tile intersections per Gaussian the plan reserves room for, at least (16×16-px tiles).
 /// Measured: 1.4 (UAV photos at 320 px) to 6.8 (close-up at 320 px) and 21.2 (close-up at
-/// 640 px; docs/results/splatting.md, "Where the time goes"). 16 covers all but the close-up at
-/// its highest resolution; memory the budget leaves goes to intersections as well, and a step
-/// whose intersections exceed the room is skipped and counted (`over_plan_steps`).
-pub const INTERSECTIONS_PER_GAUSSIAN: f64 = 16.0;
+/// 640 px; docs/results/splatting.md, "Where the time goes"), and at most 27.9 in a step of
+/// `stand` at 640 px from its LiDAR start of 10 000 Gaussians (issue 41; 16 was too few
+/// there). 32 covers them all; memory the budget leaves goes to intersections as well, and a
+/// step whose intersections exceed the room is skipped and counted (`over_plan_steps`).
+pub const INTERSECTIONS_PER_GAUSSIAN: f64 = 32.0;
 
 /// Where the device's memory figure came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -131,6 +133,9 @@ pub struct PlanInput {
     pub trunk_term: bool,
     /// The MCMC strategy.
     pub mcmc: bool,
+    /// The trunk term's anchors on the GPU, bytes
+    /// (`crate::splat::semantic::SemanticAnchors::device_bytes`; 0 without the term).
+    pub anchor_bytes: u64,
     /// The budget asked for, or the device's speed default; `None`: as many as fit.
     pub budget: Option<u32>,
     /// Room to reserve per Gaussian for tile intersections ([`INTERSECTIONS_PER_GAUSSIAN`]).
@@ -232,8 +237,9 @@ impl PlanInput {
 }
 
 /// The plan for `input` (see the module doc): the photos all on the GPU when they take at most
-/// [`ALL_PHOTOS_SHARE`] of the plannable memory and leave room for the budget asked for;
-/// otherwise a cache of [`PHOTO_CACHE_SHARE`] of it (at least [`MIN_PHOTO_SLOTS`] photos).
+/// [`ALL_PHOTOS_SHARE`] of the plannable memory and leave room for the budget asked for (with
+/// no budget asked for, when they take at most a cache's share); otherwise a cache of
+/// [`PHOTO_CACHE_SHARE`] of it (at least [`MIN_PHOTO_SLOTS`] photos).
 /// The budget is the one asked for, lowered to what the rest holds; the intersections get the
 /// remainder.
 pub fn plan(input: &PlanInput) -> Result<MemoryPlan, PlanError> {
@@ -245,8 +251,9 @@ pub fn plan(input: &PlanInput) -> Result<MemoryPlan, PlanError> {
     let per_photo = input.bytes_per_photo();
     let per_gaussian = input.bytes_per_gaussian();
     let staging = staging_bytes(per_photo);
+    let fixed = FIXED_BYTES + input.anchor_bytes;
     let too_small = || {
-        let need = FIXED_BYTES
+        let need = fixed
             + staging
             + frame
             + MIN_PHOTO_SLOTS as u64 * per_photo
@@ -259,13 +266,21 @@ pub fn plan(input: &PlanInput) -> Result<MemoryPlan, PlanError> {
         }
     };
     let plannable = usable
-        .checked_sub(FIXED_BYTES + staging + frame)
+        .checked_sub(fixed + staging + frame)
         .ok_or_else(too_small)?;
     let all = input.photos as u64 * per_photo;
     let asked = input.budget.map_or(0, u64::from) * per_gaussian;
-    let (photo_slots, all_photos) = if all as f64 <= ALL_PHOTOS_SHARE * plannable as f64
-        && all + asked.max(MIN_GAUSSIANS * per_gaussian) <= plannable
-    {
+    // With a budget asked for, the photos stay when they leave room for it; with none (as
+    // many Gaussians as fit), only when they take no more than a cache would, so that more
+    // memory never plans fewer Gaussians.
+    let all_fit = match input.budget {
+        Some(_) => {
+            all as f64 <= ALL_PHOTOS_SHARE * plannable as f64
+                && all + asked.max(MIN_GAUSSIANS * per_gaussian) <= plannable
+        }
+        None => all as f64 <= PHOTO_CACHE_SHARE * plannable as f64,
+    };
+    let (photo_slots, all_photos) = if all_fit {
         (input.photos, true)
     } else {
         let slots = ((PHOTO_CACHE_SHARE * plannable as f64) as u64 / per_photo.max(1)) as usize;
@@ -298,7 +313,7 @@ pub fn plan(input: &PlanInput) -> Result<MemoryPlan, PlanError> {
         memory_bound,
         gaussian_bytes,
         max_intersections,
-        total_bytes: FIXED_BYTES
+        total_bytes: fixed
             + staging
             + frame
             + photo_bytes
@@ -343,7 +358,7 @@ impl MemoryPlan {
 
 /// What a run on `backend` should plan with: the memory `gpu_memory_mb` gives (MiB; 0 = what
 /// the device reports), the photos of `data` that `cfg`'s steps train on, `cfg`'s budget (0 =
-/// none asked), exposure and strategy, `depth_maps` and `trunk_term`. `None` for the CPU
+/// none asked), exposure and strategy, `depth_maps` and the trunk term's `anchors`. `None` for the CPU
 /// reference (host memory) and for a device that does not report its memory when no figure is
 /// given.
 pub fn run_input(
@@ -352,7 +367,7 @@ pub fn run_input(
     cfg: &TrainConfig,
     gpu_memory_mb: u64,
     depth_maps: bool,
-    trunk_term: bool,
+    anchors: Option<&SemanticAnchors>,
 ) -> Option<PlanInput> {
     if backend.device_kind() == DeviceKind::CpuReference {
         return None;
@@ -374,8 +389,9 @@ pub fn run_input(
         photo_pixels,
         depth_maps,
         exposure: cfg.exposure,
-        trunk_term,
+        trunk_term: anchors.is_some(),
         mcmc: cfg.strategy == StrategyKind::Mcmc,
+        anchor_bytes: anchors.map_or(0, SemanticAnchors::device_bytes),
         budget: cfg.max_gaussians.map(|m| m.min(u32::MAX as usize) as u32),
         intersections_per_gaussian: INTERSECTIONS_PER_GAUSSIAN,
     })
@@ -399,6 +415,7 @@ mod tests {
             exposure: true,
             trunk_term: true,
             mcmc: false,
+            anchor_bytes: 0,
             budget,
             intersections_per_gaussian: INTERSECTIONS_PER_GAUSSIAN,
         }
@@ -420,6 +437,7 @@ mod tests {
         assert_eq!(
             p.total_bytes,
             FIXED_BYTES
+                + p.input.anchor_bytes
                 + p.staging_bytes
                 + p.frame_bytes
                 + p.photo_bytes

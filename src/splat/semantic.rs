@@ -136,7 +136,7 @@ impl SemanticConfig {
 }
 
 /// The labelled anchors L_geo pulls towards, in the training frame (metres).
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct SemanticAnchors {
     pub trunk: Vec<[f32; 3]>,
     /// Unit LiDAR surface normal of each trunk anchor (stage `anchors`), or empty when the
@@ -193,6 +193,68 @@ impl SemanticAnchors {
             leaf,
             n_pos,
         })
+    }
+}
+
+/// The most anchors, trunk and leaf together, the trunk term holds: 2²³ − 1, what one
+/// 128 MiB storage binding holds at 16 B an anchor (lavapipe's binding limit, which the GPU
+/// kernels bind the anchors in, and WebGPU's default; the same on every device, so a plot
+/// trains alike everywhere). The anchors of `stand` (1.3 M) are far below it; the 11.6 M of
+/// the paper-size plot (issue 41) are not. Past it, [`SemanticAnchors::thinned`].
+pub const MAX_ANCHORS: usize = (128 << 20) / 16 - 1;
+
+/// Start words of an anchor grid at most (`MAX_DIM`³ cells and one more).
+const MAX_GRID_WORDS: u64 = (MAX_DIM as u64).pow(3) + 1;
+
+impl SemanticAnchors {
+    /// At most `max` anchors: the set as it is when it holds no more; otherwise an even draw in
+    /// space of the leaf anchors (seeded by `seed`) to what the trunk anchors leave, and of the
+    /// trunk anchors (with their normals) too when they alone are more than `max`. The leaf
+    /// anchors only weigh trunk against leaf in L_geo, where a sparser set of them changes
+    /// little; the trunk anchors are the surface the trunks are held to. N_pos stays.
+    pub fn thinned(self, max: usize, seed: u64) -> SemanticAnchors {
+        if self.trunk.len() + self.leaf.len() <= max {
+            return self;
+        }
+        let mut rng = crate::rng::SplitMix64::new(seed);
+        let draw = |points: &[[f32; 3]], count: usize, rng: &mut crate::rng::SplitMix64| {
+            let idx: Vec<usize> = (0..points.len()).collect();
+            let mut kept = crate::splat::budget::voxel_draw(points, &idx, count, rng);
+            kept.sort_unstable();
+            kept
+        };
+        let (trunk, trunk_normals) = if self.trunk.len() > max {
+            let kept = draw(&self.trunk, max, &mut rng);
+            let normals = if self.trunk_normals.len() == self.trunk.len() {
+                kept.iter().map(|&i| self.trunk_normals[i]).collect()
+            } else {
+                self.trunk_normals.clone()
+            };
+            (kept.iter().map(|&i| self.trunk[i]).collect(), normals)
+        } else {
+            (self.trunk, self.trunk_normals)
+        };
+        let room = max - trunk.len();
+        let leaf = draw(&self.leaf, room, &mut rng)
+            .iter()
+            .map(|&i| self.leaf[i])
+            .collect();
+        SemanticAnchors {
+            trunk,
+            trunk_normals,
+            leaf,
+            n_pos: self.n_pos,
+        }
+    }
+
+    /// Bytes the set takes on the GPU: every anchor (16 B), every trunk anchor's normal
+    /// (16 B) and the cell starts of its two grids (4 B a cell, at most `MAX_DIM`³ cells).
+    pub fn device_bytes(&self) -> u64 {
+        let words =
+            |p: &[[f32; 3]]| (AnchorGrid::build(p).cell_start.len() as u64).min(MAX_GRID_WORDS);
+        (self.trunk.len() + self.leaf.len()) as u64 * 16
+            + self.trunk.len() as u64 * 16
+            + (words(&self.trunk) + words(&self.leaf)) * 4
     }
 }
 
@@ -539,6 +601,38 @@ pub fn test_scene(seed: u64, n: usize) -> (Gaussians, SemanticAnchors) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_set_past_the_limit_keeps_its_trunk_and_an_even_draw_of_its_leaves() {
+        let mut rng = crate::rng::SplitMix64::new(4);
+        let mut pt = || std::array::from_fn(|_| rng.uniform() as f32 * 10.0);
+        let points: Vec<[f32; 3]> = (0..5000).map(|_| pt()).collect();
+        let is_trunk: Vec<bool> = (0..5000).map(|i| i % 10 == 0).collect();
+        let normals: Vec<[f32; 3]> = (0..5000)
+            .map(|i| [(i as f32).cos(), (i as f32).sin(), 0.0])
+            .collect();
+        let set = SemanticAnchors::new(&points, Some(&normals), &is_trunk).expect("set");
+        let n_pos = set.n_pos;
+        // Under the limit: as it is.
+        assert_eq!(set.clone().thinned(5000, 1), set);
+        // Past it: every trunk anchor, leaves to the limit, the normals with their anchors.
+        let thin = set.clone().thinned(2000, 1);
+        assert_eq!(thin.trunk, set.trunk);
+        assert_eq!(thin.trunk_normals, set.trunk_normals);
+        assert_eq!(thin.leaf.len(), 1500);
+        assert!(thin.leaf.iter().all(|p| set.leaf.contains(p)));
+        assert_eq!(thin.n_pos, n_pos);
+        // Fewer room than trunk anchors: the trunk is drawn too, its normals follow.
+        let thinner = set.clone().thinned(300, 1);
+        assert_eq!((thinner.trunk.len(), thinner.leaf.len()), (300, 0));
+        for (p, n) in thinner.trunk.iter().zip(&thinner.trunk_normals) {
+            let i = points.iter().position(|q| q == p).expect("an input anchor");
+            assert_eq!(*n, unit_or_zero(normals[i]));
+        }
+        // The GPU bytes: 16 per anchor, 16 per trunk normal, the grids' starts.
+        let grids = thin.device_bytes() - (2000 + 500) * 16;
+        assert!(grids > 0 && grids <= 2 * (MAX_GRID_WORDS * 4), "{grids}");
+    }
 
     #[test]
     fn gamma_ramps_as_the_paper_and_scales_with_short_runs() {

@@ -118,6 +118,7 @@ fn the_plan_holds_what_a_run_allocates_and_streamed_photos_train_the_same_model(
         exposure: false,
         trunk_term: false,
         mcmc: false,
+        anchor_bytes: 0,
         budget: Some(n as u32),
         intersections_per_gaussian: plan::INTERSECTIONS_PER_GAUSSIAN,
     };
