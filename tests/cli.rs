@@ -31,6 +31,38 @@ fn run_until_ingest_writes_stage_folders_and_results() {
 }
 
 #[test]
+fn run_from_a_stage_keeps_the_finished_ones_and_reports_resources() {
+    let fx = fixture();
+    let out = fx.dir.path().join("out");
+    let run = |extra: &[&str]| {
+        let mut c = Command::new(BIN);
+        c.args(["run", "--lidar"])
+            .arg(&fx.lidar)
+            .arg("--colmap")
+            .arg(&fx.colmap_dir)
+            .arg("--control-points")
+            .arg(&fx.control_points)
+            .arg("--out")
+            .arg(&out)
+            .args(extra);
+        c
+    };
+    // Not yet finished: a clear error naming the stage.
+    let stderr = fails(&mut run(&["--from", "register", "--until", "register"]));
+    assert!(stderr.contains("stage ingest has not finished"), "{stderr}");
+    succeeds(&mut run(&["--until", "ingest"]));
+    let ingest = read_json(&out.join("ingest/report.json"));
+    succeeds(&mut run(&["--from", "sfm", "--until", "sfm"]));
+    let results = read_json(&out.join("results.json"));
+    // Ingest kept as it was (not run again), sfm run, each with what it took.
+    assert_eq!(results["ingest"]["lidar"], ingest["lidar"]);
+    assert_eq!(results["sfm"]["ran"], false);
+    let r = &results["sfm"]["resources"];
+    assert!(r["wall_s"].as_f64().is_some_and(|s| s >= 0.0), "{r}");
+    assert!(r["peak_rss_mb"].as_f64().is_some_and(|m| m > 0.0), "{r}");
+}
+
+#[test]
 fn run_stops_with_a_clear_error_when_registration_is_impossible() {
     let fx = fixture();
     let out = fx.dir.path().join("out");

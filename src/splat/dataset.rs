@@ -120,15 +120,22 @@ pub fn load(
     let views: Vec<View> = views.into_iter().collect::<Result<_, _>>()?;
     let names: Vec<&str> = views.iter().map(|v| v.name.as_str()).collect();
     let split = split_train_test(&names, test_every);
-    let pick = |idx: &[usize]| idx.iter().map(|&i| views[i].clone()).collect::<Vec<_>>();
+    // The photos move into their side, in the split's order: never two copies of them (at
+    // the paper's 857 photos of 1920×1080 a copy is 7.1 GB).
+    let centres: Vec<[f32; 3]> = views.iter().map(|v| v.camera.centre()).collect();
+    let mut slots: Vec<Option<View>> = views.into_iter().map(Some).collect();
+    let mut pick = |idx: &[usize]| -> Vec<View> {
+        idx.iter()
+            .filter_map(|&i| slots.get_mut(i).and_then(Option::take))
+            .collect()
+    };
     let (train, test) = (pick(&split.train), pick(&split.test));
     if train.is_empty() {
         return Err(DatasetError::Invalid(format!(
             "no training views: {} photos with every {test_every}th held out",
-            views.len()
+            centres.len()
         )));
     }
-    let centres: Vec<[f32; 3]> = views.iter().map(|v| v.camera.centre()).collect();
     let n = centres.len() as f32;
     let mean = centres.iter().fold([0.0f32; 3], |a, c| {
         [a[0] + c[0] / n, a[1] + c[1] / n, a[2] + c[2] / n]
