@@ -169,6 +169,29 @@ impl GpuBackend {
         Ok(())
     }
 
+    /// A render of the current model (no step): within the plan's tile intersections like a
+    /// step, failing with what to change where a view needs more.
+    fn frame(&self, camera: &Camera, options: RenderOptions) -> Result<super::Frame, TrainError> {
+        let state = self.state()?;
+        self.renderer
+            .render_passes_limited(
+                &self.ctx,
+                &state.splats,
+                camera,
+                self.background,
+                options,
+                false,
+                self.max_intersections,
+            )
+            .map(|(f, _)| f)
+            .map_err(|e| match e {
+                GpuError::OverPlan { .. } => TrainError::Device(format!(
+                    "rendering a view: {e}; raise params.train.gpu_memory_mb, or train at a lower resolution or with a smaller budget"
+                )),
+                e => e.into(),
+            })
+    }
+
     /// Samples the allocator's figures into the peaks.
     fn sample_memory(&mut self) {
         if let Some((allocated, reserved)) = self.ctx.allocated_bytes() {
@@ -498,10 +521,7 @@ impl Backend for GpuBackend {
         self.exposure_for(index)?;
         let pixels = camera.width as usize * camera.height as usize;
         self.exposure_scratch_for(pixels)?;
-        let state = self.state()?;
-        let frame = self
-            .renderer
-            .render(&self.ctx, &state.splats, camera, self.background)?;
+        let frame = self.frame(camera, RenderOptions::default())?;
         let (Some(ex), Some(sc)) = (self.exposure.as_ref(), self.exposure_scratch.as_ref()) else {
             return Err(TrainError::Invalid(
                 "internal: missing exposure buffers".into(),
@@ -572,10 +592,7 @@ impl Backend for GpuBackend {
     }
 
     fn render_depth(&mut self, camera: &Camera) -> Result<Vec<f32>, TrainError> {
-        let state = self.state()?;
-        let frame = self
-            .renderer
-            .render(&self.ctx, &state.splats, camera, self.background)?;
+        let frame = self.frame(camera, RenderOptions::default())?;
         Ok(frame.read_depth(&self.ctx)?)
     }
 
@@ -633,14 +650,7 @@ impl Backend for GpuBackend {
     }
 
     fn render(&mut self, camera: &Camera) -> Result<Vec<[f32; 3]>, TrainError> {
-        let state = self.state()?;
-        let frame = self.renderer.render_with(
-            &self.ctx,
-            &state.splats,
-            camera,
-            self.background,
-            self.options,
-        )?;
+        let frame = self.frame(camera, self.options)?;
         Ok(frame.read_image(&self.ctx)?)
     }
 
