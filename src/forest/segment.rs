@@ -270,6 +270,11 @@ pub fn segment_wood_leaf(
         &SubProgress::new(progress, 0.7, 0.2),
     )?;
     let (mut labels, mut prob) = trunk_cluster(&km, &rows, dim, &features, &coarse);
+    // What the clustering alone needed goes before the clean-up and the output (the rows are
+    // 56 B a point with colour and two coarse scales: 2.8 GB on a paper-size plot).
+    let iterations = km.iterations;
+    drop(rows);
+    drop(km);
     if progress.is_cancelled() {
         return Err(ForestError::Cancelled);
     }
@@ -314,18 +319,25 @@ pub fn segment_wood_leaf(
     }
     seconds.cleanup = clock.elapsed().as_secs_f64();
     progress.set(1.0);
+    // The neighbour graph (80 B a point) and the index go before the per-point output.
+    drop(graph);
+    drop(index);
+    drop(before);
+    // Only the last coarse scale goes to the output.
+    let last_coarse = coarse.pop();
+    drop(coarse);
 
     let mut out = WoodLeaf {
         labels: vec![LEAF; points.len()],
         trunk_probability: vec![0.0; points.len()],
         features: vec![EigenFeatures::default(); points.len()],
-        coarse: if !coarse.is_empty() {
+        coarse: if last_coarse.is_some() {
             vec![CoarseFeatures::default(); points.len()]
         } else {
             Vec::new()
         },
         relabelled,
-        iterations: km.iterations,
+        iterations,
         grown: n_grown,
         seconds,
     };
@@ -333,7 +345,7 @@ pub fn segment_wood_leaf(
         out.labels[i as usize] = labels[j];
         out.trunk_probability[i as usize] = prob[j].clamp(0.0, 1.0);
         out.features[i as usize] = features[j];
-        if let Some(c) = coarse.last() {
+        if let Some(c) = &last_coarse {
             out.coarse[i as usize] = c[j];
         }
     }
