@@ -3,18 +3,12 @@
 //! keeping every photo: a plan that streams the photos trains the same model.
 
 use crate::common;
-use crate::test_scenes::random_scene;
+use crate::test_scenes::{random_scene, ring_dataset_sized};
 
 use sylva::splat::adam::AdamState;
 use sylva::splat::backend::Backend;
-use sylva::splat::camera::Camera;
-use sylva::splat::cameras::View;
 use sylva::splat::config::TrainConfig;
-use sylva::splat::cpu;
-use sylva::splat::dataset::{Dataset, PointColours};
 use sylva::splat::gpu::{GpuBackend, GpuContext};
-use sylva::splat::model::Gaussians;
-use sylva::splat::packed_image::{PackedImage, pack};
 use sylva::splat::plan::{
     self, BYTES_PER_INTERSECTION, FIXED_BYTES, MemoryPlan, MemorySource, PlanInput,
     STEP_BYTES_PER_GAUSSIAN,
@@ -22,53 +16,6 @@ use sylva::splat::plan::{
 
 const W: u32 = 256;
 const H: u32 = 192;
-
-/// `n` views of `truth` at W×H from a ring 4 m out, every 8th held out.
-fn ring(truth: &Gaussians, n: usize) -> Dataset {
-    let views: Vec<View> = (0..n)
-        .map(|k| {
-            let a = k as f32 / n as f32 * std::f32::consts::TAU;
-            let camera = Camera::look_at(
-                [4.0 * a.sin(), -4.0 * a.cos(), 0.6],
-                [0.0; 3],
-                [0.0, 0.0, 1.0],
-                W,
-                H,
-                230.0,
-            );
-            let img = cpu::render(truth, &camera, [0.0; 3]).expect("render").image;
-            let pixels = img
-                .iter()
-                .map(|p| {
-                    let c = p.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
-                    pack([c[0], c[1], c[2], 255])
-                })
-                .collect();
-            View {
-                name: format!("view_{k:02}.png"),
-                camera,
-                image: PackedImage {
-                    width: W,
-                    height: H,
-                    pixels,
-                },
-            }
-        })
-        .collect();
-    Dataset {
-        test: views.iter().step_by(8).cloned().collect(),
-        train: views
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| i % 8 != 0)
-            .map(|(_, v)| v.clone())
-            .collect(),
-        points: Vec::new(),
-        colours: Vec::new(),
-        colour_source: PointColours::Model,
-        extent: 4.4,
-    }
-}
 
 fn allocated(ctx: &GpuContext) -> u64 {
     ctx.allocated_bytes().map_or(0, |(a, _)| a)
@@ -97,7 +44,7 @@ fn the_plan_holds_what_a_run_allocates_and_streamed_photos_train_the_same_model(
     }
     let n = 3000usize;
     let truth = random_scene(11, 400, 0);
-    let data = ring(&truth, 48);
+    let data = ring_dataset_sized(&truth, 48, (W, H), 230.0);
     // Gaussians of 1–4 cm, as a trained plot's: about 3 tiles each at this size.
     let mut init = random_scene(12, n, 0);
     for s in &mut init.log_scales {

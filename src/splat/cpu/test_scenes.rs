@@ -114,6 +114,12 @@ pub fn grey_blobs(truth: &Gaussians) -> Gaussians {
 /// Views of a random scene from a ring of `n_views` cameras 4 m out (40×32, rendered by the
 /// CPU reference), every 8th held out.
 pub fn ring_dataset(truth: &Gaussians, n_views: usize) -> Dataset {
+    ring_dataset_sized(truth, n_views, (40, 32), 36.0)
+}
+
+/// [`ring_dataset`] with photos of `size` (width, height) pixels and focal length `fx` pixels.
+pub fn ring_dataset_sized(truth: &Gaussians, n_views: usize, size: (u32, u32), fx: f32) -> Dataset {
+    let (width, height) = size;
     let mut views = Vec::new();
     for k in 0..n_views {
         let a = k as f32 / n_views as f32 * std::f32::consts::TAU;
@@ -121,9 +127,9 @@ pub fn ring_dataset(truth: &Gaussians, n_views: usize) -> Dataset {
             [4.0 * a.sin(), -4.0 * a.cos(), 0.6],
             [0.0, 0.0, 0.0],
             [0.0, 0.0, 1.0],
-            40,
-            32,
-            36.0,
+            width,
+            height,
+            fx,
         );
         let img = cpu::render(truth, &cam, [0.0; 3]).expect("render").image;
         let pixels = img
@@ -137,8 +143,8 @@ pub fn ring_dataset(truth: &Gaussians, n_views: usize) -> Dataset {
             name: format!("view_{k:02}.png"),
             camera: cam,
             image: PackedImage {
-                width: 40,
-                height: 32,
+                width,
+                height,
                 pixels,
             },
         });
