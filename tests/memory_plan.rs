@@ -33,13 +33,7 @@ fn a_job_streams_its_photos_and_keeps_to_a_small_gpu_memory() {
         ..SynthParams::new(Preset::Tiny)
     };
     let summary = sylva::synth::generate(&synth, &plot, &NoProgress).expect("synth");
-    let inputs = StageInputs {
-        lidar: plot.join("lidar.laz"),
-        colmap: Some(plot.join("colmap")),
-        photos: None,
-        control_points: Some(plot.join("control_points.csv")),
-        field_dbh: Some(plot.join("field_dbh.csv")),
-    };
+    let inputs = StageInputs::of_synth_plot(&plot);
     let out = dir.path().join("job");
     let mut params = PipelineParams::default();
     params.train.steps = 200;

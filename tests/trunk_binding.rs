@@ -62,13 +62,7 @@ fn the_binding_holds_trunk_gaussians_on_the_lidar_surface_where_the_paper_term_d
     let mut p = SynthParams::new(Preset::Tiny);
     p.seed = 1;
     sylva::synth::generate(&p, &plot, &NoProgress).expect("synth");
-    let inputs = StageInputs {
-        lidar: plot.join("lidar.laz"),
-        colmap: Some(plot.join("colmap")),
-        photos: None,
-        control_points: Some(plot.join("control_points.csv")),
-        field_dbh: Some(plot.join("field_dbh.csv")),
-    };
+    let inputs = StageInputs::of_synth_plot(&plot);
     let shared = dir.path().join("shared");
     let defaults = PipelineParams::default();
     for &stage in Stage::Train.predecessors() {

@@ -181,13 +181,7 @@ fn prepare_plot(
         p.seed = seed;
         sylva::synth::generate(&p, &plot, &sylva::progress::NoProgress)?;
     }
-    let inputs = StageInputs {
-        lidar: plot.join("lidar.laz"),
-        colmap: Some(plot.join("colmap")),
-        photos: None,
-        control_points: Some(plot.join("control_points.csv")),
-        field_dbh: Some(plot.join("field_dbh.csv")),
-    };
+    let inputs = StageInputs::of_synth_plot(&plot);
     let shared = dir.join("shared");
     let params = PipelineParams::default();
     for &stage in Stage::Train.predecessors() {

@@ -45,6 +45,18 @@ pub struct StageInputs {
 }
 
 impl StageInputs {
+    /// The inputs of a plot `sylva synth` wrote to `plot`: its LiDAR, COLMAP project,
+    /// control points and field DBH.
+    pub fn of_synth_plot(plot: &std::path::Path) -> Self {
+        Self {
+            lidar: plot.join("lidar.laz"),
+            colmap: Some(plot.join("colmap")),
+            photos: None,
+            control_points: Some(plot.join("control_points.csv")),
+            field_dbh: Some(plot.join("field_dbh.csv")),
+        }
+    }
+
     /// Inputs from a COLMAP project (the form every job had before stage `sfm`).
     pub fn with_colmap(lidar: PathBuf, colmap: PathBuf) -> Self {
         Self {
