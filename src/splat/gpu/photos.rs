@@ -65,20 +65,6 @@ impl PhotoCache {
         }
     }
 
-    /// Photos held at once (`None`: all).
-    pub fn slots(&self) -> Option<usize> {
-        self.slots
-    }
-
-    /// Photos on the GPU now.
-    pub fn len(&self) -> usize {
-        self.entries.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.entries.is_empty()
-    }
-
     /// The photo used longest ago, other than `keep`.
     fn oldest(&self, keep: Option<&str>) -> Option<String> {
         self.entries
