@@ -1,8 +1,9 @@
 //! A job under a GPU memory plan too small for its photos and its budget (issue 41, item 4):
 //! `tiny` seed 1 through every stage with `params.train.gpu_memory_mb` set so that the photos
 //! must stream through a cache and the budget must bind, on whatever adapter the environment
-//! gives (lavapipe in CI). The job completes, the report says what was planned and what the
-//! device held, and nothing was allocated past the plan.
+//! gives (lavapipe in CI), and with `params.train.host_photo_mb` 0 so that the host keeps
+//! the photos compressed. The job completes, the report says what was planned and what the
+//! device and the host held, and nothing was allocated past the plan.
 
 use std::path::Path;
 
@@ -77,6 +78,8 @@ fn a_job_streams_its_photos_and_keeps_to_a_small_gpu_memory() {
         })
         .expect("a memory that streams the photos and binds the budget");
     params.train.gpu_memory_mb = mb;
+    // And a host that keeps every photo compressed (`splat::photo`).
+    params.train.host_photo_mb = 0;
     for stage in [Stage::Train, Stage::Dbh, Stage::Export] {
         pipeline::execute_stage(stage, &inputs, &out, &params, &NoProgress)
             .unwrap_or_else(|e| panic!("stage {stage} under {mb} MiB: {e}"));
@@ -108,6 +111,18 @@ fn a_job_streams_its_photos_and_keeps_to_a_small_gpu_memory() {
     assert!(
         used["over_plan_steps"].as_u64().expect("over") <= 5,
         "{used}"
+    );
+    // The host held the photos compressed, in less memory than decoded.
+    let host = &train["memory"]["host_photos"];
+    assert_eq!(
+        host["compressed"].as_u64(),
+        Some(summary.images as u64),
+        "{host}"
+    );
+    assert_eq!(host["decoded"].as_u64(), Some(0), "{host}");
+    assert!(
+        host["bytes"].as_u64().expect("bytes") < host["decoded_bytes"].as_u64().expect("decoded"),
+        "{host}"
     );
     // A model that learned something, measured as always.
     let psnr = train["render"]["psnr"].as_f64().expect("psnr");

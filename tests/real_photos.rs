@@ -51,8 +51,15 @@ fn train_tree(exposure: bool) -> Option<()> {
     let model = sylva::io::colmap::read_model(&project.sparse_dir, &NoProgress).expect("model");
     let images = project.images_dir.expect("images");
     let cfg = params.config();
-    let data = dataset::load(&model, &images, cfg.resolution, cfg.test_every, &NoProgress)
-        .expect("dataset");
+    let data = dataset::load(
+        &model,
+        &images,
+        cfg.resolution,
+        cfg.test_every,
+        cfg.host_photo_mb,
+        &NoProgress,
+    )
+    .expect("dataset");
     assert_eq!(data.colour_source, PointColours::Photos);
     // Coloured from the photos: the bark and the lawn, not black.
     let (mean, _) = grey_stats(data.colours.iter().map(|c| c.map(|v| f32::from(v) / 255.0)));
@@ -85,10 +92,12 @@ fn train_tree(exposure: bool) -> Option<()> {
     for (name, render, w, h) in &out.renders {
         let photo = data.test.iter().find(|v| &v.name == name).expect("photo");
         assert_eq!((photo.image.width, photo.image.height), (*w, *h));
-        let (rm, rs) = grey_stats(render.iter().copied());
+        let (rm, rs) = grey_stats(render.iter().map(|p| p.map(|v| f32::from(v) / 255.0)));
         let (pm, ps) = grey_stats(
             photo
                 .image
+                .image()
+                .expect("decoded")
                 .pixels
                 .iter()
                 .map(|&p| unpack(p))

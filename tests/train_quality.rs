@@ -45,8 +45,15 @@ fn gpu_training_on_a_tiny_plot_beats_the_mean_colour_on_held_out_views() {
     let model = sylva::io::colmap::read_model(&project.sparse_dir, &NoProgress).expect("model");
     let images = project.images_dir.expect("images");
     let cfg = params.config();
-    let data = dataset::load(&model, &images, cfg.resolution, cfg.test_every, &NoProgress)
-        .expect("dataset");
+    let data = dataset::load(
+        &model,
+        &images,
+        cfg.resolution,
+        cfg.test_every,
+        cfg.host_photo_mb,
+        &NoProgress,
+    )
+    .expect("dataset");
     let g = init::from_sfm_points(&data.points, &data.colours).expect("init");
     let mut strategy = trainer::default_strategy(&cfg);
     let out = trainer::train(backend.as_mut(), &data, g, &cfg, &mut strategy, &NoProgress)

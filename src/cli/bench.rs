@@ -146,7 +146,7 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
             cfg.densify_until = 0;
             cfg.test_every = if a.heldout { 8 } else { 0 };
             cfg.exposure = false;
-            let data = sylva::splat::dataset::load(&model, &images, cfg.resolution, cfg.test_every, &sylva::progress::NoProgress)?;
+            let data = sylva::splat::dataset::load(&model, &images, cfg.resolution, cfg.test_every, cfg.host_photo_mb, &sylva::progress::NoProgress)?;
             let (mut init, _) = sylva::splat::start::sfm_gaussians(&data, count, params.seed, None)?;
             sylva::splat::start::spread_to(&mut init, count as usize, params.seed);
             let n = init.len();

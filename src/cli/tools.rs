@@ -368,6 +368,7 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
             &images,
             cfg.resolution,
             cfg.test_every,
+            cfg.host_photo_mb,
             &progress,
         )?;
         let init = if a.init == "sfm" {

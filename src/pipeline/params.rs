@@ -378,6 +378,11 @@ pub struct TrainParams {
     /// Gaussian budget and where the photos live (all on the GPU, or a cache streamed from host
     /// memory; `splat::plan`, docs/splatting.md "Memory plan"). Ignored by the CPU reference.
     pub gpu_memory_mb: u64,
+    /// Host memory the decoded photos may take, MB (MiB); past it they are kept compressed
+    /// (lossless PNG) and decoded for each upload or measurement (`splat::photo`; default
+    /// `splat::photo::DEFAULT_HOST_PHOTO_MB`, 4096: the paper's 857 photos at 1920×1080 are
+    /// 6.8 GiB decoded, about 3 GiB compressed).
+    pub host_photo_mb: u64,
     /// Weight λ of the LiDAR depth loss (`splat::depth`): the rendered expected depth of each
     /// training view is pulled towards the registered LiDAR anchors' depth there,
     /// λ · mean |D − L| / L over the pixels with a LiDAR return (occlusion-aware maps); 0 =
@@ -482,6 +487,7 @@ impl Default for TrainParams {
             resolution: 1600,
             max_gaussians: 0,
             gpu_memory_mb: 0,
+            host_photo_mb: crate::splat::photo::DEFAULT_HOST_PHOTO_MB,
             strategy: DensifyStrategy::Default,
             depth_weight: 0.0,
             backend: TrainBackend::Gpu,
@@ -566,6 +572,7 @@ impl TrainParams {
         }
         .scaled_to(self.steps);
         cfg.resolution = (self.resolution > 0).then_some(self.resolution);
+        cfg.host_photo_mb = self.host_photo_mb;
         cfg.max_gaussians = (self.max_gaussians > 0).then_some(self.max_gaussians as usize);
         cfg.strategy = match self.strategy {
             DensifyStrategy::Default => crate::splat::config::StrategyKind::Default,

@@ -122,8 +122,10 @@ fn memory_note(
     ctx: &StageContext<'_>,
     plan: Option<&MemoryPlan>,
     backend: &dyn Backend,
+    data: &Dataset,
 ) -> serde_json::Value {
     let used = backend.memory_use();
+    let host = data.host_photos();
     if let (Some(plan), Some(used)) = (plan, used) {
         ctx.progress.log(&format!(
             "GPU memory: at most {:.0} MB allocated ({:.0} MB reserved) of {:.0} MB planned; {} photo uploads, {} steps over the plan",
@@ -134,7 +136,7 @@ fn memory_note(
             used.over_plan_steps
         ));
     }
-    json!({ "plan": plan, "used": used })
+    json!({ "plan": plan, "used": used, "host_photos": host })
 }
 
 /// The labelled anchors of stage `segment` (LiDAR local frame): position, colour, trunk
@@ -202,6 +204,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         &images,
         base_cfg.resolution,
         base_cfg.test_every,
+        base_cfg.host_photo_mb,
         &SubProgress::new(ctx.progress, 0.0, 0.05),
     )?;
     // The anchors: the initialisation of the paper's method, the targets of L_geo and the
@@ -307,7 +310,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         // Loading took the first 5 %, writing the outputs takes the last 3 %.
         &SubProgress::new(ctx.progress, 0.05, 0.92),
     )?;
-    let memory = memory_note(ctx, memory_plan.as_ref(), backend.as_ref());
+    let memory = memory_note(ctx, memory_plan.as_ref(), backend.as_ref(), &data);
     trainer::write_outputs(ctx.out_dir, &outcome, &data)
         .map_err(|e| super::io_err(ctx.out_dir, e))?;
     // Held-out depth error against the LiDAR (also without the depth loss, to compare).

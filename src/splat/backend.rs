@@ -302,7 +302,7 @@ impl Backend for CpuBackend {
             .map_err(invalid)?;
         self.times.raster_ms += ms(t);
         let t = std::time::Instant::now();
-        let target = view.image.to_rgb_f32();
+        let target = view.image.image().map_err(invalid)?.to_rgb_f32();
         let (w, h) = (view.camera.width, view.camera.height);
         // With an exposure: loss of the exposed render, then back through the transform.
         let mut exposure_grad = None;

@@ -12,6 +12,7 @@ use crate::splat::cpu::linalg::quat_to_mat;
 
 pub use crate::splat::camera_models::{CameraError, CameraModel};
 use crate::splat::packed_image::{PackedImage, pack};
+use crate::splat::photo::Photo;
 
 /// World→camera rotation (row-major) of a COLMAP `qvec` (w, x, y, z), normalised first.
 pub fn rotation_from_qvec(q: [f64; 4]) -> [[f64; 3]; 3] {
@@ -88,12 +89,13 @@ pub fn downscale_to_long_side(
     (image.resize_area(w, h), cam)
 }
 
-/// A training or test view: name (COLMAP image name), pinhole camera and its image.
+/// A training or test view: name (COLMAP image name), pinhole camera and its photo (held
+/// decoded or compressed, [`crate::splat::photo`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct View {
     pub name: String,
     pub camera: Camera,
-    pub image: PackedImage,
+    pub image: Photo,
 }
 
 /// Builds a [`View`] from a COLMAP camera (model name, params, size), an image pose and the
@@ -134,7 +136,7 @@ pub fn load_view(
     Ok(View {
         name: name.to_string(),
         camera,
-        image,
+        image: image.into(),
     })
 }
 

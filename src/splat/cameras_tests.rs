@@ -172,7 +172,10 @@ fn downscaling_to_a_long_side_scales_the_intrinsics() {
         (v.camera.fx, v.camera.fy, v.camera.cx, v.camera.cy),
         (50.0, 45.0, 25.0, 15.0)
     );
-    assert_eq!(v.image.get(7, 7), [10, 20, 30, 255]);
+    assert_eq!(
+        v.image.image().expect("decoded").get(7, 7),
+        [10, 20, 30, 255]
+    );
     assert!(!m.is_distorted());
 }
 

@@ -98,6 +98,9 @@ pub struct TrainConfig {
     /// Long side of the training images in pixels after downscaling (area averaging); none keeps
     /// the native resolution. Default none (the reference rescales only above 1600 px).
     pub resolution: Option<u32>,
+    /// Host memory the decoded photos may take before the dataset keeps them compressed, MiB
+    /// (default [`crate::splat::photo::DEFAULT_HOST_PHOTO_MB`]).
+    pub host_photo_mb: u64,
     /// Seed of the random numbers used by densification (split sampling). Default 0.
     pub seed: u64,
     /// Rasterise with Mip-Splatting's 2-D filter (Yu et al. 2024; gsplat
@@ -182,6 +185,7 @@ impl Default for TrainConfig {
             background: [0.0; 3],
             test_every: 8,
             resolution: None,
+            host_photo_mb: crate::splat::photo::DEFAULT_HOST_PHOTO_MB,
             seed: 0,
             antialias: false,
             semantic: Default::default(),

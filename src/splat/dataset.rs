@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use super::cameras::{View, load_view, split_train_test};
 use super::exposure::ExposureSlot;
 use super::packed_image::PackedImage;
+use super::photo::keep_compressed;
 use crate::io::IoError;
 use crate::io::colmap::{self, ColmapModel};
 use crate::progress::Progress;
@@ -64,7 +65,40 @@ pub fn uncoloured(colours: &[[u8; 3]]) -> bool {
     !colours.is_empty() && colours.iter().all(|c| *c == [0; 3])
 }
 
+/// How a dataset holds its photos in host memory (stage `train`'s report, `memory.host_photos`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct HostPhotos {
+    /// Photos held compressed ([`crate::splat::photo`]).
+    pub compressed: usize,
+    /// Photos held decoded.
+    pub decoded: usize,
+    /// Host memory they take, bytes.
+    pub bytes: u64,
+    /// What they would take decoded, bytes (4 a pixel).
+    pub decoded_bytes: u64,
+}
+
 impl Dataset {
+    /// How the photos are held in host memory.
+    pub fn host_photos(&self) -> HostPhotos {
+        let mut h = HostPhotos {
+            compressed: 0,
+            decoded: 0,
+            bytes: 0,
+            decoded_bytes: 0,
+        };
+        for v in self.all_views() {
+            if v.image.is_compressed() {
+                h.compressed += 1;
+            } else {
+                h.decoded += 1;
+            }
+            h.bytes += v.image.host_bytes() as u64;
+            h.decoded_bytes += 4 * u64::from(v.image.width) * u64::from(v.image.height);
+        }
+        h
+    }
+
     /// Every view, training first.
     pub fn all_views(&self) -> impl Iterator<Item = &View> {
         self.train.iter().chain(&self.test)
@@ -90,18 +124,34 @@ impl Dataset {
 
 /// Loads the registered model `model` with photos from `images_dir`. `long_side` (pixels)
 /// downscales every photo so its longer side is at most that; `test_every` holds out every
-/// n-th photo by name (0 keeps all for training).
+/// n-th photo by name (0 keeps all for training). When the decoded photos would take more
+/// than `host_photo_mb` MiB, each is kept compressed as soon as it is loaded
+/// ([`crate::splat::photo`]), so they never all stand decoded at once.
 pub fn load(
     model: &ColmapModel,
     images_dir: &Path,
     long_side: Option<u32>,
     test_every: usize,
+    host_photo_mb: u64,
     progress: &dyn Progress,
 ) -> Result<Dataset, DatasetError> {
     let images: Vec<&colmap::Image> = model.images.values().collect();
     if images.is_empty() {
         return Err(DatasetError::Invalid(
             "the COLMAP model has no registered images".into(),
+        ));
+    }
+    let pixels: u64 = images
+        .iter()
+        .filter_map(|img| model.cameras.get(&img.camera_id))
+        .map(|c| loaded_pixels(c.width, c.height, long_side))
+        .sum();
+    let compress = keep_compressed(pixels, host_photo_mb);
+    if compress {
+        progress.log(&format!(
+            "{} photos take {:.0} MiB decoded, more than the {host_photo_mb} MiB allowed (params.train.host_photo_mb): keeping them compressed on the host",
+            images.len(),
+            (pixels * 4) as f64 / f64::from(1 << 20)
         ));
     }
     let done = std::sync::atomic::AtomicUsize::new(0);
@@ -111,7 +161,15 @@ pub fn load(
             if progress.is_cancelled() {
                 return Err(DatasetError::Cancelled);
             }
-            let v = load_one(model, img, images_dir, long_side);
+            let v = load_one(model, img, images_dir, long_side).and_then(|mut v| {
+                if compress {
+                    v.image = v
+                        .image
+                        .compressed()
+                        .map_err(|e| DatasetError::Invalid(format!("{}: {e}", v.name)))?;
+                }
+                Ok(v)
+            });
             let k = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             progress.set(k as f64 / images.len() as f64);
             v
@@ -162,7 +220,7 @@ pub fn load(
     } else {
         PointColours::Model
     };
-    Ok(Dataset {
+    let data = Dataset {
         train,
         test,
         points,
@@ -170,7 +228,28 @@ pub fn load(
         colour_source,
         // A single camera has no spread; fall back to 1 m rather than a zero learning rate.
         extent: if radius > 0.0 { radius * 1.1 } else { 1.0 },
-    })
+    };
+    if compress {
+        let h = data.host_photos();
+        progress.log(&format!(
+            "{} photos held compressed in {:.0} MiB ({:.0} % of decoded)",
+            h.compressed,
+            h.bytes as f64 / f64::from(1 << 20),
+            100.0 * h.bytes as f64 / h.decoded_bytes.max(1) as f64
+        ));
+    }
+    Ok(data)
+}
+
+/// Pixels of a `width` × `height` photo once downscaled to `long_side` (an upper bound: the
+/// downscale rounds each side).
+fn loaded_pixels(width: u64, height: u64, long_side: Option<u32>) -> u64 {
+    let long = width.max(height).max(1);
+    let scale = match long_side {
+        Some(l) if u64::from(l) < long => u64::from(l) as f64 / long as f64,
+        _ => 1.0,
+    };
+    ((width as f64 * scale).ceil() * (height as f64 * scale).ceil()) as u64
 }
 
 /// Each point's median colour over the training views where it is visible; mid-grey where it
@@ -241,7 +320,7 @@ mod tests {
         let view = View {
             name: "v".into(),
             camera,
-            image: PackedImage::filled(64, 64, [200, 40, 10, 255]),
+            image: PackedImage::filled(64, 64, [200, 40, 10, 255]).into(),
         };
         // One point in view, one behind the camera (seen by no photo: mid-grey).
         let c = colours_from_photos(&[[0.1, 0.0, 3.0], [0.0, 0.0, -3.0]], &[view]);

@@ -196,22 +196,43 @@ fn to_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
-/// Saves render (left) and ground truth (right) side by side as an RGB PNG.
+/// A render in [0, 1] as 8-bit RGB (clamped and rounded), what its PNG holds.
+pub fn to_rgb8(render: &[[f32; 3]]) -> Vec<[u8; 3]> {
+    render.iter().map(|p| p.map(to_u8)).collect()
+}
+
+/// 8-bit RGB back to [0, 1].
+pub fn from_rgb8(image: &[[u8; 3]]) -> Vec<[f32; 3]> {
+    image
+        .iter()
+        .map(|p| p.map(|v| f32::from(v) / 255.0))
+        .collect()
+}
+
+/// Saves render (left) and ground truth (right), 8-bit RGB, side by side as an RGB PNG.
 pub fn save_side_by_side(
     path: &Path,
-    render: &[[f32; 3]],
-    truth: &[[f32; 3]],
+    render: &[[u8; 3]],
+    truth: &[[u8; 3]],
     width: u32,
     height: u32,
 ) -> Result<(), EvalError> {
-    check(render, truth, width, height)?;
+    let n = width as usize * height as usize;
+    if render.len() != n || truth.len() != n {
+        return Err(EvalError::SizeMismatch {
+            render: render.len(),
+            truth: truth.len(),
+            width,
+            height,
+        });
+    }
     let img = image::RgbImage::from_fn(2 * width, height, |x, y| {
         let (src, x) = if x < width {
             (render, x)
         } else {
             (truth, x - width)
         };
-        image::Rgb(src[(y * width + x) as usize].map(to_u8))
+        image::Rgb(src[(y * width + x) as usize])
     });
     img.save_with_format(path, image::ImageFormat::Png)
         .map_err(|source| EvalError::Image {

@@ -99,12 +99,18 @@ fn report_averages_views_and_serialises() {
 }
 
 #[test]
+fn renders_round_to_8_bit_and_back() {
+    let r = to_rgb8(&[[0.0, 0.5, 1.2], [-0.1, 1.0 / 255.0, 0.499 / 255.0]]);
+    assert_eq!(r, vec![[0, 128, 255], [0, 1, 0]]);
+    assert_eq!(from_rgb8(&r)[0], [0.0, 128.0 / 255.0, 1.0]);
+}
+
+#[test]
 fn side_by_side_png_has_render_left_and_truth_right() {
     let dir = std::env::temp_dir().join(format!("splat-train-eval-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     let path = dir.join("view.png");
-    save_side_by_side(&path, &[[1.0, 0.0, 0.0]; 6], &[[0.0, 0.0, 1.0]; 6], 3, 2)
-        .expect("write png");
+    save_side_by_side(&path, &[[255, 0, 0]; 6], &[[0, 0, 255]; 6], 3, 2).expect("write png");
     let img = image::open(&path).expect("read back").to_rgb8();
     assert_eq!(img.dimensions(), (6, 2));
     assert_eq!(img.get_pixel(0, 0).0, [255, 0, 0]);

@@ -10,8 +10,10 @@ use crate::splat::model::{Gaussian, Gaussians, SH_C0, SH_FLOATS};
 use rayon::prelude::*;
 
 use crate::rng::SplitMix64;
+use crate::splat::camera::Camera;
 use crate::splat::cameras::View;
-use crate::splat::packed_image::unpack;
+use crate::splat::packed_image::{PackedImage, unpack};
+use std::borrow::Cow;
 
 /// Initial opacity, (0, 1). Reference `inverse_sigmoid(0.1 * ones)`; docs/method.md Stage 4.
 pub const INIT_OPACITY: f32 = 0.1;
@@ -300,6 +302,19 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
             params.depth_candidates,
             nearest_views(&centres, vi, params.neighbours),
         );
+        // The photos decoded once for the view (borrowed when held decoded). One that cannot
+        // be decoded adds nothing here; training meets the same photo and fails with its error.
+        let Ok(own) = view.image.image() else {
+            continue;
+        };
+        let Ok(others) = sweep
+            .neighbours
+            .iter()
+            .map(|&j| views[j].image.image().map(|img| (&views[j].camera, img)))
+            .collect::<Result<Vec<_>, _>>()
+        else {
+            continue;
+        };
         let cells: Vec<usize> = (0..covered.len()).filter(|&c| !covered[c]).collect();
         // Per cell: None without pixels, else (Gaussian or None, agreed, unseen, ambiguous).
         type Placed = Option<(Option<(glam::Vec3, f32, [u8; 3])>, bool, bool, bool)>;
@@ -307,10 +322,10 @@ pub fn fill_uncovered(g: &mut Gaussians, views: &[View], params: &CoverageFill) 
             .par_iter()
             .map(|&c| {
                 let (cx, cy) = ((c % gw) as u32 * cell, (c / gw) as u32 * cell);
-                let colour = cell_colour(view, cx, cy, cell)?;
+                let colour = cell_colour(&own, cx, cy, cell)?;
                 let (cw, ch) = (cell.min(w - cx) as f32, cell.min(h - cy) as f32);
                 let (px, py) = (cx as f32 + 0.5 * cw, cy as f32 + 0.5 * ch);
-                let place = sweep.place(view, views, [px, py], cw.min(ch), params);
+                let place = sweep.place((cam, &own), &others, [px, py], cw.min(ch), params);
                 let depth = match place {
                     Placement::Agreed(d) => Some(d),
                     Placement::Ambiguous => fallback,
@@ -391,8 +406,8 @@ impl Sweep {
     /// neighbours that see the whole patch; the patch is taken as a plane facing this photo.
     fn place(
         &self,
-        view: &View,
-        views: &[View],
+        (cam, img): (&Camera, &PackedImage),
+        others: &[(&Camera, Cow<'_, PackedImage>)],
         centre: [f32; 2],
         side: f32,
         params: &CoverageFill,
@@ -412,13 +427,12 @@ impl Sweep {
             .collect();
         let Some(own) = offsets
             .iter()
-            .map(|p| opaque_sample(view, p[0], p[1]))
+            .map(|p| opaque_sample(img, cam, p[0], p[1]))
             .collect::<Option<Vec<[f32; 3]>>>()
         else {
             return Placement::Ambiguous;
         };
         let own = less_mean(own);
-        let cam = &view.camera;
         let mut costs: Vec<Option<f32>> = Vec::with_capacity(self.depths.len());
         for &d in &self.depths {
             let points: Vec<[f32; 3]> = offsets
@@ -434,21 +448,19 @@ impl Sweep {
                     )
                 })
                 .collect();
-            let mut per_view: Vec<f32> = self
-                .neighbours
+            let mut per_view: Vec<f32> = others
                 .iter()
-                .filter_map(|&j| {
-                    let other = &views[j];
+                .filter_map(|(oc, other)| {
                     let theirs: Vec<[f32; 3]> = points
                         .iter()
                         .map(|&p| {
-                            let c = other.camera.to_camera(p);
+                            let c = oc.to_camera(p);
                             if c[2].is_nan() || c[2] < NEAR {
                                 return None;
                             }
-                            let oc = &other.camera;
                             opaque_sample(
                                 other,
+                                oc,
                                 oc.fx * c[0] / c[2] + oc.cx,
                                 oc.fy * c[1] / c[2] + oc.cy,
                             )
@@ -508,17 +520,18 @@ impl Sweep {
     }
 }
 
-/// RGB (0–255) of `view` at continuous pixel (`x`, `y`) by bilinear interpolation, when every
-/// pixel it draws on is opaque (inside an undistorted photo) and it lies inside the camera.
-fn opaque_sample(view: &View, x: f32, y: f32) -> Option<[f32; 3]> {
+/// RGB (0–255) of photo `img` (seen by `cam`) at continuous pixel (`x`, `y`) by bilinear
+/// interpolation, when every pixel it draws on is opaque (inside an undistorted photo) and it
+/// lies inside the camera.
+fn opaque_sample(img: &PackedImage, cam: &Camera, x: f32, y: f32) -> Option<[f32; 3]> {
     let (w, h) = (
-        view.image.width.min(view.camera.width) as f32,
-        view.image.height.min(view.camera.height) as f32,
+        img.width.min(cam.width) as f32,
+        img.height.min(cam.height) as f32,
     );
     if !(x >= 0.0 && y >= 0.0 && x <= w && y <= h) {
         return None;
     }
-    let s = view.image.sample_bilinear(f64::from(x), f64::from(y))?;
+    let s = img.sample_bilinear(f64::from(x), f64::from(y))?;
     (s[3] >= 254.5).then_some([s[0], s[1], s[2]])
 }
 
@@ -560,8 +573,7 @@ fn camera_to_world(cam: &crate::splat::camera::Camera, p: [f32; 3]) -> [f32; 3] 
 
 /// Mean colour of the opaque pixels of the `cell`-px square at (`x0`, `y0`); `None` when it
 /// holds none (outside an undistorted photo).
-fn cell_colour(view: &View, x0: u32, y0: u32, cell: u32) -> Option<[u8; 3]> {
-    let img = &view.image;
+fn cell_colour(img: &PackedImage, x0: u32, y0: u32, cell: u32) -> Option<[u8; 3]> {
     let (mut sum, mut n) = ([0u64; 3], 0u64);
     for y in y0..(y0 + cell).min(img.height) {
         for x in x0..(x0 + cell).min(img.width) {
@@ -697,6 +709,11 @@ fn visible_colours(anchors: &[Anchor], view: &View, params: &AnchorInit) -> Vec<
         .par_iter()
         .map(|a| project_pixel(cam, a.position, w, h))
         .collect();
+    // A photo that cannot be decoded colours nothing here; training meets the same photo and
+    // fails with its error.
+    let Ok(img) = view.image.image() else {
+        return Vec::new();
+    };
     let mut depth = vec![f32::INFINITY; gw * gh];
     for &(x, y, z) in projected.iter().flatten() {
         let c = &mut depth[(y / cell) as usize * gw + (x / cell) as usize];
@@ -711,7 +728,7 @@ fn visible_colours(anchors: &[Anchor], view: &View, params: &AnchorInit) -> Vec<
             if z > depth[(y / cell) as usize * gw + (x / cell) as usize] * tol {
                 return None;
             }
-            let px = unpack(view.image.pixels[(y * view.image.width + x) as usize]);
+            let px = unpack(img.pixels[(y * img.width + x) as usize]);
             (px[3] > 0).then_some((i, [px[0], px[1], px[2]]))
         })
         .collect()

@@ -54,7 +54,7 @@ fn view(grey: u8) -> View {
     View {
         name: format!("v{grey}"),
         camera,
-        image: PackedImage::filled(64, 64, [grey, grey, grey, 255]),
+        image: PackedImage::filled(64, 64, [grey, grey, grey, 255]).into(),
     }
 }
 
@@ -243,7 +243,7 @@ fn plane_views(n: usize) -> Vec<View> {
             View {
                 name: format!("p{k}"),
                 camera,
-                image,
+                image: image.into(),
             }
         })
         .collect()

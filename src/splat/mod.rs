@@ -25,6 +25,7 @@ pub mod init;
 pub mod mcmc;
 pub mod model;
 pub mod packed_image;
+pub mod photo;
 pub mod plan;
 pub mod plot;
 pub mod semantic;

@@ -212,7 +212,7 @@ fn view(model: &Gaussians, w: u32, h: u32) -> View {
     View {
         name: "target".into(),
         camera,
-        image: PackedImage::from_rgba8(w, h, &bytes).expect("image"),
+        image: PackedImage::from_rgba8(w, h, &bytes).expect("image").into(),
     }
 }
 

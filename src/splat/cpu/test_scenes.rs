@@ -9,7 +9,7 @@ use crate::splat::camera::Camera;
 use crate::splat::cameras::View;
 use crate::splat::cpu;
 use crate::splat::dataset::Dataset;
-use crate::splat::eval::{EvalRegion, ViewMetrics};
+use crate::splat::eval::{EvalRegion, ViewMetrics, from_rgb8};
 use crate::splat::model::{Gaussian, Gaussians, SH_FLOATS};
 use crate::splat::packed_image::{PackedImage, pack};
 use crate::splat::trainer::TrainOutcome;
@@ -146,7 +146,8 @@ pub fn ring_dataset_sized(truth: &Gaussians, n_views: usize, size: (u32, u32), f
                 width,
                 height,
                 pixels,
-            },
+            }
+            .into(),
         });
     }
     let test = views.iter().step_by(8).cloned().collect();
@@ -175,8 +176,9 @@ pub fn jitter_exposures(data: &mut Dataset, seed: u64) -> Vec<([f64; 3], [f64; 3
     for v in data.train.iter_mut().chain(data.test.iter_mut()) {
         let gain = [0, 1, 2].map(|_| 0.7 + 0.6 * rng.uniform());
         let offset = [0, 1, 2].map(|_| 0.1 * (rng.uniform() - 0.5));
-        let rgb = v.image.to_rgb_f32();
-        v.image.pixels = rgb
+        let mut img = v.image.image().expect("decoded").into_owned();
+        let rgb = img.to_rgb_f32();
+        img.pixels = rgb
             .iter()
             .map(|p| {
                 let c: [u8; 3] = std::array::from_fn(|k| {
@@ -186,6 +188,7 @@ pub fn jitter_exposures(data: &mut Dataset, seed: u64) -> Vec<([f64; 3], [f64; 3
                 pack([c[0], c[1], c[2], 255])
             })
             .collect();
+        v.image = img.into();
         truth.push((gain, offset));
     }
     truth
@@ -209,7 +212,8 @@ pub fn check_learned_exposures(
         .iter()
         .zip(&data.test)
         .map(|((name, img, _, _), v)| {
-            ViewMetrics::measure(name, img, &v.image, EvalRegion::RightHalf)
+            let truth = v.image.image().expect("decoded");
+            ViewMetrics::measure(name, &from_rgb8(img), &truth, EvalRegion::RightHalf)
                 .expect("sizes")
                 .psnr
         })

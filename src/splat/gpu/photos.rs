@@ -2,9 +2,10 @@
 //! each uploaded on first use and kept, or, when the memory plan says so
 //! ([`crate::splat::plan`]), held in a fixed number of slots. A photo that is not on the GPU
 //! takes the slot used longest ago, whose buffers are written in place, so a cache allocates
-//! nothing after it fills. The host keeps every photo (`Dataset`); the trainer names the next
-//! step's photo while the current step runs ([`crate::splat::backend::Backend::prefetch`]),
-//! so its upload is queued before the next step is recorded.
+//! nothing after it fills. The host keeps every photo (`Dataset`), decoded or compressed
+//! ([`crate::splat::photo`]); the trainer names the next step's photo while the current step
+//! runs ([`crate::splat::backend::Backend::prefetch`]), so its decoding and upload happen
+//! while the GPU works and are queued before the next step is recorded.
 
 use std::collections::HashMap;
 
@@ -105,7 +106,12 @@ impl PhotoCache {
             Some(r) => (Some(r.photo), r.depth.map(|(b, _)| b)),
             None => (None, None),
         };
-        let photo = write_or_make(ctx, "target image", old_photo, &view.image.pixels)?;
+        // A photo held compressed on the host is decoded here, once per upload.
+        let pixels = view
+            .image
+            .image()
+            .map_err(|e| GpuError::Invalid(format!("{}: {e}", view.name)))?;
+        let photo = write_or_make(ctx, "target image", old_photo, &pixels.pixels)?;
         let depth = match depth {
             Some((map, valid)) => Some((write_or_make(ctx, "LiDAR depth", old_depth, map)?, valid)),
             None => None,
