@@ -1,5 +1,6 @@
 //! Stage `export`: the deliverables in one folder — the splats as an INRIA-layout PLY that
-//! common splat viewers open and, with `params.export.compact`, the compact web formats
+//! common splat viewers open and as glTF 2.0 with `KHR_gaussian_splatting` (`splats.glb`,
+//! [`crate::splat::export_gltf`]) and, with `params.export.compact`, the compact web formats
 //! (antimatter15 `splats.splat`, and Niantic's `splats.spz` version 2, which keeps the SH
 //! bands); the final inventory with its `crs.json`; and `frame.json`, which says how the
 //! splats' local metric frame maps to the LiDAR file's own coordinates and which CRS those are.
@@ -34,6 +35,23 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     write("splats.ply", &|w| {
         crate::splat::export::write_ply_with(w, &model, false)
     })?;
+    // The same splats as glTF with KHR_gaussian_splatting, for glTF and 3D Tiles clients;
+    // the frame rides in the asset's extras.
+    let train_report: serde_json::Value = read_json(&train.join(super::REPORT_FILE))?;
+    let crs = ctx.crs(Stage::Export)?;
+    write("splats.glb", &|w| {
+        let extras = json!({
+            "frame": "local, z up; file coordinates = position + offset (metres), in crs",
+            "offset": train_report["offset"],
+            "crs": crs.label,
+        });
+        let (doc, bin) = crate::splat::export_gltf::gltf_parts(
+            &model,
+            &crate::splat::export_gltf::Z_UP_TO_Y_UP,
+            extras,
+        );
+        crate::splat::export_gltf::write_glb_parts(w, &doc, &bin)
+    })?;
     if ctx.params.export.compact {
         write("splats.splat", &|w| {
             crate::splat::export_splat::write_splat(w, &model)
@@ -54,9 +72,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             std::fs::copy(&from, &to).map_err(|e| super::io_err(&from, e))?;
         }
     }
-    let train_report: serde_json::Value = read_json(&train.join(super::REPORT_FILE))?;
     let register_report: serde_json::Value = read_json(&register.join(super::REPORT_FILE))?;
-    let crs = ctx.crs(Stage::Export)?;
     crate::forest::write_crs(ctx.out_dir, &crs)?;
     let frame = json!({
         "splats_frame": "local",

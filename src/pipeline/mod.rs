@@ -373,6 +373,8 @@ pub fn classify(name: &str) -> (&'static str, &'static str) {
         "ply" => ("point_cloud", "application/octet-stream"),
         "las" | "laz" => ("point_cloud", "application/octet-stream"),
         "splat" | "ksplat" | "spz" => ("splat", "application/octet-stream"),
+        // glTF 2.0 binary (IANA media type `model/gltf-binary`); Sylva's are splats.
+        "glb" => ("splat", "model/gltf-binary"),
         "png" => ("image", "image/png"),
         "jpg" | "jpeg" => ("image", "image/jpeg"),
         "svg" => ("image", "image/svg+xml"),
@@ -393,5 +395,11 @@ mod tests {
         }
         let total: f64 = Stage::ALL.iter().map(|s| s.weight()).sum();
         assert!((total - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_gltf_binary_is_served_as_one() {
+        assert_eq!(classify("splats.glb"), ("splat", "model/gltf-binary"));
+        assert_eq!(classify("tiles/0.GLB").1, "model/gltf-binary");
     }
 }

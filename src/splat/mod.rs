@@ -17,6 +17,7 @@ pub mod dataset;
 pub mod depth;
 pub mod eval;
 pub mod export;
+pub mod export_gltf;
 pub mod export_splat;
 pub mod export_spz;
 pub mod exposure;
