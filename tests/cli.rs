@@ -260,6 +260,12 @@ fn run_takes_the_crs_from_the_flag_and_refuses_degrees() {
 fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters() {
     let dir = tempfile::tempdir().expect("tempdir");
     let plot = synth_plot(dir.path(), 3);
+    // The LAZ declares UTM zone 49N, so that the tileset is placed on the Earth.
+    let laz = plot.join("lidar.laz");
+    let cloud = sylva::io::pointcloud::read_point_cloud(&laz, &sylva::progress::NoProgress)
+        .expect("read lidar");
+    let utm = sylva::io::crs::Crs::from_epsg(32649).expect("utm");
+    sylva::io::las::write_las_with_crs(&laz, &cloud, true, Some(&utm)).expect("write lidar");
     let params = dir.path().join("params.json");
     std::fs::write(&params, r#"{"train": {"max_gaussians": 1500}}"#).expect("params");
     let out = dir.path().join("out");
@@ -325,6 +331,84 @@ fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters
         "{frame}"
     );
     assert!(out.join("export/trees.csv").is_file());
+    // The glTF splats are the PLY's to float precision.
+    let from_ply = sylva::splat::export::read_ply(ply.as_slice()).expect("ply");
+    let glb = std::fs::read(out.join("export/splats.glb")).expect("splats.glb");
+    let from_glb = sylva::splat::export_gltf::read_glb(glb.as_slice()).expect("glb");
+    assert_eq!(from_glb.means, from_ply.means);
+    for i in 0..from_ply.len() {
+        for k in 0..3 {
+            let (a, b) = (from_glb.log_scales[i][k], from_ply.log_scales[i][k]);
+            assert!(
+                (a - b).abs() <= 1e-5 * (1.0 + b.abs()),
+                "log scale {a} vs {b}"
+            );
+        }
+        let (a, b) = (from_glb.opacity_logits[i], from_ply.opacity_logits[i]);
+        assert!(
+            (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
+            "opacity {a} vs {b}"
+        );
+        let n = from_ply.sh_degree as usize;
+        let coefs = 3 * (n + 1) * (n + 1);
+        assert_eq!(from_glb.sh[i][..coefs], from_ply.sh[i][..coefs]);
+    }
+    // The tileset: on the Earth where the inventory puts the trees, within 1 cm.
+    let tileset = read_json(&out.join("export/tileset.json"));
+    let m: Vec<f64> = tileset["root"]["transform"]
+        .as_array()
+        .expect("a root transform to ECEF")
+        .iter()
+        .map(|v| v.as_f64().expect("f64"))
+        .collect();
+    let m = glam::DMat4::from_cols_slice(&m);
+    let meta = &tileset["metadata"]["properties"];
+    let ids = meta["treeId"].as_array().expect("ids");
+    assert_eq!(ids.len(), 3, "{meta}");
+    let gj = read_json(&out.join("export/trees.geojson"));
+    for (id, pos) in ids
+        .iter()
+        .zip(meta["position"].as_array().expect("positions"))
+    {
+        let local: Vec<f64> = pos
+            .as_array()
+            .expect("xyz")
+            .iter()
+            .map(|v| v.as_f64().expect("f64"))
+            .collect();
+        let ecef = m.transform_point3(glam::DVec3::new(local[0], local[1], local[2]));
+        let tree = gj["features"]
+            .as_array()
+            .expect("features")
+            .iter()
+            .find(|f| {
+                f["properties"]["tree_id"]
+                    .as_u64()
+                    .map(|v| v.to_string())
+                    .as_deref()
+                    == id.as_str()
+            })
+            .expect("the same tree in trees.geojson");
+        let c = &tree["geometry"]["coordinates"];
+        let want = sylva::splat::tiles::wgs84_to_ecef(
+            c[0].as_f64().expect("lon"),
+            c[1].as_f64().expect("lat"),
+            tree["properties"]["ground_z"].as_f64().expect("z"),
+        );
+        let off = (ecef - glam::DVec3::from_array(want)).length();
+        assert!(
+            off < 0.01,
+            "tree {id}: {off} m between the tileset and trees.geojson"
+        );
+    }
+    let export = &results["export"]["tiles"];
+    assert_eq!(export["ecef"], true, "{export}");
+    assert!(
+        export["root_bytes"].as_u64().expect("bytes") < 5_000_000,
+        "{export}"
+    );
+    let root_uri = tileset["root"]["content"]["uri"].as_str().expect("uri");
+    assert!(out.join("export").join(root_uri).is_file(), "{root_uri}");
 }
 
 #[test]

@@ -12,7 +12,9 @@ pub struct BenchArgs {
     /// `soak:`, and --jobs) or geom (read, voxel, outlier filter, normals and ICP on a real
     /// point cloud with per-phase peak memory; flags marked `geom:`) or method (the paper's
     /// ablation plus Sylva's binding on generated plots: render quality, DBH from the
-    /// Gaussians and the LiDAR, trunk-surface distance; flags marked `method:`).
+    /// Gaussians and the LiDAR, trunk-surface distance; flags marked `method:`) or tiles (the
+    /// 3D Tiles tileset of a generated twin of --gaussians Gaussians, 0 = 1 M: build time and
+    /// size against PLY, glTF and SPZ).
     #[arg(env = "SYLVA_BENCH_WHAT", default_value = "train")]
     pub what: String,
     /// A COLMAP project to train on; without one a synthetic plot is generated.
@@ -82,9 +84,23 @@ pub(super) async fn bench(a: BenchArgs) -> anyhow::Result<ExitCode> {
         tokio::task::spawn_blocking(move || crate::loadbench::method::run(&args)).await??;
         return Ok(ExitCode::SUCCESS);
     }
+    if a.what == "tiles" {
+        let sizes: Vec<usize> = a
+            .gaussians
+            .split(',')
+            .map(|s| s.trim().parse::<usize>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| anyhow::anyhow!("--gaussians: {e}"))?;
+        let sizes: Vec<usize> = sizes
+            .into_iter()
+            .map(|n| if n == 0 { 1_000_000 } else { n })
+            .collect();
+        tokio::task::spawn_blocking(move || crate::loadbench::tiles::run(&sizes)).await??;
+        return Ok(ExitCode::SUCCESS);
+    }
     if a.what != "train" {
         anyhow::bail!(
-            "unknown benchmark {:?}; available: train, load, soak, geom, method",
+            "unknown benchmark {:?}; available: train, load, soak, geom, method, tiles",
             a.what
         );
     }

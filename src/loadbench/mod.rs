@@ -20,6 +20,7 @@ pub mod geom;
 pub mod method;
 pub mod postgres;
 pub mod soak;
+pub mod tiles;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

@@ -1,6 +1,7 @@
 //! Stage `export`: the deliverables in one folder — the splats as an INRIA-layout PLY that
-//! common splat viewers open and as glTF 2.0 with `KHR_gaussian_splatting` (`splats.glb`,
-//! [`crate::splat::export_gltf`]) and, with `params.export.compact`, the compact web formats
+//! common splat viewers open, as glTF 2.0 with `KHR_gaussian_splatting` (`splats.glb`,
+//! [`crate::splat::export_gltf`]) and, with `params.export.tiles`, as a 3D Tiles tileset
+//! (`tileset.json`, `tiles/`; [`crate::splat::tiles`]) and, with `params.export.compact`, the compact web formats
 //! (antimatter15 `splats.splat`, and Niantic's `splats.spz` version 2, which keeps the SH
 //! bands); the final inventory with its `crs.json`; and `frame.json`, which says how the
 //! splats' local metric frame maps to the LiDAR file's own coordinates and which CRS those are.
@@ -60,6 +61,11 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             crate::splat::export_spz::write_spz(w, &model)
         })?;
     }
+    let tiles = if ctx.params.export.tiles {
+        write_tiles(ctx, &model, &dbh.join("trees.csv"), &train_report, &crs)?
+    } else {
+        serde_json::Value::Null
+    };
     for name in ["trees.csv", "trees.geojson"] {
         let (from, to) = (dbh.join(name), ctx.out_dir.join(name));
         std::fs::copy(&from, &to).map_err(|e| super::io_err(&from, e))?;
@@ -88,8 +94,94 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     Ok(json!({
         "gaussians": model.len(),
         "compact": ctx.params.export.compact,
+        "tiles": tiles,
         "offset": train_report["offset"],
         "crs": crs.label,
+    }))
+}
+
+/// Writes `tileset.json` and `tiles/` (see [`crate::splat::tiles`]) with the trees of
+/// `trees_csv` as its metadata; returns the report's `tiles`.
+fn write_tiles(
+    ctx: &StageContext<'_>,
+    model: &crate::splat::model::Gaussians,
+    trees_csv: &std::path::Path,
+    train_report: &serde_json::Value,
+    crs: &crate::io::crs::CrsRecord,
+) -> Result<serde_json::Value, StageError> {
+    use crate::splat::tiles::{self, TileParams, TreeMeta};
+    let offset: [f64; 3] = serde_json::from_value(train_report["offset"].clone())
+        .map_err(|e| StageError::Input(format!("the train report's offset: {e}")))?;
+    let mut reader = csv::Reader::from_path(trees_csv)
+        .map_err(|e| StageError::Input(format!("{}: {e}", trees_csv.display())))?;
+    let mut trees = Vec::new();
+    for row in reader.deserialize::<crate::forest::TreeRow>() {
+        let t = row.map_err(|e| StageError::Input(format!("{}: {e}", trees_csv.display())))?;
+        trees.push(TreeMeta {
+            id: t.tree_id.to_string(),
+            position: [t.x - offset[0], t.y - offset[1], t.ground_z - offset[2]],
+            dbh_m: t.dbh_lidar_cm / 100.0,
+            height_m: t.height_m.unwrap_or(-1.0),
+        });
+    }
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for m in &model.means {
+        for k in 0..3 {
+            lo[k] = lo[k].min(f64::from(m[k]));
+            hi[k] = hi[k].max(f64::from(m[k]));
+        }
+    }
+    let georef = match &crs.crs {
+        Some(c) if !model.is_empty() => Some(
+            tiles::local_to_ecef(c, offset, lo, hi)
+                .map_err(|e| StageError::Input(format!("placing the tileset on the Earth: {e}")))?,
+        ),
+        _ => None,
+    };
+    let set = tiles::build(
+        model,
+        georef.as_ref().map(|g| &g.0),
+        &trees,
+        &TileParams::default(),
+    )
+    .map_err(|e| super::io_err(ctx.out_dir, e))?;
+    let mut bytes = 0u64;
+    for t in &set.tiles {
+        let path = ctx.out_dir.join(&t.path);
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| super::io_err(dir, e))?;
+        }
+        std::fs::write(&path, &t.glb).map_err(|e| super::io_err(&path, e))?;
+        bytes += t.glb.len() as u64;
+    }
+    let path = ctx.out_dir.join("tileset.json");
+    std::fs::write(
+        &path,
+        serde_json::to_vec_pretty(&set.json).unwrap_or_default(),
+    )
+    .map_err(|e| super::io_err(&path, e))?;
+    let root_bytes = set.tiles.first().map_or(0, |t| t.glb.len());
+    ctx.progress.log(&format!(
+        "3D Tiles: {} tiles ({} a level from the root), {:.1} MB; the root holds {} Gaussians in {:.2} MB; {}",
+        set.tiles.len(),
+        set.per_level.iter().map(|n| n.to_string()).collect::<Vec<_>>().join(", "),
+        bytes as f64 / 1e6,
+        set.root_gaussians,
+        root_bytes as f64 / 1e6,
+        match &georef {
+            Some((_, r)) => format!("placed on the Earth (ECEF) from {}, fit residual {:.2} mm", crs.label.as_deref().unwrap_or("the CRS"), r * 1000.0),
+            None => "no CRS: left in the local frame".to_string(),
+        }
+    ));
+    Ok(json!({
+        "tiles": set.tiles.len(),
+        "per_level": set.per_level,
+        "bytes": bytes,
+        "root_gaussians": set.root_gaussians,
+        "root_bytes": root_bytes,
+        "ecef": georef.is_some(),
+        "georeference_residual_m": georef.map(|g| g.1),
     }))
 }
 

@@ -532,11 +532,18 @@ impl Default for DbhParams {
 pub struct ExportParams {
     /// Also write the compact (quantised) splat file for web viewers (default true).
     pub compact: bool,
+    /// Also write the splats as a 3D Tiles 1.1 tileset (`tileset.json` and `tiles/`: glTF
+    /// tiles with levels of detail, georeferenced to ECEF when the CRS is known;
+    /// `splat::tiles`; default true).
+    pub tiles: bool,
 }
 
 impl Default for ExportParams {
     fn default() -> Self {
-        Self { compact: true }
+        Self {
+            compact: true,
+            tiles: true,
+        }
     }
 }
 

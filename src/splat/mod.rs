@@ -32,5 +32,6 @@ pub mod plot;
 pub mod semantic;
 pub mod start;
 pub mod strategy;
+pub mod tiles;
 pub mod trainer;
 pub mod trunk_diag;
