@@ -61,7 +61,8 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
             crate::splat::export_spz::write_spz(w, &model)
         })?;
     }
-    let tiles = if ctx.params.export.tiles {
+    // A model without Gaussians has nothing to tile; the report says so (null).
+    let tiles = if ctx.params.export.tiles && !model.is_empty() {
         write_tiles(ctx, &model, &dbh.join("trees.csv"), &train_report, &crs)?
     } else {
         serde_json::Value::Null
