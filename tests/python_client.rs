@@ -3,7 +3,6 @@
 //! and typed errors. Without `python3` the test prints why and passes (capability `python`).
 
 #[path = "common/mod.rs"]
-#[allow(dead_code)]
 mod common;
 
 use std::path::Path;
