@@ -409,6 +409,47 @@ fn a_whole_run_trains_on_the_cpu_reference_and_exports_splats_and_both_diameters
     );
     let root_uri = tileset["root"]["content"]["uri"].as_str().expect("uri");
     assert!(out.join("export").join(root_uri).is_file(), "{root_uri}");
+    // The labelled cloud as COPC, read by laspy's CopcReader (not Sylva's): every point, the
+    // CRS, the classes and tree ids the export report counted.
+    let copc = &results["export"]["copc"]["cloud.copc.laz"];
+    let Some(python) = laspy_python() else {
+        return;
+    };
+    let script = r#"
+import sys, json, laspy, numpy as np
+with laspy.CopcReader.open(sys.argv[1]) as r:
+    p = r.query()
+    wkt = [v.string for v in r.header.vlrs if v.record_id == 2112]
+    c = np.asarray(p.classification)
+    t = np.asarray(p["tree_id"])
+    print(json.dumps({"points": int(r.header.point_count), "read": len(p),
+        "ground": int((c == 2).sum()), "leaf": int((c == 5).sum()), "wood": int((c == 64).sum()),
+        "in_trees": int((t > 0).sum()), "trees": sorted(int(v) for v in np.unique(t) if v > 0),
+        "wkt": wkt[0] if wkt else "", "version": str(r.header.version)}))
+"#;
+    let run = Command::new(&python)
+        .args(["-c", script])
+        .arg(out.join("export/cloud.copc.laz"))
+        .output()
+        .expect("python");
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let got: serde_json::Value = serde_json::from_slice(&run.stdout).expect("json");
+    for k in ["points", "ground", "leaf", "wood", "in_trees"] {
+        assert_eq!(got[k], copc[k], "{k}: laspy {got} vs report {copc}");
+    }
+    assert_eq!(got["read"], got["points"], "{got}");
+    assert_eq!(got["trees"], serde_json::json!([1, 2, 3]), "{got}");
+    assert!(
+        got["wkt"]
+            .as_str()
+            .is_some_and(|w| w.contains("UTM zone 49N")),
+        "{got}"
+    );
+    assert_eq!(got["version"], "1.4", "{got}");
 }
 
 #[test]

@@ -8,6 +8,7 @@
 
 pub mod archive;
 pub mod colmap;
+pub mod copc;
 pub mod crs;
 pub mod e57;
 pub mod gpkg;

@@ -67,6 +67,7 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
     } else {
         serde_json::Value::Null
     };
+    let copc = write_clouds(ctx, &crs)?;
     for name in ["trees.csv", "trees.geojson"] {
         let (from, to) = (dbh.join(name), ctx.out_dir.join(name));
         std::fs::copy(&from, &to).map_err(|e| super::io_err(&from, e))?;
@@ -96,9 +97,71 @@ pub fn run(ctx: &StageContext<'_>) -> Result<serde_json::Value, StageError> {
         "gaussians": model.len(),
         "compact": ctx.params.export.compact,
         "tiles": tiles,
+        "copc": copc,
         "offset": train_report["offset"],
         "crs": crs.label,
     }))
+}
+
+/// Writes stage `segment`'s labelled cloud and its anchors as COPC (`cloud.copc.laz`,
+/// `anchors.copc.laz`; [`crate::io::copc`]) with the job's CRS; returns the report's `copc`.
+fn write_clouds(
+    ctx: &StageContext<'_>,
+    crs: &crate::io::crs::CrsRecord,
+) -> Result<serde_json::Value, StageError> {
+    use crate::io::copc::{
+        self, CLASS_GROUND, CLASS_LEAF, CLASS_UNASSIGNED, CLASS_WOOD, LabelledCloud,
+    };
+    let segment = ctx.output_of(Stage::Segment, Stage::Export)?;
+    let wkt = crs.crs.as_ref().and_then(copc::wkt_of);
+    let mut report = serde_json::Map::new();
+    for (from, to) in [
+        ("labelled.ply", "cloud.copc.laz"),
+        ("anchors.ply", "anchors.copc.laz"),
+    ] {
+        let path = segment.join(from);
+        let (cloud, fields) =
+            crate::io::ply::read_ply_with_fields(&path, &crate::progress::NoProgress)?;
+        let field = |name: &str| fields.iter().find(|f| f.name == name).map(|f| &f.values);
+        let (ground, label, tree) = (field("ground"), field("label"), field("tree"));
+        let at = |v: Option<&Vec<f32>>, i: usize| v.and_then(|v| v.get(i)).copied();
+        let classes: Vec<u8> = (0..cloud.len())
+            .map(|i| match (at(ground, i), at(label, i)) {
+                (Some(g), _) if g >= 0.5 => CLASS_GROUND,
+                (_, Some(l)) if l == f32::from(crate::forest::segment::TRUNK) => CLASS_WOOD,
+                (_, Some(_)) => CLASS_LEAF,
+                _ => CLASS_UNASSIGNED,
+            })
+            .collect();
+        let trees: Vec<u32> = (0..cloud.len())
+            .map(|i| at(tree, i).map_or(0, |t| t.max(0.0) as u32))
+            .collect();
+        let count = |c: u8| classes.iter().filter(|&&k| k == c).count();
+        let counts = json!({
+            "points": cloud.len(),
+            "ground": count(CLASS_GROUND),
+            "wood": count(CLASS_WOOD),
+            "leaf": count(CLASS_LEAF),
+            "unassigned": count(CLASS_UNASSIGNED),
+            "in_trees": trees.iter().filter(|&&t| t > 0).count(),
+        });
+        let Some(points) = LabelledCloud::new(&cloud, classes, trees) else {
+            return Err(StageError::Input(format!(
+                "{}: inconsistent fields",
+                path.display()
+            )));
+        };
+        let out = ctx.out_dir.join(to);
+        copc::write_copc(&out, &points, wkt.clone())?;
+        report.insert(to.to_string(), counts);
+    }
+    if wkt.is_none() {
+        report.insert(
+            "crs".into(),
+            json!("none declared: the job has no CRS, or one known only as a PROJ string"),
+        );
+    }
+    Ok(serde_json::Value::Object(report))
 }
 
 /// Writes `tileset.json` and `tiles/` (see [`crate::splat::tiles`]) with the trees of

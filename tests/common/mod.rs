@@ -805,3 +805,34 @@ pub fn openapi_operations() -> std::collections::BTreeSet<(String, String)> {
     }
     ops
 }
+
+/// A Python venv with laspy + lazrs under target/, or None (with the reason printed).
+pub fn laspy_python() -> Option<PathBuf> {
+    let venv = Path::new(env!("CARGO_TARGET_TMPDIR")).join("laspy-venv");
+    let python = venv.join("bin/python");
+    let ready = |p: &Path| {
+        Command::new(p)
+            .args(["-c", "import laspy, lazrs"])
+            .status()
+            .is_ok_and(|s| s.success())
+    };
+    if python.is_file() && ready(&python) {
+        return Some(python);
+    }
+    let made = Command::new("python3")
+        .args(["-m", "venv"])
+        .arg(&venv)
+        .status();
+    if !made.is_ok_and(|s| s.success()) {
+        sylva::testing::skip("pypi", "cannot create a Python venv (python3 -m venv)");
+        return None;
+    }
+    let pip = Command::new(venv.join("bin/pip"))
+        .args(["install", "-q", "laspy==2.6.1", "lazrs==0.7.0"])
+        .status();
+    if !pip.is_ok_and(|s| s.success()) || !ready(&python) {
+        sylva::testing::skip("pypi", "cannot install laspy and lazrs from PyPI");
+        return None;
+    }
+    Some(python)
+}
