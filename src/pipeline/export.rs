@@ -1,7 +1,8 @@
 //! Stage `export`: the deliverables in one folder — the splats as an INRIA-layout PLY that
 //! common splat viewers open, as glTF 2.0 with `KHR_gaussian_splatting` (`splats.glb`,
 //! [`crate::splat::export_gltf`]) and, with `params.export.tiles`, as a 3D Tiles tileset
-//! (`tileset.json`, `tiles/`; [`crate::splat::tiles`]) and, with `params.export.compact`, the compact web formats
+//! (`tileset.json`, `tiles/`; [`crate::splat::tiles`]), the labelled cloud and its anchors as
+//! COPC (`cloud.copc.laz`, `anchors.copc.laz`; [`crate::io::copc`]) and, with `params.export.compact`, the compact web formats
 //! (antimatter15 `splats.splat`, and Niantic's `splats.spz` version 2, which keeps the SH
 //! bands); the final inventory with its `crs.json`; and `frame.json`, which says how the
 //! splats' local metric frame maps to the LiDAR file's own coordinates and which CRS those are.
