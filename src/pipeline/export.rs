@@ -189,17 +189,9 @@ fn write_tiles(
             height_m: t.height_m.unwrap_or(-1.0),
         });
     }
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for m in &model.means {
-        for k in 0..3 {
-            lo[k] = lo[k].min(f64::from(m[k]));
-            hi[k] = hi[k].max(f64::from(m[k]));
-        }
-    }
-    let georef = match &crs.crs {
-        Some(c) if !model.is_empty() => Some(
-            tiles::local_to_ecef(c, offset, lo, hi)
+    let georef = match (&crs.crs, model.bounds()) {
+        (Some(c), Some((lo, hi))) => Some(
+            tiles::local_to_ecef(c, offset, lo.map(f64::from), hi.map(f64::from))
                 .map_err(|e| StageError::Input(format!("placing the tileset on the Earth: {e}")))?,
         ),
         _ => None,

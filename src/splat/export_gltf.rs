@@ -120,16 +120,8 @@ fn floats(semantic: String, kind: &'static str, values: impl Iterator<Item = f32
 
 /// The primitive's attributes for `g` (see the module doc).
 fn attributes(g: &Gaussians) -> Vec<Attribute> {
-    let mut lo = [f32::INFINITY; 3];
-    let mut hi = [f32::NEG_INFINITY; 3];
-    for m in &g.means {
-        for k in 0..3 {
-            lo[k] = lo[k].min(m[k]);
-            hi[k] = hi[k].max(m[k]);
-        }
-    }
     let mut position = floats("POSITION".into(), "VEC3", g.means.iter().flatten().copied());
-    position.bounds = (!g.is_empty()).then_some((lo, hi));
+    position.bounds = g.bounds();
     let rotation = floats(
         format!("{EXTENSION}:ROTATION"),
         "VEC4",
@@ -338,14 +330,7 @@ pub fn gltf_parts_spz(
     while bin.len() % 4 != 0 {
         bin.push(0);
     }
-    let mut lo = [f32::INFINITY; 3];
-    let mut hi = [f32::NEG_INFINITY; 3];
-    for m in &g.means {
-        for k in 0..3 {
-            lo[k] = lo[k].min(m[k]);
-            hi[k] = hi[k].max(m[k]);
-        }
-    }
+    let bounds = g.bounds();
     let mut accessors = Vec::new();
     let mut attrs = serde_json::Map::new();
     let mut add = |semantic: String, kind: &str, component: u32| {
@@ -353,7 +338,7 @@ pub fn gltf_parts_spz(
         if component == UNSIGNED_BYTE {
             acc["normalized"] = json!(true);
         }
-        if semantic == "POSITION" && !g.is_empty() {
+        if let Some((lo, hi)) = bounds.filter(|_| semantic == "POSITION") {
             acc["min"] = json!(lo);
             acc["max"] = json!(hi);
         }

@@ -42,6 +42,17 @@ impl Gaussians {
     pub fn is_empty(&self) -> bool {
         self.means.is_empty()
     }
+    /// The box of the centres (metres): per axis the least and the greatest; `None` when empty.
+    pub fn bounds(&self) -> Option<([f32; 3], [f32; 3])> {
+        let first = *self.means.first()?;
+        Some(self.means.iter().fold((first, first), |(lo, hi), m| {
+            (
+                std::array::from_fn(|k| lo[k].min(m[k])),
+                std::array::from_fn(|k| hi[k].max(m[k])),
+            )
+        }))
+    }
+
     /// True when every per-Gaussian vector has the same length.
     pub fn is_consistent(&self) -> bool {
         let n = self.means.len();

@@ -339,17 +339,10 @@ pub fn build(
     trees: &[TreeMeta],
     params: &TileParams,
 ) -> std::io::Result<Tileset> {
-    if g.is_empty() {
+    let Some((lo, hi)) = g.bounds() else {
         return Err(std::io::Error::other("no Gaussians to tile"));
-    }
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for m in &g.means {
-        for k in 0..3 {
-            lo[k] = lo[k].min(f64::from(m[k]));
-            hi[k] = hi[k].max(f64::from(m[k]));
-        }
-    }
+    };
+    let (lo, hi) = (lo.map(f64::from), hi.map(f64::from));
     // A cube about the centres, so that octants are cubes too.
     let side = (0..3)
         .map(|k| hi[k] - lo[k])
