@@ -36,7 +36,7 @@ pub enum EvalError {
     Io(#[from] io::Error),
 }
 
-fn check(a: &[[f32; 3]], b: &[[f32; 3]], width: u32, height: u32) -> Result<(), EvalError> {
+fn check<T>(a: &[T], b: &[T], width: u32, height: u32) -> Result<(), EvalError> {
     let n = width as usize * height as usize;
     if a.len() != n || b.len() != n {
         return Err(EvalError::SizeMismatch {
@@ -217,15 +217,7 @@ pub fn save_side_by_side(
     width: u32,
     height: u32,
 ) -> Result<(), EvalError> {
-    let n = width as usize * height as usize;
-    if render.len() != n || truth.len() != n {
-        return Err(EvalError::SizeMismatch {
-            render: render.len(),
-            truth: truth.len(),
-            width,
-            height,
-        });
-    }
+    check(render, truth, width, height)?;
     let img = image::RgbImage::from_fn(2 * width, height, |x, y| {
         let (src, x) = if x < width {
             (render, x)

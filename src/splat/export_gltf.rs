@@ -182,6 +182,50 @@ fn attributes(g: &Gaussians) -> Vec<Attribute> {
     out
 }
 
+/// What a splat document holds beside its node: the primitive's attributes (semantic →
+/// accessor), the accessors and buffer views, the buffer's length (bytes), and whether the
+/// data is one SPZ stream (the extension's `bufferView` 0).
+struct SplatParts {
+    attributes: serde_json::Map<String, Value>,
+    accessors: Vec<Value>,
+    views: Vec<Value>,
+    bin_len: usize,
+    spz: bool,
+}
+
+/// The glTF JSON of one splat primitive in one node carrying `matrix`, the asset `extras`.
+fn splat_document(parts: &SplatParts, matrix: &[f64; 16], extras: Value) -> Value {
+    let mut ext = json!({
+        "kernel": "ellipse",
+        "colorSpace": "srgb_rec709_display",
+        "projection": "perspective",
+        "sortingMethod": "cameraDistance",
+    });
+    let mut doc = json!({
+        "asset": {
+            "version": "2.0",
+            "generator": concat!("Sylva ", env!("CARGO_PKG_VERSION")),
+            "extras": extras,
+        },
+        "extensionsUsed": [EXTENSION],
+        "scene": 0,
+        "scenes": [{ "nodes": [0] }],
+        "nodes": [{ "mesh": 0, "matrix": matrix }],
+        "buffers": [{ "byteLength": parts.bin_len }],
+        "bufferViews": parts.views,
+        "accessors": parts.accessors,
+    });
+    if parts.spz {
+        ext["extensions"] = json!({ SPZ_EXTENSION: { "bufferView": 0 } });
+        doc["extensionsUsed"] = json!([EXTENSION, SPZ_EXTENSION]);
+        doc["extensionsRequired"] = json!([EXTENSION, SPZ_EXTENSION]);
+    }
+    doc["meshes"] = json!([{
+        "primitives": [{ "mode": 0, "attributes": parts.attributes, "extensions": { EXTENSION: ext } }]
+    }]);
+    doc
+}
+
 /// The glTF JSON and binary buffer of `g`, its node carrying `matrix` (column-major; e.g.
 /// [`Z_UP_TO_Y_UP`]) and `extras` on the asset (free-form: Sylva puts the frame there).
 pub fn gltf_parts(g: &Gaussians, matrix: &[f64; 16], extras: Value) -> (Value, Vec<u8>) {
@@ -220,34 +264,17 @@ pub fn gltf_parts(g: &Gaussians, matrix: &[f64; 16], extras: Value) -> (Value, V
     while bin.len() % 4 != 0 {
         bin.push(0);
     }
-    let doc = json!({
-        "asset": {
-            "version": "2.0",
-            "generator": concat!("Sylva ", env!("CARGO_PKG_VERSION")),
-            "extras": extras,
+    let doc = splat_document(
+        &SplatParts {
+            attributes: attrs,
+            accessors,
+            views,
+            bin_len: bin.len(),
+            spz: false,
         },
-        "extensionsUsed": [EXTENSION],
-        "scene": 0,
-        "scenes": [{ "nodes": [0] }],
-        "nodes": [{ "mesh": 0, "matrix": matrix }],
-        "meshes": [{
-            "primitives": [{
-                "mode": 0,
-                "attributes": attrs,
-                "extensions": {
-                    EXTENSION: {
-                        "kernel": "ellipse",
-                        "colorSpace": "srgb_rec709_display",
-                        "projection": "perspective",
-                        "sortingMethod": "cameraDistance",
-                    }
-                }
-            }]
-        }],
-        "buffers": [{ "byteLength": bin.len() }],
-        "bufferViews": views,
-        "accessors": accessors,
-    });
+        matrix,
+        extras,
+    );
     (doc, bin)
 }
 
@@ -354,36 +381,17 @@ pub fn gltf_parts_spz(
             add(sh_semantic(l, n), "VEC3", FLOAT);
         }
     }
-    let doc = json!({
-        "asset": {
-            "version": "2.0",
-            "generator": concat!("Sylva ", env!("CARGO_PKG_VERSION")),
-            "extras": extras,
+    let doc = splat_document(
+        &SplatParts {
+            attributes: attrs,
+            accessors,
+            views: vec![json!({ "buffer": 0, "byteOffset": 0, "byteLength": spz_len })],
+            bin_len: bin.len(),
+            spz: true,
         },
-        "extensionsUsed": [EXTENSION, SPZ_EXTENSION],
-        "extensionsRequired": [EXTENSION, SPZ_EXTENSION],
-        "scene": 0,
-        "scenes": [{ "nodes": [0] }],
-        "nodes": [{ "mesh": 0, "matrix": matrix }],
-        "meshes": [{
-            "primitives": [{
-                "mode": 0,
-                "attributes": attrs,
-                "extensions": {
-                    EXTENSION: {
-                        "kernel": "ellipse",
-                        "colorSpace": "srgb_rec709_display",
-                        "projection": "perspective",
-                        "sortingMethod": "cameraDistance",
-                        "extensions": { SPZ_EXTENSION: { "bufferView": 0 } },
-                    }
-                }
-            }]
-        }],
-        "buffers": [{ "byteLength": bin.len() }],
-        "bufferViews": [{ "buffer": 0, "byteOffset": 0, "byteLength": spz_len }],
-        "accessors": accessors,
-    });
+        matrix,
+        extras,
+    );
     Ok((doc, bin))
 }
 

@@ -185,17 +185,18 @@ fn merge_cells(g: &Gaussians, idx: &[usize], lo: [f64; 3], cell: f64) -> Gaussia
     };
     for key in keys {
         let members = &cells[&key];
-        if members.len() == 1 {
-            let one = subset(g, members);
-            out.means.push(one.means[0]);
-            out.log_scales.push(one.log_scales[0]);
-            out.rotations.push(one.rotations[0]);
-            out.opacity_logits.push(one.opacity_logits[0]);
-            out.sh.push(one.sh[0]);
-            out.trunk_prob.push(one.trunk_prob[0]);
-            continue;
-        }
-        let (m, s, r, o, sh, t) = merge_one(g, members);
+        // A cell of one keeps its Gaussian as trained.
+        let (m, s, r, o, sh, t) = match members.as_slice() {
+            &[i] => (
+                g.means[i],
+                g.log_scales[i],
+                g.rotations[i],
+                g.opacity_logits[i],
+                g.sh[i],
+                g.trunk_prob[i],
+            ),
+            _ => merge_one(g, members),
+        };
         out.means.push(m);
         out.log_scales.push(s);
         out.rotations.push(r);
