@@ -252,6 +252,18 @@ pub struct ApiArgs {
     )]
     pub token: Vec<String>,
 
+    /// Web origins (`scheme://host[:port]`) whose pages may call the API from a browser,
+    /// comma-separated, e.g. a CesiumJS or other digital-twin front end at
+    /// `https://twin.example.org` loading a job's tileset with the caller's key; `*` allows
+    /// any origin. Answers then carry CORS headers (preflights included) that allow the
+    /// `Authorization` header and expose `ETag`, `Location` and the rate-limit headers. Default
+    /// none: only the server's own page (same origin) calls it from a browser.
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, env = "SYLVA_CORS_ORIGIN", value_delimiter = ',')
+    )]
+    pub cors_origin: Vec<String>,
+
     /// Seconds after `POST /v1/webhooks/secret/rotate` during which deliveries are signed with
     /// the old secret too (a second `v1=` entry), so a receiver can switch without missing
     /// one. Default 86400 (a day), as long as a receiver's operator may need to notice.

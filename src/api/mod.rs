@@ -145,9 +145,97 @@ async fn no_such_route() -> ApiError {
     ApiError::new(StatusCode::NOT_FOUND, "no-such-route", "no such route")
 }
 
+/// Request headers a page on another origin may send (preflights name them).
+const CORS_REQUEST_HEADERS: [&str; 7] = [
+    "authorization",
+    "content-type",
+    "idempotency-key",
+    "last-event-id",
+    "range",
+    "if-none-match",
+    "x-request-id",
+];
+/// Answer headers such a page may read.
+const CORS_EXPOSED_HEADERS: [&str; 10] = [
+    "etag",
+    "location",
+    "retry-after",
+    "content-length",
+    "content-range",
+    "content-disposition",
+    "accept-ranges",
+    "upload-bytes-received",
+    "upload-length",
+    "x-request-id",
+];
+/// How long a browser may keep a preflight's answer, seconds (an hour: origins change
+/// with a restart only).
+const CORS_MAX_AGE_SECS: u64 = 3600;
+
+/// The CORS layer for `--cors-origin` (see [`ApiArgs::cors_origin`]): `None` without
+/// origins; an error names an origin that is not `scheme://host[:port]`.
+pub fn cors_layer(origins: &[String]) -> Result<Option<tower_http::cors::CorsLayer>, String> {
+    use axum::http::HeaderValue;
+    use tower_http::cors::{AllowOrigin, CorsLayer};
+    let origins: Vec<&str> = origins
+        .iter()
+        .map(|o| o.trim().trim_end_matches('/'))
+        .filter(|o| !o.is_empty())
+        .collect();
+    if origins.is_empty() {
+        return Ok(None);
+    }
+    let allow = if origins.contains(&"*") {
+        AllowOrigin::any()
+    } else {
+        let mut list = Vec::new();
+        for o in origins {
+            let rest = o
+                .strip_prefix("https://")
+                .or_else(|| o.strip_prefix("http://"))
+                .ok_or_else(|| {
+                    format!("--cors-origin {o:?}: an origin starts with http:// or https://")
+                })?;
+            if rest.is_empty() || rest.contains(['/', '?', '#', ' ', '@']) {
+                return Err(format!(
+                    "--cors-origin {o:?}: an origin is scheme://host[:port], without a path"
+                ));
+            }
+            let v = HeaderValue::from_str(o)
+                .map_err(|e| format!("--cors-origin {o:?}: not a header value ({e})"))?;
+            list.push(v);
+        }
+        AllowOrigin::list(list)
+    };
+    let names = |n: &[&'static str]| {
+        n.iter()
+            .map(|h| axum::http::HeaderName::from_static(h))
+            .collect::<Vec<_>>()
+    };
+    Ok(Some(
+        CorsLayer::new()
+            .allow_origin(allow)
+            .allow_methods([
+                Method::GET,
+                Method::HEAD,
+                Method::POST,
+                Method::PUT,
+                Method::DELETE,
+            ])
+            .allow_headers(names(&CORS_REQUEST_HEADERS))
+            .expose_headers(names(&CORS_EXPOSED_HEADERS))
+            .max_age(Duration::from_secs(CORS_MAX_AGE_SECS)),
+    ))
+}
+
 /// The whole application.
 pub fn router(state: AppState) -> Router {
     let a = &state.args;
+    // Checked when `sylva serve` starts; a bad origin left here only logs.
+    let cors = cors_layer(&a.cors_origin).unwrap_or_else(|e| {
+        tracing::error!("{e}; CORS stays off");
+        None
+    });
     let timeout = Duration::from_secs(a.request_timeout_secs.max(1));
     let upload_timeout = Duration::from_secs(a.upload_timeout_secs.max(1));
     let json_limit = a.max_json_bytes as usize;
@@ -231,6 +319,9 @@ pub fn router(state: AppState) -> Router {
         )
         .layer(PropagateRequestIdLayer::x_request_id())
         .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
+        // Outermost, so preflights are answered before authentication and every answer,
+        // errors included, carries the headers.
+        .layer(tower::util::option_layer(cors))
         .with_state(state)
 }
 
@@ -242,4 +333,46 @@ pub fn route_method(m: &str) -> Method {
 /// Bumps the upload byte counter.
 pub fn count_upload_bytes(state: &AppState, n: u64) {
     state.counters.upload_bytes.fetch_add(n, Ordering::Relaxed);
+}
+
+#[cfg(test)]
+mod cors_tests {
+    use super::cors_layer;
+
+    fn origins(list: &[&str]) -> Vec<String> {
+        list.iter().map(|s| s.to_string()).collect()
+    }
+
+    #[test]
+    fn no_origin_means_no_cors_layer() {
+        assert!(matches!(cors_layer(&[]), Ok(None)));
+        assert!(matches!(cors_layer(&origins(&[" ", ""])), Ok(None)));
+    }
+
+    #[test]
+    fn origins_are_scheme_host_and_port() {
+        for good in [
+            "https://twin.example.org",
+            "http://127.0.0.1:8765",
+            "https://twin.example.org/",
+            "*",
+        ] {
+            assert!(
+                matches!(cors_layer(&origins(&[good])), Ok(Some(_))),
+                "{good}"
+            );
+        }
+        for (bad, says) in [
+            ("twin.example.org", "starts with http"),
+            ("ftp://twin.example.org", "starts with http"),
+            ("https://twin.example.org/app", "without a path"),
+            ("https://", "an origin"),
+            ("https://user@twin.example.org", "without a path"),
+        ] {
+            match cors_layer(&origins(&[bad])) {
+                Err(e) => assert!(e.contains(says) && e.contains(bad), "{bad}: {e}"),
+                Ok(_) => panic!("{bad} was accepted"),
+            }
+        }
+    }
 }

@@ -1,8 +1,9 @@
-//! The web page: one HTML file, its stylesheet and two scripts, compiled into the binary so
+//! The web page: one HTML file, its stylesheet and three scripts, compiled into the binary so
 //! the service needs nothing at run time and the browser fetches nothing from elsewhere.
 //!
 //! The page is plain HTML/CSS/JavaScript (no framework, no build step): `app.js` holds the
-//! jobs list, the upload form and the job page; `viewer.js` the WebGL2 Gaussian-splat viewer.
+//! jobs list, the upload form and the job page; `viewer.js` the WebGL2 Gaussian-splat viewer;
+//! `tiles.js` the streamer that feeds it a job's 3D Tiles tileset by level of detail.
 //! A strict Content-Security-Policy keeps every script, style and connection on this origin.
 
 use axum::extract::Path;
@@ -33,6 +34,11 @@ const ASSETS: &[Asset] = &[
         name: "viewer.js",
         content_type: "text/javascript; charset=utf-8",
         body: include_str!("web/viewer.js"),
+    },
+    Asset {
+        name: "tiles.js",
+        content_type: "text/javascript; charset=utf-8",
+        body: include_str!("web/tiles.js"),
     },
 ];
 

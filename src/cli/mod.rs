@@ -164,6 +164,7 @@ async fn shutdown_signal() {
 async fn serve(a: ServeArgs) -> anyhow::Result<()> {
     init_tracing(&a.store);
     a.worker.validate().map_err(anyhow::Error::msg)?;
+    api::cors_layer(&a.api.cors_origin).map_err(anyhow::Error::msg)?;
     let (db, blobs) = open_store(&a.store).await?;
     let gpu = tokio::time::timeout(Duration::from_secs(10), sylva::gpu::probe())
         .await

@@ -196,11 +196,19 @@ fn write_tiles(
         ),
         _ => None,
     };
+    let per_tile = ctx.params.export.tile_gaussians;
+    if per_tile == 0 {
+        return Err(StageError::Input(
+            "params.export.tile_gaussians is 0; a tile holds at least 1 Gaussian".into(),
+        ));
+    }
     let set = tiles::build(
         model,
         georef.as_ref().map(|g| &g.0),
         &trees,
-        &TileParams::default(),
+        &TileParams {
+            max_per_tile: per_tile as usize,
+        },
     )
     .map_err(|e| super::io_err(ctx.out_dir, e))?;
     let mut bytes = 0u64;

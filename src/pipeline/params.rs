@@ -536,6 +536,10 @@ pub struct ExportParams {
     /// tiles with levels of detail, georeferenced to ECEF when the CRS is known;
     /// `splat::tiles`; default true).
     pub tiles: bool,
+    /// Most Gaussians in one tile of the tileset (default 50 000,
+    /// `splat::tiles::TileParams`'s: 3.2 MB of SPZ at SH degree 3). Fewer make smaller
+    /// tiles and more levels, for weak clients or slow links; at least 1.
+    pub tile_gaussians: u32,
 }
 
 impl Default for ExportParams {
@@ -543,6 +547,7 @@ impl Default for ExportParams {
         Self {
             compact: true,
             tiles: true,
+            tile_gaussians: crate::splat::tiles::TileParams::default().max_per_tile as u32,
         }
     }
 }

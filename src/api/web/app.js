@@ -422,7 +422,7 @@ async function submitPlot(e) {
 
 // ------------------------------------------------------------------ the job page
 
-const page = { id: null, job: null, stop: null, viewer: null, artifactsSeen: '', trees: [], stems: [], points: null, sort: null };
+const page = { id: null, job: null, stop: null, viewer: null, tiles: null, artifactsSeen: '', trees: [], stems: [], points: null, sort: null };
 
 function artifact(name) { return page.job && page.job.artifacts.find((a) => a.name === name); }
 function artifactEnding(suffix) {
@@ -760,37 +760,65 @@ function freshCanvas() {
 }
 
 async function renderViewer() {
+  const tilesA = artifact('export/tileset.json');
   const splatA = artifact('export/splats.splat');
   const anchorA = artifact('segment/anchors.ply') || artifact('anchors/anchors.ply');
   const stemsA = artifactEnding('stems.json');
-  const key = [splatA, anchorA, stemsA].map((a) => a && a.sha256).join(',');
-  if (!splatA && !anchorA) return;
+  const key = [tilesA, splatA, anchorA, stemsA].map((a) => a && a.sha256).join(',');
+  if (!tilesA && !splatA && !anchorA) return;
   if (page.viewerKey === key) return;
   page.viewerKey = key;
   const note = $('#viewer-note');
   note.hidden = false;
   note.textContent = 'Loading the 3-D scene…';
   try {
-    if (page.viewer) page.viewer.destroy();
+    stopViewer();
     page.viewer = SylvaViewer.create(freshCanvas(), $('#viewer-labels'), { onStemClick: (s) => showStem(s.id, false) });
     let offset = [0, 0, 0];
     page.ply = null;
+    page.splats = null;
     if (anchorA) {
       page.ply = SylvaViewer.parsePly(await fetchBuffer(anchorA.href));
       offset = page.ply.offset;
     }
-    if (splatA) {
+    let tilesFailed = null;
+    if (tilesA) {
+      // The tileset streams by level of detail: coarse tiles first, finer ones as the view
+      // comes closer (tiles.js).
+      let framed = false;
+      try {
+        page.tiles = await SylvaTiles.stream(page.viewer, tilesA.href, fetchBuffer, {
+          onChange: (st, merged) => {
+            page.splats = merged;
+            if (!framed && merged.count) { framed = true; page.viewer.frame(); }
+            const levels = st.minDepth === st.maxDepth ? `level ${st.minDepth}` : `levels ${st.minDepth}–${st.maxDepth}`;
+            $('#viewer-source').textContent = `${st.drawn.toLocaleString()} Gaussians in ${st.selected} of ${st.tiles} tiles (${levels}), streamed from the tileset`;
+          },
+        });
+        $('#viewer-colour').disabled = true;
+        $('#viewer-source').textContent = 'Streaming the tileset…';
+      } catch (e) {
+        tilesFailed = e;
+        page.tiles = null;
+      }
+    }
+    if (page.tiles) {
+      // the tiles arrive through onChange
+    } else if (splatA) {
       page.splats = SylvaViewer.parseSplat(await fetchBuffer(splatA.href));
-      $('#viewer-source').textContent = `${page.splats.count.toLocaleString()} Gaussian splats`;
+      $('#viewer-source').textContent = `${page.splats.count.toLocaleString()} Gaussian splats`
+        + (tilesFailed ? ` (the tileset could not be read: ${tilesFailed.message})` : '');
       $('#viewer-colour').disabled = true;
-    } else {
+    } else if (page.ply) {
       page.splats = SylvaViewer.pointsToSplats(page.ply, $('#viewer-colour').value);
       $('#viewer-source').textContent = `${page.ply.count.toLocaleString()} anchor points (the splats come with stage export)`;
       $('#viewer-colour').disabled = false;
+    } else if (tilesFailed) {
+      throw tilesFailed;
     }
-    page.viewer.setSplats(page.splats);
+    if (page.splats) page.viewer.setSplats(page.splats);
     page.viewer.setScale(Number($('#viewer-size').value));
-    page.viewer.frame();
+    if (page.splats) page.viewer.frame();
     if (stemsA) {
       const st = await apiJson(stemsA.href);
       const d = (st.offset || offset).map((v, i) => v - offset[i]);
@@ -930,11 +958,16 @@ async function enterJob(id) {
   });
 }
 
+function stopViewer() {
+  if (page.tiles) { page.tiles.destroy(); page.tiles = null; }
+  if (page.viewer) { page.viewer.destroy(); page.viewer = null; }
+}
+
 function leaveJob() {
   if (page.stop) page.stop();
   page.stop = null;
   page.id = null;
-  if (page.viewer) { page.viewer.destroy(); page.viewer = null; }
+  stopViewer();
 }
 
 async function jobAction(path, opts, confirmText) {
@@ -982,7 +1015,7 @@ function start() {
     if (a) download(a.href, `trees-${page.id.slice(0, 8)}.gpkg`);
   });
   $('#viewer-colour').addEventListener('change', () => {
-    if (!page.viewer || !page.ply || artifact('export/splats.splat')) return;
+    if (!page.viewer || !page.ply || page.tiles || artifact('export/splats.splat')) return;
     page.splats = SylvaViewer.pointsToSplats(page.ply, $('#viewer-colour').value);
     page.viewer.setSplats(page.splats);
   });

@@ -296,7 +296,7 @@ void main() { o = vec4(v_color.rgb * v_color.a, v_color.a); }`;
     const state = {
       splats: null, order: null, lineCount: 0, stems: [], stemsVisible: true, selected: null,
       scale: 1, target: [0, 0, 0], distance: 10, azimuth: -Math.PI / 3, elevation: 0.6, fovy: 50 * Math.PI / 180,
-      home: null, dirty: true, lastSortView: null, lastSortTime: 0, frames: 0, destroyed: false,
+      home: null, dirty: true, lastSortView: null, lastSortTime: 0, frames: 0, destroyed: false, onView: null,
     };
 
     function camera() {
@@ -405,6 +405,7 @@ void main() { o = vec4(v_color.rgb * v_color.a, v_color.a); }`;
       gl.bindVertexArray(null);
       placeLabels(cam);
       state.frames++;
+      if (state.onView) state.onView(cam);
     }
 
     function loop() {
@@ -591,6 +592,18 @@ void main() { o = vec4(v_color.rgb * v_color.a, v_color.a); }`;
     return {
       setSplats, setStems, frame, select: (id) => select(id, false),
       setScale(k) { state.scale = k; state.dirty = true; },
+      /** Calls `fn(camera)` after each drawn frame (a tile streamer picks its tiles from it). */
+      onView(fn) { state.onView = fn; state.dirty = true; },
+      /** The camera as the next frame draws it: {view, eye, f, focal, viewport}. */
+      camera,
+      /** Sets the orbit camera: any of {target: [x, y, z], distance (m), azimuth, elevation (rad)}. */
+      setCamera(c) {
+        if (c.target) state.target = [...c.target];
+        if (c.distance > 0) state.distance = c.distance;
+        if (Number.isFinite(c.azimuth)) state.azimuth = c.azimuth;
+        if (Number.isFinite(c.elevation)) state.elevation = c.elevation;
+        state.dirty = true;
+      },
       setStemsVisible(v) { state.stemsVisible = v; state.dirty = true; },
       reset() { if (state.home) { state.target = [...state.home.target]; state.distance = state.home.distance; state.azimuth = -Math.PI / 3; state.elevation = 0.55; state.dirty = true; } },
       /** Looks at a stem from close by. */
