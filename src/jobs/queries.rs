@@ -1032,8 +1032,11 @@ impl Store {
     }
 
     /// Claims up to `limit` due deliveries (pending, next attempt due, no live lease) for
-    /// `lease`, counting the attempt; only the returned token may record their outcome. Rows
-    /// another dispatcher is claiming are skipped, never waited for.
+    /// `lease`; only the returned token may record their outcome. Each comes with the number
+    /// of the attempt about to be made, which is stored only with its outcome
+    /// ([`Self::finish_delivery`]): a delivery's `attempts` counts attempts that were answered
+    /// or failed, never one still in flight or lost with its dispatcher. Rows another
+    /// dispatcher is claiming are skipped, never waited for.
     pub async fn claim_deliveries(
         &self,
         lease: Duration,
@@ -1043,11 +1046,11 @@ impl Store {
         let mut tx = self.begin().await?;
         let now = Self::clock(&mut *tx).await?;
         let rows = sqlx::query(concat!(
-            "UPDATE webhook_deliveries SET lease_until = $1, lease_token = $2, attempts = attempts + 1, updated_at = $3 \
+            "UPDATE webhook_deliveries SET lease_until = $1, lease_token = $2, updated_at = $3 \
              WHERE seq IN (SELECT seq FROM webhook_deliveries WHERE state = 'pending' AND next_attempt_at <= $3 \
                            AND (lease_until IS NULL OR lease_until < $3) ORDER BY next_attempt_at, seq LIMIT $4",
             sql!(skip_locked),
-            ") RETURNING id, job_id, owner, url, event, body, attempts, created_at"
+            ") RETURNING id, job_id, owner, url, event, body, attempts + 1 AS attempts, created_at"
         ))
         .bind(now + lease_ms(lease))
         .bind(&token)
@@ -1062,8 +1065,8 @@ impl Store {
             .map_err(DbError::from)
     }
 
-    /// Records how an attempt went; `false` (and nothing written) when `token` no longer
-    /// holds the delivery (its lease ran out and another dispatcher took it).
+    /// Records how an attempt went, counting it; `false` (and nothing written) when `token`
+    /// no longer holds the delivery (its lease ran out and another dispatcher took it).
     pub async fn finish_delivery(
         &self,
         id: &str,
@@ -1085,7 +1088,7 @@ impl Store {
         let done = (state != "pending").then_some(now);
         let res = sqlx::query(
             "UPDATE webhook_deliveries SET state = $1, last_status = $2, last_error = $3, next_attempt_at = $4, \
-             finished_at = $5, updated_at = $6, lease_until = NULL, lease_token = NULL \
+             finished_at = $5, updated_at = $6, lease_until = NULL, lease_token = NULL, attempts = attempts + 1 \
              WHERE id = $7 AND lease_token = $8 AND state = 'pending'",
         )
         .bind(state)

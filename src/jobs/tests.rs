@@ -756,6 +756,9 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
     assert_eq!(b["type"], "job.canceled");
     assert_eq!(b["data"]["job"]["state"], "canceled");
     assert!(due_deliveries(&db, lease).await.is_empty());
+    // The attempt in flight is not counted yet: only an answered or failed one is.
+    let in_flight = db.job_deliveries("hooked").await.expect("list");
+    assert_eq!(in_flight[0].attempts, 0);
 
     // Only the claim's token records an outcome; a retry is due after its delay.
     let retry = |delay_ms| DeliveryOutcome::Retry {
@@ -789,7 +792,9 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
     let taken = due_deliveries(&db, lease).await;
     assert_eq!(taken.len(), 1);
     assert_eq!(taken[0].id, first[0].id);
-    assert_eq!(taken[0].attempts, 2);
+    // The first dispatcher's attempt was never recorded (as if it died with it): the
+    // newcomer makes attempt 1 again.
+    assert_eq!(taken[0].attempts, 1);
     let delivered = DeliveryOutcome::Delivered { status: 204 };
     assert!(!finish_delivery(&db, (&first[0].id, &first[0].token), &delivered).await);
     assert!(finish_delivery(&db, (&taken[0].id, &taken[0].token), &delivered).await);
@@ -797,6 +802,7 @@ async fn webhook_deliveries_are_written_with_the_change_and_claimed_once(db: Job
     let rec = db.job_deliveries("second").await.expect("list").remove(0);
     assert_eq!(rec.state, DeliveryState::Delivered);
     assert_eq!((rec.last_status, rec.next_attempt_at), (Some(204), None));
+    assert_eq!(rec.attempts, 1, "the fenced attempt is not counted");
     assert!(rec.finished_at.is_some());
 
     // Given up: failed, never claimed again.
