@@ -7,6 +7,7 @@
 //! `all`), the test fails instead: CI sets it for everything its machine installs, so a CI
 //! machine that silently lost lavapipe or PostgreSQL goes red rather than green.
 
+pub mod fuzz;
 #[doc(hidden)]
 pub mod postgres;
 
@@ -22,6 +23,9 @@ pub const CAPABILITIES: &[&str] = &[
     "pypi",
     "colmap",
     "mount",
+    "gltf-validator",
+    "cesium",
+    "python",
 ];
 
 /// Whether `SYLVA_TEST_REQUIRE` (its value `required`) asks for `capability`.
