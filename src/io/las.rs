@@ -66,6 +66,7 @@ pub fn las_crs(header: &::las::Header) -> Result<Option<super::crs::Crs>, super:
 pub fn read_crs(
     path: &Path,
 ) -> Result<Result<Option<super::crs::Crs>, super::crs::CrsError>, IoError> {
+    check_raw_header(path)?;
     let mut read = open_buffered(path)?;
     let header = ::las::Header::new(&mut read).map_err(|e| las_err(path, e))?;
     Ok(las_crs(&header))
@@ -86,16 +87,82 @@ fn las_err(path: &Path, e: ::las::Error) -> IoError {
     }
 }
 
-/// Reads the header of a LAS/LAZ file and checks the declared point count against the file.
-pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
+/// Bytes of an extended VLR's header (LAS 1.4 R15 §2.7): reserved (2), user id (16), record
+/// id (2), record length after the header (8), description (32).
+const EVLR_HEADER_BYTES: u64 = 60;
+
+/// Reads a LAS/LAZ file's fixed header and checks what the `las` crate would otherwise trust
+/// when it reads the rest (found by fuzzing, issue 43): that the points' declared extent
+/// (count × record length past the offset to the point data) is a number at all, and that
+/// each extended VLR's declared length fits in the file, since the crate allocates each one's
+/// data at its declared length before reading it (a header claiming 40 GB of EVLR asked for
+/// 40 GB). Returns the header and the file's length.
+fn check_raw_header(path: &Path) -> Result<(::las::raw::Header, u64), IoError> {
     let len = file_len(path)?;
     if len == 0 {
         return Err(IoError::format(path, "file is empty"));
     }
     let mut read = open_buffered(path)?;
     let raw = ::las::raw::Header::read_from(&mut read).map_err(|e| las_err(path, e))?;
-    read.seek(SeekFrom::Start(0))
-        .map_err(|e| IoError::io(path, e))?;
+    let count = match (&raw.large_file, raw.number_of_point_records) {
+        (Some(l), 0) => l.number_of_point_records,
+        (_, legacy) => u64::from(legacy),
+    };
+    let points_end = count
+        .checked_mul(u64::from(raw.point_data_record_length))
+        .and_then(|b| b.checked_add(u64::from(raw.offset_to_point_data)));
+    if points_end.is_none() {
+        return Err(IoError::format(
+            path,
+            format!(
+                "header declares {count} points of {} bytes, more than any file can hold",
+                raw.point_data_record_length
+            ),
+        ));
+    }
+    if let Some(evlr) = raw.evlr.filter(|e| e.number_of_evlrs > 0) {
+        let mut at = evlr.start_of_first_evlr;
+        for i in 0..evlr.number_of_evlrs {
+            if at
+                .checked_add(EVLR_HEADER_BYTES)
+                .is_none_or(|end| end > len)
+            {
+                return Err(IoError::format(
+                    path,
+                    format!(
+                        "header declares {} extended VLRs but extended VLR {} would start at byte {at}, past the file's {len} bytes",
+                        evlr.number_of_evlrs,
+                        i + 1
+                    ),
+                ));
+            }
+            read.seek(SeekFrom::Start(at + 20))
+                .map_err(|e| IoError::io(path, e))?;
+            let mut word = [0u8; 8];
+            read.read_exact(&mut word)
+                .map_err(|e| IoError::format(path, format!("extended VLR {}: {e}", i + 1)))?;
+            let body = u64::from_le_bytes(word);
+            match (at + EVLR_HEADER_BYTES).checked_add(body) {
+                Some(end) if end <= len => at = end,
+                _ => {
+                    return Err(IoError::format(
+                        path,
+                        format!(
+                            "extended VLR {} declares {body} bytes, past the file's end ({len} bytes)",
+                            i + 1
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    Ok((raw, len))
+}
+
+/// Reads the header of a LAS/LAZ file and checks the declared point count against the file.
+pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
+    let (raw, len) = check_raw_header(path)?;
+    let mut read = open_buffered(path)?;
     let header = ::las::Header::new(&mut read).map_err(|e| las_err(path, e))?;
     let fmt = *header.point_format();
     let declared = header.number_of_points();
@@ -105,7 +172,7 @@ pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
         return Err(IoError::format(path, "point record length is 0"));
     }
     if fmt.is_compressed {
-        check_laz_chunks(path, &header, &mut read, start, declared)?;
+        check_laz_chunks(path, &header, &mut read, (start, record_length), declared)?;
     } else {
         // Point records end where the extended VLRs start (LAS 1.4), else at the end of file.
         let end = match raw.evlr {
@@ -151,7 +218,7 @@ fn check_laz_chunks<R: Read + Seek>(
     path: &Path,
     header: &::las::Header,
     read: &mut R,
-    start: u64,
+    (start, record_length): (u64, u16),
     declared: u64,
 ) -> Result<(), IoError> {
     let Some(vlr) = header
@@ -164,6 +231,23 @@ fn check_laz_chunks<R: Read + Seek>(
             "compressed point format without a LAZ VLR",
         ));
     };
+    // The decoder sizes its points by the VLR's items and asserts they match the header's
+    // records (found by fuzzing, issue 43): check first, and say so.
+    // Summed here as u64: the crate's own sum is a u16 that overflows on hostile sizes.
+    let items: u64 = laz::LazVlr::from_buffer(&vlr.data)
+        .map_err(|e| IoError::format(path, format!("LAZ VLR: {e}")))?
+        .items()
+        .iter()
+        .map(|i| u64::from(i.size()))
+        .sum();
+    if items == 0 || items != u64::from(record_length) {
+        return Err(IoError::format(
+            path,
+            format!(
+                "the LAZ VLR's items make {items}-byte points but the header's records are {record_length} bytes"
+            ),
+        ));
+    }
     let Some(chunk_size) = vlr
         .data
         .get(12..16)
@@ -172,8 +256,17 @@ fn check_laz_chunks<R: Read + Seek>(
     else {
         return Err(IoError::format(path, "LAZ VLR is too short"));
     };
-    if chunk_size == u32::MAX || chunk_size == 0 {
-        return Ok(()); // variable-size chunks: counts are inside the compressed table
+    let variable = chunk_size == u32::MAX || chunk_size == 0;
+    // The decoder holds a whole chunk's points at once, at the chunk size the VLR declares
+    // (a hostile 4-billion-point chunk asked for 111 GB; found by fuzzing, issue 43). A
+    // chunk never needs more points than the file declares; writers use 50 000.
+    if !variable && u64::from(chunk_size) > declared.max(MAX_EMPTY_CHUNK_POINTS) {
+        return Err(IoError::format(
+            path,
+            format!(
+                "the LAZ VLR declares chunks of {chunk_size} points for a file of {declared} points"
+            ),
+        ));
     }
     let mut word = [0u8; 8];
     let mut read_at = |pos: SeekFrom, buf: &mut [u8]| -> Result<(), IoError> {
@@ -193,6 +286,20 @@ fn check_laz_chunks<R: Read + Seek>(
     }
     read_at(SeekFrom::Start(table as u64), &mut word)?;
     let chunks = u64::from(u32::from_le_bytes([word[4], word[5], word[6], word[7]]));
+    // Every chunk holds at least one byte of compressed points before the table; the decoder
+    // allocates its table at the declared count (found by fuzzing, issue 43).
+    let room = table as u64 - start;
+    if chunks > room {
+        return Err(IoError::format(
+            path,
+            format!(
+                "the LAZ chunk table declares {chunks} chunks but the points take {room} bytes"
+            ),
+        ));
+    }
+    if variable {
+        return Ok(()); // variable-size chunks: point counts are inside the compressed table
+    }
     let cs = u64::from(chunk_size);
     if declared > chunks * cs || (chunks > 0 && declared <= (chunks - 1) * cs) {
         let most = chunks * cs;
@@ -206,6 +313,11 @@ fn check_laz_chunks<R: Read + Seek>(
     }
     Ok(())
 }
+
+/// Largest fixed LAZ chunk (points) accepted beyond a file's declared point count: the
+/// decoder allocates a chunk's points at once, so this bounds what a small file can make it
+/// allocate (70 MB at 70-byte records). LAStools and PDAL write chunks of 50 000.
+const MAX_EMPTY_CHUNK_POINTS: u64 = 1_000_000;
 
 /// Points decoded per call for LAZ: 2^20 points span about 20 chunks of the usual 50,000
 /// points (parallel decompression splits a call by chunk) and hold at most 70 MB of raw
@@ -272,9 +384,24 @@ fn read_las_crate(
     };
     loop {
         check_cancel(progress)?;
-        let got = reader
-            .fill_points(batch, &mut pd)
-            .map_err(|e| las_err(path, e))?;
+        // The LAZ decoder checks some of its own invariants with assertions, which a hostile
+        // chunk can break (found by fuzzing, issue 43): such a panic is this file's fault,
+        // reported as such, not the worker's end.
+        let filled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            reader.fill_points(batch, &mut pd)
+        }))
+        .map_err(|panic| {
+            let why = panic
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| panic.downcast_ref::<&str>().copied())
+                .unwrap_or("a fault");
+            IoError::format(
+                path,
+                format!("the point decoder failed on this file: {why}"),
+            )
+        })?;
+        let got = filled.map_err(|e| las_err(path, e))?;
         if got == 0 {
             break;
         }

@@ -386,3 +386,75 @@ async fn one_request_multipart_submission_runs(db: Db) {
     let r = c.post(format!("{base}/v1/jobs")).multipart(form);
     send_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
 }
+
+on_both_databases!(a_fuzz_finding_fails_its_job_and_the_worker_runs_the_next);
+/// Issue 43: each LAZ the fuzzer found (fuzz/regressions/laz/, kept after the fixes) sent as a
+/// job's LiDAR is refused at submission (422 naming the file) or runs to an end: `failed` with
+/// a problem naming the file where Sylva's reader refuses it, `succeeded` only where the reader
+/// accepts it (one finding broke a debug assertion of the LAZ decoder's that release builds
+/// leave out). The worker survives them all and the next job, on good inputs, succeeds.
+async fn a_fuzz_finding_fails_its_job_and_the_worker_runs_the_next(db: Db) {
+    let fx = fixture();
+    let srv = db.serve(&fx.data, &[]);
+    let (c, base) = (client(), srv.base.clone());
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/regressions/laz");
+    let mut findings: Vec<std::path::PathBuf> = std::fs::read_dir(&dir)
+        .expect("fuzz/regressions/laz")
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .collect();
+    findings.sort();
+    assert!(!findings.is_empty(), "no findings in {}", dir.display());
+    let (mut refused, mut failed, mut read) = (0, 0, 0);
+    let scratch = tempfile::tempdir().expect("scratch");
+    for f in &findings {
+        let accepted =
+            sylva::testing::fuzz::run("laz", &std::fs::read(f).expect("finding"), scratch.path())
+                .is_ok();
+        // Named .laz, as a user's upload would be.
+        let laz = fx.dir.path().join("finding.laz");
+        std::fs::copy(f, &laz).expect("copy");
+        let form = multipart(&[("lidar", &laz), ("colmap", &fx.colmap_zip)])
+            .text("params", r#"{"until": "ingest"}"#);
+        let r = send(c.post(format!("{base}/v1/jobs")).multipart(form)).await;
+        if r.status() == StatusCode::UNPROCESSABLE_ENTITY {
+            let p: Value = r.json().await.expect("problem");
+            assert!(
+                p.to_string().contains("finding.laz"),
+                "{}: {p}",
+                f.display()
+            );
+            refused += 1;
+            continue;
+        }
+        assert_eq!(r.status(), StatusCode::ACCEPTED, "{}", f.display());
+        let id = id_of(&r.json().await.expect("json"));
+        let (job, _) = wait_job(&c, &base, &id, LONG, is_terminal).await;
+        if accepted {
+            assert_eq!(job["state"], "succeeded", "{}: {job}", f.display());
+            read += 1;
+            continue;
+        }
+        assert_eq!(job["state"], "failed", "{}: {job}", f.display());
+        let why = detail(&job["error"]);
+        assert!(
+            why.contains("finding.laz") || why.contains("lidar"),
+            "{}: {job}",
+            f.display()
+        );
+        failed += 1;
+    }
+    eprintln!("{refused} refused at submission, {failed} failed, {read} read");
+    assert_eq!(refused + failed + read, findings.len());
+    assert!(refused + failed > 0, "every finding was read");
+    let form = multipart(&[("lidar", &fx.lidar), ("colmap", &fx.colmap_zip)])
+        .text("params", r#"{"until": "ingest"}"#);
+    let r = send(c.post(format!("{base}/v1/jobs")).multipart(form)).await;
+    assert_eq!(r.status(), StatusCode::ACCEPTED);
+    let id = id_of(&r.json().await.expect("json"));
+    let (job, _) = wait_job(&c, &base, &id, LONG, is_terminal).await;
+    assert_eq!(
+        job["state"], "succeeded",
+        "after {refused} refused and {failed} failed: {job}"
+    );
+}

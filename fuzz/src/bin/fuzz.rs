@@ -1,6 +1,8 @@
 //! The AFL++ harness: `SYLVA_FUZZ_TARGET=<target> cargo afl fuzz -i corpus/<target> -o out
 //! target/release/fuzz` (the targets: `sylva::testing::fuzz::TARGETS`). Each input runs in
-//! this process (AFL's persistent mode); a panic aborts, which AFL records as a crash.
+//! this process (AFL's persistent mode); a panic that leaves the target aborts, which AFL
+//! records as a crash. Without afl.rs's panic hook (`fuzz_nohook!`), a panic Sylva catches
+//! and reports as the file's fault (the LAZ decoder's, `io::las`) is not one.
 
 fn main() {
     let target = std::env::var("SYLVA_FUZZ_TARGET").unwrap_or_default();
@@ -21,7 +23,7 @@ fn main() {
         .prefix("sylva-fuzz-")
         .tempdir_in(base)
         .unwrap_or_else(|e| panic!("scratch folder: {e}"));
-    afl::fuzz!(|data: &[u8]| {
+    afl::fuzz_nohook!(|data: &[u8]| {
         let _ = sylva::testing::fuzz::run(&target, data, scratch.path());
     });
 }
