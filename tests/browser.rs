@@ -13,21 +13,11 @@ use tempfile::TempDir;
 
 use common::*;
 use serde_json::{Value, json};
-use webdriver::{Browser, base64_encode, output_dir, processes_naming};
+use webdriver::{Browser, base64_encode, browser_or_skip, output_dir, processes_naming};
 
 /// A script that is truthy once the jobs list says it has none.
 const NO_JOBS: &str =
     "return document.querySelector('#jobs-note').textContent.startsWith('No jobs')";
-
-async fn browser_or_skip(test: &str) -> Option<Browser> {
-    match Browser::start().await {
-        Ok(b) => Some(b),
-        Err(why) => {
-            sylva::testing::skip("browser", &format!("{test}: {why}"));
-            None
-        }
-    }
-}
 
 /// A browser, or `None` (with the reason printed) where there is none; then a fresh folder
 /// and `sylva serve` with `flags` over its `data`.

@@ -21,7 +21,7 @@ use axum::response::IntoResponse;
 use serde_json::{Value, json};
 
 use common::*;
-use webdriver::{Browser, output_dir};
+use webdriver::{browser_or_skip, output_dir};
 
 /// The bearer key of the Cesium test's server.
 const TOKEN: &str = "tileset-client-token";
@@ -36,16 +36,6 @@ fn params() -> Value {
         "train": { "backend": "cpu", "steps": 60, "resolution": 48, "init": "lidar", "max_gaussians": 1500 },
         "export": { "tile_gaussians": 200 },
     })
-}
-
-async fn browser_or_skip(test: &str) -> Option<Browser> {
-    match Browser::start().await {
-        Ok(b) => Some(b),
-        Err(why) => {
-            sylva::testing::skip("browser", &format!("{test}: {why}"));
-            None
-        }
-    }
 }
 
 /// Submits the plot in one multipart request with [`params`] and waits for the job to succeed.

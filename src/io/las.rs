@@ -314,6 +314,20 @@ fn check_laz_chunks<R: Read + Seek>(
     Ok(())
 }
 
+/// A panic of the LAZ decoder (its assertions on its own state, which a hostile chunk can
+/// break; found by fuzzing, issue 43) as this file's fault.
+pub(crate) fn decoder_panic(path: &Path, panic: &(dyn std::any::Any + Send)) -> IoError {
+    let why = panic
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| panic.downcast_ref::<&str>().copied())
+        .unwrap_or("a fault");
+    IoError::format(
+        path,
+        format!("the point decoder failed on this file: {why}"),
+    )
+}
+
 /// Largest fixed LAZ chunk (points) accepted beyond a file's declared point count: the
 /// decoder allocates a chunk's points at once, so this bounds what a small file can make it
 /// allocate (70 MB at 70-byte records). LAStools and PDAL write chunks of 50 000.
@@ -390,17 +404,7 @@ fn read_las_crate(
         let filled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             reader.fill_points(batch, &mut pd)
         }))
-        .map_err(|panic| {
-            let why = panic
-                .downcast_ref::<String>()
-                .map(String::as_str)
-                .or_else(|| panic.downcast_ref::<&str>().copied())
-                .unwrap_or("a fault");
-            IoError::format(
-                path,
-                format!("the point decoder failed on this file: {why}"),
-            )
-        })?;
+        .map_err(|panic| decoder_panic(path, panic.as_ref()))?;
         let got = filled.map_err(|e| las_err(path, e))?;
         if got == 0 {
             break;

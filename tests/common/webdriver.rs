@@ -37,6 +37,17 @@ fn find_program(names: &[&str]) -> Option<PathBuf> {
     None
 }
 
+/// A browser, or `None` (with the reason printed, capability `browser`) where there is none.
+pub async fn browser_or_skip(test: &str) -> Option<Browser> {
+    match Browser::start().await {
+        Ok(b) => Some(b),
+        Err(why) => {
+            sylva::testing::skip("browser", &format!("{test}: {why}"));
+            None
+        }
+    }
+}
+
 /// A headless Chromium session, or the reason there cannot be one here.
 pub struct Browser {
     driver: Child,

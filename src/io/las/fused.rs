@@ -337,7 +337,13 @@ pub(super) fn read_laz_fused(
             if shared.failed.load(Ordering::Relaxed) {
                 return None;
             }
-            match decode_chunk(&shared, job, buf) {
+            // The decoder's assertions on corrupt chunks panic: the file's fault, not the
+            // worker's end.
+            let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                decode_chunk(&shared, job, buf)
+            }))
+            .unwrap_or_else(|panic| Err(super::decoder_panic(path, panic.as_ref())));
+            match decoded {
                 Ok(out) => Some(out),
                 Err(e) => {
                     shared.failed.store(true, Ordering::Relaxed);
