@@ -7,7 +7,6 @@
 //! `all`), the test fails instead: CI sets it for everything its machine installs, so a CI
 //! machine that silently lost lavapipe or PostgreSQL goes red rather than green.
 
-pub mod fuzz;
 #[doc(hidden)]
 pub mod postgres;
 

@@ -1,6 +1,6 @@
 //! The fuzz corpora replayed as ordinary tests: every input under `fuzz/corpus/<target>/` (the
 //! seeds and what the fuzzer kept) and `fuzz/regressions/<target>/` (each crash, hang or
-//! over-allocation it found, kept after the fix) through `sylva::testing::fuzz::run`. A reader
+//! over-allocation it found, kept after the fix) through `sylva::pipeline::fuzz::run`. A reader
 //! may refuse an input; it may not panic, and it must answer within a minute (a hang guard,
 //! not a speed claim: the fuzzer's own limit is 10 s an input).
 
@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::time::Duration;
 
-use sylva::testing::fuzz::{TARGETS, run};
+use sylva::pipeline::fuzz::{TARGETS, run};
 
 /// Longest an input may take before it counts as a hang.
 const HANG: Duration = Duration::from_secs(60);

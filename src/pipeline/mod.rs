@@ -10,6 +10,7 @@
 pub mod anchors;
 pub mod dbh;
 pub mod export;
+pub mod fuzz;
 pub mod ingest;
 pub mod inspect;
 pub mod params;

@@ -118,8 +118,28 @@ fn job_progress(stages: &[Stage], stage: Stage, fraction: f64) -> f64 {
     ((before + stage.weight() * fraction) / total.max(1e-9)).clamp(0.0, 1.0)
 }
 
+/// Each input's local path (a file, or an archive's unpacked folder) and the name its owner
+/// gave the upload.
+type InputNames = Vec<(std::path::PathBuf, String)>;
+
+/// `text` (a stage's error) with the server's paths of the inputs replaced by the names their
+/// owners gave them: a problem names the caller's file, never a path on the server.
+fn name_inputs(text: &str, names: &InputNames) -> String {
+    let mut out = text.to_string();
+    for (path, name) in names {
+        let p = path.display().to_string();
+        if p.is_empty() {
+            continue;
+        }
+        // Inside an unpacked archive: `<dir>/sparse/0/x` becomes `<name>: sparse/0/x`.
+        out = out.replace(&format!("{p}/"), &format!("{name}: "));
+        out = out.replace(&p, name);
+    }
+    out
+}
+
 /// A problem+json object for a failed stage.
-fn stage_problem(stage: Stage, e: &StageError) -> serde_json::Value {
+fn stage_problem(stage: Stage, e: &StageError, names: &InputNames) -> serde_json::Value {
     let (slug, title, status) = match e {
         StageError::Device(_) => ("device-unavailable", "GPU unavailable", 503),
         StageError::Unavailable(_) => ("tool-unavailable", "Tool unavailable", 503),
@@ -131,7 +151,7 @@ fn stage_problem(stage: Stage, e: &StageError) -> serde_json::Value {
         "type": format!("urn:sylva:problem:{slug}"),
         "title": title,
         "status": status,
-        "detail": e.to_string(),
+        "detail": name_inputs(&e.to_string(), names),
         "stage": stage.name(),
     });
     if let StageError::Refused { candidates, .. } = e {
@@ -245,8 +265,9 @@ impl WorkerPool {
         }
     }
 
-    async fn inputs(&self, claim: &Claim) -> Result<StageInputs, String> {
+    async fn inputs(&self, claim: &Claim) -> Result<(StageInputs, InputNames), String> {
         let mut paths = Vec::new();
+        let mut names = InputNames::new();
         for (kind, id) in claim.inputs.all() {
             let up = self
                 .db
@@ -267,6 +288,7 @@ impl WorkerPool {
                 .local_input(id, &up.filename, unpack)
                 .await
                 .map_err(|e| format!("input upload {id} ({}): {e}", up.filename))?;
+            names.push((path.clone(), up.filename.clone()));
             paths.push((kind, path));
         }
         let get = |k: UploadKind| {
@@ -275,13 +297,16 @@ impl WorkerPool {
                 .find(|(kk, _)| *kk == k)
                 .map(|(_, p)| p.clone())
         };
-        Ok(StageInputs {
-            lidar: get(UploadKind::Lidar).ok_or("no lidar input")?,
-            colmap: get(UploadKind::Colmap),
-            photos: get(UploadKind::Photos),
-            control_points: get(UploadKind::ControlPoints),
-            field_dbh: get(UploadKind::FieldDbh),
-        })
+        Ok((
+            StageInputs {
+                lidar: get(UploadKind::Lidar).ok_or("no lidar input")?,
+                colmap: get(UploadKind::Colmap),
+                photos: get(UploadKind::Photos),
+                control_points: get(UploadKind::ControlPoints),
+                field_dbh: get(UploadKind::FieldDbh),
+            },
+            names,
+        ))
     }
 
     async fn run_job(&self, worker: &str, claim: Claim) {
@@ -305,7 +330,7 @@ impl WorkerPool {
                 return;
             }
         };
-        let inputs = match self.inputs(&claim).await {
+        let (inputs, names) = match self.inputs(&claim).await {
             Ok(i) => i,
             Err(e) => {
                 let _ = self.db.finish_job(&job, &claim.token, &fail(e)).await;
@@ -353,7 +378,14 @@ impl WorkerPool {
                 continue;
             }
             match self
-                .run_stage(&claim, stage, &stages, &inputs, &params, &work_dir)
+                .run_stage(
+                    &claim,
+                    stage,
+                    &stages,
+                    (&inputs, &names),
+                    &params,
+                    &work_dir,
+                )
                 .await
             {
                 Outcome::Done => {}
@@ -376,7 +408,7 @@ impl WorkerPool {
         claim: &Claim,
         stage: Stage,
         stages: &[Stage],
-        inputs: &StageInputs,
+        (inputs, names): (&StageInputs, &InputNames),
         params: &PipelineParams,
         work_dir: &std::path::Path,
     ) -> Outcome {
@@ -464,7 +496,7 @@ impl WorkerPool {
         self.settle(
             claim,
             stage,
-            stages,
+            (stages, names),
             work_dir,
             result,
             timed_out,
@@ -512,7 +544,7 @@ impl WorkerPool {
         &self,
         claim: &Claim,
         stage: Stage,
-        stages: &[Stage],
+        (stages, names): (&[Stage], &InputNames),
         work_dir: &std::path::Path,
         result: Result<pipeline::StageOutcome, StageError>,
         timed_out: Option<Duration>,
@@ -584,9 +616,12 @@ impl WorkerPool {
                 tracing::warn!(error = %e, "stage {stage} failed");
                 let end = RunEnd::Failed {
                     stage: Some(stage.name().into()),
-                    problem: stage_problem(stage, &e),
+                    problem: stage_problem(stage, &e, names),
                 };
-                let line = format!("stage {stage} failed: {e}");
+                let line = format!(
+                    "stage {stage} failed: {}",
+                    name_inputs(&e.to_string(), names)
+                );
                 self.end_in_stage(job, token, stage, "error", &line, &end)
                     .await
             }
@@ -723,5 +758,32 @@ mod tests {
         assert_eq!(p.fraction(), 0.5);
         p.set(2.0);
         assert_eq!(p.fraction(), 1.0);
+    }
+}
+
+#[cfg(test)]
+mod input_name_tests {
+    use super::{InputNames, name_inputs};
+    use std::path::PathBuf;
+
+    #[test]
+    fn a_stage_error_names_the_callers_files_not_the_servers_paths() {
+        let names: InputNames = vec![
+            (
+                PathBuf::from("/srv/data/uploads/0193/blob.laz"),
+                "plot 7.laz".into(),
+            ),
+            (
+                PathBuf::from("/srv/data/uploads/0194/unpacked"),
+                "project.zip".into(),
+            ),
+        ];
+        let e = "/srv/data/uploads/0193/blob.laz: bad point data; \
+                 /srv/data/uploads/0194/unpacked/sparse/0/images.bin: truncated";
+        assert_eq!(
+            name_inputs(e, &names),
+            "plot 7.laz: bad point data; project.zip: sparse/0/images.bin: truncated"
+        );
+        assert_eq!(name_inputs("no paths here", &names), "no paths here");
     }
 }

@@ -409,7 +409,7 @@ async fn a_fuzz_finding_fails_its_job_and_the_worker_runs_the_next(db: Db) {
     let scratch = tempfile::tempdir().expect("scratch");
     for f in &findings {
         let accepted =
-            sylva::testing::fuzz::run("laz", &std::fs::read(f).expect("finding"), scratch.path())
+            sylva::pipeline::fuzz::run("laz", &std::fs::read(f).expect("finding"), scratch.path())
                 .is_ok();
         // Named .laz, as a user's upload would be.
         let laz = fx.dir.path().join("finding.laz");

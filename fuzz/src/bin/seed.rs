@@ -9,7 +9,7 @@ use glam::{DVec3, Vec3};
 use sylva::io::colmap;
 use sylva::io::pointcloud::{CloudFormat, PointCloud};
 use sylva::progress::NoProgress;
-use sylva::testing::fuzz::join_parts;
+use sylva::pipeline::fuzz::join_parts;
 
 fn put(corpus: &Path, target: &str, name: &str, bytes: &[u8]) {
     let dir = corpus.join(target);
