@@ -25,6 +25,7 @@ pub const CAPABILITIES: &[&str] = &[
     "gltf-validator",
     "cesium",
     "python",
+    "lpips",
 ];
 
 /// Whether `SYLVA_TEST_REQUIRE` (its value `required`) asks for `capability`.

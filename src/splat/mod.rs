@@ -23,6 +23,7 @@ pub mod export_spz;
 pub mod exposure;
 pub mod gpu;
 pub mod init;
+pub mod lpips;
 pub mod mcmc;
 pub mod model;
 pub mod packed_image;
