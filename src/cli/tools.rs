@@ -33,6 +33,10 @@ pub struct TrainArgs {
     /// gpu (default) or cpu (the exact reference, for tiny scenes only).
     #[arg(long, env = "SYLVA_TRAIN_BACKEND", default_value = "gpu")]
     pub backend: String,
+    /// LPIPS weights (a safetensors file made by scripts/lpips_weights.py): the held-out views
+    /// are also measured by LPIPS. Never downloaded; without it no LPIPS is reported.
+    #[arg(long, env = "SYLVA_LPIPS_WEIGHTS")]
+    pub lpips_weights: Option<PathBuf>,
     /// Upper bound on the number of Gaussians; 0 = the device's default budget (none on a
     /// hardware GPU, 10000 on a software GPU such as lavapipe, 3000 on the CPU reference).
     #[arg(long, env = "SYLVA_TRAIN_MAX_GAUSSIANS", default_value_t = 0)]
@@ -310,6 +314,11 @@ fn sfm_from_photos(
 
 pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
     use sylva::pipeline::params::TrainParams;
+    if let Some(p) = &a.lpips_weights {
+        sylva::splat::eval::use_lpips_weights(p.clone());
+    }
+    // A weights file that cannot be used stops the command before training, not after.
+    sylva::splat::eval::lpips()?;
     let backend = parse_backend(&a.backend)?;
     let params = TrainParams {
         steps: a.steps,
@@ -435,5 +444,8 @@ pub(super) async fn train(a: TrainArgs) -> anyhow::Result<ExitCode> {
         outcome.steps_per_second,
         outcome.device
     );
+    if let Some(l) = outcome.eval.lpips {
+        println!("held-out LPIPS (AlexNet) {l:.3}");
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -87,6 +87,10 @@ pub struct MethodBenchArgs {
         default_value = "target/bench-method"
     )]
     pub method_work: PathBuf,
+    /// method: LPIPS weights (a safetensors file made by scripts/lpips_weights.py): the
+    /// held-out views are also measured by LPIPS (column LPIPS; n/a without it).
+    #[arg(long, env = "SYLVA_LPIPS_WEIGHTS")]
+    pub lpips_weights: Option<PathBuf>,
     /// method: instead of the table, train the bind arm this many steps on the first plot and
     /// print the surface distance every 1000 steps.
     #[arg(long, env = "SYLVA_BENCH_METHOD_LONG")]
@@ -216,6 +220,8 @@ fn arm_dir(dir: &Path, name: &str) -> anyhow::Result<PathBuf> {
 struct ArmResult {
     psnr: f64,
     ssim: f64,
+    /// Held-out LPIPS (NaN without weights).
+    lpips: f64,
     /// Held-out expected depth against the LiDAR: mean absolute error, m.
     depth_mae: f64,
     gaussians: u64,
@@ -304,6 +310,7 @@ fn run_arm(
     Ok(ArmResult {
         psnr: train["render"]["psnr"].as_f64().unwrap_or(f64::NAN),
         ssim: train["render"]["ssim"].as_f64().unwrap_or(f64::NAN),
+        lpips: train["render"]["lpips"].as_f64().unwrap_or(f64::NAN),
         depth_mae: train["depth"]["heldout_mae_m"].as_f64().unwrap_or(f64::NAN),
         gaussians: train["gaussians"]["final"].as_u64().unwrap_or(0),
         seconds,
@@ -401,6 +408,10 @@ fn rmse_bias(pairs: &[(f64, f64)]) -> (f64, f64) {
 
 /// Runs the benchmark and prints its table.
 pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
+    if let Some(p) = &a.lpips_weights {
+        sylva::splat::eval::use_lpips_weights(p.clone());
+    }
+    sylva::splat::eval::lpips()?;
     let preset = sylva::synth::Preset::from_name(&a.method_preset).with_context(|| {
         format!(
             "--method-preset {:?}: tiny, plot, stand or object",
@@ -496,9 +507,9 @@ fn print_table(
         "exposure compensation off in every arm but bind-exposure, whose PSNR and SSIM are of the held-out right halves; the others' are of the full held-out images\n"
     );
     println!(
-        "| arm | PSNR dB | SSIM | depth MAE m | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
+        "| arm | PSNR dB | SSIM | LPIPS | depth MAE m | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for name in arms {
         let mut all = Vec::new();
         for (dir, inputs) in plots {
@@ -524,6 +535,13 @@ fn print_table(
                 "n/a".into()
             }
         };
+        let f3 = |x: f64| {
+            if x.is_finite() {
+                format!("{x:.3}")
+            } else {
+                "n/a".into()
+            }
+        };
         // Millimetres, one decimal, signed when asked; n/a without any trunk Gaussian.
         let f1 = |x: f64, signed: bool| match (x.is_finite(), signed) {
             (false, _) => "n/a".to_string(),
@@ -531,9 +549,10 @@ fn print_table(
             (true, false) => format!("{x:.1}"),
         };
         println!(
-            "| {name} | {} | {:.3} | {} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {} | {} | {} | {:.0} |",
+            "| {name} | {} | {:.3} | {} | {} | {} | {} | {} | {} | {} [{}, {}] | {} | {} / {} | {} | {} | {} | {:.0} |",
             f(mean(&all.iter().map(|r| r.psnr).collect::<Vec<_>>())),
             mean(&all.iter().map(|r| r.ssim).collect::<Vec<_>>()),
+            f3(mean(&all.iter().map(|r| r.lpips).collect::<Vec<_>>())),
             f(mean(&all.iter().map(|r| r.depth_mae).collect::<Vec<_>>())),
             f(rg),
             f(bg),

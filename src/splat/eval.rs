@@ -8,9 +8,12 @@
 
 use std::borrow::Cow;
 use std::io::{self, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 use serde::{Deserialize, Serialize};
+
+use crate::splat::lpips::{Lpips, MIN_SIDE};
 
 use crate::splat::packed_image::PackedImage;
 
@@ -34,6 +37,39 @@ pub enum EvalError {
     },
     #[error("writing the report: {0}")]
     Io(#[from] io::Error),
+    #[error("{0}")]
+    Lpips(String),
+}
+
+/// Where this process's LPIPS weights are, when set by a command's `--lpips-weights`.
+static LPIPS_PATH: OnceLock<PathBuf> = OnceLock::new();
+/// The weights, loaded on first use.
+static LPIPS: OnceLock<Result<Option<Lpips>, String>> = OnceLock::new();
+
+/// Sets the LPIPS weights file for every later evaluation in this process (a command's
+/// `--lpips-weights`); without it `SYLVA_LPIPS_WEIGHTS` is read. Later calls are ignored.
+pub fn use_lpips_weights(path: PathBuf) {
+    let _ = LPIPS_PATH.set(path);
+}
+
+/// The LPIPS model of this process: `None` when no weights file is configured
+/// ([`use_lpips_weights`], else `SYLVA_LPIPS_WEIGHTS`), the error when the file cannot be used.
+pub fn lpips() -> Result<Option<&'static Lpips>, EvalError> {
+    let loaded = LPIPS.get_or_init(|| {
+        let path = LPIPS_PATH.get().cloned().or_else(|| {
+            std::env::var_os("SYLVA_LPIPS_WEIGHTS")
+                .filter(|v| !v.is_empty())
+                .map(PathBuf::from)
+        });
+        match path {
+            None => Ok(None),
+            Some(p) => Lpips::load(&p).map(Some).map_err(|e| e.to_string()),
+        }
+    });
+    match loaded {
+        Ok(l) => Ok(l.as_ref()),
+        Err(e) => Err(EvalError::Lpips(e.clone())),
+    }
 }
 
 fn check<T>(a: &[T], b: &[T], width: u32, height: u32) -> Result<(), EvalError> {
@@ -131,6 +167,10 @@ pub struct ViewMetrics {
     pub psnr: f32,
     /// [−1, 1], 1 = identical.
     pub ssim: f32,
+    /// LPIPS (AlexNet, v0.1; 0 = identical, lower is better) when weights are configured
+    /// ([`lpips`]) and the measured region is at least [`MIN_SIDE`] pixels on each side.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips: Option<f32>,
 }
 
 impl ViewMetrics {
@@ -153,10 +193,18 @@ impl ViewMetrics {
                 (Cow::Owned(r), right_half(&t, w, h).0, rw)
             }
         };
+        let lpips = match lpips()? {
+            Some(l) if w >= MIN_SIDE && h >= MIN_SIDE => Some(
+                l.distance(&r, &t, w, h)
+                    .map_err(|e| EvalError::Lpips(e.to_string()))?,
+            ),
+            _ => None,
+        };
         Ok(ViewMetrics {
             name: name.to_string(),
             psnr: psnr(&r, &t, w, h)?,
             ssim: ssim(&r, &t, w, h)?,
+            lpips,
         })
     }
 }
@@ -168,6 +216,9 @@ pub struct EvalReport {
     pub psnr: f32,
     /// Mean SSIM over views.
     pub ssim: f32,
+    /// Mean LPIPS over views when every view has one ([`ViewMetrics::lpips`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips: Option<f32>,
     pub views: Vec<ViewMetrics>,
     /// The pixels measured: `full`, or `right_half` with exposure compensation.
     #[serde(default)]
@@ -186,6 +237,12 @@ impl EvalReport {
         EvalReport {
             psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
             ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
+            lpips: views
+                .iter()
+                .map(|v| v.lpips)
+                .sum::<Option<f32>>()
+                .filter(|_| !views.is_empty())
+                .map(|s| s / n),
             views,
             region,
         }

@@ -90,9 +90,23 @@ fn report_averages_views_and_serialises() {
             name: "b.jpg".into(),
             psnr: 20.0,
             ssim: 0.5,
+            lpips: Some(0.4),
         },
     ]);
     assert!((r.psnr - 30.0).abs() < 0.01);
+    // LPIPS is averaged only when every view has it (4×4 is below its smallest image).
+    assert_eq!(v.lpips, None);
+    assert_eq!(r.lpips, None);
+    let both = EvalReport::from_views(
+        [0.2, 0.4]
+            .iter()
+            .map(|&l| ViewMetrics {
+                lpips: Some(l),
+                ..v.clone()
+            })
+            .collect(),
+    );
+    assert!((both.lpips.expect("every view has LPIPS") - 0.3).abs() < 1e-6);
     let json = serde_json::to_string(&r).expect("serialise");
     assert!(json.contains("\"views\"") && json.contains("\"b.jpg\""));
     assert_eq!(serde_json::from_str::<EvalReport>(&json).expect("parse"), r);
