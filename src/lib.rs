@@ -21,6 +21,7 @@ pub mod geom;
 pub mod gpu;
 pub mod io;
 pub mod jobs;
+pub mod nerf;
 pub mod pipeline;
 pub mod progress;
 pub mod rng;

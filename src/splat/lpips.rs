@@ -112,12 +112,11 @@ impl Lpips {
             path: shown.clone(),
             source,
         })?;
-        let tensors = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| {
-            LpipsError::Format {
+        let tensors =
+            safetensors::SafeTensors::deserialize(&bytes).map_err(|e| LpipsError::Format {
                 path: shown.clone(),
                 reason: e.to_string(),
-            }
-        })?;
+            })?;
         let get = |name: String, expected: Vec<usize>| -> Result<Vec<f32>, LpipsError> {
             let bad = || LpipsError::Tensor {
                 path: shown.clone(),

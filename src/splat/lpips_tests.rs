@@ -101,14 +101,11 @@ fn lpips_weights_that_are_not_safetensors_or_lack_a_tensor_are_named() {
 
     // A valid safetensors file whose first kernel has the wrong shape.
     let data = vec![0u8; 4 * 3 * 3 * 3 * 64];
-    let view = safetensors::tensor::TensorView::new(
-        safetensors::Dtype::F32,
-        vec![3, 3, 3, 64],
-        &data,
-    )
-    .expect("view");
-    let bytes = safetensors::serialize([("AlexNet_0/Conv_0/kernel", view)], None)
-        .expect("serialize");
+    let view =
+        safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![3, 3, 3, 64], &data)
+            .expect("view");
+    let bytes =
+        safetensors::serialize([("AlexNet_0/Conv_0/kernel", view)], None).expect("serialize");
     let wrong = dir.path().join("wrong.safetensors");
     std::fs::write(&wrong, bytes).expect("write");
     let e = Lpips::load(&wrong).err().expect("refused");

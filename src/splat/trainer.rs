@@ -298,7 +298,7 @@ fn photo_error(name: &str, e: super::photo::PhotoError) -> TrainError {
 }
 
 /// Mean colour of the training images, RGB in [0, 1].
-fn mean_colour(data: &Dataset) -> Result<[f32; 3], TrainError> {
+pub fn mean_colour(data: &Dataset) -> Result<[f32; 3], TrainError> {
     let mut sum = [0.0f64; 3];
     let mut n = 0.0f64;
     for v in &data.train {
