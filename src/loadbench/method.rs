@@ -52,12 +52,13 @@ pub struct MethodBenchArgs {
     /// method: seeds of the plots, comma-separated (stand 1 and 2 hold 34 trees).
     #[arg(long, env = "SYLVA_BENCH_METHOD_SEEDS", default_value = "1,2")]
     pub method_seeds: String,
-    /// method: arms, comma-separated, among vanilla, lidar, paper, bind-lidar, bind-nosky,
-    /// bind, bind-aa, bind-exposure, bind-mcmc, bind-depth.
+    /// method: arms, comma-separated, among nerf (the paper's NeRF baseline, src/nerf; given
+    /// the 3DGS arms' wall time), vanilla, lidar, paper, bind-lidar, bind-nosky, bind, bind-aa,
+    /// bind-exposure, bind-mcmc, bind-depth.
     #[arg(
         long,
         env = "SYLVA_BENCH_METHOD_ARMS",
-        default_value = "vanilla,lidar,paper,bind-lidar,bind"
+        default_value = "vanilla,lidar,paper,bind-lidar,bind,nerf"
     )]
     pub method_arms: String,
     /// method: training steps of every arm.
@@ -87,6 +88,17 @@ pub struct MethodBenchArgs {
         default_value = "target/bench-method"
     )]
     pub method_work: PathBuf,
+    /// method: the `nerf` arm's wall-clock budget for training, seconds; 0 = the mean training
+    /// time of the 3DGS arms listed before it on the same plot (equal wall time).
+    #[arg(long, env = "SYLVA_BENCH_METHOD_NERF_SECONDS", default_value_t = 0.0)]
+    pub method_nerf_seconds: f64,
+    /// method: the `nerf` arm's rays per step (the paper: 4096).
+    #[arg(long, env = "SYLVA_BENCH_METHOD_NERF_RAYS", default_value_t = 4096)]
+    pub method_nerf_rays: usize,
+    /// method: the `nerf` arm's most steps (the paper: 300,000; the wall-clock budget usually
+    /// ends it first).
+    #[arg(long, env = "SYLVA_BENCH_METHOD_NERF_STEPS", default_value_t = 300_000)]
+    pub method_nerf_steps: u32,
     /// method: LPIPS weights (a safetensors file made by scripts/lpips_weights.py): the
     /// held-out views are also measured by LPIPS (column LPIPS; n/a without it).
     #[arg(long, env = "SYLVA_LPIPS_WEIGHTS")]
@@ -226,6 +238,11 @@ struct ArmResult {
     depth_mae: f64,
     gaussians: u64,
     seconds: f64,
+    /// Training alone, seconds (the train stage's report; the NeRF's training loop).
+    train_seconds: f64,
+    /// The NeRF arm's steps and rays per step (0 for the 3DGS arms).
+    nerf_steps: u32,
+    nerf_rays: usize,
     /// Per matched tree: (field, LiDAR, Gaussian) DBH, cm; the Gaussian one may be missing.
     trees: Vec<(f64, f64, Option<f64>)>,
     /// Per trunk Gaussian in a true breast-height slice: signed distance from the true stem, m.
@@ -314,6 +331,9 @@ fn run_arm(
         depth_mae: train["depth"]["heldout_mae_m"].as_f64().unwrap_or(f64::NAN),
         gaussians: train["gaussians"]["final"].as_u64().unwrap_or(0),
         seconds,
+        train_seconds: train["seconds"].as_f64().unwrap_or(f64::NAN),
+        nerf_steps: 0,
+        nerf_rays: 0,
         trees,
         offsets,
     })
@@ -442,7 +462,9 @@ pub fn run(a: &MethodBenchArgs) -> anyhow::Result<()> {
         }
     }
     for name in &arms {
-        arm(name)?;
+        if name != NERF {
+            arm(name)?;
+        }
     }
     let plots: Vec<(PathBuf, StageInputs)> = seeds
         .iter()
@@ -510,12 +532,32 @@ fn print_table(
         "| arm | PSNR dB | SSIM | LPIPS | depth MAE m | DBH RMSE GS cm | bias GS cm | DBH RMSE LiDAR cm | bias LiDAR cm | mean abs(GS − LiDAR) cm [95 % CI] | mean GS − LiDAR cm | trees GS / matched | surface abs mm | surface signed mm | Gaussians | wall s |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    // Per plot, the training seconds of the 3DGS arms so far (the NeRF's equal wall time).
+    let mut gs_seconds: Vec<Vec<f64>> = vec![Vec::new(); plots.len()];
+    let mut results: Vec<(String, Vec<ArmResult>)> = Vec::new();
     for name in arms {
         let mut all = Vec::new();
-        for (dir, inputs) in plots {
+        for (k, (dir, inputs)) in plots.iter().enumerate() {
             eprintln!("arm {name} on {}", dir.display());
-            all.push(run_arm(dir, inputs, name, a, steps)?);
+            let r = if name == NERF {
+                let budget = if a.method_nerf_seconds > 0.0 {
+                    a.method_nerf_seconds
+                } else if gs_seconds[k].is_empty() {
+                    anyhow::bail!(
+                        "the nerf arm's equal wall time needs a 3DGS arm listed before it, or --method-nerf-seconds"
+                    );
+                } else {
+                    mean(&gs_seconds[k])
+                };
+                run_nerf_arm(dir, inputs, a, budget)?
+            } else {
+                let r = run_arm(dir, inputs, name, a, steps)?;
+                gs_seconds[k].push(r.train_seconds);
+                r
+            };
+            all.push(r);
         }
+        results.push((name.clone(), all.clone()));
         per_arm.push((name.clone(), all.iter().map(|r| r.psnr).collect()));
         let trees: Vec<(f64, f64, Option<f64>)> =
             all.iter().flat_map(|r| r.trees.iter().copied()).collect();
@@ -570,7 +612,203 @@ fn print_table(
             all.iter().map(|r| r.seconds).sum::<f64>(),
         );
     }
+    print_paper_layout(a, &results, steps);
     Ok(per_arm)
+}
+
+/// The arm that trains the paper's NeRF baseline ([`run_nerf_arm`]).
+const NERF: &str = "nerf";
+
+/// One method on one of the paper's plots: PSNR dB, SSIM, LPIPS, minutes.
+type PaperFigures = (f64, f64, f64, f64);
+
+/// The paper's Table 3, per plot: NeRF, 3DGS, the paper's (its LPIPS 0.318 is a figure, not
+/// an approximation of 1/π).
+#[allow(clippy::approx_constant)]
+const PAPER_TABLE3: [(&str, [PaperFigures; 3]); 3] = [
+    (
+        "NeRF",
+        [
+            (23.46, 0.639, 0.271, 684.0),
+            (23.69, 0.734, 0.177, 747.0),
+            (22.06, 0.665, 0.387, 2579.0),
+        ],
+    ),
+    (
+        "3DGS",
+        [
+            (24.70, 0.749, 0.280, 72.0),
+            (23.95, 0.831, 0.164, 95.0),
+            (23.38, 0.717, 0.334, 198.0),
+        ],
+    ),
+    (
+        "Ours",
+        [
+            (25.48, 0.772, 0.266, 70.0),
+            (25.14, 0.884, 0.114, 88.0),
+            (24.21, 0.736, 0.318, 204.0),
+        ],
+    ),
+];
+
+/// The arms in the paper's Table 3 layout (PSNR, SSIM, LPIPS, time) with the paper's own
+/// figures beneath, and each arm's budget.
+fn print_paper_layout(a: &MethodBenchArgs, results: &[(String, Vec<ArmResult>)], steps: u32) {
+    let label = |name: &str| match name {
+        NERF => "NeRF",
+        "vanilla" => "3DGS",
+        "paper" => "Ours (the paper's method)",
+        "bind" => "Sylva (default arm)",
+        _ => "",
+    };
+    let rows: Vec<&(String, Vec<ArmResult>)> = results
+        .iter()
+        .filter(|(n, _)| !label(n).is_empty())
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "
+the paper's Table 3 layout: {} seeds {} at {} px, held-out views, this machine\n",
+        a.method_preset, a.method_seeds, a.method_resolution
+    );
+    println!("| method | arm | PSNR dB | SSIM | LPIPS | training s | budget |");
+    println!("|---|---|---|---|---|---|---|");
+    let f = |x: f64, d: usize| {
+        if x.is_finite() {
+            format!("{x:.d$}")
+        } else {
+            "n/a".into()
+        }
+    };
+    for (name, all) in rows {
+        let m = |g: fn(&ArmResult) -> f64| mean(&all.iter().map(g).collect::<Vec<_>>());
+        let budget = if name == NERF {
+            let steps: Vec<String> = all.iter().map(|r| r.nerf_steps.to_string()).collect();
+            format!(
+                "{} steps of {} rays (per plot), wall time of the 3DGS arms",
+                steps.join(", "),
+                all.first().map_or(0, |r| r.nerf_rays)
+            )
+        } else {
+            format!("{steps} steps, cap {} Gaussians", a.method_cap)
+        };
+        println!(
+            "| {} | {name} | {} | {} | {} | {} | {budget} |",
+            label(name),
+            f(m(|r| r.psnr), 2),
+            f(m(|r| r.ssim), 3),
+            f(m(|r| r.lpips), 3),
+            f(all.iter().map(|r| r.train_seconds).sum::<f64>(), 0),
+        );
+    }
+    println!(
+        "
+the paper's Table 3 (plots 1 / 2 / 3; 1920×1080 photos, RTX 4060; NeRF 300,000 steps, 3DGS and its method 30,000)\n"
+    );
+    println!("| method | PSNR dB | SSIM | LPIPS | time min |");
+    println!("|---|---|---|---|---|");
+    for (name, plots) in PAPER_TABLE3 {
+        let join =
+            |g: fn(&PaperFigures) -> String| plots.iter().map(g).collect::<Vec<_>>().join(" / ");
+        println!(
+            "| {name} | {} | {} | {} | {} |",
+            join(|p| format!("{:.2}", p.0)),
+            join(|p| format!("{:.3}", p.1)),
+            join(|p| format!("{:.3}", p.2)),
+            join(|p| format!("{:.0}", p.3)),
+        );
+    }
+}
+
+/// Trains the paper's NeRF baseline (src/nerf, the paper's settings but the rays per step and
+/// the steps of `--method-nerf-rays` and `--method-nerf-steps`) for `budget` seconds on the
+/// plot's photos at the arms' resolution and split, and measures its held-out views. Kept in
+/// `<plot>/nerf-<seconds>-<px>-<rays>/result.json` and reused.
+fn run_nerf_arm(
+    dir: &Path,
+    inputs: &StageInputs,
+    a: &MethodBenchArgs,
+    budget: f64,
+) -> anyhow::Result<ArmResult> {
+    let out = dir.join(format!(
+        "{NERF}-{:.0}-{}-{}-{}",
+        budget, a.method_resolution, a.method_nerf_rays, a.method_backend
+    ));
+    let saved = out.join("result.json");
+    if let Ok(v) = read_json(&saved) {
+        let g = |k: &str| v[k].as_f64().unwrap_or(f64::NAN);
+        return Ok(ArmResult {
+            psnr: g("psnr"),
+            ssim: g("ssim"),
+            lpips: g("lpips"),
+            depth_mae: f64::NAN,
+            seconds: g("seconds"),
+            train_seconds: g("train_seconds"),
+            nerf_steps: v["steps"].as_u64().unwrap_or(0) as u32,
+            nerf_rays: v["rays"].as_u64().unwrap_or(0) as usize,
+            ..ArmResult::default()
+        });
+    }
+    let start = Instant::now();
+    let mut params = PipelineParams::default();
+    params.train.resolution = a.method_resolution;
+    let cfg = params.train.config();
+    let model = sylva::io::colmap::read_model(
+        &dir.join("shared/register/sparse"),
+        &sylva::progress::NoProgress,
+    )?;
+    let colmap = inputs
+        .colmap
+        .as_deref()
+        .context("the plot has no COLMAP project")?;
+    let images = sylva::io::colmap::find_project(colmap)?
+        .images_dir
+        .context("the plot's COLMAP project has no images/")?;
+    let data = sylva::splat::dataset::load(
+        &model,
+        &images,
+        cfg.resolution,
+        cfg.test_every,
+        cfg.host_photo_mb,
+        &sylva::progress::NoProgress,
+    )?;
+    let nerf_cfg = sylva::nerf::NerfConfig {
+        rays: a.method_nerf_rays,
+        steps: a.method_nerf_steps,
+        seconds: Some(budget),
+        device: match a.method_backend.as_str() {
+            "cpu" => sylva::nerf::NerfDevice::Cpu,
+            _ => sylva::nerf::NerfDevice::Gpu,
+        },
+        ..sylva::nerf::NerfConfig::default()
+    };
+    let trained = sylva::nerf::train(&data, &nerf_cfg, &LogLines("nerf"))?;
+    let (eval, _) = sylva::nerf::evaluate(&trained.nerf, &data)?;
+    let r = ArmResult {
+        psnr: f64::from(eval.psnr),
+        ssim: f64::from(eval.ssim),
+        lpips: eval.lpips.map_or(f64::NAN, f64::from),
+        depth_mae: f64::NAN,
+        seconds: start.elapsed().as_secs_f64(),
+        train_seconds: trained.train_seconds,
+        nerf_steps: trained.steps,
+        nerf_rays: trained.rays_per_step,
+        ..ArmResult::default()
+    };
+    std::fs::create_dir_all(&out)?;
+    std::fs::write(
+        &saved,
+        serde_json::to_vec_pretty(&serde_json::json!({
+            "psnr": r.psnr, "ssim": r.ssim,
+            "lpips": eval.lpips, "seconds": r.seconds, "train_seconds": r.train_seconds,
+            "steps": r.nerf_steps, "rays": r.nerf_rays, "budget_seconds": budget,
+            "eval": eval,
+        }))?,
+    )?;
+    Ok(r)
 }
 
 /// The long run of the bind arm: its loss.csv holds the trunk monitor's columns.

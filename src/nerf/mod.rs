@@ -20,6 +20,7 @@
 //! network again, chunk by chunk ([`NerfConfig::chunk`] samples), keeping only one chunk's
 //! activations per thread.
 
+pub mod gpu;
 pub mod mlp;
 pub mod render;
 
@@ -33,7 +34,9 @@ use crate::splat::camera::Camera;
 use crate::splat::dataset::Dataset;
 use crate::splat::eval::{EvalRegion, EvalReport, ViewMetrics};
 use mlp::{Cache, Mlp, MlpShape};
-use render::{Ray, composite, composite_backward, encode, encoded_len, sample_pdf, stratified};
+use render::{
+    Ray, composite, composite_backward, encode, encoded_len, merge_sorted, sample_pdf, stratified,
+};
 
 /// The NeRF's settings; [`Default`] is the paper's.
 #[derive(Debug, Clone, PartialEq)]
@@ -66,6 +69,8 @@ pub struct NerfConfig {
     /// Samples per chunk of the network's passes: 8192 (bounds memory, not results).
     pub chunk: usize,
     pub seed: u64,
+    /// GPU (default) or CPU.
+    pub device: NerfDevice,
 }
 
 impl Default for NerfConfig {
@@ -85,6 +90,7 @@ impl Default for NerfConfig {
             seconds: None,
             chunk: 8192,
             seed: 0,
+            device: NerfDevice::Gpu,
         }
     }
 }
@@ -123,6 +129,18 @@ pub enum NerfError {
     Invalid(String),
     #[error("cancelled")]
     Cancelled,
+    #[error(transparent)]
+    Gpu(#[from] crate::gpu::context::GpuError),
+}
+
+/// Where a NeRF trains and renders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum NerfDevice {
+    /// The GPU through wgpu ([`gpu`]), the kernels this module's CPU code is the twin of.
+    #[default]
+    Gpu,
+    /// The CPU (`matrixmultiply`, every core).
+    Cpu,
 }
 
 /// The normalised scene frame (see the module doc).
@@ -158,7 +176,7 @@ impl SceneFrame {
         }
     }
 
-    fn to_frame(&self, p: [f32; 3]) -> [f32; 3] {
+    fn to_frame(self, p: [f32; 3]) -> [f32; 3] {
         [0, 1, 2].map(|k| (p[k] - self.centre[k]) * self.scale)
     }
 }
@@ -224,13 +242,16 @@ pub struct Nerf {
     pub frame: SceneFrame,
 }
 
-/// Adam's state over one network's flat parameters (β1 0.9, β2 0.999, ε 1e-7: Mildenhall's
-/// TensorFlow defaults).
+/// Adam's state over one network's flat parameters: `splat::gpu::adam`'s (β1 0.9, β2 0.999,
+/// the bias corrections in f64) with ε [`ADAM_EPSILON`].
 struct Adam {
     m: Vec<f32>,
     v: Vec<f32>,
-    t: i32,
+    t: u32,
 }
+
+/// Adam's ε: 1e-7 (Mildenhall's TensorFlow default).
+pub const ADAM_EPSILON: f32 = 1e-7;
 
 impl Adam {
     fn new(n: usize) -> Self {
@@ -242,23 +263,142 @@ impl Adam {
     }
 
     fn step(&mut self, params: &mut [f32], grad: &[f32], lr: f64) {
-        const B1: f32 = 0.9;
-        const B2: f32 = 0.999;
-        const EPS: f32 = 1e-7;
         self.t += 1;
-        let c1 = 1.0 - B1.powi(self.t);
-        let c2 = 1.0 - B2.powi(self.t);
         let lr = lr as f32;
-        for (((p, g), m), v) in params
-            .iter_mut()
-            .zip(grad)
-            .zip(&mut self.m)
-            .zip(&mut self.v)
-        {
-            *m = B1 * *m + (1.0 - B1) * g;
-            *v = B2 * *v + (1.0 - B2) * g * g;
-            *p -= lr * (*m / c1) / ((*v / c2).sqrt() + EPS);
+        crate::splat::gpu::adam::adam_cpu(
+            params,
+            grad,
+            &mut self.m,
+            &mut self.v,
+            1,
+            1,
+            lr,
+            lr,
+            self.t,
+            ADAM_EPSILON,
+        );
+    }
+}
+
+/// Adam over both networks of a NeRF (the CPU path's optimiser, and the GPU's twin).
+pub struct CpuAdam {
+    coarse: Adam,
+    fine: Adam,
+}
+
+impl CpuAdam {
+    /// Zero moments for `nerf`'s networks.
+    pub fn new(nerf: &Nerf) -> Self {
+        CpuAdam {
+            coarse: Adam::new(nerf.coarse.params.len()),
+            fine: Adam::new(nerf.fine.params.len()),
         }
+    }
+
+    /// One step of both networks from their gradients at learning rate `lr`.
+    pub fn step(&mut self, nerf: &mut Nerf, coarse: &[f32], fine: &[f32], lr: f64) {
+        self.coarse.step(&mut nerf.coarse.params, coarse, lr);
+        self.fine.step(&mut nerf.fine.params, fine, lr);
+    }
+}
+
+/// The random draws of one training step, shared by the CPU and GPU paths: the rays and
+/// their target colours, each ray's coarse distances (stratified, jittered) and its fine
+/// numbers `u` (ascending, `fine` per ray).
+#[derive(Debug, Clone)]
+pub struct StepDraw {
+    pub rays: Vec<Ray>,
+    pub targets: Vec<[f32; 3]>,
+    pub coarse_t: Vec<f32>,
+    pub u: Vec<f32>,
+}
+
+/// The fixed draws of rendering: the coarse bins' middles and evenly spaced `u`.
+pub fn fixed_draw(rays: &[Ray], cfg: &NerfConfig) -> StepDraw {
+    let mut coarse_t = Vec::with_capacity(rays.len() * cfg.coarse);
+    for r in rays {
+        coarse_t.extend(stratified(r, cfg.coarse, || 0.5));
+    }
+    let u1: Vec<f32> = (0..cfg.fine)
+        .map(|k| (k as f32 + 0.5) / cfg.fine as f32)
+        .collect();
+    StepDraw {
+        rays: rays.to_vec(),
+        targets: vec![[0.0; 3]; rays.len()],
+        coarse_t,
+        u: u1.repeat(rays.len()),
+    }
+}
+
+/// Training pixels, decoded once, with their view's camera and bounds.
+/// A training view's camera, near and far bounds (m) and pixels.
+type TrainingView = (Camera, (f32, f32), Vec<[f32; 3]>);
+
+/// Every training pixel with its view (see [`TrainingPixels::draw`]).
+pub struct TrainingPixels {
+    views: Vec<TrainingView>,
+    total: u64,
+}
+
+impl TrainingPixels {
+    pub fn new(data: &Dataset) -> Result<Self, NerfError> {
+        let mut views = Vec::new();
+        for v in &data.train {
+            let img = v
+                .image
+                .image()
+                .map_err(|e| NerfError::Invalid(format!("{}: {e}", v.name)))?;
+            views.push((
+                v.camera,
+                view_bounds(&v.camera, &data.points),
+                img.to_rgb_f32(),
+            ));
+        }
+        let total = views
+            .iter()
+            .map(|(c, _, _)| u64::from(c.width) * u64::from(c.height))
+            .sum();
+        if total == 0 {
+            return Err(NerfError::Invalid("no training pixels".into()));
+        }
+        Ok(TrainingPixels { views, total })
+    }
+
+    /// `cfg.rays` pixels drawn uniformly from every training pixel, with their draws.
+    pub fn draw(&self, cfg: &NerfConfig, frame: &SceneFrame, rng: &mut SplitMix64) -> StepDraw {
+        let mut d = StepDraw {
+            rays: Vec::with_capacity(cfg.rays),
+            targets: Vec::with_capacity(cfg.rays),
+            coarse_t: Vec::with_capacity(cfg.rays * cfg.coarse),
+            u: Vec::with_capacity(cfg.rays * cfg.fine),
+        };
+        for _ in 0..cfg.rays {
+            let mut k = rng.below(self.total);
+            let mut vi = 0;
+            loop {
+                let c = &self.views[vi].0;
+                let n = u64::from(c.width) * u64::from(c.height);
+                if k < n {
+                    break;
+                }
+                k -= n;
+                vi += 1;
+            }
+            let (cam, bounds, img) = &self.views[vi];
+            let (x, y) = (
+                (k % u64::from(cam.width)) as f32,
+                (k / u64::from(cam.width)) as f32,
+            );
+            let ray = pixel_ray(cam, x + 0.5, y + 0.5, *bounds, frame);
+            d.coarse_t
+                .extend(stratified(&ray, cfg.coarse, || rng.uniform() as f32));
+            let mut u: Vec<f32> = (0..cfg.fine).map(|_| rng.uniform() as f32).collect();
+            u.sort_by(f32::total_cmp);
+            d.u.extend(u);
+            d.rays.push(ray);
+            d.targets.push(img[k as usize]);
+        }
+        d
     }
 }
 
@@ -364,63 +504,31 @@ impl Nerf {
             )
     }
 
-    /// Coarse pass, fine distances, fine pass for `rays`: (coarse batch and output, fine
-    /// batch and output). `u` gives the jitter of the coarse bins and the fine samples' uniform
-    /// numbers (None: the evaluation's fixed ones).
-    fn passes(
-        &self,
-        rays: &[Ray],
-        rng: Option<&mut SplitMix64>,
-    ) -> ((Batch, mlp::Output), (Batch, mlp::Output)) {
+    /// Coarse pass, fine distances, fine pass for `draw`'s rays: (coarse batch and output,
+    /// fine batch and output).
+    fn passes(&self, draw: &StepDraw) -> ((Batch, mlp::Output), (Batch, mlp::Output)) {
         let cfg = &self.cfg;
-        let mut rng = rng;
-        let mut t = Vec::with_capacity(rays.len() * cfg.coarse);
-        for r in rays {
-            match rng.as_deref_mut() {
-                Some(g) => t.extend(stratified(r, cfg.coarse, || g.uniform() as f32)),
-                None => t.extend(stratified(r, cfg.coarse, || 0.5)),
-            }
-        }
-        let cb = Batch::new(rays, t, cfg.coarse, cfg);
+        let rays = &draw.rays;
+        let cb = Batch::new(rays, draw.coarse_t.clone(), cfg.coarse, cfg);
         let co = self.run(&self.coarse, &cb);
         let per_fine = cfg.coarse + cfg.fine;
         let mut tf = Vec::with_capacity(rays.len() * per_fine);
-        let mut u = vec![0.0f32; cfg.fine];
         for (i, ts) in cb.t.chunks_exact(cfg.coarse).enumerate() {
             let s = i * cfg.coarse..(i + 1) * cfg.coarse;
             let comp = composite(ts, &co.sigma_raw[s.clone()], &co.rgb[s], [0.0; 3]);
-            match rng.as_deref_mut() {
-                Some(g) => {
-                    for x in &mut u {
-                        *x = g.uniform() as f32;
-                    }
-                    u.sort_by(f32::total_cmp);
-                }
-                None => {
-                    for (k, x) in u.iter_mut().enumerate() {
-                        *x = (k as f32 + 0.5) / cfg.fine as f32;
-                    }
-                }
-            }
-            let mut all = ts.to_vec();
-            all.extend(sample_pdf(ts, &comp.weights, &u));
-            all.sort_by(f32::total_cmp);
-            tf.extend(all);
+            let u = &draw.u[i * cfg.fine..(i + 1) * cfg.fine];
+            tf.extend(merge_sorted(ts, &sample_pdf(ts, &comp.weights, u)));
         }
         let fb = Batch::new(rays, tf, per_fine, cfg);
         let fo = self.run(&self.fine, &fb);
         ((cb, co), (fb, fo))
     }
 
-    /// One training step on `rays` with their target colours: the loss (mean squared error of
-    /// the coarse plus the fine colours) and both networks' gradients.
-    fn step_gradients(
-        &self,
-        rays: &[Ray],
-        targets: &[[f32; 3]],
-        rng: &mut SplitMix64,
-    ) -> (f64, f64, Vec<f32>, Vec<f32>) {
-        let ((cb, co), (fb, fo)) = self.passes(rays, Some(rng));
+    /// One training step's losses (mean squared error of the coarse and of the fine colours)
+    /// and both networks' gradients (of their sum), for `draw`.
+    pub fn step_gradients(&self, draw: &StepDraw) -> (f64, f64, Vec<f32>, Vec<f32>) {
+        let (rays, targets) = (&draw.rays, &draw.targets);
+        let ((cb, co), (fb, fo)) = self.passes(draw);
         let scale = 2.0 / (3.0 * rays.len() as f32);
         let mut loss = [0.0f64; 2];
         let mut grads = Vec::new();
@@ -455,14 +563,19 @@ impl Nerf {
 
     /// Renders a view with the fine network (fixed samples), RGB in [0, 1].
     pub fn render(&self, camera: &Camera, bounds: (f32, f32)) -> Vec<[f32; 3]> {
-        let mut out = Vec::with_capacity((camera.width * camera.height) as usize);
         let rays: Vec<Ray> = (0..camera.height)
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .map(|(x, y)| pixel_ray(camera, x as f32 + 0.5, y as f32 + 0.5, bounds, &self.frame))
             .collect();
+        self.render_rays(&rays)
+    }
+
+    /// The fine colours of `rays` with the fixed draws of rendering ([`fixed_draw`]).
+    pub fn render_rays(&self, rays: &[Ray]) -> Vec<[f32; 3]> {
+        let mut out = Vec::with_capacity(rays.len());
         let batch = (self.cfg.chunk / (self.cfg.coarse + self.cfg.fine)).max(1) * 4;
         for rs in rays.chunks(batch) {
-            let (_, (fb, fo)) = self.passes(rs, None);
+            let (_, (fb, fo)) = self.passes(&fixed_draw(rs, &self.cfg));
             let per = fb.per_ray;
             for i in 0..rs.len() {
                 let s = i * per..(i + 1) * per;
@@ -499,78 +612,29 @@ pub fn train(
     progress: &dyn Progress,
 ) -> Result<NerfOutcome, NerfError> {
     let mut nerf = Nerf::new(cfg, &data.points)?;
-    // Every training pixel, decoded once, with its view's bounds.
-    let mut images = Vec::new();
-    for v in &data.train {
-        let img = v
-            .image
-            .image()
-            .map_err(|e| NerfError::Invalid(format!("{}: {e}", v.name)))?;
-        images.push((
-            v.camera,
-            view_bounds(&v.camera, &data.points),
-            img.to_rgb_f32(),
-        ));
-    }
-    let total: u64 = images
-        .iter()
-        .map(|(c, _, _)| u64::from(c.width) * u64::from(c.height))
-        .sum();
-    if total == 0 {
-        return Err(NerfError::Invalid("no training pixels".into()));
-    }
+    let pixels = TrainingPixels::new(data)?;
     let mut rng = SplitMix64::new(cfg.seed ^ 0x4E_E2F);
-    let mut adam_c = Adam::new(nerf.coarse.params.len());
-    let mut adam_f = Adam::new(nerf.fine.params.len());
+    let mut adam = CpuAdam::new(&nerf);
     let start = Instant::now();
+    if cfg.device == NerfDevice::Gpu {
+        return train_gpu(nerf, &pixels, cfg, progress, rng, start);
+    }
     let mut step = 0u32;
     let mut last_loss = f64::NAN;
     while step < cfg.steps {
-        let elapsed = start.elapsed().as_secs_f64();
-        let frac = match cfg.seconds {
-            Some(s) if elapsed >= s => break,
-            Some(s) => elapsed / s,
-            None => f64::from(step) / f64::from(cfg.steps.max(1)),
+        let Some(frac) = schedule(cfg, step, start.elapsed().as_secs_f64()) else {
+            break;
         };
         if progress.is_cancelled() {
             return Err(NerfError::Cancelled);
         }
-        let mut rays = Vec::with_capacity(cfg.rays);
-        let mut targets = Vec::with_capacity(cfg.rays);
-        for _ in 0..cfg.rays {
-            let mut k = rng.below(total);
-            let mut vi = 0;
-            while k >= u64::from(images[vi].0.width) * u64::from(images[vi].0.height) {
-                k -= u64::from(images[vi].0.width) * u64::from(images[vi].0.height);
-                vi += 1;
-            }
-            let (cam, bounds, img) = &images[vi];
-            let (x, y) = (
-                (k % u64::from(cam.width)) as u32,
-                (k / u64::from(cam.width)) as u32,
-            );
-            rays.push(pixel_ray(
-                cam,
-                x as f32 + 0.5,
-                y as f32 + 0.5,
-                *bounds,
-                &nerf.frame,
-            ));
-            targets.push(img[k as usize]);
-        }
-        let (_, fine_loss, gc, gf) = nerf.step_gradients(&rays, &targets, &mut rng);
+        let draw = pixels.draw(cfg, &nerf.frame, &mut rng);
+        let (_, fine_loss, gc, gf) = nerf.step_gradients(&draw);
         let lr = cfg.lr_start * (cfg.lr_end / cfg.lr_start).powf(frac);
-        adam_c.step(&mut nerf.coarse.params, &gc, lr);
-        adam_f.step(&mut nerf.fine.params, &gf, lr);
+        adam.step(&mut nerf, &gc, &gf, lr);
         last_loss = fine_loss;
         step += 1;
-        if step.is_multiple_of(10) || step == 1 {
-            progress.log(&format!(
-                "nerf step {step}: fine MSE {fine_loss:.4} ({:.1} dB), lr {lr:.2e}, {:.1} s",
-                -10.0 * fine_loss.max(1e-10).log10(),
-                start.elapsed().as_secs_f64()
-            ));
-        }
+        log_step(progress, step, fine_loss, lr, start);
         progress.set(frac.clamp(0.0, 1.0));
     }
     Ok(NerfOutcome {
@@ -582,9 +646,85 @@ pub fn train(
     })
 }
 
+/// The training loop on the GPU: the draws are made here and written to the GPU each step;
+/// the loss is read back only every 100 steps and at the end.
+fn train_gpu(
+    mut nerf: Nerf,
+    pixels: &TrainingPixels,
+    cfg: &NerfConfig,
+    progress: &dyn Progress,
+    mut rng: SplitMix64,
+    start: Instant,
+) -> Result<NerfOutcome, NerfError> {
+    let ctx = crate::gpu::context::GpuContext::new()?;
+    let mut g = gpu::GpuNerf::upload(&ctx, &nerf)?;
+    let mut step = 0u32;
+    while step < cfg.steps {
+        let Some(frac) = schedule(cfg, step, start.elapsed().as_secs_f64()) else {
+            break;
+        };
+        if progress.is_cancelled() {
+            return Err(NerfError::Cancelled);
+        }
+        let draw = pixels.draw(cfg, &nerf.frame, &mut rng);
+        let lr = cfg.lr_start * (cfg.lr_end / cfg.lr_start).powf(frac);
+        g.step(&draw, lr)?;
+        step += 1;
+        if step == 1 || step.is_multiple_of(100) {
+            let (_, fine) = g.last_loss()?;
+            progress.log(&format!(
+                "nerf step {step}: fine MSE {fine:.4} ({:.1} dB), lr {lr:.2e}, {:.1} s",
+                -10.0 * fine.max(1e-10).log10(),
+                start.elapsed().as_secs_f64()
+            ));
+        }
+        progress.set(frac.clamp(0.0, 1.0));
+    }
+    let last_loss = if step > 0 { g.last_loss()?.1 } else { f64::NAN };
+    let (c, f) = g.download()?;
+    nerf.coarse.params = c;
+    nerf.fine.params = f;
+    Ok(NerfOutcome {
+        nerf,
+        steps: step,
+        rays_per_step: cfg.rays,
+        train_seconds: start.elapsed().as_secs_f64(),
+        last_loss,
+    })
+}
+
+/// The fraction of the run done before `step` after `elapsed` seconds (of the time limit when
+/// there is one, else of the steps); None once the time limit is reached.
+pub fn schedule(cfg: &NerfConfig, step: u32, elapsed: f64) -> Option<f64> {
+    match cfg.seconds {
+        Some(s) if elapsed >= s => None,
+        Some(s) => Some(elapsed / s),
+        None => Some(f64::from(step) / f64::from(cfg.steps.max(1))),
+    }
+}
+
+/// Logs the 1st and every 10th step.
+fn log_step(progress: &dyn Progress, step: u32, fine_loss: f64, lr: f64, start: Instant) {
+    if step.is_multiple_of(10) || step == 1 {
+        progress.log(&format!(
+            "nerf step {step}: fine MSE {fine_loss:.4} ({:.1} dB), lr {lr:.2e}, {:.1} s",
+            -10.0 * fine_loss.max(1e-10).log10(),
+            start.elapsed().as_secs_f64()
+        ));
+    }
+}
+
 /// Renders and measures every held-out view (full images), beside the mean training colour's
 /// PSNR on the same views.
 pub fn evaluate(nerf: &Nerf, data: &Dataset) -> Result<(EvalReport, f32), NerfError> {
+    let ctx = match nerf.cfg.device {
+        NerfDevice::Gpu => Some(crate::gpu::context::GpuContext::new()?),
+        NerfDevice::Cpu => None,
+    };
+    let mut gpu = match &ctx {
+        Some(c) => Some(gpu::GpuNerf::upload(c, nerf)?),
+        None => None,
+    };
     let mean =
         crate::splat::trainer::mean_colour(data).map_err(|e| NerfError::Invalid(e.to_string()))?;
     let mut views = Vec::new();
@@ -594,7 +734,11 @@ pub fn evaluate(nerf: &Nerf, data: &Dataset) -> Result<(EvalReport, f32), NerfEr
             .image
             .image()
             .map_err(|e| NerfError::Invalid(format!("{}: {e}", v.name)))?;
-        let img = nerf.render(&v.camera, view_bounds(&v.camera, &data.points));
+        let bounds = view_bounds(&v.camera, &data.points);
+        let img = match gpu.as_mut() {
+            Some(g) => render_gpu(g, nerf, &v.camera, bounds)?,
+            None => nerf.render(&v.camera, bounds),
+        };
         let m = |img: &[[f32; 3]]| {
             ViewMetrics::measure(&v.name, img, &truth, EvalRegion::Full)
                 .map_err(|e| NerfError::Invalid(e.to_string()))
@@ -604,6 +748,24 @@ pub fn evaluate(nerf: &Nerf, data: &Dataset) -> Result<(EvalReport, f32), NerfEr
     }
     let base = baseline.iter().sum::<f32>() / baseline.len().max(1) as f32;
     Ok((EvalReport::from_views(views), base))
+}
+
+/// Renders a view on the GPU, a batch of rays at a time.
+fn render_gpu(
+    g: &mut gpu::GpuNerf<'_>,
+    nerf: &Nerf,
+    camera: &Camera,
+    bounds: (f32, f32),
+) -> Result<Vec<[f32; 3]>, NerfError> {
+    let rays: Vec<Ray> = (0..camera.height)
+        .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
+        .map(|(x, y)| pixel_ray(camera, x as f32 + 0.5, y as f32 + 0.5, bounds, &nerf.frame))
+        .collect();
+    let mut out = Vec::with_capacity(rays.len());
+    for rs in rays.chunks(nerf.cfg.rays) {
+        out.extend(g.colours(&fixed_draw(rs, &nerf.cfg))?);
+    }
+    Ok(out)
 }
 
 #[cfg(test)]

@@ -181,3 +181,19 @@ pub fn sample_pdf(coarse_t: &[f32], coarse_w: &[f32], u: &[f32]) -> Vec<f32> {
         })
         .collect()
 }
+
+/// Two ascending lists merged in ascending order, an element of `a` before an equal one of `b`
+/// (the fine network's distances: the coarse ones and the fine draws, as `sample_fine.wgsl`).
+pub fn merge_sorted(a: &[f32], b: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(a.len() + b.len());
+    let mut i = 0;
+    for &s in b {
+        while i < a.len() && a[i] <= s {
+            out.push(a[i]);
+            i += 1;
+        }
+        out.push(s);
+    }
+    out.extend_from_slice(&a[i..]);
+    out
+}

@@ -54,7 +54,8 @@ fn texture(x: f64, y: f64, c: f64) -> f64 {
 #[test]
 fn lpips_matches_the_reference_implementation() {
     let Some(l) = weights() else { return };
-    let cases: [(&str, u32, u32, fn(f64, f64, f64) -> f64, f64); 4] = [
+    type Case = (&'static str, u32, u32, fn(f64, f64, f64) -> f64, f64);
+    let cases: [Case; 4] = [
         ("texture", 64, 48, texture, 0.347393),
         ("shift", 64, 48, |x, y, c| base(x + 3.0, y, c), 0.028433),
         ("grey", 96, 72, |_, _, _| 0.5, 0.937025),

@@ -11,6 +11,7 @@ mod depth;
 mod exposure;
 mod forward;
 mod mcmc;
+mod nerf;
 mod plan;
 mod semantic;
 mod sort_scan;
