@@ -99,6 +99,9 @@ pub struct MethodBenchArgs {
     /// ends it first).
     #[arg(long, env = "SYLVA_BENCH_METHOD_NERF_STEPS", default_value_t = 300_000)]
     pub method_nerf_steps: u32,
+    /// method: where the `nerf` arm runs, gpu or cpu; empty: as --method-backend.
+    #[arg(long, env = "SYLVA_BENCH_METHOD_NERF_DEVICE", default_value = "")]
+    pub method_nerf_device: String,
     /// method: LPIPS weights (a safetensors file made by scripts/lpips_weights.py): the
     /// held-out views are also measured by LPIPS (column LPIPS; n/a without it).
     #[arg(long, env = "SYLVA_LPIPS_WEIGHTS")]
@@ -688,9 +691,15 @@ the paper's Table 3 layout: {} seeds {} at {} px, held-out views, this machine\n
         let budget = if name == NERF {
             let steps: Vec<String> = all.iter().map(|r| r.nerf_steps.to_string()).collect();
             format!(
-                "{} steps of {} rays (per plot), wall time of the 3DGS arms",
+                "{} steps of {} rays (per plot) on the {}, {}",
                 steps.join(", "),
-                all.first().map_or(0, |r| r.nerf_rays)
+                all.first().map_or(0, |r| r.nerf_rays),
+                nerf_device(a),
+                if a.method_nerf_seconds > 0.0 {
+                    format!("{:.0} s per plot", a.method_nerf_seconds)
+                } else {
+                    "the 3DGS arms' mean training time per plot".to_string()
+                }
             )
         } else {
             format!("{steps} steps, cap {} Gaussians", a.method_cap)
@@ -723,6 +732,15 @@ the paper's Table 3 (plots 1 / 2 / 3; 1920×1080 photos, RTX 4060; NeRF 300,000 
     }
 }
 
+/// Where the NeRF arm runs: `--method-nerf-device`, else `--method-backend`.
+fn nerf_device(a: &MethodBenchArgs) -> &str {
+    if a.method_nerf_device.is_empty() {
+        &a.method_backend
+    } else {
+        &a.method_nerf_device
+    }
+}
+
 /// Trains the paper's NeRF baseline (src/nerf, the paper's settings but the rays per step and
 /// the steps of `--method-nerf-rays` and `--method-nerf-steps`) for `budget` seconds on the
 /// plot's photos at the arms' resolution and split, and measures its held-out views. Kept in
@@ -735,7 +753,10 @@ fn run_nerf_arm(
 ) -> anyhow::Result<ArmResult> {
     let out = dir.join(format!(
         "{NERF}-{:.0}-{}-{}-{}",
-        budget, a.method_resolution, a.method_nerf_rays, a.method_backend
+        budget,
+        a.method_resolution,
+        a.method_nerf_rays,
+        nerf_device(a)
     ));
     let saved = out.join("result.json");
     if let Ok(v) = read_json(&saved) {
@@ -779,7 +800,7 @@ fn run_nerf_arm(
         rays: a.method_nerf_rays,
         steps: a.method_nerf_steps,
         seconds: Some(budget),
-        device: match a.method_backend.as_str() {
+        device: match nerf_device(a) {
             "cpu" => sylva::nerf::NerfDevice::Cpu,
             _ => sylva::nerf::NerfDevice::Gpu,
         },

@@ -694,11 +694,13 @@ fn train_gpu(
 }
 
 /// The fraction of the run done before `step` after `elapsed` seconds (of the time limit when
-/// there is one, else of the steps); None once the time limit is reached.
+/// there is one, else of the steps); None once the time limit is reached, or when another
+/// step as long as the mean so far would end past it (so a run ends within its limit, the
+/// first step aside).
 pub fn schedule(cfg: &NerfConfig, step: u32, elapsed: f64) -> Option<f64> {
     match cfg.seconds {
-        Some(s) if elapsed >= s => None,
-        Some(s) => Some(elapsed / s),
+        Some(s) if step > 0 && elapsed * (1.0 + 1.0 / f64::from(step)) > s => None,
+        Some(s) => Some((elapsed / s).min(1.0)),
         None => Some(f64::from(step) / f64::from(cfg.steps.max(1))),
     }
 }
