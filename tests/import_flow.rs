@@ -19,7 +19,7 @@ const LAYERS: &[(u32, &[&str])] = &[
     (6, &["webhooks"]),
     (5, &["config"]),
     (4, &["jobs", "store"]),
-    (3, &["pipeline"]),
+    (3, &["pipeline", "nerf"]),
     (2, &["forest", "splat", "synth"]),
     (1, &["geom", "io", "gpu", "sfm"]),
     (0, &["progress", "stage", "rng", "testing"]),
