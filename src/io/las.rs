@@ -212,8 +212,9 @@ pub fn inspect_las(path: &Path) -> Result<LasInfo, IoError> {
 }
 
 /// For LAZ with fixed-size chunks: `declared` points need exactly ceil(declared / chunk_size)
-/// chunks. Variable-size chunk tables (and files without a chunk table) are left to the
-/// decoder, which fails on missing data.
+/// chunks. With variable-size chunks, no chunk may hold more points than the file declares
+/// (or [`MAX_EMPTY_CHUNK_POINTS`]) and the chunks no more bytes than the points take. Files
+/// without a chunk table are left to the decoder, which fails on missing data.
 fn check_laz_chunks<R: Read + Seek>(
     path: &Path,
     header: &::las::Header,
@@ -298,7 +299,39 @@ fn check_laz_chunks<R: Read + Seek>(
         ));
     }
     if variable {
-        return Ok(()); // variable-size chunks: point counts are inside the compressed table
+        // Point counts are in the (compressed) table; the decoder sizes a buffer by the largest
+        // (a hostile count overflowed its allocation; found by fuzzing, issue 43). A chunk
+        // never holds more points than the file declares, nor more bytes than the points take.
+        let vlr = laz::LazVlr::from_buffer(&vlr.data)
+            .map_err(|e| IoError::format(path, format!("LAZ VLR: {e}")))?;
+        read.seek(SeekFrom::Start(start))
+            .map_err(|e| IoError::read(path, e, "LAZ chunk table"))?;
+        let table = laz::laszip::ChunkTable::read_from(&mut *read, &vlr)
+            .map_err(|e| IoError::format(path, format!("LAZ chunk table: {e}")))?;
+        let most = declared.max(MAX_EMPTY_CHUNK_POINTS);
+        let bytes: u64 = table
+            .as_ref()
+            .iter()
+            .map(|e| e.byte_count)
+            .fold(0u64, u64::saturating_add);
+        if let Some(e) = table.as_ref().iter().find(|e| e.point_count > most) {
+            return Err(IoError::format(
+                path,
+                format!(
+                    "the LAZ chunk table declares a chunk of {} points for a file of {declared} points",
+                    e.point_count
+                ),
+            ));
+        }
+        if bytes > room {
+            return Err(IoError::format(
+                path,
+                format!(
+                    "the LAZ chunk table's chunks take {bytes} bytes but the points take {room}"
+                ),
+            ));
+        }
+        return Ok(());
     }
     let cs = u64::from(chunk_size);
     if declared > chunks * cs || (chunks > 0 && declared <= (chunks - 1) * cs) {
