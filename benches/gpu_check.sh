@@ -4,7 +4,10 @@
 # an 8 GB card by default. It prints, as Markdown tables (docs/results/splatting.md, "GPU check"):
 #   - steps/s at 1 M and 3 M Gaussians at 1920×1080 (`sylva bench train`, each phase timed);
 #   - the GPU memory the plan allows against the most the device's allocator held;
-#   - the held-out PSNR (every 8th photo) after a fixed number of steps from 1 M Gaussians.
+#   - the held-out PSNR (every 8th photo) after a fixed number of steps from 1 M Gaussians;
+#   - the NeRF baseline of issue 44 on the GPU (`sylva bench method`'s `nerf` arm at the paper's
+#     settings on `tiny` seed 1, beside vanilla 3DGS, for GPU_CHECK_NERF_SECONDS each), after
+#     its kernels' twin tests on this GPU (`cargo test --test gpu nerf`).
 # The Gaussians start from the SfM points spread into jittered copies (`splat::start::spread_to`):
 # the check measures the trainer, so it skips the LiDAR stages, and the plot's LiDAR is cut to
 # 1 M points (GPU_CHECK_LIDAR_POINTS) to save its minutes.
@@ -21,6 +24,7 @@
 #   GPU_CHECK_PSNR_GAUSSIANS, GPU_CHECK_PSNR_STEPS  the held-out run (1000000, 2000)
 #   GPU_CHECK_MEMORY_MB    the memory plan (8192: the paper's RTX 4060; 0 = the device's own)
 #   GPU_CHECK_LIDAR_POINTS the plot's LiDAR points (1000000)
+#   GPU_CHECK_NERF_SECONDS the NeRF's training time (120; 0 skips the NeRF section)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -35,6 +39,7 @@ psnr_gaussians="${GPU_CHECK_PSNR_GAUSSIANS:-1000000}"
 psnr_steps="${GPU_CHECK_PSNR_STEPS:-2000}"
 memory="${GPU_CHECK_MEMORY_MB:-8192}"
 lidar="${GPU_CHECK_LIDAR_POINTS:-1000000}"
+nerf_seconds="${GPU_CHECK_NERF_SECONDS:-120}"
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
 
 if [ -z "${SYLVA_BIN:-}" ]; then
@@ -73,4 +78,14 @@ echo
 if command -v nvidia-smi >/dev/null 2>&1; then
   echo
   echo "- GPU memory in use now (driver): $(nvidia-smi --query-gpu=memory.used --format=csv,noheader)"
+fi
+if [ "$nerf_seconds" != "0" ]; then
+  echo
+  echo "## The NeRF baseline on this GPU (issue 44)"
+  echo
+  echo "Kernels against their CPU twin:"
+  cargo test --test gpu nerf 2>&1 | grep -E "^test |test result" || true
+  echo
+  "$SYLVA_BIN" bench method --method-preset tiny --method-seeds 1 --method-arms vanilla,nerf \
+    --method-nerf-device gpu --method-nerf-seconds "$nerf_seconds" --method-work "$work/nerf"
 fi
