@@ -30,6 +30,7 @@ mod voxel;
 pub use error::GeomError;
 pub use icp::{IcpMethod, IcpParams, IcpResult, IcpWeights, RobustKernel, icp, icp_weighted};
 pub use index::{Neighbour, PointIndex};
+pub use linalg::gemm;
 pub(crate) use linalg::solve3;
 pub use normals::{
     EigenFeatures, NormalOrientation, NormalParams, Normals, eigen_features, estimate_normals,

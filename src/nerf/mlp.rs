@@ -10,6 +10,7 @@
 //! Initialisation is torch's `nn.Linear` default (weights and biases uniform in ±1/√inputs),
 //! seeded.
 
+use crate::geom::gemm;
 use crate::rng::SplitMix64;
 
 /// Sizes of the network.
@@ -350,46 +351,5 @@ fn dense_back_weights(l: &Layer, x: &[f32], dy: &[f32], n: usize, grad: &mut [f3
         for (g, d) in b.iter_mut().zip(row) {
             *g += d;
         }
-    }
-}
-
-/// `c += A B` with `A` m × k and `B` k × n given as (slice, row stride, column stride), `c`
-/// row-major m × n.
-fn gemm(
-    m: usize,
-    k: usize,
-    n: usize,
-    a: (&[f32], isize, isize),
-    b: (&[f32], isize, isize),
-    c: &mut [f32],
-) {
-    if m == 0 || k == 0 || n == 0 {
-        return;
-    }
-    let reach = |rows: usize, cols: usize, rs: isize, cs: isize| {
-        (rows - 1) * rs as usize + (cols - 1) * cs as usize + 1
-    };
-    assert!(a.0.len() >= reach(m, k, a.1, a.2), "gemm: A too short");
-    assert!(b.0.len() >= reach(k, n, b.1, b.2), "gemm: B too short");
-    assert!(c.len() >= m * n, "gemm: C too short");
-    // SAFETY: the asserts above keep every element read or written inside the slices, and
-    // `c` does not overlap `a` or `b` (it is borrowed mutably).
-    unsafe {
-        matrixmultiply::sgemm(
-            m,
-            k,
-            n,
-            1.0,
-            a.0.as_ptr(),
-            a.1,
-            a.2,
-            b.0.as_ptr(),
-            b.1,
-            b.2,
-            1.0,
-            c.as_mut_ptr(),
-            n as isize,
-            1,
-        );
     }
 }

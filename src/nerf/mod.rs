@@ -563,11 +563,15 @@ impl Nerf {
 
     /// Renders a view with the fine network (fixed samples), RGB in [0, 1].
     pub fn render(&self, camera: &Camera, bounds: (f32, f32)) -> Vec<[f32; 3]> {
-        let rays: Vec<Ray> = (0..camera.height)
+        self.render_rays(&self.camera_rays(camera, bounds))
+    }
+
+    /// The rays through every pixel's centre of `camera`, row by row.
+    pub fn camera_rays(&self, camera: &Camera, bounds: (f32, f32)) -> Vec<Ray> {
+        (0..camera.height)
             .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
             .map(|(x, y)| pixel_ray(camera, x as f32 + 0.5, y as f32 + 0.5, bounds, &self.frame))
-            .collect();
-        self.render_rays(&rays)
+            .collect()
     }
 
     /// The fine colours of `rays` with the fixed draws of rendering ([`fixed_draw`]).
@@ -759,10 +763,7 @@ fn render_gpu(
     camera: &Camera,
     bounds: (f32, f32),
 ) -> Result<Vec<[f32; 3]>, NerfError> {
-    let rays: Vec<Ray> = (0..camera.height)
-        .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
-        .map(|(x, y)| pixel_ray(camera, x as f32 + 0.5, y as f32 + 0.5, bounds, &nerf.frame))
-        .collect();
+    let rays = nerf.camera_rays(camera, bounds);
     let mut out = Vec::with_capacity(rays.len());
     for rs in rays.chunks(nerf.cfg.rays) {
         out.extend(g.colours(&fixed_draw(rs, &nerf.cfg))?);

@@ -19,8 +19,8 @@
 //! Tensor names are that pickle's paths: `AlexNet_0/Conv_{0..4}/{kernel,bias}` (kernels
 //! height × width × in × out) and `NetLinLayer_{0..4}/Conv_0/kernel` (1 × 1 × channels × 1).
 //!
-//! The convolutions are im2col products through `matrixmultiply`'s `sgemm` (the crate the
-//! project already has through nalgebra), over blocks of output rows so that the patch matrix
+//! The convolutions are im2col products through [`crate::geom::gemm`] (`matrixmultiply`'s
+//! `sgemm`), over blocks of output rows so that the patch matrix
 //! stays under 8 M floats at any image size; the two images run on two threads.
 
 use std::path::Path;
@@ -260,26 +260,14 @@ impl Conv {
             for px in dst.chunks_exact_mut(self.cout) {
                 px.copy_from_slice(&self.bias);
             }
-            // SAFETY: the slices hold m×kk, kk×cout and m×cout floats, row-major with the
-            // strides given, and do not overlap.
-            unsafe {
-                matrixmultiply::sgemm(
-                    m,
-                    kk,
-                    self.cout,
-                    1.0,
-                    patch.as_ptr(),
-                    kk as isize,
-                    1,
-                    self.kernel.as_ptr(),
-                    self.cout as isize,
-                    1,
-                    1.0,
-                    dst.as_mut_ptr(),
-                    self.cout as isize,
-                    1,
-                );
-            }
+            crate::geom::gemm(
+                m,
+                kk,
+                self.cout,
+                (&patch, kk as isize, 1),
+                (&self.kernel, self.cout as isize, 1),
+                dst,
+            );
             row0 += rows;
         }
         for v in &mut out {
