@@ -264,6 +264,30 @@ impl<'a> GpuNerf<'a> {
         ))
     }
 
+    /// The parameter buffer of a dense kernel on `layer` over `n` samples: inputs `in_a` from
+    /// the first source and `in_b` from the second, activation (or mask) `act`.
+    fn dense_params(
+        &self,
+        l: Layer,
+        n: usize,
+        in_a: usize,
+        in_b: usize,
+        act: u32,
+        accumulate: bool,
+    ) -> wgpu::Buffer {
+        let p = DenseParams {
+            n: n as u32,
+            in_a: in_a as u32,
+            in_b: in_b as u32,
+            outs: l.outputs as u32,
+            w_off: l.offset as u32,
+            act,
+            accumulate: u32::from(accumulate),
+            _pad: 0,
+        };
+        params_from(self.ctx, "nerf dense", &p)
+    }
+
     #[allow(clippy::too_many_arguments)]
     fn dense(
         &self,
@@ -277,17 +301,7 @@ impl<'a> GpuNerf<'a> {
         y: &wgpu::Buffer,
     ) {
         let l = self.nets[net].layers[layer];
-        let p = DenseParams {
-            n: n as u32,
-            in_a: (l.inputs - in_b) as u32,
-            in_b: in_b as u32,
-            outs: l.outputs as u32,
-            w_off: l.offset as u32,
-            act,
-            accumulate: 0,
-            _pad: 0,
-        };
-        let pb = params_from(self.ctx, "nerf dense", &p);
+        let pb = self.dense_params(l, n, l.inputs - in_b, in_b, act, false);
         let groups = (l.outputs.div_ceil(16) as u32, n.div_ceil(16) as u32);
         dispatch(
             self.ctx,
@@ -311,17 +325,7 @@ impl<'a> GpuNerf<'a> {
         dy: &wgpu::Buffer,
     ) {
         let l = self.nets[net].layers[layer];
-        let p = DenseParams {
-            n: n as u32,
-            in_a: (l.inputs - in_b) as u32,
-            in_b: in_b as u32,
-            outs: l.outputs as u32,
-            w_off: l.offset as u32,
-            act: 0,
-            accumulate: 0,
-            _pad: 0,
-        };
-        let pb = params_from(self.ctx, "nerf dense_w", &p);
+        let pb = self.dense_params(l, n, l.inputs - in_b, in_b, 0, false);
         let groups = (
             l.outputs.div_ceil(16) as u32,
             (l.inputs + 1).div_ceil(16) as u32,
@@ -350,17 +354,7 @@ impl<'a> GpuNerf<'a> {
         dx: &wgpu::Buffer,
     ) {
         let l = self.nets[net].layers[layer];
-        let p = DenseParams {
-            n: n as u32,
-            in_a: in_a as u32,
-            in_b: 0,
-            outs: l.outputs as u32,
-            w_off: l.offset as u32,
-            act: u32::from(prev.is_some()),
-            accumulate: u32::from(accumulate),
-            _pad: 0,
-        };
-        let pb = params_from(self.ctx, "nerf dense_x", &p);
+        let pb = self.dense_params(l, n, in_a, 0, u32::from(prev.is_some()), accumulate);
         let groups = (in_a.div_ceil(16) as u32, n.div_ceil(16) as u32);
         dispatch(
             self.ctx,

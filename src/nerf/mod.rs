@@ -618,11 +618,17 @@ pub fn train(
     let mut nerf = Nerf::new(cfg, &data.points)?;
     let pixels = TrainingPixels::new(data)?;
     let mut rng = SplitMix64::new(cfg.seed ^ 0x4E_E2F);
-    let mut adam = CpuAdam::new(&nerf);
     let start = Instant::now();
-    if cfg.device == NerfDevice::Gpu {
-        return train_gpu(nerf, &pixels, cfg, progress, rng, start);
-    }
+    let ctx = match cfg.device {
+        NerfDevice::Gpu => Some(crate::gpu::context::GpuContext::new()?),
+        NerfDevice::Cpu => None,
+    };
+    // The CPU steps with its own Adam; the GPU keeps everything on the device and is read
+    // back only every 100 steps (the loss) and at the end (the parameters).
+    let mut runner = match &ctx {
+        Some(c) => Runner::Gpu(Box::new(gpu::GpuNerf::upload(c, &nerf)?)),
+        None => Runner::Cpu(CpuAdam::new(&nerf)),
+    };
     let mut step = 0u32;
     let mut last_loss = f64::NAN;
     while step < cfg.steps {
@@ -633,13 +639,36 @@ pub fn train(
             return Err(NerfError::Cancelled);
         }
         let draw = pixels.draw(cfg, &nerf.frame, &mut rng);
-        let (_, fine_loss, gc, gf) = nerf.step_gradients(&draw);
         let lr = cfg.lr_start * (cfg.lr_end / cfg.lr_start).powf(frac);
-        adam.step(&mut nerf, &gc, &gf, lr);
-        last_loss = fine_loss;
         step += 1;
-        log_step(progress, step, fine_loss, lr, start);
+        let loss = match &mut runner {
+            Runner::Cpu(adam) => {
+                let (_, fine, gc, gf) = nerf.step_gradients(&draw);
+                adam.step(&mut nerf, &gc, &gf, lr);
+                Some(fine)
+            }
+            Runner::Gpu(g) => {
+                g.step(&draw, lr)?;
+                if step == 1 || step.is_multiple_of(100) {
+                    Some(g.last_loss()?.1)
+                } else {
+                    None
+                }
+            }
+        };
+        if let Some(l) = loss {
+            last_loss = l;
+            log_step(progress, step, l, lr, start);
+        }
         progress.set(frac.clamp(0.0, 1.0));
+    }
+    if let Runner::Gpu(g) = &runner {
+        if step > 0 {
+            last_loss = g.last_loss()?.1;
+        }
+        let (c, f) = g.download()?;
+        nerf.coarse.params = c;
+        nerf.fine.params = f;
     }
     Ok(NerfOutcome {
         nerf,
@@ -650,51 +679,10 @@ pub fn train(
     })
 }
 
-/// The training loop on the GPU: the draws are made here and written to the GPU each step;
-/// the loss is read back only every 100 steps and at the end.
-fn train_gpu(
-    mut nerf: Nerf,
-    pixels: &TrainingPixels,
-    cfg: &NerfConfig,
-    progress: &dyn Progress,
-    mut rng: SplitMix64,
-    start: Instant,
-) -> Result<NerfOutcome, NerfError> {
-    let ctx = crate::gpu::context::GpuContext::new()?;
-    let mut g = gpu::GpuNerf::upload(&ctx, &nerf)?;
-    let mut step = 0u32;
-    while step < cfg.steps {
-        let Some(frac) = schedule(cfg, step, start.elapsed().as_secs_f64()) else {
-            break;
-        };
-        if progress.is_cancelled() {
-            return Err(NerfError::Cancelled);
-        }
-        let draw = pixels.draw(cfg, &nerf.frame, &mut rng);
-        let lr = cfg.lr_start * (cfg.lr_end / cfg.lr_start).powf(frac);
-        g.step(&draw, lr)?;
-        step += 1;
-        if step == 1 || step.is_multiple_of(100) {
-            let (_, fine) = g.last_loss()?;
-            progress.log(&format!(
-                "nerf step {step}: fine MSE {fine:.4} ({:.1} dB), lr {lr:.2e}, {:.1} s",
-                -10.0 * fine.max(1e-10).log10(),
-                start.elapsed().as_secs_f64()
-            ));
-        }
-        progress.set(frac.clamp(0.0, 1.0));
-    }
-    let last_loss = if step > 0 { g.last_loss()?.1 } else { f64::NAN };
-    let (c, f) = g.download()?;
-    nerf.coarse.params = c;
-    nerf.fine.params = f;
-    Ok(NerfOutcome {
-        nerf,
-        steps: step,
-        rays_per_step: cfg.rays,
-        train_seconds: start.elapsed().as_secs_f64(),
-        last_loss,
-    })
+/// Where a training run steps.
+enum Runner<'a> {
+    Cpu(CpuAdam),
+    Gpu(Box<gpu::GpuNerf<'a>>),
 }
 
 /// The fraction of the run done before `step` after `elapsed` seconds (of the time limit when

@@ -57,6 +57,16 @@ pub fn stratified(ray: &Ray, n: usize, mut jitter: impl FnMut() -> f32) -> Vec<f
         .collect()
 }
 
+/// The interval after sample `i` of distances `t`: to the next sample, [`LAST_DELTA`] after
+/// the last.
+fn delta(t: &[f32], i: usize) -> f32 {
+    if i + 1 < t.len() {
+        t[i + 1] - t[i]
+    } else {
+        LAST_DELTA
+    }
+}
+
 /// What compositing one ray gives: its colour and each sample's weight.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Composite {
@@ -78,11 +88,7 @@ pub fn composite(
     let mut colour = [0.0f32; 3];
     let mut trans = 1.0f32;
     for i in 0..n {
-        let delta = if i + 1 < n {
-            t[i + 1] - t[i]
-        } else {
-            LAST_DELTA
-        };
+        let delta = delta(t, i);
         let alpha = 1.0 - (-sigma_raw[i].max(0.0) * delta).exp();
         let w = trans * alpha;
         for c in 0..3 {
@@ -111,13 +117,8 @@ pub fn composite_backward(
     let mut alpha = Vec::with_capacity(n);
     let mut trans = Vec::with_capacity(n + 1);
     let mut tr = 1.0f32;
-    for i in 0..n {
-        let delta = if i + 1 < n {
-            t[i + 1] - t[i]
-        } else {
-            LAST_DELTA
-        };
-        let a = 1.0 - (-sigma_raw[i].max(0.0) * delta).exp();
+    for (i, s) in sigma_raw.iter().enumerate().take(n) {
+        let a = 1.0 - (-s.max(0.0) * delta(t, i)).exp();
         trans.push(tr);
         alpha.push(a);
         tr *= 1.0 - a;
@@ -128,11 +129,7 @@ pub fn composite_backward(
     let mut d_sigma = vec![0.0f32; n];
     let mut d_rgb = vec![[0.0f32; 3]; n];
     for i in (0..n).rev() {
-        let delta = if i + 1 < n {
-            t[i + 1] - t[i]
-        } else {
-            LAST_DELTA
-        };
+        let delta = delta(t, i);
         let w = trans[i] * alpha[i];
         d_rgb[i] = d_colour.map(|d| d * w);
         if sigma_raw[i] > 0.0 {

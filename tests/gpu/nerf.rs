@@ -187,3 +187,33 @@ fn nerf_training_steps_on_the_gpu_match_the_cpu() {
     let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
     close("render", &flat(&colours), &flat(&cpu_render), 1e-3);
 }
+
+#[test]
+fn nerf_trains_and_evaluates_on_the_gpu() {
+    let Some(_ctx) = common::context() else {
+        return;
+    };
+    let truth = crate::test_scenes::random_scene(5, 24, 0);
+    let mut data = crate::test_scenes::ring_dataset_sized(&truth, 16, (24, 18), 22.0);
+    data.points = truth.means.clone();
+    let cfg = NerfConfig {
+        steps: 60,
+        lr_start: 2e-3,
+        lr_end: 2e-4,
+        ..small_config()
+    };
+    let start = Nerf::new(&cfg, &data.points).expect("nerf");
+    let out = sylva::nerf::train(&data, &cfg, &sylva::progress::NoProgress).expect("trains");
+    assert_eq!(out.steps, 60);
+    assert!(out.last_loss.is_finite(), "{}", out.last_loss);
+    assert_ne!(
+        out.nerf.fine.params, start.fine.params,
+        "the GPU's parameters came back"
+    );
+    let (eval, base) = sylva::nerf::evaluate(&out.nerf, &data).expect("evaluates");
+    assert!(
+        eval.psnr > base,
+        "held out {} dB against the mean colour's {base} dB",
+        eval.psnr
+    );
+}
