@@ -1,6 +1,9 @@
-//! LAS 1.0–1.4 (point formats 0–10, 64-bit point counts) and LAZ, through the `las` crate;
+//! LAS 1.0–1.4 (point formats 0–10, 64-bit point counts) through the `las` crate, and LAZ:
 //! LAZ with a chunk table goes through the fused chunk-parallel reader of `las/fused.rs`
-//! instead (decoding and conversion in one rayon task per chunk), which gives the same cloud.
+//! (decoding and conversion in one rayon task per chunk), other LAZ through the sequential
+//! reader of `las/pointwise.rs`, which gives the same cloud. Neither runs laz-rs's GPS-time
+//! decoders, which a hostile file can make recurse until the stack overflows (see
+//! `pointwise.rs`).
 //!
 //! Before any point is decoded the declared point count is checked against the file: for
 //! uncompressed LAS the point-record region must hold exactly the declared number of
@@ -366,23 +369,88 @@ pub(crate) fn decoder_panic(path: &Path, panic: &(dyn std::any::Any + Send)) -> 
 /// allocate (70 MB at 70-byte records). LAStools and PDAL write chunks of 50 000.
 const MAX_EMPTY_CHUNK_POINTS: u64 = 1_000_000;
 
-/// Points decoded per call for LAZ: 2^20 points span about 20 chunks of the usual 50,000
-/// points (parallel decompression splits a call by chunk) and hold at most 70 MB of raw
-/// records (point format 10).
-const LAZ_BATCH: u64 = 1 << 20;
-
-/// Opens a point reader: LAZ is decompressed chunk-parallel on all cores (rayon) when the file
-/// has a chunk table, sequentially otherwise (the parallel decoder needs the table).
-fn open_reader(path: &Path, compressed: bool) -> Result<::las::Reader, IoError> {
-    let open = |parallel: ::las::LazParallelism| -> Result<::las::Reader, IoError> {
-        let file = File::open(path).map_err(|e| IoError::io(path, e))?;
-        let options = ::las::ReaderOptions::default().with_laz_parallelism(parallel);
-        ::las::Reader::with_options(BufReader::new(file), options).map_err(|e| las_err(path, e))
-    };
-    if compressed {
-        open(::las::LazParallelism::Yes).or_else(|_| open(::las::LazParallelism::No))
+/// Byte offset of RGB in a point record: 20 in format 2 (after the 20-byte core), 28 in
+/// formats 3 and 5 (after GPS time), 30 in formats 7, 8 and 10 (ASPRS LAS 1.4 R15, tables 9–19).
+pub(super) fn rgb_offset(fmt: &Format) -> usize {
+    if fmt.is_extended {
+        30
+    } else if fmt.has_gps_time {
+        28
     } else {
-        open(::las::LazParallelism::No)
+        20
+    }
+}
+
+/// Raw point records in batches: LAS through the `las` crate, LAZ through
+/// [`pointwise::LazRecords`] (Sylva's own GPS-time decoder, or none at all; see that module).
+enum Records {
+    Las {
+        reader: Box<::las::Reader>,
+        pd: ::las::PointData,
+    },
+    Laz {
+        laz: pointwise::LazRecords,
+        buf: Vec<u8>,
+    },
+}
+
+impl Records {
+    fn open(path: &Path, info: &LasInfo) -> Result<Self, IoError> {
+        if !info.compressed {
+            let file = File::open(path).map_err(|e| IoError::io(path, e))?;
+            let reader = ::las::Reader::new(BufReader::new(file)).map_err(|e| las_err(path, e))?;
+            let pd = PointDataBuilder::new().for_header(reader.header()).build();
+            return Ok(Self::Las {
+                reader: Box::new(reader),
+                pd,
+            });
+        }
+        let (raw, _) = check_raw_header(path)?;
+        let mut read = open_buffered(path)?;
+        let header = ::las::Header::new(&mut read).map_err(|e| las_err(path, e))?;
+        let vlr = header
+            .vlrs()
+            .iter()
+            .find(|v| {
+                v.user_id.trim_end_matches('\0') == laz::LazVlr::USER_ID
+                    && v.record_id == laz::LazVlr::RECORD_ID
+            })
+            .ok_or_else(|| IoError::format(path, "compressed point format without a LAZ VLR"))?;
+        let laz = pointwise::LazRecords::open(
+            path,
+            &vlr.data,
+            u64::from(raw.offset_to_point_data),
+            (info.declared_points, usize::from(info.record_length)),
+            info.has_color,
+        )?;
+        Ok(Self::Laz {
+            laz,
+            buf: Vec::new(),
+        })
+    }
+
+    /// The next batch of at most `n` records and the record length; empty at the end.
+    fn next(&mut self, path: &Path, n: u64) -> Result<(&[u8], usize), IoError> {
+        // Decoders check some of their own invariants with assertions, which a hostile file
+        // can break (found by fuzzing, issue 43): such a panic is this file's fault, reported
+        // as such, not the worker's end.
+        let caught = |panic: Box<dyn std::any::Any + Send>| decoder_panic(path, panic.as_ref());
+        match self {
+            Self::Las { reader, pd } => {
+                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    reader.fill_points(n, pd)
+                }))
+                .map_err(caught)?
+                .map_err(|e| las_err(path, e))?;
+                Ok((pd.raw_bytes(), pd.record_len()))
+            }
+            Self::Laz { laz, buf } => {
+                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| laz.fill(n, buf)))
+                    .map_err(caught)?
+                    .map_err(|e| IoError::format(path, format!("bad LAZ point data: {e}")))?;
+                Ok((buf.as_slice(), laz.record_len()))
+            }
+        }
     }
 }
 
@@ -390,7 +458,7 @@ fn open_reader(path: &Path, compressed: bool) -> Result<::las::Reader, IoError> 
 /// point has a non-zero intensity. The local origin is the header's minimum corner rounded
 /// down to whole metres (or the first points' minimum when the header bounds are wrong).
 /// Chunked LAZ is read by the fused chunk-parallel reader (`las/fused.rs`), everything else
-/// (and LAZ that reader leaves) by the `las` crate.
+/// (and LAZ that reader leaves) sequentially.
 pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoError> {
     let info = inspect_las(path)?;
     #[cfg(unix)]
@@ -402,16 +470,16 @@ pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoEr
     read_las_crate(path, &info, progress)
 }
 
-/// The `las`-crate path of [`read_las`]: LAS, and LAZ that the fused reader leaves
-/// (no chunk table, unchunked compression, header bounds that miss the points).
+/// The sequential path of [`read_las`]: LAS (through the `las` crate), and LAZ that the
+/// fused reader leaves (no chunk table, unchunked compression, header bounds that miss the
+/// points).
 fn read_las_crate(
     path: &Path,
     info: &LasInfo,
     progress: &dyn Progress,
 ) -> Result<PointCloud, IoError> {
-    let mut reader = open_reader(path, info.compressed)?;
-    let total = reader.header().number_of_points();
-    let mut pd = PointDataBuilder::new().for_header(reader.header()).build();
+    let mut records = Records::open(path, info)?;
+    let total = info.declared_points;
     let hint = Some((
         DVec3::from_array(info.bounds_min),
         DVec3::from_array(info.bounds_max),
@@ -420,39 +488,42 @@ fn read_las_crate(
     let cap_points = total.min(file_len(path)?);
     let mut cloud = CloudBuilder::new(path, hint, cap_points);
     let cap = cap_points.min(1 << 24) as usize;
-    let mut colors: Option<Vec<[u16; 3]>> = info.has_color.then(|| Vec::with_capacity(cap));
+    let fmt = Format::new(info.point_format).map_err(|e| las_err(path, e))?;
+    let rgb_at = info.has_color.then(|| rgb_offset(&fmt));
+    let mut colors: Option<Vec<[u16; 3]>> = rgb_at.map(|_| Vec::with_capacity(cap));
     let mut intensity: Vec<u16> = Vec::with_capacity(cap);
-    // LAZ chunks are decompressed in parallel within one call, so a call must span many
-    // chunks (50,000 points each by default) for all cores to work.
-    let batch = if info.compressed {
-        LAZ_BATCH
-    } else {
-        PROGRESS_STEP as u64
+    let t = Vector {
+        x: Transform {
+            scale: info.scale[0],
+            offset: info.offset[0],
+        },
+        y: Transform {
+            scale: info.scale[1],
+            offset: info.offset[1],
+        },
+        z: Transform {
+            scale: info.scale[2],
+            offset: info.offset[2],
+        },
     };
+    // Sequential LAZ decoding gains nothing from large calls; keep progress and cancel fine.
+    let batch = PROGRESS_STEP as u64;
     loop {
         check_cancel(progress)?;
-        // The LAZ decoder checks some of its own invariants with assertions, which a hostile
-        // chunk can break (found by fuzzing, issue 43): such a panic is this file's fault,
-        // reported as such, not the worker's end.
-        let filled = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            reader.fill_points(batch, &mut pd)
-        }))
-        .map_err(|panic| decoder_panic(path, panic.as_ref()))?;
-        let got = filled.map_err(|e| las_err(path, e))?;
-        if got == 0 {
+        let (raw, stride) = records.next(path, batch)?;
+        if raw.is_empty() {
             break;
         }
         // One pass over the raw records (x, y, z as i32 at bytes 0, 4, 8 and intensity as
         // u16 at byte 12 in every point format), the same arithmetic as `Transform::direct`.
-        let stride = pd.record_len();
-        if stride < 14 {
+        if stride < 14 || rgb_at.is_some_and(|at| at + 6 > stride) {
             return Err(IoError::format(
                 path,
-                format!("point records of {stride} bytes are too short"),
+                format!("point records of {stride} bytes are too short for their format"),
             ));
         }
-        let t = *pd.transforms();
-        for rec in pd.raw_bytes().chunks_exact(stride) {
+        let u16_at = |rec: &[u8], o: usize| u16::from_le_bytes([rec[o], rec[o + 1]]);
+        for rec in raw.chunks_exact(stride) {
             let i32_at =
                 |o: usize| i32::from_le_bytes([rec[o], rec[o + 1], rec[o + 2], rec[o + 3]]);
             cloud.push(DVec3::new(
@@ -460,10 +531,10 @@ fn read_las_crate(
                 t.y.direct(i32_at(4)),
                 t.z.direct(i32_at(8)),
             ))?;
-            intensity.push(u16::from_le_bytes([rec[12], rec[13]]));
-        }
-        if let (Some(c), Some(rgb)) = (colors.as_mut(), pd.rgb()) {
-            c.extend(rgb.map(|(r, g, b)| [r, g, b]));
+            intensity.push(u16_at(rec, 12));
+            if let (Some(c), Some(at)) = (colors.as_mut(), rgb_at) {
+                c.push([u16_at(rec, at), u16_at(rec, at + 2), u16_at(rec, at + 4)]);
+            }
         }
         progress.set(cloud.count() as f64 / total.max(1) as f64);
     }
@@ -591,5 +662,6 @@ pub fn write_las_with_crs(
 
 #[cfg(unix)]
 mod fused;
+mod pointwise;
 #[cfg(test)]
 mod tests;

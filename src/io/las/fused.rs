@@ -49,18 +49,6 @@ const LAYERED_CHUNKED: u16 = 3;
 /// files of near-identical points, which the `las`-crate path still reads.
 const MAX_POINTS_PER_BYTE: u64 = 16;
 
-/// Byte offset of RGB in a point record: 20 in formats 2 (after the 20-byte core), 28 in
-/// formats 3 and 5 (after GPS time), 30 in formats 7, 8 and 10 (ASPRS LAS 1.4 R15, tables 9–19).
-fn rgb_offset(fmt: &::las::point::Format) -> usize {
-    if fmt.is_extended {
-        30
-    } else if fmt.has_gps_time {
-        28
-    } else {
-        20
-    }
-}
-
 /// One chunk's work: where its compressed bytes are and where its points go.
 struct Job<'a> {
     /// First point of the chunk (index into the cloud).
@@ -102,6 +90,8 @@ struct Shared<'a> {
 /// parallel decode needs.
 struct Plan {
     vlr: LazVlr,
+    /// Layered compression (formats 6–10), else point-wise.
+    layered: bool,
     /// Bytes of one point record.
     record_len: usize,
     /// Byte offset of RGB in a record, when the format has colour.
@@ -165,7 +155,7 @@ fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoErro
     {
         return Ok(None);
     }
-    let rgb_at = fmt.has_color.then(|| rgb_offset(&fmt));
+    let rgb_at = fmt.has_color.then(|| super::rgb_offset(&fmt));
     if rgb_at.is_some_and(|at| at + 6 > record_len) {
         return Ok(None);
     }
@@ -246,6 +236,7 @@ fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoErro
     let offset = hlo.floor();
     Ok(Some(Plan {
         vlr,
+        layered,
         record_len,
         rgb_at,
         entries,
@@ -427,11 +418,14 @@ struct Buffers {
 
 /// Decodes one chunk into its slices.
 ///
-/// The chunk is decoded by `laz::par_decompress_selective` with a one-entry chunk table (it
-/// runs in this task: one chunk is one job). That function is not generic, so the decoder is
-/// the copy compiled inside laz-rs with its own (release) settings rather than one
-/// instantiated in this crate; against driving laz-rs's record decompressor point by point
-/// from here it measured 1–4 % less CPU on `plot10m.laz` (shared machine).
+/// A layered chunk is decoded by `laz::par_decompress_selective` with a one-entry chunk
+/// table (it runs in this task: one chunk is one job), without the GPS-time layer. That
+/// function is not generic, so the decoder is the copy compiled inside laz-rs with its own
+/// (release) settings rather than one instantiated in this crate; against driving laz-rs's
+/// record decompressor point by point from here it measured 1–4 % less CPU on `plot10m.laz`
+/// (shared machine). A point-wise chunk is decoded by Sylva's assembly of laz-rs's field
+/// decoders (`pointwise.rs`): laz-rs's own GPS-time decoder can overflow the stack on a
+/// hostile chunk.
 fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Buffers) -> Result<ChunkOut, IoError> {
     check_cancel(s.progress)?;
     let Job {
@@ -452,14 +446,23 @@ fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Buffers) -> Result<Chunk
         point_count: n,
         byte_count: bytes as u64,
     };
-    laz::par_decompress_selective(
-        &buf.compressed,
-        &mut buf.records,
-        &s.plan.vlr,
-        &[entry],
-        s.selection,
-    )
-    .map_err(|e| chunk_err(s.path, first, e))?;
+    if s.plan.layered {
+        laz::par_decompress_selective(
+            &buf.compressed,
+            &mut buf.records,
+            &s.plan.vlr,
+            &[entry],
+            s.selection,
+        )
+        .map_err(|e| chunk_err(s.path, first, e))?;
+    } else {
+        super::pointwise::decode_pointwise_chunk(
+            &buf.compressed,
+            s.plan.vlr.items(),
+            &mut buf.records,
+        )
+        .map_err(|e| chunk_err(s.path, first, e))?;
+    }
     let t = &s.plan.transforms;
     // Points of this chunk that fall among the cloud's first PROGRESS_STEP.
     let head = (PROGRESS_STEP as u64).saturating_sub(first) as usize;

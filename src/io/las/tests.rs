@@ -535,3 +535,263 @@ fn a_written_crs_is_declared_and_read_back() {
     write_las(&path, &sample(false), false).unwrap();
     assert_eq!(read_crs(&path).unwrap().unwrap(), None);
 }
+
+/// `n` GPS times that reach every branch of the GPS-time decoder: runs of repeats, steady
+/// steps, multiples of the step from −12 to 600 (every integer-decoder context), two and four
+/// interleaved sequences far apart (switches by 1, 2 and 3), five (more than the decoder
+/// keeps: new sequences) and random jumps.
+fn gps_times(n: usize) -> Vec<f64> {
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let mut seqs = [1.0e3, 4.0e5, 2.5e8, 7.7e6, 9.9e8];
+    let dt = 1e-5;
+    (0..n)
+        .map(|i| match (i / 2_500) % 7 {
+            0 => seqs[0] + (i / 7) as f64 * dt,
+            1 => {
+                seqs[0] += dt;
+                seqs[0]
+            }
+            2 => {
+                // A step of 1e-8 s keeps 600 of them within 32 bits of the time's f64 bits.
+                seqs[0] += ((next() % 613) as f64 - 12.0) * 1e-8;
+                seqs[0]
+            }
+            3 => {
+                let s = i % 2 * 2;
+                seqs[s] += dt;
+                seqs[s]
+            }
+            4 => {
+                let s = (next() % 4) as usize;
+                seqs[s] += dt * (1 + next() % 3) as f64;
+                seqs[s]
+            }
+            5 => {
+                let s = i % 5;
+                seqs[s] += dt;
+                seqs[s]
+            }
+            _ => (next() % 1_000_000_000) as f64 * 1e-3,
+        })
+        .collect()
+}
+
+/// An uncompressed LAS 1.2 file of point format `fmt` (1 or 3) whose points carry
+/// [`gps_times`].
+fn las_with_gps(path: &Path, fmt: u8, n: usize) {
+    let mut b = Builder::from((1, 2));
+    b.point_format = Format::new(fmt).unwrap();
+    let t = |offset: f64| Transform {
+        scale: 0.001,
+        offset,
+    };
+    b.transforms = Vector {
+        x: t(500_000.0),
+        y: t(6_000_000.0),
+        z: t(0.0),
+    };
+    let mut w = ::las::Writer::new(
+        BufWriter::new(File::create(path).unwrap()),
+        b.into_header().unwrap(),
+    )
+    .unwrap();
+    for (i, gps) in gps_times(n).into_iter().enumerate() {
+        let f = i as f64;
+        w.write_point(Point {
+            x: 500_000.0 + (f * 0.017) % 70.0,
+            y: 6_000_000.0 + (f * 0.0009) % 60.0,
+            z: 100.0 + (f * 0.31) % 30.0,
+            intensity: (i * 7 % 5_000) as u16,
+            gps_time: Some(gps),
+            color: (fmt == 3).then(|| Color::new(i as u16, (i * 5) as u16, 9)),
+            ..Default::default()
+        })
+        .unwrap();
+    }
+    w.close().unwrap();
+}
+
+/// Every record of a point-wise LAZ file as laz-rs's own decoder gives it (all fields, GPS
+/// time included): the reference for Sylva's decoder.
+fn laz_rs_records(bytes: &[u8]) -> Vec<u8> {
+    let start = u32::from_le_bytes(bytes[96..100].try_into().unwrap()) as u64;
+    let rec_len = u16::from_le_bytes([bytes[105], bytes[106]]) as usize;
+    let n = u32::from_le_bytes(bytes[107..111].try_into().unwrap()) as usize;
+    let vlr = laszip_vlr(bytes);
+    let mut src = std::io::Cursor::new(bytes);
+    src.set_position(start);
+    let mut d = laz::LasZipDecompressor::new(src, laz::LazVlr::from_buffer(vlr).unwrap()).unwrap();
+    let mut out = vec![0u8; n * rec_len];
+    d.decompress_many(&mut out).unwrap();
+    out
+}
+
+/// The LASzip VLR's body in a LAS 1.2 file (the first VLR, as [`recompress`] writes it).
+fn laszip_vlr(bytes: &[u8]) -> &[u8] {
+    let at = bytes
+        .windows(14)
+        .position(|w| w == b"laszip encoded")
+        .expect("LASzip VLR")
+        - 2;
+    let len = u16::from_le_bytes([bytes[at + 20], bytes[at + 21]]) as usize;
+    &bytes[at + 54..at + 54 + len]
+}
+
+#[test]
+fn sylvas_gps_time_decoder_matches_laz_rs_on_every_branch() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = 40_000;
+    for fmt in [1u8, 3] {
+        let las = dir.path().join(format!("f{fmt}.las"));
+        las_with_gps(&las, fmt, n);
+        let raw = std::fs::read(&las).unwrap();
+        for (what, chunks) in [
+            ("fixed chunks of 3,000", Err(3_000)),
+            ("variable chunks", Ok(&[9_000usize, 1, 17_000, 13_999][..])),
+        ] {
+            let bytes = recompress(&raw, chunks);
+            let path = dir.path().join(format!("f{fmt}.laz"));
+            std::fs::write(&path, &bytes).unwrap();
+            let truth = laz_rs_records(&bytes);
+            let rec_len = truth.len() / n;
+            // Every time made it through (the file holds the times written).
+            let times: Vec<f64> = truth
+                .chunks_exact(rec_len)
+                .map(|r| f64::from_le_bytes(r[20..28].try_into().unwrap()))
+                .collect();
+            assert!(times == gps_times(n), "{what}: laz-rs round trip");
+            let start = u32::from_le_bytes(bytes[96..100].try_into().unwrap()) as u64;
+            // The sequential reader, in batches that cross chunk boundaries.
+            let mut seq = pointwise::LazRecords::open(
+                &path,
+                laszip_vlr(&bytes),
+                start,
+                (n as u64, rec_len),
+                fmt == 3,
+            )
+            .unwrap();
+            let (mut got, mut buf) = (Vec::new(), Vec::new());
+            while seq.fill(4_321, &mut buf).unwrap() > 0 {
+                got.extend_from_slice(&buf);
+            }
+            assert!(
+                got == truth,
+                "format {fmt}, {what}: sequential records differ"
+            );
+            // The fused reader's chunk decoder, chunk by chunk from the table.
+            let vlr = laz::LazVlr::from_buffer(laszip_vlr(&bytes)).unwrap();
+            let mut src = std::io::Cursor::new(&bytes[..]);
+            src.set_position(start);
+            let table = laz::laszip::ChunkTable::read_from(&mut src, &vlr).unwrap();
+            let (mut at, mut first) = (start as usize + 8, 0usize);
+            let mut chunked = vec![0u8; truth.len()];
+            for (k, e) in table.as_ref().iter().enumerate() {
+                let points = if vlr.uses_variable_size_chunks() {
+                    e.point_count as usize
+                } else {
+                    (n - first).min(3_000)
+                };
+                let end = at + e.byte_count as usize;
+                pointwise::decode_pointwise_chunk(
+                    &bytes[at..end],
+                    vlr.items(),
+                    &mut chunked[first * rec_len..(first + points) * rec_len],
+                )
+                .unwrap_or_else(|e| panic!("format {fmt}, {what}, chunk {k}: {e}"));
+                (at, first) = (end, first + points);
+            }
+            assert_eq!(first, n);
+            assert!(
+                chunked == truth,
+                "format {fmt}, {what}: chunk records differ"
+            );
+            // And the whole reader.
+            let cloud = read_las(&path, &NoProgress).unwrap();
+            assert_eq!(cloud.len(), n);
+        }
+    }
+}
+
+/// A GPS-time stream of one raw first time and then `symbols` of the zero-difference model,
+/// as a LASzip encoder would write them (one 8-byte field per record).
+fn gps_stream(symbols: &[u32]) -> Vec<u8> {
+    let mut out = 1234.5f64.to_le_bytes().to_vec();
+    let mut enc = laz::encoders::ArithmeticEncoder::new(Vec::new());
+    let mut zero_diff = laz::models::ArithmeticModelBuilder::new(6).build();
+    for &s in symbols {
+        enc.encode_symbol(&mut zero_diff, s).unwrap();
+    }
+    enc.done().unwrap();
+    out.extend_from_slice(&enc.into_inner());
+    out
+}
+
+#[test]
+fn a_gps_time_stream_that_switches_sequence_without_end_is_refused() {
+    let item = laz::LazItemRecordBuilder::new()
+        .add_item(laz::LazItemType::GpsTime)
+        .build();
+    assert_eq!(item[0].version(), 2);
+    let decode = |symbols: &[u32], points: usize| {
+        let mut out = vec![0u8; 8 * points];
+        pointwise::decode_pointwise_chunk(&gps_stream(symbols), &item, &mut out).map(|()| out)
+    };
+    // Symbol 0 repeats the time; 3–5 switch by 1–3 sequences (every slot holds 0.0 but the
+    // first). One switch then a repeat: the second point is the other sequence's time, 0.
+    let out = decode(&[0, 3, 0], 3).unwrap();
+    let t = |k: usize| f64::from_le_bytes(out[8 * k..8 * k + 8].try_into().unwrap());
+    assert_eq!((t(0), t(1), t(2)), (1234.5, 1234.5, 0.0));
+    // MAX_SWITCHES switches for one point are decoded; one more is refused, not recursed.
+    let k = pointwise::MAX_SWITCHES as usize;
+    assert!(decode(&[[3].repeat(k), vec![0]].concat(), 2).is_ok());
+    let e = decode(&[4].repeat(100_000), 2).unwrap_err();
+    assert!(e.contains("corrupt GPS time"), "{e}");
+}
+
+/// The inputs that overflowed laz-rs's recursive GPS-time decoder (issue 43) are refused
+/// with an error, on a thread with a 256 KiB stack (a tenth of a worker thread's).
+#[test]
+fn fuzzed_gps_time_streams_are_refused_on_a_small_stack() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/regressions/laz");
+    let mut files: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("gps-recursion"))
+        })
+        .collect();
+    files.sort();
+    assert_eq!(files.len(), 18, "the 18 kept inputs");
+    let scratch = tempfile::tempdir().unwrap();
+    let errors = std::thread::Builder::new()
+        .stack_size(256 << 10)
+        .spawn(move || {
+            files
+                .iter()
+                .map(|f| {
+                    let path = scratch.path().join("in.laz");
+                    std::fs::copy(f, &path).unwrap();
+                    match read_las(&path, &NoProgress) {
+                        Ok(c) => panic!("{} read as {} points", f.display(), c.len()),
+                        Err(e) => e.to_string(),
+                    }
+                })
+                .collect::<Vec<_>>()
+        })
+        .unwrap()
+        .join()
+        .unwrap();
+    let gps = errors
+        .iter()
+        .filter(|e| e.contains("corrupt GPS time"))
+        .count();
+    assert!(gps > 0, "{errors:#?}");
+}
