@@ -425,7 +425,8 @@ struct Buffers {
 /// record decompressor point by point from here it measured 1–4 % less CPU on `plot10m.laz`
 /// (shared machine). A point-wise chunk is decoded by Sylva's assembly of laz-rs's field
 /// decoders (`pointwise.rs`): laz-rs's own GPS-time decoder can overflow the stack on a
-/// hostile chunk.
+/// hostile chunk. That costs 1.2 % more CPU on `plot10m.laz`'s 9.2 M points (4.61 against
+/// 4.56 CPU s for three decodes of every chunk each, alternated in one process, 2026-11-29).
 fn decode_chunk(s: &Shared<'_>, job: Job<'_>, buf: &mut Buffers) -> Result<ChunkOut, IoError> {
     check_cancel(s.progress)?;
     let Job {
