@@ -369,6 +369,9 @@ pub(crate) fn decoder_panic(path: &Path, panic: &(dyn std::any::Any + Send)) -> 
 /// allocate (70 MB at 70-byte records). LAStools and PDAL write chunks of 50 000.
 const MAX_EMPTY_CHUNK_POINTS: u64 = 1_000_000;
 
+/// Most bytes of raw records the sequential path decodes per call (16 MiB).
+const BATCH_BYTES: u64 = 16 << 20;
+
 /// Byte offset of RGB in a point record: 20 in format 2 (after the 20-byte core), 28 in
 /// formats 3 and 5 (after GPS time), 30 in formats 7, 8 and 10 (ASPRS LAS 1.4 R15, tables 9–19).
 pub(super) fn rgb_offset(fmt: &Format) -> usize {
@@ -467,13 +470,13 @@ pub fn read_las(path: &Path, progress: &dyn Progress) -> Result<PointCloud, IoEr
     {
         return Ok(cloud);
     }
-    read_las_crate(path, &info, progress)
+    read_las_sequential(path, &info, progress)
 }
 
 /// The sequential path of [`read_las`]: LAS (through the `las` crate), and LAZ that the
 /// fused reader leaves (no chunk table, unchunked compression, header bounds that miss the
 /// points).
-fn read_las_crate(
+fn read_las_sequential(
     path: &Path,
     info: &LasInfo,
     progress: &dyn Progress,
@@ -506,8 +509,9 @@ fn read_las_crate(
             offset: info.offset[2],
         },
     };
-    // Sequential LAZ decoding gains nothing from large calls; keep progress and cancel fine.
-    let batch = PROGRESS_STEP as u64;
+    // Sequential decoding gains nothing from large calls; keep progress and cancel fine, and
+    // a batch's records within 16 MiB whatever record length a header claims.
+    let batch = (PROGRESS_STEP as u64).min((BATCH_BYTES / u64::from(info.record_length)).max(1));
     loop {
         check_cancel(progress)?;
         let (raw, stride) = records.next(path, batch)?;

@@ -12,7 +12,7 @@
 //! layered point formats 6–10 only the layers we keep are decoded (x, y, z, intensity and
 //! RGB: laz-rs `DecompressionSelection`).
 //!
-//! The result is the same cloud as the `las`-crate path of [`super::read_las`] (same origin
+//! The result is the same cloud as the sequential path of [`super::read_las`] (same origin
 //! rule, same arithmetic, same colour and intensity rules); anything this reader does not
 //! handle makes it return `Ok(None)` so that the caller takes that path: files without a
 //! chunk table, point-wise (unchunked) compression, unknown compressor versions, header
@@ -40,14 +40,19 @@ use crate::progress::Progress;
 
 /// LASzip compressor type codes (first u16 of the LASzip VLR): 2 = point-wise chunked,
 /// 3 = layered chunked (LASzip's `laszip.hpp`; laz-rs `CompressorType`). Type 1 (one chunk
-/// without a table) is left to the `las` crate.
+/// without a table) is left to the sequential path (`pointwise.rs`).
 const POINTWISE_CHUNKED: u16 = 2;
 const LAYERED_CHUNKED: u16 = 3;
 
 /// Most points per compressed byte the fused reader preallocates for: real LAZ holds 0.1–0.5
 /// points per byte (`plot10m.laz`: 0.16), so 16 only turns away forged counts and degenerate
-/// files of near-identical points, which the `las`-crate path still reads.
+/// files of near-identical points, which the sequential path still reads.
 const MAX_POINTS_PER_BYTE: u64 = 16;
+
+/// Most bytes of records a chunk may decode to per compressed byte in the fused reader.
+/// LASzip's adaptive models code a byte that never changes in about 0.011 bits, so a chunk
+/// of constant extra bytes can expand about 700 times; 1,000 turns away only forged tables.
+const MAX_EXPANSION: u64 = 1_000;
 
 /// One chunk's work: where its compressed bytes are and where its points go.
 struct Job<'a> {
@@ -108,7 +113,7 @@ struct Plan {
 }
 
 /// Reads and checks the header, the LASzip VLR and the chunk table of `file`. `Ok(None)`
-/// when the file needs the `las`-crate path; an error only for a chunk table that lists more
+/// when the file needs the sequential path; an error only for a chunk table that lists more
 /// bytes than the file holds.
 fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoError> {
     let total = info.declared_points;
@@ -166,7 +171,7 @@ fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoErro
         return Ok(None);
     }
     // laz-rs reserves the table for its declared chunk count before reading it: leave counts
-    // the file cannot hold (each chunk starts with one raw record) to the `las` crate.
+    // the file cannot hold (each chunk starts with one raw record) to the sequential path.
     let file_len = file.metadata().map_err(|e| IoError::io(path, e))?.len();
     match declared_chunks(file, data_start) {
         Some(chunks) if chunks <= file_len / record_len as u64 => {}
@@ -213,14 +218,23 @@ fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoErro
         ));
     }
     // The columns are allocated up front for the declared count: leave implausibly dense
-    // files (more than MAX_POINTS_PER_BYTE points per compressed byte) to the `las` crate,
+    // files (more than MAX_POINTS_PER_BYTE points per compressed byte) to the sequential path,
     // which allocates only as points decode, so a forged count cannot claim the memory.
     if total > chunk_bytes.saturating_mul(MAX_POINTS_PER_BYTE) {
         return Ok(None);
     }
+    // Each task holds one chunk's decoded records at once: leave chunks that would decode to
+    // more than MAX_EXPANSION times their bytes (a hostile table or VLR: 50,000 points of
+    // 65,535-byte records is 3.3 GB) to the sequential path, which decodes in small batches.
+    if entries.iter().any(|e| {
+        e.point_count.saturating_mul(record_len as u64)
+            > e.byte_count.max(1).saturating_mul(MAX_EXPANSION)
+    }) {
+        return Ok(None);
+    }
 
     // Origin: the header's minimum corner floored to whole metres, valid only when the header
-    // box holds the first points (checked after decoding; else the las-crate path decides).
+    // box holds the first points (checked after decoding; else the sequential path decides).
     let (hlo, hhi) = (
         DVec3::from_array(info.bounds_min),
         DVec3::from_array(info.bounds_max),
@@ -247,7 +261,7 @@ fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoErro
     }))
 }
 
-/// Reads a LAZ file chunk-parallel; `Ok(None)` when the file needs the `las`-crate path.
+/// Reads a LAZ file chunk-parallel; `Ok(None)` when the file needs the sequential path.
 /// `info` is the already checked header ([`super::inspect_las`]).
 pub(super) fn read_laz_fused(
     path: &Path,

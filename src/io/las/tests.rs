@@ -255,7 +255,7 @@ fn fused(path: &Path) -> PointCloud {
 }
 
 fn crate_path(path: &Path) -> PointCloud {
-    read_las_crate(path, &inspect_las(path).unwrap(), &NoProgress).unwrap()
+    read_las_sequential(path, &inspect_las(path).unwrap(), &NoProgress).unwrap()
 }
 
 fn assert_identical(a: &PointCloud, b: &PointCloud, what: &str) {
