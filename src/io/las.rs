@@ -309,7 +309,7 @@ fn check_laz_chunks<R: Read + Seek>(
             .map_err(|e| IoError::format(path, format!("LAZ VLR: {e}")))?;
         read.seek(SeekFrom::Start(start))
             .map_err(|e| IoError::read(path, e, "LAZ chunk table"))?;
-        let table = laz::laszip::ChunkTable::read_from(&mut *read, &vlr)
+        let table = read_chunk_table(&mut *read, &vlr)
             .map_err(|e| IoError::format(path, format!("LAZ chunk table: {e}")))?;
         let most = declared.max(MAX_EMPTY_CHUNK_POINTS);
         let bytes: u64 = table
@@ -353,15 +353,36 @@ fn check_laz_chunks<R: Read + Seek>(
 /// A panic of the LAZ decoder (its assertions on its own state, which a hostile chunk can
 /// break; found by fuzzing, issue 43) as this file's fault.
 pub(crate) fn decoder_panic(path: &Path, panic: &(dyn std::any::Any + Send)) -> IoError {
-    let why = panic
+    IoError::format(
+        path,
+        format!(
+            "the point decoder failed on this file: {}",
+            panic_text(panic)
+        ),
+    )
+}
+
+/// What a caught panic says.
+fn panic_text(panic: &(dyn std::any::Any + Send)) -> &str {
+    panic
         .downcast_ref::<String>()
         .map(String::as_str)
         .or_else(|| panic.downcast_ref::<&str>().copied())
-        .unwrap_or("a fault");
-    IoError::format(
-        path,
-        format!("the point decoder failed on this file: {why}"),
-    )
+        .unwrap_or("a fault")
+}
+
+/// laz-rs's chunk-table reader (`read` at the point data's start), its panics returned as
+/// errors: the table's point counts are arithmetic-coded, and the decoder asserts on its
+/// own state, which a corrupt table breaks (found by fuzzing, issue 43).
+pub(super) fn read_chunk_table<R: Read + Seek>(
+    read: &mut R,
+    vlr: &laz::LazVlr,
+) -> Result<laz::laszip::ChunkTable, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        laz::laszip::ChunkTable::read_from(&mut *read, vlr)
+    }))
+    .map_err(|p| panic_text(p.as_ref()).to_string())?
+    .map_err(|e| e.to_string())
 }
 
 /// Largest fixed LAZ chunk (points) accepted beyond a file's declared point count: the

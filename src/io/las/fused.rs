@@ -177,7 +177,7 @@ fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoErro
         Some(chunks) if chunks <= file_len / record_len as u64 => {}
         _ => return Ok(None),
     }
-    let Ok(table) = ChunkTable::read_from(&mut read, &vlr) else {
+    let Ok(table) = super::read_chunk_table(&mut read, &vlr) else {
         return Ok(None);
     };
     let mut entries: Vec<ChunkTableEntry> = table.as_ref().to_vec();

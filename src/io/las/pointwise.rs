@@ -355,7 +355,7 @@ impl LazRecords {
                 } else {
                     // read_from leaves the reader after the 8-byte table offset when it fails
                     // only for want of a table (LASzip writers that could not seek back).
-                    match ChunkTable::read_from(&mut read, &vlr) {
+                    match super::read_chunk_table(&mut read, &vlr) {
                         Ok(table) => {
                             let mut at = data_start + ChunkTable::OFFSET_SIZE as u64;
                             let mut chunks = Vec::with_capacity(table.as_ref().len());
