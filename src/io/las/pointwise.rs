@@ -344,8 +344,13 @@ impl LazRecords {
                 if keep_rgb {
                     selection = selection.decompress_rgb();
                 }
-                let dec = LasZipDecompressor::selective(read, vlr, selection)
-                    .map_err(|e| IoError::format(path, format!("LAZ: {e}")))?;
+                // It reads the chunk table, whose decoder can panic on a corrupt one (see
+                // `read_chunk_table`).
+                let dec = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    LasZipDecompressor::selective(read, vlr, selection)
+                }))
+                .map_err(|p| super::decoder_panic(path, p.as_ref()))?
+                .map_err(|e| IoError::format(path, format!("LAZ: {e}")))?;
                 Decoder::Layered(Box::new(dec))
             }
             Some(c @ (POINTWISE | POINTWISE_CHUNKED)) => {
