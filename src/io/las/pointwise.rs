@@ -338,6 +338,19 @@ impl LazRecords {
         let compressor = vlr_data.get(0..2).map(|b| u16::from_le_bytes([b[0], b[1]]));
         let decoder = match compressor {
             Some(LAYERED_CHUNKED) => {
+                // laz-rs picks its decoder by the items' versions, not the compressor type:
+                // point-wise items here would reach its recursive GPS-time decoder (found by
+                // fuzzing, issue 43).
+                if let Some(item) = vlr.items().iter().find(|i| !matches!(i.version(), 3 | 4)) {
+                    return Err(IoError::format(
+                        path,
+                        format!(
+                            "the LAZ VLR declares layered compression but item {:?} is version {}, a point-wise one",
+                            item.item_type(),
+                            item.version()
+                        ),
+                    ));
+                }
                 let mut selection = DecompressionSelection::base()
                     .decompress_z()
                     .decompress_intensity();

@@ -782,7 +782,7 @@ fn a_gps_time_stream_that_switches_sequence_without_end_is_refused() {
 }
 
 /// The inputs that overflowed laz-rs's recursive GPS-time decoder (issue 43) are refused
-/// with an error, on a thread with a 256 KiB stack (a tenth of a worker thread's).
+/// with an error, on a thread with a 256 KiB stack (an eighth of a worker thread's).
 #[test]
 fn fuzzed_gps_time_streams_are_refused_on_a_small_stack() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/regressions/laz");
@@ -791,12 +791,14 @@ fn fuzzed_gps_time_streams_are_refused_on_a_small_stack() {
         .filter_map(Result::ok)
         .map(|e| e.path())
         .filter(|p| {
-            p.file_name()
-                .is_some_and(|n| n.to_string_lossy().starts_with("gps-recursion"))
+            p.file_name().is_some_and(|n| {
+                let n = n.to_string_lossy();
+                n.starts_with("gps-recursion") || n.starts_with("layered-pointwise-items")
+            })
         })
         .collect();
     files.sort();
-    assert_eq!(files.len(), 18, "the 18 kept inputs");
+    assert_eq!(files.len(), 20, "the 20 kept inputs");
     let scratch = tempfile::tempdir().unwrap();
     let errors = std::thread::Builder::new()
         .stack_size(256 << 10)
@@ -821,4 +823,11 @@ fn fuzzed_gps_time_streams_are_refused_on_a_small_stack() {
         .filter(|e| e.contains("corrupt GPS time"))
         .count();
     assert!(gps > 0, "{errors:#?}");
+    // Layered compression declared over point-wise items (which would reach laz-rs's
+    // recursive decoder by another door) is refused before decoding.
+    let layered = errors
+        .iter()
+        .filter(|e| e.contains("declares layered compression"))
+        .count();
+    assert_eq!(layered, 2, "{errors:#?}");
 }
