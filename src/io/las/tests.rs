@@ -293,28 +293,39 @@ fn fused_laz_reader_matches_the_las_crate_on_variable_size_chunks() {
     assert_close(&truth, &a);
 }
 
-#[test]
-fn fused_laz_reader_matches_the_las_crate_on_layered_format_7() {
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("f7.laz");
-    let mut b = Builder::from((1, 4));
-    let mut fmt = Format::new(7).unwrap();
-    fmt.is_compressed = true;
+/// A LAS writer of `version` and point format `fmt` at millimetre scale, x and y offset by
+/// `origin` (metres).
+fn las_writer(
+    path: &Path,
+    version: (u8, u8),
+    fmt: Format,
+    origin: (f64, f64),
+) -> ::las::Writer<BufWriter<File>> {
+    let mut b = Builder::from(version);
     b.point_format = fmt;
     let t = |offset: f64| Transform {
         scale: 0.001,
         offset,
     };
     b.transforms = Vector {
-        x: t(640_000.0),
-        y: t(4_100_000.0),
+        x: t(origin.0),
+        y: t(origin.1),
         z: t(0.0),
     };
-    let mut w = ::las::Writer::new(
-        BufWriter::new(File::create(&path).unwrap()),
+    ::las::Writer::new(
+        BufWriter::new(File::create(path).unwrap()),
         b.into_header().unwrap(),
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn fused_laz_reader_matches_the_las_crate_on_layered_format_7() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("f7.laz");
+    let mut fmt = Format::new(7).unwrap();
+    fmt.is_compressed = true;
+    let mut w = las_writer(&path, (1, 4), fmt, (640_000.0, 4_100_000.0));
     // 120,000 points: chunks of 50,000, the last one partial; GPS time and classification
     // vary so that the skipped layers hold data.
     let n = 120_000;
@@ -612,22 +623,12 @@ fn gps_times(n: usize) -> Vec<f64> {
 /// An uncompressed LAS 1.2 file of point format `fmt` (1 or 3) whose points carry
 /// [`gps_times`].
 fn las_with_gps(path: &Path, fmt: u8, n: usize) {
-    let mut b = Builder::from((1, 2));
-    b.point_format = Format::new(fmt).unwrap();
-    let t = |offset: f64| Transform {
-        scale: 0.001,
-        offset,
-    };
-    b.transforms = Vector {
-        x: t(500_000.0),
-        y: t(6_000_000.0),
-        z: t(0.0),
-    };
-    let mut w = ::las::Writer::new(
-        BufWriter::new(File::create(path).unwrap()),
-        b.into_header().unwrap(),
-    )
-    .unwrap();
+    let mut w = las_writer(
+        path,
+        (1, 2),
+        Format::new(fmt).unwrap(),
+        (500_000.0, 6_000_000.0),
+    );
     for (i, gps) in gps_times(n).into_iter().enumerate() {
         let f = i as f64;
         w.write_point(Point {
