@@ -309,8 +309,7 @@ fn check_laz_chunks<R: Read + Seek>(
             .map_err(|e| IoError::format(path, format!("LAZ VLR: {e}")))?;
         read.seek(SeekFrom::Start(start))
             .map_err(|e| IoError::read(path, e, "LAZ chunk table"))?;
-        let table = read_chunk_table(&mut *read, &vlr)
-            .map_err(|e| IoError::format(path, format!("LAZ chunk table: {e}")))?;
+        let table = read_chunk_table(path, &mut *read, &vlr)?;
         let most = declared.max(MAX_EMPTY_CHUNK_POINTS);
         let bytes: u64 = table
             .as_ref()
@@ -350,16 +349,20 @@ fn check_laz_chunks<R: Read + Seek>(
     Ok(())
 }
 
-/// A panic of the LAZ decoder (its assertions on its own state, which a hostile chunk can
-/// break; found by fuzzing, issue 43) as this file's fault.
-pub(crate) fn decoder_panic(path: &Path, panic: &(dyn std::any::Any + Send)) -> IoError {
-    IoError::format(
-        path,
-        format!(
-            "the point decoder failed on this file: {}",
-            panic_text(panic)
-        ),
-    )
+/// Runs one call into a point decoder, a panic of which is this file's fault, not the
+/// worker's end: laz-rs checks its own state with assertions and indexes its chunk table
+/// unchecked, and a hostile file breaks both (found by fuzzing, issue 43). The one place
+/// Sylva catches a decoder's panic; every LAS/LAZ decoder call goes through it.
+pub(crate) fn decoding<T>(path: &Path, call: impl FnOnce() -> T) -> Result<T, IoError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(call)).map_err(|panic| {
+        IoError::format(
+            path,
+            format!(
+                "the point decoder failed on this file: {}",
+                panic_text(panic.as_ref())
+            ),
+        )
+    })
 }
 
 /// What a caught panic says.
@@ -371,18 +374,16 @@ fn panic_text(panic: &(dyn std::any::Any + Send)) -> &str {
         .unwrap_or("a fault")
 }
 
-/// laz-rs's chunk-table reader (`read` at the point data's start), its panics returned as
-/// errors: the table's point counts are arithmetic-coded, and the decoder asserts on its
-/// own state, which a corrupt table breaks (found by fuzzing, issue 43).
+/// laz-rs's chunk-table reader (`read` at the point data's start), through [`decoding`]:
+/// the table's point counts are arithmetic-coded and a corrupt table breaks the decoder's
+/// assertions. Err when the table is missing, unreadable or corrupt.
 pub(super) fn read_chunk_table<R: Read + Seek>(
+    path: &Path,
     read: &mut R,
     vlr: &laz::LazVlr,
-) -> Result<laz::laszip::ChunkTable, String> {
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        laz::laszip::ChunkTable::read_from(&mut *read, vlr)
-    }))
-    .map_err(|p| panic_text(p.as_ref()).to_string())?
-    .map_err(|e| e.to_string())
+) -> Result<laz::laszip::ChunkTable, IoError> {
+    decoding(path, || laz::laszip::ChunkTable::read_from(&mut *read, vlr))?
+        .map_err(|e| IoError::format(path, format!("LAZ chunk table: {e}")))
 }
 
 /// Largest fixed LAZ chunk (points) accepted beyond a file's declared point count: the
@@ -455,22 +456,13 @@ impl Records {
 
     /// The next batch of at most `n` records and the record length; empty at the end.
     fn next(&mut self, path: &Path, n: u64) -> Result<(&[u8], usize), IoError> {
-        // Decoders check some of their own invariants with assertions, which a hostile file
-        // can break (found by fuzzing, issue 43): such a panic is this file's fault, reported
-        // as such, not the worker's end.
-        let caught = |panic: Box<dyn std::any::Any + Send>| decoder_panic(path, panic.as_ref());
         match self {
             Self::Las { reader, pd } => {
-                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    reader.fill_points(n, pd)
-                }))
-                .map_err(caught)?
-                .map_err(|e| las_err(path, e))?;
+                decoding(path, || reader.fill_points(n, pd))?.map_err(|e| las_err(path, e))?;
                 Ok((pd.raw_bytes(), pd.record_len()))
             }
             Self::Laz { laz, buf } => {
-                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| laz.fill(n, buf)))
-                    .map_err(caught)?
+                decoding(path, || laz.fill(n, buf))?
                     .map_err(|e| IoError::format(path, format!("bad LAZ point data: {e}")))?;
                 Ok((buf.as_slice(), laz.record_len()))
             }

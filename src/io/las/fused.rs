@@ -177,7 +177,7 @@ fn plan(file: &File, path: &Path, info: &LasInfo) -> Result<Option<Plan>, IoErro
         Some(chunks) if chunks <= file_len / record_len as u64 => {}
         _ => return Ok(None),
     }
-    let Ok(table) = super::read_chunk_table(&mut read, &vlr) else {
+    let Ok(table) = super::read_chunk_table(path, &mut read, &vlr) else {
         return Ok(None);
     };
     let mut entries: Vec<ChunkTableEntry> = table.as_ref().to_vec();
@@ -342,12 +342,7 @@ pub(super) fn read_laz_fused(
             if shared.failed.load(Ordering::Relaxed) {
                 return None;
             }
-            // The decoder's assertions on corrupt chunks panic: the file's fault, not the
-            // worker's end.
-            let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                decode_chunk(&shared, job, buf)
-            }))
-            .unwrap_or_else(|panic| Err(super::decoder_panic(path, panic.as_ref())));
+            let decoded = super::decoding(path, || decode_chunk(&shared, job, buf)).and_then(|r| r);
             match decoded {
                 Ok(out) => Some(out),
                 Err(e) => {

@@ -359,11 +359,9 @@ impl LazRecords {
                 }
                 // It reads the chunk table, whose decoder can panic on a corrupt one (see
                 // `read_chunk_table`).
-                let dec = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    LasZipDecompressor::selective(read, vlr, selection)
-                }))
-                .map_err(|p| super::decoder_panic(path, p.as_ref()))?
-                .map_err(|e| IoError::format(path, format!("LAZ: {e}")))?;
+                let dec =
+                    super::decoding(path, || LasZipDecompressor::selective(read, vlr, selection))?
+                        .map_err(|e| IoError::format(path, format!("LAZ: {e}")))?;
                 Decoder::Layered(Box::new(dec))
             }
             Some(c @ (POINTWISE | POINTWISE_CHUNKED)) => {
@@ -373,7 +371,7 @@ impl LazRecords {
                 } else {
                     // read_from leaves the reader after the 8-byte table offset when it fails
                     // only for want of a table (LASzip writers that could not seek back).
-                    match super::read_chunk_table(&mut read, &vlr) {
+                    match super::read_chunk_table(path, &mut read, &vlr) {
                         Ok(table) => {
                             let mut at = data_start + ChunkTable::OFFSET_SIZE as u64;
                             let mut chunks = Vec::with_capacity(table.as_ref().len());
@@ -390,10 +388,16 @@ impl LazRecords {
                                 )
                             }
                         }
-                        Err(_) if variable => {
+                        Err(e) if variable => {
+                            let why = match e {
+                                IoError::Format { fault, .. } => fault,
+                                other => other.to_string(),
+                            };
                             return Err(IoError::format(
                                 path,
-                                "LAZ with variable-size chunks needs its chunk table, which this file lacks",
+                                format!(
+                                    "LAZ with variable-size chunks needs its chunk table, which this file lacks or cannot decode ({why})"
+                                ),
                             ));
                         }
                         Err(_) => {
@@ -405,6 +409,8 @@ impl LazRecords {
                 };
                 let items = vlr.items().clone();
                 let mut dec = Box::new(SequentialPointRecordDecompressor::new(read));
+                // Refuses items Sylva cannot decode here, at open; `start_chunk` adds the
+                // fields afresh at each chunk (a reset decoder drops them).
                 add_pointwise_fields(&mut dec, &items).map_err(|e| IoError::format(path, e))?;
                 Decoder::PointWise {
                     dec,
