@@ -346,8 +346,8 @@ pub struct TrainParams {
     /// paper's term L_geo exactly as docs/method.md writes it, for the ablation) or "off".
     pub semantic: TrunkTerm,
     /// Sylva's binding: largest offset of a trunk Gaussian's centre from the LiDAR surface
-    /// along its normal, metres (default 0.001: the photos cannot place a stem to a pixel,
-    /// and a 1 cm band let them push the fitted Gaussians to its edge; see `splat::bind`).
+    /// along its normal, metres (default 0: the photos cannot place a stem to a pixel, and
+    /// push the fitted Gaussians to the inner edge of any band; see `splat::bind`).
     pub bind_band_m: f64,
     /// Sylva's binding: largest standard deviation of a trunk surfel along the normal, metres
     /// (default 0.005: half the LiDAR noise).

@@ -34,7 +34,7 @@ use crate::geom::surface::{SurfaceParams, surface_foot};
 
 /// Default largest offset of a bound centre from the LiDAR surface, metres (see
 /// [`BindConfig::band_m`]); `params.train.bind_band_m` takes it too.
-pub const DEFAULT_BAND_M: f64 = 0.001;
+pub const DEFAULT_BAND_M: f64 = 0.0;
 /// Default largest standard deviation of a bound Gaussian along the normal, metres (see
 /// [`BindConfig::normal_scale_m`]); `params.train.bind_normal_scale_m` takes it too.
 pub const DEFAULT_NORMAL_SCALE_M: f64 = 0.005;
@@ -47,11 +47,13 @@ pub struct BindConfig {
     /// `params.train.semantic = "bind"`, its default.
     pub enabled: bool,
     /// Largest offset of a bound Gaussian's centre from the LiDAR surface along the normal,
-    /// metres. Default 0.001 m, well inside docs/method.md's "within about max(voxel, LiDAR
-    /// noise)": the photos cannot place a stem surface to a pixel (centimetres at the budgets
-    /// measured), and with a 1 cm band on the raw anchors the Gaussians the DBH fit keeps sat
-    /// at one edge of it (−14.8 mm mean on `tiny` seed 1, 500 steps at 80 px; docs/results/twin.md,
-    /// "The twin you can measure"), a bias of 3 cm in diameter.
+    /// metres. Default 0 (on the surface): the photos cannot place a stem surface to a pixel
+    /// (centimetres at the budgets measured), and whatever band they are given they push the
+    /// Gaussians the DBH fit keeps to its inner edge — with 1 cm on the raw anchors −14.8 mm
+    /// mean (`tiny` seed 1, 500 steps at 80 px), a bias of 3 cm in diameter; with 1 mm, the
+    /// default until stop 55, the Gaussian DBH was 0.33 cm below the LiDAR's on average on
+    /// `tiny` seeds 21–24 (1000 steps at 160 px; docs/results/twin.md, "The Gaussian DBH on
+    /// unseen seeds").
     pub band_m: f32,
     /// Radius of the quadric patch of trunk anchors that gives the surface under each trunk
     /// anchor, metres ([`surface_anchors`]). Default 0.08 m, as `geom::surface`'s patches:
