@@ -6,6 +6,9 @@
 //! nearest cloud point, and to the plane through its 8 nearest), the on-cloud and elevated
 //! shares the verification scores, the scale and the cameras against their GPS positions.
 //!
+//! `REG_SPLIT=1` adds the precision the stage gates on (normal matrix and split halves) for
+//! the whole set and for subsets by track length and reprojection error.
+//!
 //! `cargo run --release --example register_real -- DIR`, e.g. after
 //! `sylva run --lidar model.laz --colmap proj --until ingest --out DIR`.
 
@@ -352,6 +355,45 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "cloud points more than {h} m above their 0.5 m cell's lowest: {:.3}",
             above as f64 / cloud.positions.len() as f64
         );
+    }
+    // The stage's precision gate reads the larger of the normal matrix and the split halves:
+    // both for all the SfM points and for subsets by track length and reprojection error
+    // (REG_SPLIT=1; REG_SPLIT=all for the whole set only).
+    if let Ok(which) = std::env::var("REG_SPLIT") {
+        let subsets: [Bin; 5] = [
+            ("all", Box::new(|_| true)),
+            ("track >= 3", Box::new(|i| model.points[i].track.len() >= 3)),
+            ("track >= 4", Box::new(|i| model.points[i].track.len() >= 4)),
+            ("error < 0.5 px", Box::new(|i| model.points[i].error < 0.5)),
+            ("track 2", Box::new(|i| model.points[i].track.len() == 2)),
+        ];
+        let count = if which == "all" { 1 } else { subsets.len() };
+        for (name, f) in subsets.iter().take(count) {
+            let sub: Vec<DVec3> = (0..sfm.len()).filter(|i| f(*i)).map(|i| sfm[i]).collect();
+            let rr = refine_on_surface(&sub, &st, &r.transform, None, &sp, 1, &NoProgress)?;
+            let s = sylva::geom::surface::split_half_spread(
+                &sub,
+                &st.thin,
+                &st.index,
+                &rr.transform,
+                &sp,
+                RegisterParams::default().uncertainty_splits as usize,
+                &NoProgress,
+            )?;
+            let apart = r.transform.inverse().then(&rr.transform);
+            println!(
+                "{name:>14}: {} points ({} on surfaces); normal matrix rotation {:.4?}° scale {:.4}%; \
+                 split halves rotation {:.4?}° scale {:.4}%; from the whole set's pose {:.4}°, {:+.4}%",
+                sub.len(),
+                rr.used,
+                rr.std_rotation_deg,
+                rr.std_scale * 100.0,
+                s.std_rotation_deg,
+                s.std_scale * 100.0,
+                apart.rotation_angle_deg(),
+                (apart.scale - 1.0) * 100.0
+            );
+        }
     }
     let rel = after_icp.inverse().then(&r.transform);
     println!(
