@@ -377,7 +377,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 &st.index,
                 &rr.transform,
                 &sp,
-                RegisterParams::default().uncertainty_splits as usize,
+                p.uncertainty_splits as usize,
                 &NoProgress,
             )?;
             let apart = r.transform.inverse().then(&rr.transform);
