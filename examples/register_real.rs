@@ -359,7 +359,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // The stage's precision gate reads the larger of the normal matrix and the split halves:
     // both for all the SfM points and for subsets by track length and reprojection error
     // (REG_SPLIT=1; REG_SPLIT=all for the whole set only).
-    if let Ok(which) = std::env::var("REG_SPLIT") {
+    // As the stage, no split halves when `uncertainty_splits` is 0.
+    if let Ok(which) = std::env::var("REG_SPLIT")
+        && p.uncertainty_splits > 0
+    {
         let subsets: [Bin; 5] = [
             ("all", Box::new(|_| true)),
             ("track >= 3", Box::new(|i| model.points[i].track.len() >= 3)),
