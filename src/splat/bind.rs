@@ -428,23 +428,21 @@ mod tests {
             leaf: vec![],
             n_pos: 2.0,
         };
-        let cloud: Vec<Vec3> = anchors.clone();
-        let index = crate::geom::PointIndex::new(&cloud).expect("index");
-        let params = SurfaceParams {
-            radius_m: 0.08,
-            max_radius_m: 0.08,
-            max_fit_rms_m: 0.02,
-            tangent_disc: disc,
-            ..SurfaceParams::default()
-        };
         let surface = if disc {
             surface_anchors(&set, &cfg())
         } else {
             // The ball patch of stop 56 and before, for the comparison.
-            let trunk = cloud
+            let index = crate::geom::PointIndex::new(&anchors).expect("index");
+            let params = SurfaceParams {
+                radius_m: 0.08,
+                max_radius_m: 0.08,
+                max_fit_rms_m: 0.02,
+                ..SurfaceParams::default()
+            };
+            let trunk = anchors
                 .iter()
                 .map(|p| {
-                    surface_foot(&cloud, &index, p.as_dvec3(), &params)
+                    surface_foot(&anchors, &index, p.as_dvec3(), &params)
                         .map_or(p.to_array(), |(f, _)| f.as_vec3().to_array())
                 })
                 .collect();
