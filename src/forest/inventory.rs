@@ -66,7 +66,8 @@ pub enum CloudKind {
     /// does not move it), no point is ground, and every height (breast height, total height)
     /// is measured from that plane. Every point above `crowns.min_height_m` is the tree's:
     /// a piece of crown the graph does not join goes to the nearest stem
-    /// (`crowns.assign_unreached`).
+    /// (`crowns.assign_unreached`). Where the plot's band tests find no stem, they are
+    /// relaxed ([`StemParams::for_one_tree`]) and the largest cluster is the stem.
     SegmentedTree,
 }
 
@@ -374,6 +375,29 @@ pub fn inventory(
         &params.stems,
         &SubProgress::new(progress, 0.8, 0.1),
     )?;
+    let stems = if stems.is_empty() && params.cloud == CloudKind::SegmentedTree {
+        progress.log(
+            "no stem passed the plot's band tests; the cloud is one tree, so its band's \
+             largest cluster is taken as its stem (the tests relaxed: StemParams::for_one_tree)",
+        );
+        let relaxed = detect_stems(
+            pts,
+            &heights,
+            &wood.labels,
+            &ground.is_ground,
+            &ground.dtm,
+            &params.stems.for_one_tree(),
+            &SubProgress::new(progress, 0.9, 0.0),
+        )?;
+        relaxed
+            .into_iter()
+            .max_by_key(|s| s.band_points)
+            .map(|s| Stem { id: 1, ..s })
+            .into_iter()
+            .collect()
+    } else {
+        stems
+    };
     if params.cloud == CloudKind::Auto {
         let (grounded, n) = check_stems_stand_on_ground(pts, &heights, &ground.is_ground, &stems)?;
         if n > 0 {

@@ -338,9 +338,14 @@ fn colour_joins_the_features_when_the_cloud_has_it() {
 /// cut out of its plot with z not normalised (PyTLidar's TreeQSM demo trees and AdTree's), read
 /// under `segment.cloud = "segmented_tree"`. The tree with the most points is the tree; its
 /// height must be within 0.5 m of the cloud's. Measured (2026-11-28, docs/results/inventory.md):
-/// within 0.05 m on every tree but AdTree's tree13, in which no stem is found (its stem is
-/// 7 k points of a thin street tree), so 7 of 8 trees must be found when all are here (a clean
-/// clone has three of them in tests/data/real, which are checked).
+/// within 0.07 m on every tree but AdTree's tree13, in which the plot's band tests found no
+/// stem (a sparse street scan: 40 stem points in the band, the stem hidden above 1.3 m). Since
+/// 2026-11-29 a `segmented_tree` cloud in which they find none is tried again with them relaxed
+/// (`StemParams::for_one_tree`), and tree13 is found within 0.01 m. AdTree's three street
+/// trees (mobile scans of Lille and Paris) joined the set then (within 0.01 m). All must be
+/// found when all are here (a clean clone has three of them in tests/data/real, which are
+/// checked). AdTree's `ahn3_delft.xyz` is not here: an airborne scan of a tree, with 16 of its
+/// 2,488 points under 3 m, it has no stem to measure.
 #[test]
 fn real_single_trees_have_the_height_of_their_cloud() {
     let cases = [
@@ -352,6 +357,12 @@ fn real_single_trees_have_the_height_of_their_cloud() {
         ("AdTree_trees/tree7.xyz", CloudKind::SegmentedTree),
         ("AdTree_trees/tree13.xyz", CloudKind::SegmentedTree),
         ("AdTree_trees/tree33.xyz", CloudKind::SegmentedTree),
+        ("AdTree_trees/Lille_11.xyz", CloudKind::SegmentedTree),
+        ("AdTree_trees/Lille_2.xyz", CloudKind::SegmentedTree),
+        (
+            "AdTree_trees/Paris_Luxembourg_1.xyz",
+            CloudKind::SegmentedTree,
+        ),
     ];
     let (mut found, mut missing) = (0, 0);
     let mut off = Vec::new();
@@ -402,8 +413,9 @@ fn real_single_trees_have_the_height_of_their_cloud() {
     );
     if missing == 0 {
         assert!(
-            found >= 7,
-            "{found} of 8 single trees found:\n{}",
+            found == cases.len(),
+            "{found} of {} single trees found:\n{}",
+            cases.len(),
             table.join("\n")
         );
     }
@@ -455,6 +467,65 @@ fn a_segmented_tree_is_measured_from_its_lowest_point() {
     );
     let (ha, hb) = (a.height_m.expect("height"), b.height_m.expect("height"));
     assert!((ha - hb).abs() < 0.3, "{ha} against {hb}");
+}
+
+/// A `segmented_tree` whose stem is hidden above 1.3 m (as AdTree's tree13: a street scan
+/// whose foliage hides the stem between 1.3 m and the crown) fails the plot's band tests (the
+/// band 1–2 m is 30 % filled), and is found with them relaxed (`StemParams::for_one_tree`),
+/// with the height of the whole cloud. Without the retry it has no row.
+#[test]
+fn a_segmented_tree_with_its_stem_hidden_above_breast_height_keeps_its_height() {
+    let plot = lidar_plot(
+        &SynthParams {
+            trees: Some(1),
+            lidar_rgb: false,
+            ..SynthParams::new(Preset::Tiny)
+        },
+        &NoProgress,
+    )
+    .expect("synth");
+    let foot = plot
+        .cloud
+        .positions
+        .iter()
+        .zip(&plot.labels)
+        .filter(|(_, l)| **l == Label::Wood as u8)
+        .map(|(p, _)| p.z)
+        .fold(f32::INFINITY, f32::min);
+    let mut cut = plot.cloud.clone();
+    cut.positions = cut
+        .positions
+        .iter()
+        .zip(&plot.labels)
+        .filter(|(p, l)| {
+            (**l == Label::Wood as u8 || **l == Label::Leaf as u8)
+                && !(1.3..2.5).contains(&(p.z - foot))
+        })
+        .map(|(p, _)| *p)
+        .collect();
+    cut.intensity = None;
+    let (lo, hi) = cut.bounds().expect("points");
+    let params = InventoryParams {
+        cloud: CloudKind::SegmentedTree,
+        ..InventoryParams::default()
+    };
+    let tree = inventory(&cut, &params, &NoProgress).expect("segmented tree");
+    assert_eq!(tree.trees.len(), 1, "{:?}", tree.trees);
+    let h = tree.trees[0].height_m.expect("height");
+    assert!(
+        (h - (hi.z - lo.z)).abs() < 0.3,
+        "{h} m against the cloud's {} m",
+        hi.z - lo.z
+    );
+    // The plot's tests alone find nothing in it.
+    let strict = InventoryParams {
+        cloud: CloudKind::Normalised,
+        ..InventoryParams::default()
+    };
+    let mut lifted = cut.clone();
+    lifted.offset.z -= lo.z; // bounds are in file coordinates
+    let plain = inventory(&lifted, &strict, &NoProgress).expect("normalised");
+    assert!(plain.trees.is_empty(), "{:?}", plain.trees);
 }
 
 /// Issue 40.1 on the inventory plot with the hidden-stem knob (every tree's upper stem hidden
