@@ -528,6 +528,49 @@ fn a_segmented_tree_with_its_stem_hidden_above_breast_height_keeps_its_height() 
     assert!(plain.trees.is_empty(), "{:?}", plain.trees);
 }
 
+/// Issue 40.1's gate on two `stand` plots with the hidden-stem knob at 3 m, each holding one
+/// of the two faults measured on them (2026-11-29, docs/results/inventory.md): on seed 4 the
+/// tallest tree's bridge landed on a branch beside its stem that the graph does not join to
+/// the stem above, so a neighbour took the stem and crown (14.87 m measured 6.33, RMSE 2.35 m);
+/// on seed 6 a neighbour's crown reaching in from one side made the stem below the gap look
+/// clothed, so no bridge stood (14.50 m measured 4.89, RMSE 2.58 m). Now 0.04 and 0.23 m.
+#[test]
+fn hidden_stems_under_touching_crowns_keep_their_heights() {
+    for seed in [4, 6] {
+        let plot = lidar_plot(
+            &SynthParams {
+                seed,
+                hidden_stem_m: Some(3.0),
+                lidar_rgb: false,
+                ..SynthParams::new(Preset::Stand)
+            },
+            &NoProgress,
+        )
+        .expect("synth");
+        let inv = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress).expect("inv");
+        let (mut sq, mut n) = (0.0, 0usize);
+        let mut worst = (0.0f64, 0u32);
+        for r in &inv.trees {
+            let Some(t) = plot.trees.iter().find(|t| {
+                let b = t.base + plot.cloud.offset;
+                (b.x - r.x).hypot(b.y - r.y) < 1.0
+            }) else {
+                continue;
+            };
+            let e = r.height_m.unwrap_or(0.0) - t.height_m;
+            sq += e * e;
+            n += 1;
+            if e.abs() > worst.0.abs() {
+                worst = (e, r.tree_id);
+            }
+        }
+        let rmse = (sq / n.max(1) as f64).sqrt();
+        println!("seed {seed}: height RMSE {rmse:.2} m over {n} trees, worst {worst:?}");
+        assert!(n >= 15, "seed {seed}: {n} trees matched");
+        assert!(rmse <= 0.5, "seed {seed}: RMSE {rmse} m, worst {worst:?}");
+    }
+}
+
 /// Issue 40.1 on the inventory plot with the hidden-stem knob (every tree's upper stem hidden
 /// over 0.3–3 m from its crown base up): the crowns come as pieces apart from their stems, and
 /// the bridges of the stems' columns give them back. Without bridges the heights are those of
