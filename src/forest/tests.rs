@@ -424,8 +424,9 @@ fn real_single_trees_have_the_height_of_their_cloud() {
 /// `segmented_tree` measures from the stem's lowest point: a generated tree with its ground cut
 /// away and lifted by 100 m gives the same height and DBH as the whole plot, where `auto`
 /// refuses it (its stem stands on no ground).
-#[test]
-fn a_segmented_tree_is_measured_from_its_lowest_point() {
+/// One generated `tiny` tree (its whole plot), and the tree alone: its wood and leaves, without
+/// the ground, stones and shrubs, as a segmented tree is shared.
+fn one_tree_cut_out() -> (crate::synth::LidarPlot, PointCloud) {
     let plot = lidar_plot(
         &SynthParams {
             trees: Some(1),
@@ -435,9 +436,6 @@ fn a_segmented_tree_is_measured_from_its_lowest_point() {
         &NoProgress,
     )
     .expect("synth");
-    let whole = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress).expect("plot");
-    assert_eq!(whole.trees.len(), 1, "{:?}", whole.trees);
-    // The tree alone: its wood and leaves, without the ground, stones and shrubs.
     let mut cut = plot.cloud.clone();
     cut.positions = cut
         .positions
@@ -447,6 +445,14 @@ fn a_segmented_tree_is_measured_from_its_lowest_point() {
         .map(|(p, _)| *p)
         .collect();
     cut.intensity = None;
+    (plot, cut)
+}
+
+#[test]
+fn a_segmented_tree_is_measured_from_its_lowest_point() {
+    let (plot, mut cut) = one_tree_cut_out();
+    let whole = inventory(&plot.cloud, &InventoryParams::default(), &NoProgress).expect("plot");
+    assert_eq!(whole.trees.len(), 1, "{:?}", whole.trees);
     cut.offset.z += 100.0;
     let auto = inventory(&cut, &InventoryParams::default(), &NoProgress);
     assert!(
@@ -475,35 +481,14 @@ fn a_segmented_tree_is_measured_from_its_lowest_point() {
 /// with the height of the whole cloud. Without the retry it has no row.
 #[test]
 fn a_segmented_tree_with_its_stem_hidden_above_breast_height_keeps_its_height() {
-    let plot = lidar_plot(
-        &SynthParams {
-            trees: Some(1),
-            lidar_rgb: false,
-            ..SynthParams::new(Preset::Tiny)
-        },
-        &NoProgress,
-    )
-    .expect("synth");
-    let foot = plot
-        .cloud
+    let (_, mut cut) = one_tree_cut_out();
+    let foot = cut
         .positions
         .iter()
-        .zip(&plot.labels)
-        .filter(|(_, l)| **l == Label::Wood as u8)
-        .map(|(p, _)| p.z)
+        .map(|p| p.z)
         .fold(f32::INFINITY, f32::min);
-    let mut cut = plot.cloud.clone();
-    cut.positions = cut
-        .positions
-        .iter()
-        .zip(&plot.labels)
-        .filter(|(p, l)| {
-            (**l == Label::Wood as u8 || **l == Label::Leaf as u8)
-                && !(1.3..2.5).contains(&(p.z - foot))
-        })
-        .map(|(p, _)| *p)
-        .collect();
-    cut.intensity = None;
+    cut.positions
+        .retain(|p| !(1.3..2.5).contains(&(p.z - foot)));
     let (lo, hi) = cut.bounds().expect("points");
     let params = InventoryParams {
         cloud: CloudKind::SegmentedTree,
