@@ -513,6 +513,18 @@ fn a_segmented_tree_with_its_stem_hidden_above_breast_height_keeps_its_height() 
     assert!(plain.trees.is_empty(), "{:?}", plain.trees);
 }
 
+/// The generator's tree standing within 1 m of an inventory row (`offset`: the cloud's).
+fn truth_at<'a>(
+    trees: &'a [TreeTruth],
+    offset: glam::DVec3,
+    row: &TreeRow,
+) -> Option<&'a TreeTruth> {
+    trees.iter().find(|t| {
+        let b = t.base + offset;
+        (b.x - row.x).hypot(b.y - row.y) < 1.0
+    })
+}
+
 /// Issue 40.1's gate on two `stand` plots with the hidden-stem knob at 3 m, each holding one
 /// of the two faults measured on them (2026-11-29, docs/results/inventory.md): on seed 4 the
 /// tallest tree's bridge landed on a branch beside its stem that the graph does not join to
@@ -536,10 +548,7 @@ fn hidden_stems_under_touching_crowns_keep_their_heights() {
         let (mut sq, mut n) = (0.0, 0usize);
         let mut worst = (0.0f64, 0u32);
         for r in &inv.trees {
-            let Some(t) = plot.trees.iter().find(|t| {
-                let b = t.base + plot.cloud.offset;
-                (b.x - r.x).hypot(b.y - r.y) < 1.0
-            }) else {
+            let Some(t) = truth_at(&plot.trees, plot.cloud.offset, r) else {
                 continue;
             };
             let e = r.height_m.unwrap_or(0.0) - t.height_m;
@@ -574,10 +583,7 @@ fn hidden_upper_stems_are_bridged_and_flagged() {
         let inv = inventory(&plot.cloud, params, &NoProgress).expect("inventory");
         let (mut sq, mut n, mut bridged) = (0.0, 0usize, 0usize);
         for r in &inv.trees {
-            let Some(t) = plot.trees.iter().find(|t| {
-                let b = t.base + plot.cloud.offset;
-                (b.x - r.x).hypot(b.y - r.y) < 1.0
-            }) else {
+            let Some(t) = truth_at(&plot.trees, plot.cloud.offset, r) else {
                 continue;
             };
             sq += (r.height_m.unwrap_or(0.0) - t.height_m).powi(2);
