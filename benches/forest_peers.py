@@ -185,6 +185,9 @@ SINGLE_TREES = [
     ("AdTree_trees/tree7.xyz", "segmented_tree"),
     ("AdTree_trees/tree13.xyz", "segmented_tree"),
     ("AdTree_trees/tree33.xyz", "segmented_tree"),
+    ("AdTree_trees/Lille_11.xyz", "segmented_tree"),
+    ("AdTree_trees/Lille_2.xyz", "segmented_tree"),
+    ("AdTree_trees/Paris_Luxembourg_1.xyz", "segmented_tree"),
 ]
 
 
