@@ -77,7 +77,9 @@ pub struct CrownParams {
     /// crown cut off from its stem is still reached through it.
     pub column_radius_m: f32,
     /// Shortest vertical gap in a column joined by such a bridge and reported as a gap,
-    /// metres (default 0.3: shorter ones the ordinary edges cross).
+    /// metres (default 0.3: shorter ones the ordinary edges cross). A bridge lands on every
+    /// column voxel within this height above its gap, not only the lowest (which may be a
+    /// branch beside the stem, joined to the branch and not to the stem above).
     pub gap_min_m: f32,
     /// Longest gap a column bridges, metres (default 5: above the 0.3–3 m of issue 40's
     /// independent generator; 0 turns the bridges off).
