@@ -1,11 +1,14 @@
 //! Tree heights and crowns against the generator's truth on `stand` seeds, for the tree
 //! segmentation's parameters (`forest::crowns`): height RMSE, crown-diameter error (mean and
-//! worst) and the segmentation's seconds, one row per seed and setting.
+//! worst), the share of the generator's tree points given to their own tree (its per-point
+//! owner, `LidarPlot::tree_of_point`) and the segmentation's seconds, one row per seed and
+//! setting.
 //!
 //! `cargo run --profile test --example crowns_bench -- [SEEDS] [key=value,key=value ...]`
 //! (SEEDS `5` for 1-5 or a range `6-10`; default 1-5 with the default parameters, then each
-//! setting given as `CrownParams` fields over the defaults, e.g. `edge_power=1,max_edge_m=0.5`). With `CROWNS_BENCH_TREES` set, every tree's figures go to stderr;
-//! `CROWNS_BENCH_HIDDEN_STEM_M` and `CROWNS_BENCH_INTERLOCK` turn on the generator's
+//! setting given as `CrownParams` fields over the defaults, e.g. `edge_power=1,max_edge_m=0.5`).
+//! With `CROWNS_BENCH_TREES` set, every tree's figures go to stderr (with who took its top and
+//! how many of its points no path reached); `CROWNS_BENCH_HIDDEN_STEM_M` and `CROWNS_BENCH_INTERLOCK` turn on the generator's
 //! hidden-stem and interlocking-crown knobs (`SynthParams::hidden_stem_m`, `crown_interlock`).
 
 use std::time::Instant;
@@ -34,8 +37,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         settings.push(serde_json::from_value(serde_json::Value::Object(obj))?);
     }
-    println!("| seed | setting | height RMSE m | crown error mean / worst % | trees | seconds |");
-    println!("|---|---|---|---|---|---|");
+    println!(
+        "| seed | setting | height RMSE m | crown error mean / worst % | tree points given to \
+         their tree % | trees | seconds |"
+    );
+    println!("|---|---|---|---|---|---|---|");
     for seed in first..=last {
         let mut p = SynthParams::new(Preset::Stand);
         p.seed = seed;
@@ -60,12 +66,89 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             )?;
             let secs = t.elapsed().as_secs_f64();
             let (mut sq, mut rel, mut worst, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
-            for (stem, tree) in inv.stems.iter().zip(&seg.trees) {
-                let truth = plot.trees.iter().find(|t| {
-                    let b = stem.base.as_dvec3();
-                    (t.base.x - b.x).hypot(t.base.y - b.y) < 1.0
-                });
-                let Some(truth) = truth else { continue };
+            // The generator's tree under each stem (its id), and the points' agreement with
+            // the generator's owner of each point.
+            let truth_of: Vec<Option<&sylva::synth::trees::TreeTruth>> = inv
+                .stems
+                .iter()
+                .map(|stem| {
+                    plot.trees.iter().find(|t| {
+                        let b = stem.base.as_dvec3();
+                        (t.base.x - b.x).hypot(t.base.y - b.y) < 1.0
+                    })
+                })
+                .collect();
+            let (mut agree, mut owned) = (0usize, 0usize);
+            for (&seg_t, &true_id) in seg.tree_of_point.iter().zip(&plot.tree_of_point) {
+                if true_id == 0 {
+                    continue;
+                }
+                owned += 1;
+                let id = truth_of
+                    .get(seg_t as usize)
+                    .copied()
+                    .flatten()
+                    .map_or(0, |t| t.id);
+                agree += usize::from(id == usize::from(true_id));
+            }
+            for (k, (stem, tree)) in inv.stems.iter().zip(&seg.trees).enumerate() {
+                let Some(truth) = truth_of[k] else { continue };
+                if std::env::var_os("CROWNS_BENCH_TREES").is_some() {
+                    // The tree's points by the generator: how many the segmentation gave it,
+                    // and who got its highest point.
+                    let mine = |i: usize| usize::from(plot.tree_of_point[i]) == truth.id;
+                    let (mut total, mut kept, mut top, mut top_i) = (0usize, 0usize, f32::MIN, 0);
+                    for i in 0..pts.len() {
+                        if mine(i) {
+                            total += 1;
+                            kept += usize::from(seg.tree_of_point[i] as usize == k);
+                            if pts[i].z > top {
+                                (top, top_i) = (pts[i].z, i);
+                            }
+                        }
+                    }
+                    let taken = seg.tree_of_point[top_i];
+                    let lost: Vec<f32> = (0..pts.len())
+                        .filter(|&i| mine(i) && seg.tree_of_point[i] == u32::MAX)
+                        .map(|i| pts[i].z - stem.base.z)
+                        .collect();
+                    if !lost.is_empty() {
+                        let (lo, hi) = lost
+                            .iter()
+                            .fold((f32::MAX, f32::MIN), |(a, b), &z| (a.min(z), b.max(z)));
+                        eprintln!(
+                            "  {} of its points reached by no path, {lo:.2}-{hi:.2} m up",
+                            lost.len()
+                        );
+                    }
+                    let given: usize = (0..pts.len())
+                        .filter(|&i| seg.tree_of_point[i] as usize == k && !mine(i))
+                        .count();
+                    // Horizontal distance of the top from a stem's axis, metres.
+                    let off = |s: &sylva::forest::Stem| {
+                        let p = pts[top_i];
+                        let a = if s.axis.z > 0.05 {
+                            s.axis
+                        } else {
+                            glam::Vec3::Z
+                        };
+                        (p - (s.base + a * ((p.z - s.base.z) / a.z)))
+                            .truncate()
+                            .length()
+                    };
+                    let taker = inv.stems.get(taken as usize);
+                    eprintln!(
+                        "seed {seed} stem {}: tree {} has {total} points, {kept} kept, {given} \
+                         of others taken; its top ({:.2} m up, {:.2} m off its axis) went to \
+                         stem {} ({:.2} m off its axis)",
+                        stem.id,
+                        truth.id,
+                        top - stem.base.z,
+                        off(stem),
+                        taker.map_or(-1, |s| s.id as i64),
+                        taker.map_or(f32::NAN, off),
+                    );
+                }
                 let crown_truth = 2.0 * (truth.crown_area_m2 / std::f64::consts::PI).sqrt();
                 sq += (tree.height_m - truth.height_m).powi(2);
                 if std::env::var_os("CROWNS_BENCH_TREES").is_some() {
@@ -86,10 +169,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 n += 1;
             }
             println!(
-                "| {seed} | {name} | {:.2} | {:.1} / {:.1} | {n} | {secs:.2} |",
+                "| {seed} | {name} | {:.2} | {:.1} / {:.1} | {:.1} | {n} | {secs:.2} |",
                 (sq / n.max(1) as f64).sqrt(),
                 100.0 * rel / n.max(1) as f64,
-                100.0 * worst
+                100.0 * worst,
+                100.0 * agree as f64 / owned.max(1) as f64
             );
         }
     }

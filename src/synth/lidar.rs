@@ -66,6 +66,9 @@ pub struct LidarScan {
     pub colors: Option<Vec<[u8; 3]>>,
     pub intensity: Vec<u16>,
     pub labels: Vec<u8>,
+    /// Per return: the id of the tree it hit (1-based, [`super::trees::TreeTruth::id`]), 0 for
+    /// ground, stones and shrubs.
+    pub owners: Vec<u16>,
     pub trajectory_length_m: f64,
     pub rays_cast: u64,
     pub laps: f64,
@@ -77,6 +80,7 @@ struct Return {
     rgb: [u8; 3],
     intensity: u16,
     label: u8,
+    owner: u16,
 }
 
 /// A closed polyline walked at constant speed.
@@ -231,6 +235,11 @@ pub fn scan(
                     rgb: linear_to_srgb(s.albedo * (0.55 + 0.45 * s.cos_incidence)),
                     intensity: (level.clamp(0.0, 1.0) * 65535.0) as u16,
                     label: s.material.label() as u8,
+                    owner: plot
+                        .scene
+                        .prims
+                        .get(hit.prim as usize)
+                        .map_or(0, |q| q.owner),
                 });
             }
         }
@@ -261,6 +270,7 @@ pub fn scan(
         colors: params.rgb.then(|| returns.iter().map(|r| r.rgb).collect()),
         intensity: returns.iter().map(|r| r.intensity).collect(),
         labels: returns.iter().map(|r| r.label).collect(),
+        owners: returns.iter().map(|r| r.owner).collect(),
         trajectory_length_m: walked,
         rays_cast: (next * BEAMS * FIRINGS_PER_TURN) as u64,
         laps,

@@ -346,6 +346,10 @@ pub struct LidarPlot {
     /// One label per point: 0 ground, 1 wood (stems and branches), 2 leaf, 3 other (stones,
     /// shrubs).
     pub labels: Vec<u8>,
+    /// One tree per point: the id of the tree the return hit (1-based, as
+    /// [`trees::TreeTruth::id`]), 0 for ground, stones and shrubs. The truth of a tree
+    /// segmentation.
+    pub tree_of_point: Vec<u16>,
     /// What is true of each tree (scene frame: add `cloud.offset` for file coordinates).
     pub trees: Vec<trees::TreeTruth>,
     /// Radius of the plot disc around the origin, metres.
@@ -372,6 +376,7 @@ pub fn lidar_plot(params: &SynthParams, progress: &dyn Progress) -> Result<Lidar
             format: CloudFormat::Laz,
         },
         labels: scan.labels,
+        tree_of_point: scan.owners,
         trees: plot.trees,
         radius_m: plot.radius_m,
     })
@@ -445,6 +450,7 @@ fn cover(mut scan: lidar::LidarScan, coverage: Option<f64>) -> lidar::LidarScan 
     }
     scan.positions = kept(scan.positions, &keep);
     scan.labels = kept(scan.labels, &keep);
+    scan.owners = kept(scan.owners, &keep);
     scan.intensity = kept(scan.intensity, &keep);
     scan.colors = scan.colors.map(|c| kept(c, &keep));
     scan
