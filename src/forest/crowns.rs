@@ -540,8 +540,8 @@ pub fn segment_trees_labelled(
 /// Gives each piece of voxels no path reached (joined by the graph's edges) of at least
 /// `attach_min_voxels` to the tree owning the reached voxel nearest to it, where that lies
 /// within `attach_m`, and marks its voxels as unreached (`gap` −1, see
-/// [`TreeCrown::top_unreached`]). Only the reached voxels within `attach_m` of a piece's
-/// bounds are indexed, so a plot with few pieces pays little for them.
+/// [`TreeCrown::top_unreached`]). Only the reached voxels in the `attach_m` cells around the
+/// pieces' cells are indexed, so a plot with few pieces pays little for them.
 fn attach_pieces(
     centres: &[Vec3],
     adj: &[(u32, f32)],
@@ -578,25 +578,28 @@ fn attach_pieces(
     if pieces.is_empty() {
         return Ok(());
     }
-    // The reached voxels that could be nearest to a piece: within `attach_m` of its bounds.
-    let reach = Vec3::splat(params.attach_m);
-    let bounds: Vec<(Vec3, Vec3)> = pieces
+    // The reached voxels that could be nearest to a piece: those in the cells of `attach_m`
+    // around the cells the pieces' voxels lie in.
+    let cell = |c: Vec3| (c / params.attach_m).floor().as_ivec3();
+    let piece_cells: std::collections::HashSet<glam::IVec3> = pieces
         .iter()
-        .map(|piece| {
-            piece.iter().fold(
-                (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-                |(lo, hi), &v| (lo.min(centres[v as usize]), hi.max(centres[v as usize])),
-            )
-        })
-        .map(|(lo, hi)| (lo - reach, hi + reach))
+        .flatten()
+        .map(|&v| cell(centres[v as usize]))
         .collect();
-    let near_a_piece = |c: Vec3| {
-        bounds
-            .iter()
-            .any(|(lo, hi)| c.cmpge(*lo).all() && c.cmple(*hi).all())
-    };
+    let mut near_cells = std::collections::HashSet::with_capacity(piece_cells.len() * 27);
+    for c in &piece_cells {
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for dz in -1..=1 {
+                    near_cells.insert(*c + glam::IVec3::new(dx, dy, dz));
+                }
+            }
+        }
+    }
     let reached: Vec<u32> = (0..owner.len() as u32)
-        .filter(|&v| owner[v as usize] != NO_TREE && near_a_piece(centres[v as usize]))
+        .filter(|&v| {
+            owner[v as usize] != NO_TREE && near_cells.contains(&cell(centres[v as usize]))
+        })
         .collect();
     if reached.is_empty() {
         return Ok(());
@@ -604,15 +607,19 @@ fn attach_pieces(
     let positions: Vec<Vec3> = reached.iter().map(|&v| centres[v as usize]).collect();
     let index = PointIndex::new(&positions)?;
     let reach2 = params.attach_m * params.attach_m;
-    for piece in &pieces {
-        let best = piece
-            .iter()
-            .filter_map(|&v| index.nearest(centres[v as usize]))
-            .min_by(|a, b| a.dist2.total_cmp(&b.dist2));
-        let Some(best) = best.filter(|b| b.dist2 <= reach2) else {
-            continue;
-        };
-        let t = owner[reached[best.index as usize] as usize];
+    let nearest: Vec<Option<u32>> = pieces
+        .par_iter()
+        .map(|piece| {
+            piece
+                .iter()
+                .filter_map(|&v| index.nearest(centres[v as usize]))
+                .min_by(|a, b| a.dist2.total_cmp(&b.dist2))
+                .filter(|b| b.dist2 <= reach2)
+                .map(|b| owner[reached[b.index as usize] as usize])
+        })
+        .collect();
+    for (piece, t) in pieces.iter().zip(nearest) {
+        let Some(t) = t else { continue };
         for &v in piece {
             owner[v as usize] = t;
             gap[v as usize] = -1.0;
