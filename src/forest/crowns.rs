@@ -102,9 +102,10 @@ pub struct CrownParams {
     /// and then this tree's, where the crowns touch. So where two trees' paths compete for
     /// the leaves of a contact, the one that came along wood wins. Measured on `stand` seeds
     /// 1–10 with `examples/crowns_bench.rs` (docs/results/inventory.md, issue 40): the share
-    /// of the generator's tree points given to their own tree rose on every seed (90.5 →
-    /// 91.4 % on seed 7, the worst), and with `attach_m` the height RMSE of seed 7 went from
-    /// 0.69 to 0.34 m; factor 2 gave 0.59 m there and no better figure on seeds 11–20.
+    /// of the generator's tree points given to their own tree rose on 8 seeds (90.5 → 91.5 %
+    /// on seed 7, the worst), stayed on one and fell 0.1 point on one; the height RMSE of
+    /// seed 7 went from 0.69 to 0.34 m. Factor 2 gave 0.59 m there, and on the check seeds
+    /// 11–20 no figure better than 4.
     pub leaf_edge_factor: f32,
     /// A piece of the cloud that no path reaches (a crown top scanned apart from the rest of
     /// its crown, the stretch between hidden by foliage) goes to the tree owning the reached
