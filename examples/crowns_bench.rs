@@ -98,12 +98,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     // and who got its highest point.
                     let mine = |i: usize| usize::from(plot.tree_of_point[i]) == truth.id;
                     let (mut total, mut kept, mut top, mut top_i) = (0usize, 0usize, f32::MIN, 0);
-                    for i in 0..pts.len() {
+                    for (i, p) in pts.iter().enumerate() {
                         if mine(i) {
                             total += 1;
                             kept += usize::from(seg.tree_of_point[i] as usize == k);
-                            if pts[i].z > top {
-                                (top, top_i) = (pts[i].z, i);
+                            if p.z > top {
+                                (top, top_i) = (p.z, i);
                             }
                         }
                     }
@@ -112,15 +112,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         .filter(|&i| mine(i) && seg.tree_of_point[i] == u32::MAX)
                         .map(|i| pts[i].z - stem.base.z)
                         .collect();
-                    if !lost.is_empty() {
-                        let (lo, hi) = lost
-                            .iter()
-                            .fold((f32::MAX, f32::MIN), |(a, b), &z| (a.min(z), b.max(z)));
-                        eprintln!(
-                            "  {} of its points reached by no path, {lo:.2}-{hi:.2} m up",
-                            lost.len()
-                        );
-                    }
                     let given: usize = (0..pts.len())
                         .filter(|&i| seg.tree_of_point[i] as usize == k && !mine(i))
                         .count();
@@ -148,6 +139,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         taker.map_or(-1, |s| s.id as i64),
                         taker.map_or(f32::NAN, off),
                     );
+                    if !lost.is_empty() {
+                        let (lo, hi) = lost
+                            .iter()
+                            .fold((f32::MAX, f32::MIN), |(a, b), &z| (a.min(z), b.max(z)));
+                        eprintln!(
+                            "  {} of its points reached by no path, {lo:.2}-{hi:.2} m up",
+                            lost.len()
+                        );
+                    }
                 }
                 let crown_truth = 2.0 * (truth.crown_area_m2 / std::f64::consts::PI).sqrt();
                 sq += (tree.height_m - truth.height_m).powi(2);
