@@ -901,11 +901,9 @@ mod tests {
         }
     }
 
-    /// Two "trees" 3 m apart: a vertical line of points (the stem, 0–6 m) topped by a disc of
-    /// radius 1 m at 6 m (the crown). Each crown goes to its own stem, heights and crown base
-    /// come out at the built values, and the crown's hull has the disc's area.
-    #[test]
-    fn two_trees_are_split_and_measured() {
+    /// Two "trees" 3 m apart at x = 0 and 3: a vertical line of points every 5 cm (the stem,
+    /// 0–6 m) topped by a [`crown_disc`]; with each stem's breast-height points (1–1.6 m).
+    fn two_trees() -> (Vec<Vec3>, [Vec<u32>; 2]) {
         let mut pts = Vec::new();
         let mut stems_pts = [Vec::new(), Vec::new()];
         for (t, x0) in [0.0f32, 3.0].into_iter().enumerate() {
@@ -918,6 +916,15 @@ mod tests {
             }
             crown_disc(&mut pts, x0);
         }
+        (pts, stems_pts)
+    }
+
+    /// Two "trees" 3 m apart: a vertical line of points (the stem, 0–6 m) topped by a disc of
+    /// radius 1 m at 6 m (the crown). Each crown goes to its own stem, heights and crown base
+    /// come out at the built values, and the crown's hull has the disc's area.
+    #[test]
+    fn two_trees_are_split_and_measured() {
+        let (mut pts, stems_pts) = two_trees();
         // A ground point and a lone point far away.
         pts.push(Vec3::new(1.5, 0.0, 0.0));
         pts.push(Vec3::new(20.0, 20.0, 3.0));
@@ -1094,18 +1101,7 @@ mod tests {
     /// higher up and a piece 6 m away from everything stay with no tree (issue 40).
     #[test]
     fn a_piece_of_crown_no_path_reaches_goes_to_the_tree_nearest_it() {
-        let mut pts = Vec::new();
-        let mut stems_pts = [Vec::new(), Vec::new()];
-        for (t, x0) in [0.0f32, 3.0].into_iter().enumerate() {
-            for k in 0..=120 {
-                let z = k as f32 * 0.05;
-                if (1.0..=1.6).contains(&z) {
-                    stems_pts[t].push(pts.len() as u32);
-                }
-                pts.push(Vec3::new(x0, 0.0, z));
-            }
-            crown_disc(&mut pts, x0);
-        }
+        let (mut pts, stems_pts) = two_trees();
         // A 0.5 m square of points at 7.8 m over x = 0.5 (25 voxels), and one 6 m from all.
         let piece = |pts: &mut Vec<Vec3>, x0: f32, z: f32| {
             let first = pts.len();
