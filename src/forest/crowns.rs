@@ -902,8 +902,9 @@ mod tests {
     }
 
     /// Two "trees" 3 m apart at x = 0 and 3: a vertical line of points every 5 cm (the stem,
-    /// 0–6 m) topped by a [`crown_disc`]; with each stem's breast-height points (1–1.6 m).
-    fn two_trees() -> (Vec<Vec3>, [Vec<u32>; 2]) {
+    /// 0–6 m) topped by a [`crown_disc`]; with their stems, seeded at the breast-height
+    /// points (1–1.6 m).
+    fn two_trees() -> (Vec<Vec3>, Vec<Stem>) {
         let mut pts = Vec::new();
         let mut stems_pts = [Vec::new(), Vec::new()];
         for (t, x0) in [0.0f32, 3.0].into_iter().enumerate() {
@@ -916,7 +917,8 @@ mod tests {
             }
             crown_disc(&mut pts, x0);
         }
-        (pts, stems_pts)
+        let [a, b] = stems_pts;
+        (pts, vec![stem_at(1, 0.0, a), stem_at(2, 3.0, b)])
     }
 
     /// Two "trees" 3 m apart: a vertical line of points (the stem, 0–6 m) topped by a disc of
@@ -924,7 +926,7 @@ mod tests {
     /// come out at the built values, and the crown's hull has the disc's area.
     #[test]
     fn two_trees_are_split_and_measured() {
-        let (mut pts, stems_pts) = two_trees();
+        let (mut pts, stems) = two_trees();
         // A ground point and a lone point far away.
         pts.push(Vec3::new(1.5, 0.0, 0.0));
         pts.push(Vec3::new(20.0, 20.0, 3.0));
@@ -932,10 +934,6 @@ mod tests {
         let mut ground = vec![false; pts.len()];
         let g = pts.len() - 2;
         ground[g] = true;
-        let stems = vec![
-            stem_at(1, 0.0, stems_pts[0].clone()),
-            stem_at(2, 3.0, stems_pts[1].clone()),
-        ];
         let seg = segment_trees(
             &pts,
             &heights,
@@ -1101,7 +1099,7 @@ mod tests {
     /// higher up and a piece 6 m away from everything stay with no tree (issue 40).
     #[test]
     fn a_piece_of_crown_no_path_reaches_goes_to_the_tree_nearest_it() {
-        let (mut pts, stems_pts) = two_trees();
+        let (mut pts, stems) = two_trees();
         // A 0.5 m square of points at 7.8 m over x = 0.5 (25 voxels), and one 6 m from all.
         let piece = |pts: &mut Vec<Vec3>, x0: f32, z: f32| {
             let first = pts.len();
@@ -1118,10 +1116,6 @@ mod tests {
         pts.push(Vec3::new(0.0, 0.0, 9.5));
         let heights: Vec<f32> = pts.iter().map(|p| p.z).collect();
         let ground = vec![false; pts.len()];
-        let stems = vec![
-            stem_at(1, 0.0, stems_pts[0].clone()),
-            stem_at(2, 3.0, stems_pts[1].clone()),
-        ];
         let seg = segment_trees(
             &pts,
             &heights,
