@@ -902,9 +902,9 @@ mod tests {
     }
 
     /// Two "trees" 3 m apart at x = 0 and 3: a vertical line of points every 5 cm (the stem,
-    /// 0–6 m) topped by a [`crown_disc`]; with their stems, seeded at the breast-height
-    /// points (1–1.6 m).
-    fn two_trees() -> (Vec<Vec3>, Vec<Stem>) {
+    /// 0–6 m), each topped by a [`crown_disc`] when `crowns`; with their stems, seeded at the
+    /// breast-height points (1–1.6 m).
+    fn two_trees(crowns: bool) -> (Vec<Vec3>, Vec<Stem>) {
         let mut pts = Vec::new();
         let mut stems_pts = [Vec::new(), Vec::new()];
         for (t, x0) in [0.0f32, 3.0].into_iter().enumerate() {
@@ -915,7 +915,9 @@ mod tests {
                 }
                 pts.push(Vec3::new(x0, 0.0, z));
             }
-            crown_disc(&mut pts, x0);
+            if crowns {
+                crown_disc(&mut pts, x0);
+            }
         }
         let [a, b] = stems_pts;
         (pts, vec![stem_at(1, 0.0, a), stem_at(2, 3.0, b)])
@@ -926,7 +928,7 @@ mod tests {
     /// come out at the built values, and the crown's hull has the disc's area.
     #[test]
     fn two_trees_are_split_and_measured() {
-        let (mut pts, stems) = two_trees();
+        let (mut pts, stems) = two_trees(true);
         // A ground point and a lone point far away.
         pts.push(Vec3::new(1.5, 0.0, 0.0));
         pts.push(Vec3::new(20.0, 20.0, 3.0));
@@ -1031,19 +1033,8 @@ mod tests {
     /// keeps all its leaves (issue 40).
     #[test]
     fn leaves_where_crowns_touch_stay_with_the_tree_whose_wood_reaches_them() {
-        let mut pts = Vec::new();
-        let mut wood = Vec::new();
-        let mut stems_pts = [Vec::new(), Vec::new()];
-        for (t, x0) in [0.0f32, 3.0].into_iter().enumerate() {
-            for k in 0..=120 {
-                let z = k as f32 * 0.05;
-                if (1.0..=1.6).contains(&z) {
-                    stems_pts[t].push(pts.len() as u32);
-                }
-                pts.push(Vec3::new(x0, 0.0, z));
-                wood.push(super::super::TRUNK);
-            }
-        }
+        let (mut pts, stems) = two_trees(false);
+        let mut wood = vec![super::super::TRUNK; pts.len()];
         // Stem 0's branch (x 0.05..1.0) and leaves (1.05..1.75); stem 1's leaves (1.8..2.95).
         let mut leaves_of_0 = Vec::new();
         for k in 1..=59 {
@@ -1060,10 +1051,6 @@ mod tests {
         }
         let heights: Vec<f32> = pts.iter().map(|p| p.z).collect();
         let ground = vec![false; pts.len()];
-        let stems = vec![
-            stem_at(1, 0.0, stems_pts[0].clone()),
-            stem_at(2, 3.0, stems_pts[1].clone()),
-        ];
         let run = |p: &CrownParams| {
             segment_trees_labelled(&pts, &heights, &ground, Some(&wood), &stems, p, &NoProgress)
                 .expect("segment")
@@ -1099,7 +1086,7 @@ mod tests {
     /// higher up and a piece 6 m away from everything stay with no tree (issue 40).
     #[test]
     fn a_piece_of_crown_no_path_reaches_goes_to_the_tree_nearest_it() {
-        let (mut pts, stems) = two_trees();
+        let (mut pts, stems) = two_trees(true);
         // A 0.5 m square of points at 7.8 m over x = 0.5 (25 voxels), and one 6 m from all.
         let piece = |pts: &mut Vec<Vec3>, x0: f32, z: f32| {
             let first = pts.len();
