@@ -901,6 +901,17 @@ mod tests {
         }
     }
 
+    /// [`segment_trees`] of a scene on flat ground at z = 0 (heights are the points' z).
+    fn segment_by_z(
+        pts: &[Vec3],
+        ground: &[bool],
+        stems: &[Stem],
+        p: &CrownParams,
+    ) -> TreeSegmentation {
+        let heights: Vec<f32> = pts.iter().map(|q| q.z).collect();
+        segment_trees(pts, &heights, ground, stems, p, &NoProgress).expect("segment")
+    }
+
     /// Two "trees" 3 m apart at x = 0 and 3: a vertical line of points every 5 cm (the stem,
     /// 0–6 m), each topped by a [`crown_disc`] when `crowns`; with their stems, seeded at the
     /// breast-height points (1–1.6 m).
@@ -932,19 +943,10 @@ mod tests {
         // A ground point and a lone point far away.
         pts.push(Vec3::new(1.5, 0.0, 0.0));
         pts.push(Vec3::new(20.0, 20.0, 3.0));
-        let heights: Vec<f32> = pts.iter().map(|p| p.z).collect();
         let mut ground = vec![false; pts.len()];
         let g = pts.len() - 2;
         ground[g] = true;
-        let seg = segment_trees(
-            &pts,
-            &heights,
-            &ground,
-            &stems,
-            &CrownParams::default(),
-            &NoProgress,
-        )
-        .expect("segment");
+        let seg = segment_by_z(&pts, &ground, &stems, &CrownParams::default());
         for (i, p) in pts.iter().enumerate() {
             let t = seg.tree_of_point[i];
             if i >= g {
@@ -1101,17 +1103,8 @@ mod tests {
         let far = piece(&mut pts, 10.0, 6.0);
         let lone = pts.len();
         pts.push(Vec3::new(0.0, 0.0, 9.5));
-        let heights: Vec<f32> = pts.iter().map(|p| p.z).collect();
         let ground = vec![false; pts.len()];
-        let seg = segment_trees(
-            &pts,
-            &heights,
-            &ground,
-            &stems,
-            &CrownParams::default(),
-            &NoProgress,
-        )
-        .expect("segment");
+        let seg = segment_by_z(&pts, &ground, &stems, &CrownParams::default());
         assert!(above.clone().all(|i| seg.tree_of_point[i] == 0));
         assert!(far.clone().all(|i| seg.tree_of_point[i] == NO_TREE));
         assert_eq!(seg.tree_of_point[lone], NO_TREE);
@@ -1125,8 +1118,7 @@ mod tests {
             attach_m: 0.0,
             ..CrownParams::default()
         };
-        let seg =
-            segment_trees(&pts, &heights, &ground, &stems, &off, &NoProgress).expect("segment");
+        let seg = segment_by_z(&pts, &ground, &stems, &off);
         assert!(above.clone().all(|i| seg.tree_of_point[i] == NO_TREE));
         assert!((seg.trees[0].height_m - 6.2).abs() < 1e-4);
     }
