@@ -115,7 +115,9 @@ pub trait Backend {
     /// here); empty without exposures.
     fn exposures(&mut self) -> Result<Vec<[f32; EXPOSURE_FLOATS]>, TrainError>;
     /// Renders the current model from `camera` with the learned exposure of image `index`
-    /// applied (RGB, row-major).
+    /// applied (RGB, row-major), with the options of [`Backend::set_render_options`] as
+    /// [`Backend::render`]: the held-out metrics with exposure compensation are of the mode
+    /// the model was trained in.
     fn render_exposed(
         &mut self,
         camera: &Camera,
@@ -140,7 +142,8 @@ pub trait Backend {
     /// Installs LiDAR depth maps of the training views and the weight of the depth loss
     /// ([`crate::splat::depth`]); a weight of 0 turns the loss off.
     fn set_depth_targets(&mut self, targets: DepthTargets) -> Result<(), TrainError>;
-    /// Renders the expected depth Σ T α z from `camera`, metres per pixel (row-major).
+    /// Renders the expected depth Σ T α z from `camera`, metres per pixel (row-major), with the
+    /// options of [`Backend::set_render_options`].
     fn render_depth(&mut self, camera: &Camera) -> Result<Vec<f32>, TrainError>;
     /// dL/d(mean) of the latest step, per Gaussian (photometric plus L_geo when it is on);
     /// a GPU backend reads it back here, so call it only now and then (diagnostics).
@@ -412,7 +415,8 @@ impl Backend for CpuBackend {
         index: usize,
     ) -> Result<Vec<[f32; 3]>, TrainError> {
         check_slot(index, self.exposure.len())?;
-        let render = cpu::render(&self.model, camera, self.background).map_err(invalid)?;
+        let render = cpu::render_with(&self.model, camera, self.background, self.options)
+            .map_err(invalid)?;
         let e = self.exposure.params[index].map(f64::from);
         let out = cpu::exposure::apply(render.image_f64(), &e, camera.width as usize, None);
         Ok(out.iter().map(|p| p.map(|v| v as f32)).collect())
@@ -454,9 +458,11 @@ impl Backend for CpuBackend {
     }
 
     fn render_depth(&mut self, camera: &Camera) -> Result<Vec<f32>, TrainError> {
-        Ok(cpu::render(&self.model, camera, self.background)
-            .map_err(invalid)?
-            .depth)
+        Ok(
+            cpu::render_with(&self.model, camera, self.background, self.options)
+                .map_err(invalid)?
+                .depth,
+        )
     }
 
     fn position_grads(&mut self) -> Result<Vec<[f32; 3]>, TrainError> {

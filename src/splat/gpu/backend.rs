@@ -521,7 +521,7 @@ impl Backend for GpuBackend {
         self.exposure_for(index)?;
         let pixels = camera.width as usize * camera.height as usize;
         self.exposure_scratch_for(pixels)?;
-        let frame = self.frame(camera, RenderOptions::default())?;
+        let frame = self.frame(camera, self.options)?;
         let (Some(ex), Some(sc)) = (self.exposure.as_ref(), self.exposure_scratch.as_ref()) else {
             return Err(TrainError::Invalid(
                 "internal: missing exposure buffers".into(),
@@ -592,7 +592,7 @@ impl Backend for GpuBackend {
     }
 
     fn render_depth(&mut self, camera: &Camera) -> Result<Vec<f32>, TrainError> {
-        let frame = self.frame(camera, RenderOptions::default())?;
+        let frame = self.frame(camera, self.options)?;
         Ok(frame.read_depth(&self.ctx)?)
     }
 
