@@ -50,8 +50,8 @@ pub struct TrainArgs {
     pub seed: u64,
     /// Anti-aliased rasterisation, on or off: Mip-Splatting's 2-D filter (a 0.3 px² blur with
     /// opacity compensation) for training and the held-out renders; off is the reference
-    /// 3DGS dilation.
-    #[arg(long, env = "SYLVA_TRAIN_ANTIALIAS", default_value = "off")]
+    /// 3DGS dilation. On by default, as for jobs (`params.train.antialias`).
+    #[arg(long, env = "SYLVA_TRAIN_ANTIALIAS", default_value = "on")]
     pub antialias: String,
     /// With `--init sfm`, add Gaussians where the training photos see what no SfM point
     /// covers (`splat::init::fill_uncovered`: dense canopy from above, sky, walls): `on`

@@ -9,8 +9,12 @@
 //! Sylva's binding), `bind-nosky` (the binding, the SfM points beyond the LiDAR filling the
 //! start, `params.train.sfm_fill_m`) and `bind` (Sylva's default: that and the sky dome,
 //! `params.train.sky_gaussians`), `bind-mcmc` (`bind` with the MCMC strategy,
-//! `params.train.strategy`) and `bind-depth` (`bind` with the LiDAR depth loss,
-//! `params.train.depth_weight` = `--method-depth-weight`). Stages ingest to segment run once per plot; each arm then runs train
+//! `params.train.strategy`), `bind-depth` (`bind` with the LiDAR depth loss,
+//! `params.train.depth_weight` = `--method-depth-weight`), `bind-exposure` (`bind` with
+//! per-image exposure compensation) and `bind-dilation` (`bind` rendered with the reference
+//! 3DGS dilation instead of the 2-D Mip filter, `params.train.antialias` off). The arms with
+//! Sylva's binding render as Sylva's jobs do, with the Mip filter; `vanilla`, `lidar` and
+//! `paper` with the reference dilation, as the reference trainer and the paper do. Stages ingest to segment run once per plot; each arm then runs train
 //! and dbh in its own folder beside them. Per arm, pooled over the plots:
 //!
 //! - held-out PSNR and SSIM (mean over plots), Gaussians at the end, wall time of train + dbh;
@@ -60,7 +64,7 @@ pub struct MethodBenchArgs {
     pub method_seeds: String,
     /// method: arms, comma-separated, among nerf (the paper's NeRF baseline, src/nerf; given
     /// the 3DGS arms' wall time; not in the default list, its held-out renders take minutes on
-    /// a CPU or software GPU), vanilla, lidar, paper, bind-lidar, bind-nosky, bind, bind-aa,
+    /// a CPU or software GPU), vanilla, lidar, paper, bind-lidar, bind-nosky, bind, bind-dilation,
     /// bind-exposure, bind-mcmc, bind-depth.
     #[arg(
         long,
@@ -132,7 +136,8 @@ struct Arm {
     /// Per-image exposure compensation (`params.train.exposure`): on in `bind-exposure` only
     /// (its PSNR and SSIM are then of the held-out right halves).
     exposure: bool,
-    /// Mip-Splatting's 2-D filter (`params.train.antialias`): on in `bind-aa` only.
+    /// Mip-Splatting's 2-D filter (`params.train.antialias`): on in the arms with Sylva's
+    /// binding but `bind-dilation`, as in Sylva's jobs.
     antialias: bool,
 }
 
@@ -152,7 +157,10 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
         "vanilla" => paper(InitSource::Sfm, TrunkTerm::Off),
         "lidar" => paper(InitSource::Lidar, TrunkTerm::Off),
         "paper" => paper(InitSource::Lidar, TrunkTerm::Paper),
-        "bind-lidar" => paper(InitSource::Lidar, TrunkTerm::Bind),
+        "bind-lidar" => Arm {
+            antialias: true,
+            ..paper(InitSource::Lidar, TrunkTerm::Bind)
+        },
         "bind-nosky" => Arm {
             sky: Some(0),
             ..arm("bind")?
@@ -165,10 +173,10 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
             strategy: DensifyStrategy::Default,
             depth: false,
             exposure: false,
-            antialias: false,
-        },
-        "bind-aa" => Arm {
             antialias: true,
+        },
+        "bind-dilation" => Arm {
+            antialias: false,
             ..arm("bind")?
         },
         "bind-exposure" => Arm {
@@ -184,7 +192,7 @@ fn arm(name: &str) -> anyhow::Result<Arm> {
             ..arm("bind")?
         },
         other => anyhow::bail!(
-            "unknown arm {other:?}: vanilla, lidar, paper, bind-lidar, bind-nosky, bind, bind-aa, bind-exposure, bind-mcmc or bind-depth"
+            "unknown arm {other:?}: vanilla, lidar, paper, bind-lidar, bind-nosky, bind, bind-dilation, bind-exposure, bind-mcmc or bind-depth"
         ),
     })
 }
@@ -292,10 +300,13 @@ fn run_arm(
     } else {
         String::new()
     };
+    // The filter is in the name: folders of runs made before the Mip filter became the
+    // binding arms' default (rendered with the dilation) are not reused for them.
+    let filter = if arm.antialias { "-mip" } else { "" };
     let out = arm_dir(
         dir,
         &format!(
-            "{name}-{steps}-{}-{}{weight}",
+            "{name}-{steps}-{}-{}{weight}{filter}",
             a.method_resolution, a.method_cap
         ),
     )?;

@@ -401,8 +401,12 @@ pub struct TrainParams {
     /// Anti-aliased rasterisation: Mip-Splatting's 2-D filter (Yu et al. 2024; gsplat's
     /// "antialiased" mode), a 0.3 px² screen-space blur whose opacity compensation dims
     /// Gaussians smaller than a pixel instead of enlarging them, for training and the
-    /// held-out renders alike (default false: the reference 3DGS dilation). The exported
-    /// splat files do not record it; viewers render them with their own filter.
+    /// held-out renders alike. Default true (Sylva's; the reference 3DGS dilation, without
+    /// compensation, is `false`): the dilation draws a trunk's sub-pixel Gaussians wider than
+    /// the surface they stand on, the photos pull them inside it, and the DBH measured on
+    /// them comes out small; measured in docs/results/twin.md (issue 40, "The Gaussian DBH
+    /// on unseen seeds"). The exported splat files do not record it; viewers render them
+    /// with their own filter.
     pub antialias: bool,
     /// Per-image exposure compensation (docs/splatting.md "Exposure"; the reference trainer's
     /// `train_test_exp`): each photo gets a learned affine colour transform applied to its
@@ -492,7 +496,7 @@ impl Default for TrainParams {
             depth_weight: 0.0,
             backend: TrainBackend::Gpu,
             seed: 0,
-            antialias: false,
+            antialias: true,
             exposure: true,
             exposure_lr_init: config::DEFAULT_LR_EXPOSURE_INIT,
             exposure_lr_final: config::DEFAULT_LR_EXPOSURE_FINAL,
@@ -616,11 +620,20 @@ mod tests {
     #[test]
     fn antialias_reaches_the_training_config() {
         let p: PipelineParams =
-            serde_json::from_value(serde_json::json!({"train": {"antialias": true}}))
+            serde_json::from_value(serde_json::json!({"train": {"antialias": false}}))
                 .expect("valid params");
-        assert!(p.train.config().antialias);
-        assert!(p.train.config().render_options().antialias);
-        assert!(!PipelineParams::default().train.config().antialias);
+        assert!(!p.train.config().antialias);
+        assert!(!p.train.config().render_options().antialias);
+        // On by default for jobs (the library's reference `TrainConfig` keeps the dilation).
+        assert!(PipelineParams::default().train.config().antialias);
+        assert!(
+            PipelineParams::default()
+                .train
+                .config()
+                .render_options()
+                .antialias
+        );
+        assert!(!crate::splat::config::TrainConfig::default().antialias);
     }
 
     #[test]
