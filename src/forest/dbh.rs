@@ -415,8 +415,13 @@ pub fn measure_dbh_of(src: &SliceSource<'_>, params: &DbhParams) -> Option<StemD
         };
         // A partial arc at 1.3 m gives way to a full, acceptable neighbouring slice — unless a
         // centre prior holds the arc's centre (the Gaussian fit): then another height would
-        // trade a held arc for the stem's taper (about 1 cm of diameter per 40 cm).
-        if q == FitQuality::Good || src.center_prior.is_some() {
+        // trade a held arc for the stem's taper (about 1 cm of diameter per 40 cm). Not an arc
+        // under a quarter of the circle ([`MIN_STEM_ARC`]), the least a stem shows: the prior
+        // then holds little more than a few points' distance from the LiDAR centre (measured on
+        // `stand` seed 11: 8 branch Gaussians on a sixth of the arc, 4.5 cm outside the stem,
+        // taken for its diameter; docs/results/twin.md).
+        if q == FitQuality::Good || (src.center_prior.is_some() && b.0.arc_coverage >= MIN_STEM_ARC)
+        {
             return Some(make(b, params.breast_height_m, q));
         }
     }
@@ -435,6 +440,7 @@ pub fn measure_dbh_of(src: &SliceSource<'_>, params: &DbhParams) -> Option<StemD
     }
     if let Some(b) = breast
         && acceptable(&b.0, params)
+        && (src.center_prior.is_none() || b.0.arc_coverage >= MIN_STEM_ARC)
     {
         return Some(make(b, params.breast_height_m, FitQuality::PartialArc));
     }

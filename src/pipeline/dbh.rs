@@ -813,4 +813,33 @@ mod tests {
         assert_eq!(fit.dbh.slice_height_m, 1.1, "{fit:?}");
         assert_eq!(fit.dbh.quality, FitQuality::FallbackSlice, "{fit:?}");
     }
+
+    #[test]
+    fn an_arc_under_a_quarter_of_the_stem_is_no_diameter() {
+        let base = Vec3::new(1.0, 1.0, 0.0);
+        let s = stem(base, Vec3::Z, 0.12);
+        // A sixth of the stem at breast height, the whole of it elsewhere: the centre prior
+        // does not keep so short an arc; the 1.1 m slice gives the diameter.
+        let mut g = Gaussians::default();
+        cylinder(&mut g, base, Vec3::Z, 0.12, 0.0, 60.0, 2.0, None);
+        cylinder(
+            &mut g,
+            base,
+            Vec3::Z,
+            0.12,
+            60.0,
+            360.0,
+            2.0,
+            Some((1.19, 1.41)),
+        );
+        let fit = gaussian_dbh(&trunk(&g), &s, &params()).expect("fit");
+        assert_eq!(fit.dbh.quality, FitQuality::FallbackSlice, "{fit:?}");
+        assert_eq!(fit.dbh.slice_height_m, 1.1, "{fit:?}");
+        assert!((fit.dbh.diameter_m - 0.24).abs() < 0.002, "{fit:?}");
+        // A sixth of the stem and nothing more at any height: no Gaussian diameter at all.
+        let mut g = Gaussians::default();
+        cylinder(&mut g, base, Vec3::Z, 0.12, 0.0, 60.0, 2.0, None);
+        let fit = gaussian_dbh(&trunk(&g), &s, &params());
+        assert!(fit.is_none(), "{fit:?}");
+    }
 }
