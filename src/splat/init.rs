@@ -191,8 +191,10 @@ pub struct CoverageFill {
     /// one sample per 2 px at 320 px).
     pub samples_per_side: u32,
     /// A depth is taken only when its cost is at most this share of the median cost over the
-    /// candidates (a clear minimum); otherwise the cell goes to `depth_percentile`. Default 0.8
-    /// (ours: a textureless cell, sky or a plain wall, costs the same at every depth).
+    /// candidates (a clear minimum) and of the cell's cost against a flat patch (its texture:
+    /// a depth must match better than nothing would); otherwise the cell goes to
+    /// `depth_percentile`. Default 0.8 (ours: a textureless cell, sky or a plain wall, costs
+    /// about the same at every depth, and never much less than its own texture).
     pub max_cost_ratio: f32,
     /// Whether a cell that none of the `neighbours` sees (at fewer than 3 of the depths) also
     /// goes to `depth_percentile` (when that is set). Default false (ours: only its own photo
@@ -495,7 +497,39 @@ impl Sweep {
             .filter_map(|(k, c)| Some((k, (*c)?)))
             .min_by(|a, b| a.1.total_cmp(&b.1))
             .unwrap_or((0, f32::INFINITY));
-        if !(median > 0.0 && best <= params.max_cost_ratio * median) {
+        // The cost of this patch against a flat one (its own texture): a depth is a match only
+        // where it beats that by the same margin. Without this, a textureless cell (sky, a
+        // plain wall) whose neighbours' patches cross an edge at some depths and plain sky at
+        // others has a clear minimum that is no depth at all (the generated `object` scene:
+        // 2 953 sky-coloured Gaussians of 3 973 placed in front of the scene, issue 38).
+        // Its texture is what a plane (a constant and a gradient per channel) leaves of it: a
+        // ramp alone, as a sky's, lines up with itself at any depth.
+        let texture = detail(&own, n);
+        // And the minimum must be the only one: a smooth ramp (a sky's gradient) matches itself
+        // at every depth where the neighbours' patches stay on it, so its cost curve holds
+        // several minima about as low (Lowe's ratio test, on the curve's local minima).
+        let local_minimum = |i: usize, c: f32| {
+            let left = i.checked_sub(1).and_then(|j| costs[j]);
+            let right = costs.get(i + 1).copied().flatten();
+            left.is_none_or(|l| l >= c) && right.is_none_or(|r| r >= c)
+        };
+        let second = costs
+            .iter()
+            .enumerate()
+            .filter_map(|(i, c)| Some((i, (*c)?)))
+            .filter(|&(i, c)| i != k && local_minimum(i, c))
+            .map(|(_, c)| c)
+            .min_by(f32::total_cmp)
+            .unwrap_or(f32::INFINITY);
+        let floor = median.min(texture).min(second);
+        // A minimum at the end of the swept range (or beside a depth no neighbour sees) may lie
+        // beyond it: a sky's cost falls toward the far end, where the parallax vanishes.
+        let interior =
+            k > 0 && costs[k - 1].is_some() && costs.get(k + 1).copied().flatten().is_some();
+        // Strictly below, and on more texture than the photos' 8-bit steps make: a flat patch
+        // costs 0 wherever it lands on flat sky, and a gradient quantised to steps of one grey
+        // level leaves a residual of a fraction of one.
+        if !(interior && texture >= MIN_TEXTURE && best < params.max_cost_ratio * floor) {
             return Placement::Ambiguous;
         }
         // Between the candidates: the vertex of the parabola through the best cost and its two
@@ -533,6 +567,38 @@ fn opaque_sample(img: &PackedImage, cam: &Camera, x: f32, y: f32) -> Option<[f32
     }
     let s = img.sample_bilinear(f64::from(x), f64::from(y))?;
     (s[3] >= 254.5).then_some([s[0], s[1], s[2]])
+}
+
+/// Least texture ([`detail`]) a cell needs for a depth, grey levels: one step of an 8-bit
+/// photo (ours; a quantised smooth gradient leaves about a quarter of one).
+const MIN_TEXTURE: f32 = 1.0;
+
+/// Mean absolute residual of `s` (an `n` × `n` grid of samples, row-major, each channel of
+/// zero mean) about its least-squares plane per channel, grey levels (0–255): the texture that
+/// a gradient does not explain.
+fn detail(s: &[[f32; 3]], n: u32) -> f32 {
+    let n = n as usize;
+    if n < 2 || s.len() != n * n {
+        return 0.0;
+    }
+    // Centred grid coordinates: the plane's constant, u and v terms are orthogonal.
+    let c = |i: usize| i as f32 - 0.5 * (n - 1) as f32;
+    let suu: f32 = (0..n).map(|i| c(i) * c(i)).sum::<f32>() * n as f32;
+    let mut total = 0.0f32;
+    for k in 0..3 {
+        let (mut su, mut sv) = (0.0f32, 0.0f32);
+        for (j, p) in s.iter().enumerate() {
+            su += p[k] * c(j % n);
+            sv += p[k] * c(j / n);
+        }
+        let (bu, bv) = (su / suu, sv / suu);
+        total += s
+            .iter()
+            .enumerate()
+            .map(|(j, p)| (p[k] - bu * c(j % n) - bv * c(j / n)).abs())
+            .sum::<f32>();
+    }
+    total / (3 * s.len()) as f32
 }
 
 /// The samples less their mean colour, per channel.

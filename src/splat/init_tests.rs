@@ -210,11 +210,18 @@ fn uncovered_cells_are_filled_once_at_the_depth_of_the_scene() {
 /// A textured plane at 5 m (0.3 m squares of random grey) seen by `n` 64×64 cameras in a row
 /// along x, 0.5 m apart, looking down +z from z = 0 (f = 64 px).
 fn plane_views(n: usize) -> Vec<View> {
-    let texture = |x: f32, y: f32| {
-        let (i, j) = ((x / 0.3).floor() as i64, (y / 0.3).floor() as i64);
-        let mut rng = SplitMix64::new((i * 7919 + j * 104_729) as u64);
-        (rng.below(200) + 30) as u8
-    };
+    plane_views_with(n, &squares)
+}
+
+/// Grey level of the random 0.3 m squares at (`x`, `y`) on the plane.
+fn squares(x: f32, y: f32) -> u8 {
+    let (i, j) = ((x / 0.3).floor() as i64, (y / 0.3).floor() as i64);
+    let mut rng = SplitMix64::new((i * 7919 + j * 104_729) as u64);
+    (rng.below(200) + 30) as u8
+}
+
+/// [`plane_views`] with the plane's grey level given by `texture` (metres on the plane).
+fn plane_views_with(n: usize, texture: &dyn Fn(f32, f32) -> u8) -> Vec<View> {
     (0..n)
         .map(|k| {
             let x0 = 0.5 * k as f32;
@@ -247,6 +254,50 @@ fn plane_views(n: usize) -> Vec<View> {
             }
         })
         .collect()
+}
+
+/// A plane whose left part is a smooth ramp, as sky is, and whose right part is textured: the
+/// ramp's cells are left alone, though at some depths their neighbours' patches cross onto
+/// the texture and at others stay on the ramp (a clear minimum of the cost that is no depth),
+/// while the textured cells still go to the plane.
+#[test]
+fn a_textureless_cell_beside_texture_gets_no_depth() {
+    let edge = 1.0;
+    let sky = move |x: f32, y: f32| {
+        if x < edge {
+            (140.0 + 4.0 * x + 2.0 * y).round().clamp(0.0, 255.0) as u8
+        } else {
+            squares(x, y)
+        }
+    };
+    let views = plane_views_with(4, &sky);
+    let mut pts = Vec::new();
+    for k in 0..80 {
+        pts.push([-3.0 + 0.05 * k as f32, -4.5, 10.0]);
+    }
+    for k in 0..20 {
+        pts.push([-1.2 + 0.02 * k as f32, -1.9, 4.0]);
+    }
+    let cols = vec![[128u8; 3]; pts.len()];
+    let start = from_sfm_points(&pts, &cols).expect("points");
+    let params = CoverageFill {
+        cells_long_side: 8,
+        ..CoverageFill::default()
+    };
+    let mut g = start.clone();
+    let report = fill_uncovered(&mut g, &views, &params);
+    assert!(report.ambiguous > 0, "{report:?}");
+    assert!(report.agreed > 10, "{report:?}");
+    let fills = &g.means[start.len()..];
+    // Every cell placed lies on the plane, and on its textured part (the ramp's σ-wide cells
+    // reach at most half a cell, 0.3 m, past the edge).
+    for m in fills {
+        assert!((m[2] - 5.0).abs() < 0.4, "a fill at {m:?}: {report:?}");
+        assert!(
+            m[0] > edge - 0.35,
+            "a fill on the ramp at {m:?}: {report:?}"
+        );
+    }
 }
 
 /// Where SfM saw only a far wall (10 m) and a few near points (4 m), a textured surface at
