@@ -163,6 +163,7 @@ pub(super) fn fill_choice(value: &str) -> anyhow::Result<Option<sylva::splat::in
     #[derive(Clone, Copy)]
     enum Fill {
         On,
+        Textured,
         Guess,
         Off,
     }
@@ -170,10 +171,19 @@ pub(super) fn fill_choice(value: &str) -> anyhow::Result<Option<sylva::splat::in
     let fill = choice(
         "--fill",
         value,
-        &[("on", Fill::On), ("guess", Fill::Guess), ("off", Fill::Off)],
+        &[
+            ("on", Fill::On),
+            ("textured", Fill::Textured),
+            ("guess", Fill::Guess),
+            ("off", Fill::Off),
+        ],
     )?;
     Ok(match fill {
         Fill::On => Some(on),
+        Fill::Textured => Some(sylva::splat::init::CoverageFill {
+            textured: true,
+            ..on
+        }),
         Fill::Guess => Some(sylva::splat::init::CoverageFill {
             depth_percentile: Some(0.9),
             place_unseen: true,
@@ -447,10 +457,18 @@ mod tests {
         assert_eq!(guess.depth_percentile, Some(0.9));
         assert!(guess.place_unseen);
         assert_eq!(guess.depth_candidates, on.depth_candidates);
+        assert!(
+            fill_choice("textured")
+                .expect("textured")
+                .expect("a fill")
+                .textured
+        );
+        assert!(!on.textured);
         assert!(fill_choice("off").expect("off").is_none());
         let err = fill_choice("yes").expect_err("not a choice");
         assert!(
-            err.to_string().contains("--fill must be on, guess or off"),
+            err.to_string()
+                .contains("--fill must be on, textured, guess or off"),
             "{err}"
         );
     }

@@ -256,8 +256,8 @@ fn plane_views_with(n: usize, texture: &dyn Fn(f32, f32) -> u8) -> Vec<View> {
         .collect()
 }
 
-/// A plane whose left part is a smooth ramp, as sky is, and whose right part is textured: the
-/// ramp's cells are left alone, though at some depths their neighbours' patches cross onto
+/// A plane whose left part is a smooth ramp, as sky is, and whose right part is textured: with
+/// `textured` the ramp's cells are left alone, though at some depths their neighbours' patches cross onto
 /// the texture and at others stay on the ramp (a clear minimum of the cost that is no depth),
 /// while the textured cells still go to the plane.
 #[test]
@@ -282,8 +282,25 @@ fn a_textureless_cell_beside_texture_gets_no_depth() {
     let start = from_sfm_points(&pts, &cols).expect("points");
     let params = CoverageFill {
         cells_long_side: 8,
+        textured: true,
         ..CoverageFill::default()
     };
+    // The default rule places ramp cells: a minimum of the cost, at no depth.
+    let mut plain = start.clone();
+    fill_uncovered(
+        &mut plain,
+        &views,
+        &CoverageFill {
+            textured: false,
+            ..params
+        },
+    );
+    assert!(
+        plain.means[start.len()..]
+            .iter()
+            .any(|m| m[0] < edge - 0.35),
+        "the rule without texture placed no ramp cell"
+    );
     let mut g = start.clone();
     let report = fill_uncovered(&mut g, &views, &params);
     assert!(report.ambiguous > 0, "{report:?}");
