@@ -507,40 +507,8 @@ impl Sweep {
             .filter_map(|(k, c)| Some((k, (*c)?)))
             .min_by(|a, b| a.1.total_cmp(&b.1))
             .unwrap_or((0, f32::INFINITY));
-        // The cost of this patch against a flat one (its own texture): a depth is a match only
-        // where it beats that by the same margin. Without this, a textureless cell (sky, a
-        // plain wall) whose neighbours' patches cross an edge at some depths and plain sky at
-        // others has a clear minimum that is no depth at all (the generated `object` scene:
-        // 2 953 sky-coloured Gaussians of 3 973 placed in front of the scene, issue 38).
-        // Its texture is what a plane (a constant and a gradient per channel) leaves of it: a
-        // ramp alone, as a sky's, lines up with itself at any depth.
-        let texture = detail(&own, n);
-        // And the minimum must be the only one: a smooth ramp (a sky's gradient) matches itself
-        // at every depth where the neighbours' patches stay on it, so its cost curve holds
-        // several minima about as low (Lowe's ratio test, on the curve's local minima).
-        let local_minimum = |i: usize, c: f32| {
-            let left = i.checked_sub(1).and_then(|j| costs[j]);
-            let right = costs.get(i + 1).copied().flatten();
-            left.is_none_or(|l| l >= c) && right.is_none_or(|r| r >= c)
-        };
-        let second = costs
-            .iter()
-            .enumerate()
-            .filter_map(|(i, c)| Some((i, (*c)?)))
-            .filter(|&(i, c)| i != k && local_minimum(i, c))
-            .map(|(_, c)| c)
-            .min_by(f32::total_cmp)
-            .unwrap_or(f32::INFINITY);
-        let floor = median.min(texture).min(second);
-        // A minimum at the end of the swept range (or beside a depth no neighbour sees) may lie
-        // beyond it: a sky's cost falls toward the far end, where the parallax vanishes.
-        let interior =
-            k > 0 && costs[k - 1].is_some() && costs.get(k + 1).copied().flatten().is_some();
-        // Strictly below, and on more texture than the photos' 8-bit steps make: a flat patch
-        // costs 0 wherever it lands on flat sky, and a gradient quantised to steps of one grey
-        // level leaves a residual of a fraction of one.
         let placed = if params.textured {
-            interior && texture >= MIN_TEXTURE && best < params.max_cost_ratio * floor
+            textured_match(&own, n, &costs, k, best, median, params.max_cost_ratio)
         } else {
             median > 0.0 && best <= params.max_cost_ratio * median
         };
@@ -582,6 +550,53 @@ fn opaque_sample(img: &PackedImage, cam: &Camera, x: f32, y: f32) -> Option<[f32
     }
     let s = img.sample_bilinear(f64::from(x), f64::from(y))?;
     (s[3] >= 254.5).then_some([s[0], s[1], s[2]])
+}
+
+/// The tests of [`CoverageFill::textured`] for the least cost `best` at candidate `k` of
+/// `costs` (median `median`), the cell's own samples `own` (an `n` × `n` grid, less its mean):
+/// a match better than a flat patch, the only local minimum, inside the swept range, on at
+/// least [`MIN_TEXTURE`] of texture.
+fn textured_match(
+    own: &[[f32; 3]],
+    n: u32,
+    costs: &[Option<f32>],
+    k: usize,
+    best: f32,
+    median: f32,
+    ratio: f32,
+) -> bool {
+    // The cost of this patch against a flat one (its own texture): a depth is a match only
+    // where it beats that by the same margin. Without this, a textureless cell (sky, a plain
+    // wall) whose neighbours' patches cross an edge at some depths and plain sky at others has
+    // a clear minimum that is no depth at all (the generated `object` scene: 2 953
+    // sky-coloured Gaussians of 3 973 placed in front of the scene, issue 38). Its texture is
+    // what a plane (a constant and a gradient per channel) leaves of it: a ramp alone, as a
+    // sky's, lines up with itself at any depth.
+    let texture = detail(own, n);
+    // And the minimum must be the only one: a smooth ramp (a sky's gradient) matches itself at
+    // every depth where the neighbours' patches stay on it, so its cost curve holds several
+    // minima about as low (Lowe's ratio test, on the curve's local minima).
+    let local_minimum = |i: usize, c: f32| {
+        let left = i.checked_sub(1).and_then(|j| costs[j]);
+        let right = costs.get(i + 1).copied().flatten();
+        left.is_none_or(|l| l >= c) && right.is_none_or(|r| r >= c)
+    };
+    let second = costs
+        .iter()
+        .enumerate()
+        .filter_map(|(i, c)| Some((i, (*c)?)))
+        .filter(|&(i, c)| i != k && local_minimum(i, c))
+        .map(|(_, c)| c)
+        .min_by(f32::total_cmp)
+        .unwrap_or(f32::INFINITY);
+    let floor = median.min(texture).min(second);
+    // A minimum at the end of the swept range (or beside a depth no neighbour sees) may lie
+    // beyond it: a sky's cost falls toward the far end, where the parallax vanishes.
+    let interior = k > 0 && costs[k - 1].is_some() && costs.get(k + 1).copied().flatten().is_some();
+    // Strictly below, and on more texture than the photos' 8-bit steps make: a flat patch
+    // costs 0 wherever it lands on flat sky, and a gradient quantised to steps of one grey
+    // level leaves a residual of a fraction of one.
+    interior && texture >= MIN_TEXTURE && best < ratio * floor
 }
 
 /// Least texture ([`detail`]) a cell needs for a depth, grey levels: one step of an 8-bit
