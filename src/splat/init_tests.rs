@@ -256,6 +256,20 @@ fn plane_views_with(n: usize, texture: &dyn Fn(f32, f32) -> u8) -> Vec<View> {
         .collect()
 }
 
+/// The SfM start of the plane scenes: a far wall at 10 m and a few near points at 4 m, none on
+/// the plane at 5 m.
+fn wall_and_near_points() -> Gaussians {
+    let mut pts = Vec::new();
+    for k in 0..80 {
+        pts.push([-3.0 + 0.05 * k as f32, -4.5, 10.0]);
+    }
+    for k in 0..20 {
+        pts.push([-1.2 + 0.02 * k as f32, -1.9, 4.0]);
+    }
+    let cols = vec![[128u8; 3]; pts.len()];
+    from_sfm_points(&pts, &cols).expect("points")
+}
+
 /// A plane whose left part is a smooth ramp, as sky is, and whose right part is textured: with
 /// `textured` the ramp's cells are left alone, though at some depths their neighbours' patches cross onto
 /// the texture and at others stay on the ramp (a clear minimum of the cost that is no depth),
@@ -271,15 +285,7 @@ fn a_textureless_cell_beside_texture_gets_no_depth() {
         }
     };
     let views = plane_views_with(4, &sky);
-    let mut pts = Vec::new();
-    for k in 0..80 {
-        pts.push([-3.0 + 0.05 * k as f32, -4.5, 10.0]);
-    }
-    for k in 0..20 {
-        pts.push([-1.2 + 0.02 * k as f32, -1.9, 4.0]);
-    }
-    let cols = vec![[128u8; 3]; pts.len()];
-    let start = from_sfm_points(&pts, &cols).expect("points");
+    let start = wall_and_near_points();
     let params = CoverageFill {
         cells_long_side: 8,
         textured: true,
@@ -323,15 +329,7 @@ fn a_textureless_cell_beside_texture_gets_no_depth() {
 #[test]
 fn uncovered_texture_goes_to_the_depth_the_photos_agree_on() {
     let views = plane_views(4);
-    let mut pts = Vec::new();
-    for k in 0..80 {
-        pts.push([-3.0 + 0.05 * k as f32, -4.5, 10.0]);
-    }
-    for k in 0..20 {
-        pts.push([-1.2 + 0.02 * k as f32, -1.9, 4.0]);
-    }
-    let cols = vec![[128u8; 3]; pts.len()];
-    let start = from_sfm_points(&pts, &cols).expect("points");
+    let start = wall_and_near_points();
     let params = CoverageFill {
         cells_long_side: 8,
         depth_percentile: Some(0.9),
