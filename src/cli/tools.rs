@@ -56,8 +56,9 @@ pub struct TrainArgs {
     /// With `--init sfm`, add Gaussians where the training photos see what no SfM point
     /// covers (`splat::init::fill_uncovered`: dense canopy from above, sky, walls): `on`
     /// (where the photos agree on a depth for the cell), `textured` (only where the cell has
-    /// texture and its cost one clear minimum: no flat sky placed in front of the scene), `guess` (every such cell, those
-    /// without an agreed depth far back in what their photo sees) or `off`. On by default
+    /// texture and its cost one clear minimum: no flat sky placed in front of the scene),
+    /// `guess` (every such cell, those without an agreed depth far back in what their photo
+    /// sees) or `off`. On by default
     /// (ours: Brighton's UAV photos lost their forest without it, and the guessed cells cost
     /// its held-out photos up to 1 dB at 2000 steps, issue 38).
     #[arg(long, env = "SYLVA_TRAIN_FILL", default_value = "on")]

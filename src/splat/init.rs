@@ -191,10 +191,9 @@ pub struct CoverageFill {
     /// one sample per 2 px at 320 px).
     pub samples_per_side: u32,
     /// A depth is taken only when its cost is at most this share of the median cost over the
-    /// candidates (a clear minimum) and of the cell's cost against a flat patch (its texture:
-    /// a depth must match better than nothing would); otherwise the cell goes to
-    /// `depth_percentile`. Default 0.8 (ours: a textureless cell, sky or a plain wall, costs
-    /// about the same at every depth, and never much less than its own texture).
+    /// candidates (a clear minimum; with `textured`, see there, also of more); otherwise the
+    /// cell goes to `depth_percentile`. Default 0.8 (ours: a textureless cell, sky or a plain
+    /// wall, costs the same at every depth).
     pub max_cost_ratio: f32,
     /// Whether a cell that none of the `neighbours` sees (at fewer than 3 of the depths) also
     /// goes to `depth_percentile` (when that is set). Default false (ours: only its own photo
